@@ -1,0 +1,108 @@
+"""Pinhole cameras and their rays (OpenGL / NeRF-synthetic convention).
+
+A camera is a 4×4 camera-to-world matrix ``c2w`` whose columns are the camera's x (right),
+y (up) and z (backwards) axes and its center; the camera looks down its **-Z** axis with +Y up.
+The world is Z-up, as in Blender's NeRF-synthetic scenes.  Rays go through pixel **centers**:
+pixel (i, j) — column i, row j, row 0 at the top — has direction
+``((i + 0.5 - cx) / f, -(j + 0.5 - cy) / f, -1)`` in camera space.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera; ``c2w`` is a float64 [4, 4] array, ``focal`` in pixels."""
+
+    c2w: np.ndarray  # [4, 4]
+    focal: float
+    width: int
+    height: int
+
+    @property
+    def camera_angle_x(self) -> float:
+        """Horizontal field of view in radians (the NeRF-synthetic ``camera_angle_x``)."""
+        return 2.0 * math.atan(0.5 * self.width / self.focal)
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.c2w[:3, 3]
+
+    def resized(self, width: int, height: int | None = None) -> "Camera":
+        """The same camera at another resolution (focal scaled with the width)."""
+        height = height if height is not None else round(self.height * width / self.width)
+        return replace(self, focal=self.focal * width / self.width, width=width, height=height)
+
+
+def focal_from_angle(camera_angle_x: float, width: int) -> float:
+    """``f = 0.5 W / tan(0.5 camera_angle_x)``."""
+    return 0.5 * width / math.tan(0.5 * camera_angle_x)
+
+
+class Rays(NamedTuple):
+    """A batch of rays; ``directions`` have unit length, so ``t`` is a distance."""
+
+    origins: torch.Tensor  # [N, 3]
+    directions: torch.Tensor  # [N, 3]
+
+
+def ray_directions_camera(width: int, height: int, focal: float) -> torch.Tensor:
+    """Unnormalized camera-space directions through pixel centers, row-major.  [H*W, 3]
+
+    Example: a 2×2 image with focal 1 gives (-0.5, 0.5, -1), (0.5, 0.5, -1),
+    (-0.5, -0.5, -1), (0.5, -0.5, -1).
+    """
+    j, i = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
+    )
+    x = (i + 0.5 - 0.5 * width) / focal
+    y = -(j + 0.5 - 0.5 * height) / focal
+    return torch.stack([x, y, -torch.ones_like(x)], dim=-1).reshape(-1, 3)
+
+
+def rays_from_camera(camera: Camera, device: torch.device | str = "cpu") -> Rays:
+    """All rays of ``camera`` in row-major pixel order, float32 on ``device``."""
+    d_cam = ray_directions_camera(camera.width, camera.height, camera.focal)
+    c2w = torch.as_tensor(camera.c2w, dtype=torch.float64)
+    d = d_cam @ c2w[:3, :3].T
+    d = d / d.norm(dim=-1, keepdim=True)
+    o = c2w[:3, 3].expand_as(d)
+    return Rays(o.to(device=device, dtype=torch.float32).contiguous(), d.to(device=device, dtype=torch.float32))
+
+
+def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world matrix of a camera at ``eye`` looking at ``target`` (OpenGL axes)."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    back = eye - target
+    back /= np.linalg.norm(back)
+    right = np.cross(up, back)
+    if np.linalg.norm(right) < 1e-9:  # looking straight along `up`
+        right = np.cross(np.array([0.0, 1.0, 0.0]), back)
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(back, right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, cam_up, back, eye
+    return c2w
+
+
+def spherical_eye(azimuth_deg: float, elevation_deg: float, radius: float) -> np.ndarray:
+    """Point on a Z-up sphere; azimuth from +X towards +Y, elevation above the XY plane."""
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+
+def orbit_cameras(
+    n: int, elevation_deg: float, radius: float, focal: float, width: int, height: int
+) -> list[Camera]:
+    """``n`` cameras evenly spaced in azimuth around the Z axis, all looking at the origin."""
+    return [
+        Camera(look_at(spherical_eye(360.0 * k / n, elevation_deg, radius)), focal, width, height)
+        for k in range(n)
+    ]

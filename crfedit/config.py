@@ -1,0 +1,175 @@
+"""Configuration: one frozen dataclass, named presets, overrides from the command line.
+
+``fast`` (default) is the small, grid-accelerated model that trains in minutes on a laptop
+CPU; ``paper`` is the architecture and sampling of Liu et al. (ICCV 2021) for reproduction.
+The resolved config is stored in every model file, so a model always renders the way it was
+trained.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, fields
+
+from .errors import CrfError
+
+
+@dataclass(frozen=True)
+class Config:
+    """Every knob of the field, the renderer and training.  Lengths are in world units."""
+
+    preset: str = "fast"
+    arch: str = "ours"
+    """Ablation variant (paper Table 1): ours | separate (codes, no shared branch) | single (one
+    latent code for shape and color) | nerf (no codes: one field for the whole category)."""
+    # --- field -----------------------------------------------------------------------------
+    code_dim: int = 32
+    """Size of each per-instance shape code and color code."""
+    code_embed: int = 32
+    """Codes enter the network through Linear(code_dim, code_embed)+ReLU."""
+    pe_x: int = 4
+    """Positional-encoding frequencies for positions."""
+    pe_d: int = 2
+    """Positional-encoding frequencies for view directions."""
+    grid_res: int = 48
+    """Instance-agnostic dense feature grid inside F_share (0 = none)."""
+    grid_features: int = 8
+    width: int = 64
+    """Width of F_share, F_inst and F_fuse."""
+    share_layers: int = 1
+    inst_layers: int = 2
+    fuse_layers: int = 1
+    bottleneck: int = 8
+    rad_width: int = 64
+    rad_layers: int = 1
+    # --- sampling --------------------------------------------------------------------------
+    sampler: str = "grid"
+    """grid: march a per-instance occupancy grid; hierarchical: the paper's coarse + fine."""
+    occ_res: int = 64
+    """Occupancy-grid cells per side (per instance)."""
+    steps_per_cell: float = 2.0
+    """Marching step = cell size / steps_per_cell."""
+    n_coarse: int = 64
+    n_fine: int = 128
+    early_stop: float = 1e-4
+    """Stop marching a ray once its transmittance falls below this when rendering."""
+    train_early_stop: float = 1e-3
+    """The same during training (grid sampler): samples behind opaque surfaces are skipped."""
+    # --- training --------------------------------------------------------------------------
+    rays: int = 4096
+    """Rays per training step."""
+    steps: int = 6000
+    lr: float = 5e-3
+    lr_codes: float = 5e-3
+    lr_final: float = 0.05
+    """Final learning rate as a fraction of the initial one (cosine decay)."""
+    occ_every: int = 16
+    """Update occupancy grids from the density every this many steps."""
+    occ_warmup: int = 256
+    """Steps before the first occupancy update."""
+    occ_threshold: float = 0.01
+    """A cell stays occupied while its opacity over one step, 1-exp(-σ·step), exceeds this."""
+    density_noise: float = 1.0
+    """Std of noise added to raw density early in training (avoids the all-empty start)."""
+    view_reg: float = 0.0
+    """Weight of the paper's view-dependence regularizer (one view per instance)."""
+    checkpoint_every: int = 500
+    eval_views: int = 5
+    """Held-out views per instance scored at the end of training."""
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> "Config":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise CrfError(f"model config is not valid JSON ({e.msg})") from None
+        if not isinstance(data, dict):
+            raise CrfError("model config is not a JSON object")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise CrfError(f"model config has unknown keys: {', '.join(unknown)}")
+        return cls(**data).validated()
+
+    def validated(self) -> "Config":
+        """Raise a one-line CrfError for values that cannot work."""
+        checks = [
+            (self.preset in PRESETS, f"preset {self.preset!r}: expected one of {', '.join(PRESETS)}"),
+            (self.arch in ARCHS, f"arch {self.arch!r}: expected one of {', '.join(ARCHS)}"),
+            (self.sampler in ("grid", "hierarchical"), f"sampler {self.sampler!r}: expected grid or hierarchical"),
+            (self.code_dim > 0 and self.code_embed > 0, "code_dim and code_embed must be positive"),
+            (self.width > 0 and self.rad_width > 0 and self.bottleneck > 0, "widths must be positive"),
+            (min(self.share_layers, self.inst_layers, self.fuse_layers, self.rad_layers) >= 1, "layer counts must be ≥ 1"),
+            (self.pe_x >= 0 and self.pe_d >= 0 and self.grid_res >= 0, "encoding sizes must be ≥ 0"),
+            (self.occ_res >= 2, "occ_res must be ≥ 2"),
+            (self.steps_per_cell > 0, "steps_per_cell must be > 0"),
+            (self.n_coarse >= 1 and self.n_fine >= 0, "n_coarse must be ≥ 1 and n_fine ≥ 0"),
+            (self.rays >= 1, "rays must be ≥ 1"),
+            (self.steps >= 1, "steps must be ≥ 1"),
+            (self.lr > 0 and self.lr_codes > 0, "learning rates must be > 0"),
+            (self.occ_every >= 1 and self.checkpoint_every >= 1, "intervals must be ≥ 1"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise CrfError(message)
+        return self
+
+
+ARCHS = ("ours", "separate", "single", "nerf")
+
+PRESETS: dict[str, Config] = {
+    "fast": Config(),
+    "paper": Config(
+        preset="paper",
+        pe_x=10,
+        pe_d=4,
+        grid_res=0,
+        width=256,
+        share_layers=4,
+        inst_layers=4,
+        fuse_layers=4,
+        rad_width=128,
+        rad_layers=1,
+        sampler="hierarchical",
+        n_coarse=64,
+        n_fine=128,
+        rays=1024,
+        steps=200_000,
+        lr=1e-4,
+        lr_codes=1e-4,
+        lr_final=0.1,
+    ),
+}
+
+
+def _coerce(name: str, value: str, current):
+    try:
+        if isinstance(current, bool):
+            if value.lower() in ("1", "true", "yes", "on"):
+                return True
+            if value.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError
+        return type(current)(value)
+    except ValueError:
+        raise CrfError(f"--set {name}={value}: expected a {type(current).__name__}") from None
+
+
+def make_config(preset: str = "fast", overrides: dict[str, object] | None = None, sets: list[str] = ()) -> Config:
+    """The named preset with typed ``overrides`` and ``key=value`` strings (``--set``) applied."""
+    if preset not in PRESETS:
+        raise CrfError(f"--preset {preset}: expected one of {', '.join(PRESETS)}")
+    cfg = PRESETS[preset]
+    known = {f.name: getattr(cfg, f.name) for f in fields(cfg)}
+    changes = {k: v for k, v in (overrides or {}).items() if v is not None}
+    for item in sets:
+        key, sep, value = item.partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or key not in known:
+            raise CrfError(f"--set {item}: expected KEY=VALUE with KEY one of {', '.join(sorted(known))}")
+        changes[key] = _coerce(key, value.strip(), known[key])
+    return dataclasses.replace(cfg, **changes).validated()

@@ -1,0 +1,605 @@
+"""Category datasets from real meshes: load, split into parts, normalize, ray-cast, write.
+
+A mesh file (OBJ + MTL, PLY, GLB/glTF — whatever trimesh reads) becomes one instance:
+
+1. **Parts** are the file's material groups: the faces of each material (OBJ ``usemtl``, glTF
+   material, or per-geometry when a scene node has none) form one part, numbered 1..P in order
+   of material name; a single PLY/OFF-style mesh with a handful of distinct face colors gets
+   one part per color.
+2. **Normalization**: an optional sidecar rotation (``<stem>.meta.json``), then ``up="y"`` maps
+   Y-up files to the world's Z-up (``(x, y, z) → (x, -z, y)``); the bounding box is centered on
+   the origin and scaled so its largest side is 1 — the object fits ``[-0.5, 0.5]^3``.
+3. **Colors**: ``palette="random"`` gives every part a distinct, slightly jittered color of
+   ``dataset synth``'s woods/fabrics/metals palette; ``palette="mtl"`` takes the material's own
+   color — the mean of its diffuse / base-color texture when it has one, else its ``Kd`` / base
+   color factor, or the mean face color of a colored mesh; a part with none gets
+   :data:`FALLBACK_GRAY`.
+4. **Rendering**: one ray per pixel center, first hit by Embree (``embreex``), the hit distance
+   recomputed in float64 against the hit triangle's plane; the shading normal is the face normal
+   flipped toward the camera, ``rgb = albedo · (0.35 + 0.65 · max(0, n·L))`` — the same
+   view-independent shading as ``dataset synth``.
+
+The sidecar ``<mesh stem>.meta.json`` beside a mesh may hold ``name``, ``title``, ``creator``,
+``license``, ``license_url``, ``source`` (written to the dataset's ``ATTRIBUTION.txt``) and
+``rotation`` (row-major 3×3, applied to the file's coordinates before ``up``).
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..cameras import Camera
+from ..errors import CrfError, DataError
+from ..io import atomic_write_text, read_json, write_png
+from .format import Frame, TwinSpec, write_instances_txt, write_parts, write_split, write_twins_json
+from .synth import (
+    PALETTE,
+    SynthConfig,
+    _jitter,
+    camera_rays,
+    check_synth_args,
+    contrasting_color,
+    erode,
+    hex_to_rgb,
+    rgb_to_hex,
+    sample_cameras,
+    scribbles,
+    shade,
+    twin_sources,
+)
+
+INSTALL_HINT = "pip install 'crfedit[meshes]'"
+MAX_COLOR_PARTS = 32  # a colored mesh with more distinct face colors is painted, not parted
+FALLBACK_GRAY = (0.7, 0.7, 0.7)
+
+
+@dataclass(frozen=True, eq=False)
+class Part:
+    id: int  # 1..P, the value in the part map
+    name: str
+    material_color: tuple[float, float, float] | None  # rgb in [0, 1] from the file, if any
+
+
+@dataclass(frozen=True, eq=False)
+class PartMesh:
+    """A triangle soup whose faces are labeled with part ids."""
+
+    vertices: np.ndarray  # [V, 3] float64
+    faces: np.ndarray  # [F, 3] int64
+    face_part: np.ndarray  # [F] uint8, 1..P
+    parts: list[Part] = field(default_factory=list)
+
+    def without_part(self, part_id: int) -> "PartMesh":
+        """The same mesh with part ``part_id``'s faces removed (vertices and ids kept)."""
+        keep = self.face_part != part_id
+        return PartMesh(self.vertices, self.faces[keep], self.face_part[keep], self.parts)
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def _trimesh():
+    try:
+        import trimesh
+    except ImportError:
+        raise DataError(f"trimesh is not installed: {INSTALL_HINT}") from None
+    return trimesh
+
+
+def read_meta(path: Path) -> dict:
+    """The sidecar ``<stem>.meta.json`` of mesh ``path``, or ``{}`` when there is none."""
+    sidecar = Path(path).with_suffix(".meta.json")
+    if not sidecar.is_file():
+        return {}
+    try:
+        meta = read_json(sidecar)
+    except CrfError as e:
+        raise DataError(str(e)) from None
+    if not isinstance(meta, dict):
+        raise DataError(f"{sidecar}: expected a JSON object")
+    return meta
+
+
+def _material_color(visual, material, trimesh) -> tuple[float, float, float] | None:
+    """The diffuse color of a trimesh visual: texture mean, else Kd / base color factor."""
+    if material is None:
+        if isinstance(visual, trimesh.visual.ColorVisuals) and visual.defined:
+            rgb = np.asarray(visual.face_colors, dtype=np.float64)[:, :3] / 255.0
+            return tuple(float(c) for c in rgb.mean(axis=0))
+        return None
+    image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
+    factor = None
+    if hasattr(material, "baseColorFactor") and material.baseColorFactor is not None:
+        factor = np.asarray(material.baseColorFactor, dtype=np.float64)[:3]
+        factor = factor / 255.0 if factor.max() > 1.0 else factor
+    if image is not None:
+        arr = np.asarray(image.convert("RGBA"), dtype=np.float64) / 255.0
+        weight = arr[..., 3:4]
+        mean = (arr[..., :3] * weight).sum(axis=(0, 1)) / max(float(weight.sum()), 1e-9)
+        if factor is not None:
+            mean = mean * factor
+        return tuple(float(c) for c in mean)
+    if factor is not None:
+        return tuple(float(c) for c in factor)
+    diffuse = getattr(material, "diffuse", None)
+    if diffuse is not None:
+        rgb = np.asarray(diffuse, dtype=np.float64).reshape(-1)[:3]
+        return tuple(float(c) for c in (rgb / 255.0 if rgb.max() > 1.0 else rgb))
+    return None
+
+
+def _part_name(raw: str | None, fallback: str) -> str:
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(raw or "")).strip("_.")
+    return name or fallback
+
+
+def load_part_mesh(path: str | Path) -> PartMesh:
+    """Read a mesh file and label its faces by material group (in the file's coordinates).
+
+    Broken, unreadable or empty files raise a one-line :class:`DataError` naming the file.
+    """
+    path = Path(path)
+    trimesh = _trimesh()
+    if not path.is_file():
+        raise DataError(f"{path}: mesh file not found")
+    if path.suffix.lower().lstrip(".") not in trimesh.available_formats():
+        raise DataError(f"{path}: not a mesh format trimesh reads (use .obj, .ply, .glb, .gltf, .off or .stl)")
+    try:
+        scene = trimesh.load(path, force="scene")
+    except Exception as e:  # trimesh's loaders raise anything from ValueError to IndexError
+        raise DataError(f"{path}: cannot read mesh ({e.__class__.__name__}: {str(e)[:120]})") from None
+
+    groups: dict[str, list] = {}  # part key → [(vertices, faces, color)]
+    for node in scene.graph.nodes_geometry:
+        transform, geom_name = scene.graph[node]
+        geom = scene.geometry.get(geom_name)
+        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+            continue
+        vertices = trimesh.transform_points(np.asarray(geom.vertices, dtype=np.float64), transform)
+        faces = np.asarray(geom.faces, dtype=np.int64)
+        visual = geom.visual
+        material = getattr(visual, "material", None)
+        if material is None and isinstance(visual, trimesh.visual.ColorVisuals) and visual.defined:
+            face_colors = np.asarray(visual.face_colors)[:, :3]
+            unique, inverse = np.unique(face_colors, axis=0, return_inverse=True)
+            if 1 < len(unique) <= MAX_COLOR_PARTS:
+                for k, color in enumerate(unique):
+                    key = "color_{:02x}{:02x}{:02x}".format(*color)
+                    rgb = tuple(float(c) / 255.0 for c in color)
+                    groups.setdefault(key, []).append((vertices, faces[inverse.reshape(-1) == k], rgb))
+                continue
+        name = getattr(material, "name", None) or geom_name
+        groups.setdefault(str(name), []).append((vertices, faces, _material_color(visual, material, trimesh)))
+
+    if not groups:
+        raise DataError(f"{path}: mesh has no triangles")
+    if len(groups) > 255:
+        raise DataError(f"{path}: {len(groups)} material groups; at most 255 parts fit a part map")
+
+    all_v, all_f, all_p, parts, offset = [], [], [], [], 0
+    used_names: set[str] = set()
+    for part_id, (key, pieces) in enumerate(sorted(groups.items()), start=1):  # trimesh's order varies
+        colors = [c for _, _, c in pieces if c is not None]
+        name = _part_name(key, f"part{part_id}")
+        while name in used_names:
+            name += "_"
+        used_names.add(name)
+        color = tuple(float(x) for x in np.mean(colors, axis=0)) if colors else None
+        parts.append(Part(part_id, name, color))
+        for vertices, faces, _ in pieces:
+            all_v.append(vertices)
+            all_f.append(faces + offset)
+            all_p.append(np.full(len(faces), part_id, dtype=np.uint8))
+            offset += len(vertices)
+    vertices = np.concatenate(all_v)
+    if not np.isfinite(vertices).all():
+        raise DataError(f"{path}: mesh has NaN or infinite vertex coordinates")
+    return PartMesh(vertices, np.concatenate(all_f), np.concatenate(all_p), parts)
+
+
+# ----------------------------------------------------------------------------- normalizing
+
+
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+"""``(x, y, z) → (x, -z, y)``: a +90° turn about X; a Y-up file's front (+Z) ends up facing -Y."""
+
+
+def normalize_mesh(mesh: PartMesh, up: str = "z", rotation: np.ndarray | None = None) -> PartMesh:
+    """Turn ``mesh`` Z-up, center its bounding box on the origin and scale its largest side to 1.
+
+    ``v' = s · (U R v − c)`` with ``R`` the optional file rotation, ``U`` the identity for
+    ``up="z"`` or :data:`Y_UP_TO_Z_UP` for ``up="y"``.  Only faces in use count for the box.
+    Example: a Y-up box spanning x∈[0,4], y∈[0,2], z∈[0,1] becomes x∈[-0.5,0.5],
+    y∈[-0.125,0.125], z∈[-0.25,0.25].
+    """
+    if up not in ("y", "z"):
+        raise DataError(f"--up {up}: expected y or z")
+    m = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    if up == "y":
+        m = Y_UP_TO_Z_UP @ m
+    v = mesh.vertices @ m.T
+    used = v[np.unique(mesh.faces)]
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    extent = float((hi - lo).max())
+    if not extent > 0:
+        raise DataError("mesh is degenerate: all its vertices coincide")
+    v = (v - 0.5 * (lo + hi)) / extent
+    return PartMesh(v, mesh.faces, mesh.face_part, mesh.parts)
+
+
+def load_normalized(path: str | Path, up: str = "z") -> tuple[PartMesh, dict]:
+    """:func:`load_part_mesh` + sidecar rotation + :func:`normalize_mesh`; also returns the sidecar."""
+    path = Path(path)
+    meta = read_meta(path)
+    rotation = meta.get("rotation")
+    if rotation is not None:
+        try:
+            rotation = np.array(rotation, dtype=np.float64)
+        except (TypeError, ValueError):
+            rotation = None
+        if rotation is None or rotation.shape != (3, 3) or not np.isfinite(rotation).all():
+            raise DataError(f"{path.with_suffix('.meta.json')}: rotation must be a 3x3 matrix of numbers")
+    mesh = load_part_mesh(path)
+    try:
+        return normalize_mesh(mesh, up, rotation), meta
+    except DataError as e:
+        raise DataError(f"{path}: {e}") from None
+
+
+# ----------------------------------------------------------------------------- colors
+
+
+def part_colors(mesh: PartMesh, palette: str, rng: np.random.Generator) -> list[str]:
+    """``#rrggbb`` per part, in part order.
+
+    ``random``: synth's palette in a random order, each color jittered (repeats only past 16
+    parts); ``mtl``: the material colors, :data:`FALLBACK_GRAY` where a part has none.
+    """
+    if palette == "random":
+        order = [_jitter(rng, PALETTE[i]) for i in rng.permutation(len(PALETTE))]
+        return [order[k % len(order)] for k in range(len(mesh.parts))]
+    if palette == "mtl":
+        return [rgb_to_hex(p.material_color if p.material_color is not None else FALLBACK_GRAY) for p in mesh.parts]
+    raise DataError(f"--palette {palette}: expected random or mtl")
+
+
+def albedo_table(mesh: PartMesh, colors: list[str]) -> np.ndarray:
+    """rgb in [0, 1] per part id, row 0 (background) unused.  [P + 1, 3]"""
+    table = np.ones((len(mesh.parts) + 1, 3))
+    for part, color in zip(mesh.parts, colors):
+        table[part.id] = hex_to_rgb(color)
+    return table
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+class RayScene:
+    """A :class:`PartMesh` ready for ray casting with Embree (``embreex``)."""
+
+    def __init__(self, mesh: PartMesh):
+        trimesh = _trimesh()
+        try:
+            import embreex  # noqa: F401  (trimesh's wrapper imports it; fail here, with the hint)
+            from trimesh.ray.ray_pyembree import RayMeshIntersector
+        except ImportError:
+            raise DataError(f"embreex is not installed: {INSTALL_HINT}") from None
+        if len(mesh.faces) == 0:
+            raise DataError("mesh has no faces left to render")
+        self.mesh = mesh
+        self._intersector = RayMeshIntersector(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False, validate=False))
+        tri = mesh.vertices[mesh.faces]  # [F, 3, 3]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        self.face_normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)  # [F, 3]
+        self.face_points = tri[:, 0]  # [F, 3]
+        self.face_centers = tri.mean(axis=1)  # [F, 3]
+
+    def first_hits(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Face index (−1 = miss) and float64 distance (+inf = miss) of each ray's first hit.
+
+        ``origins, directions: [N, 3]`` float64, unit directions.  Embree finds the face in
+        float32; the distance is recomputed as ``t = ((p₀ − o)·n) / (d·n)`` against its plane
+        (the face center's projection for a ray grazing the plane).
+        """
+        face = np.asarray(self._intersector.intersects_first(origins, directions), dtype=np.int64)
+        t = np.full(len(face), np.inf)
+        hit = face >= 0
+        f, o, d = face[hit], origins[hit], directions[hit]
+        n = self.face_normals[f]
+        dn = (d * n).sum(axis=1)
+        grazing = np.abs(dn) <= 1e-12
+        plane = ((self.face_points[f] - o) * n).sum(axis=1) / np.where(grazing, 1.0, dn)
+        t[hit] = np.where(grazing, ((self.face_centers[f] - o) * d).sum(axis=1), plane)
+        return face, t
+
+
+def facing_normals(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Flip each normal that points away from the viewer: ``n·d > 0 → −n``.  [N, 3]
+
+    Real meshes mix windings and have open, single-sided surfaces; shading the side the camera
+    sees makes both sides of a sheet look alike.
+    """
+    away = (normals * directions).sum(axis=1, keepdims=True) > 0
+    return np.where(away, -normals, normals)
+
+
+def render_view(scene: RayScene, camera: Camera, albedo: np.ndarray) -> Frame:
+    """Ray-cast one view: rgba (white, alpha 0 on background), ray depth (+inf) and part ids.
+
+    ``albedo: [P + 1, 3]`` rgb per part id (:func:`albedo_table`); shading is synth's
+    ``albedo · (0.35 + 0.65 · max(0, n·L))`` with the normal facing the camera.
+    """
+    origins, directions = camera_rays(camera)
+    face, t = scene.first_hits(np.ascontiguousarray(origins), directions)
+    hit = face >= 0
+    part = np.zeros(len(face), dtype=np.uint8)
+    part[hit] = scene.mesh.face_part[face[hit]]
+    rgb = np.ones((len(face), 3))
+    rgb[hit] = shade(facing_normals(scene.face_normals[face[hit]], directions[hit]), albedo[part[hit]])
+    shape = (camera.height, camera.width)
+    rgba = np.concatenate([rgb, hit[:, None].astype(np.float64)], axis=1).reshape(*shape, 4)
+    return Frame(camera, rgba.astype(np.float32), t.reshape(shape).astype(np.float32), part.reshape(shape))
+
+
+# ----------------------------------------------------------------------------- parts for twins
+
+
+def separable_parts(mesh: PartMesh, decimals: int = 6) -> list[int]:
+    """Ids of the parts that share no vertex position with any other part.
+
+    Removing such a part leaves every other part's surface intact (it may have rested on or
+    passed through them, but it was not stitched to them).  Positions are compared rounded to
+    ``decimals`` places of the normalized mesh.
+    """
+    corners = mesh.faces.reshape(-1)  # [3F]
+    owner = np.repeat(mesh.face_part, 3)  # part of each corner
+    keys = np.round(mesh.vertices[corners], decimals)
+    _, position = np.unique(keys, axis=0, return_inverse=True)
+    position = position.reshape(-1)
+    pairs = np.unique(np.stack([position, owner.astype(np.int64)], axis=1), axis=0)
+    shared = np.bincount(pairs[:, 0]) > 1  # positions used by two or more parts
+    stitched = set(np.unique(pairs[shared[pairs[:, 0]], 1]).tolist())
+    present = set(np.unique(mesh.face_part).tolist())
+    return [p.id for p in mesh.parts if p.id in present and p.id not in stitched]
+
+
+def part_areas(mesh: PartMesh) -> np.ndarray:
+    """Surface area per part id.  [P + 1]"""
+    tri = mesh.vertices[mesh.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return np.bincount(mesh.face_part, weights=area, minlength=len(mesh.parts) + 1)
+
+
+def min_scribble_pixels(res: int) -> int:
+    """Interior pixels a part needs in its best view to be scribbled on: 16 at 64×64, ∝ area."""
+    return max(4, round(16 * (res / 64) ** 2))
+
+
+def scribble_view(frames: list[Frame], part_id: int) -> tuple[int, int]:
+    """(index, pixel count) of the frame where the part's interior — its mask eroded by 2 px,
+    where synth's :func:`scribbles` puts the strokes — is largest.  Thin parts (tubes, frames,
+    slats) score near zero: a stroke cannot stay on them.
+    """
+    counts = [int(erode(f.parts == part_id, 2).sum()) for f in frames]
+    return int(np.argmax(counts)), max(counts)
+
+
+def removable_parts(mesh: PartMesh) -> list[int]:
+    """Separable parts other than the one with the largest surface area (the chair's body)."""
+    if len(mesh.parts) < 2:
+        return []
+    body = int(np.argmax(part_areas(mesh)[1:])) + 1
+    return [p for p in separable_parts(mesh) if p != body]
+
+
+# ----------------------------------------------------------------------------- the dataset
+
+
+@dataclass(frozen=True)
+class MeshDatasetConfig:
+    views: int = 50
+    """Views per mesh, split 80/10/10 into train/val/test (as ``dataset synth``)."""
+    res: int = 64
+    """Image width and height in pixels."""
+    seed: int = 0
+    """Same seed and meshes → byte-identical files."""
+    palette: str = "random"
+    """``random``: synth's palette per part; ``mtl``: the material's own diffuse color."""
+    up: str = "z"
+    """The file's up axis: ``z``, or ``y`` (most OBJ and every glTF file)."""
+    twins: bool = True
+    """Also write ground-truth color and removal twins of up to 4 meshes."""
+
+
+@dataclass(frozen=True)
+class MeshDatasetResult:
+    names: list[str]
+    twins: list[TwinSpec]
+    parts: list[int]  # parts per instance
+    seconds: float
+
+
+def instance_names_from(paths: list[Path]) -> list[str]:
+    """File stems made folder-safe (``[A-Za-z0-9_.-]``) and unique (``_2``, ``_3``, … on clashes).
+
+    >>> instance_names_from([Path("a/chair.obj"), Path("b/chair.obj"), Path("Ché z.ply"), Path("twins.obj")])
+    ['chair', 'chair_2', 'Ch_z', 'twins_2']
+    """
+    names: list[str] = []
+    taken = {"twins"}  # the twins folder of the dataset root
+    for path in paths:
+        base = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(path).stem).strip("._-") or "mesh"
+        name, k = base, 2
+        while name in taken:
+            name, k = f"{base}_{k}", k + 1
+        taken.add(name)
+        names.append(name)
+    return names
+
+
+def mesh_steps(meshes: int, config: MeshDatasetConfig) -> int:
+    """Progress steps :func:`write_mesh_category` reports at most: one per mesh, one per twin
+    source (fewer sources when few meshes have parts big enough to scribble on)."""
+    return meshes + (len(twin_sources(meshes)) if config.twins else 0)
+
+
+def _check(out: Path, paths: list[Path], config: MeshDatasetConfig) -> None:
+    """One-line CrfError for bad options or an output folder we must not write into (synth's
+    rules: a new folder, an empty one, or a previous dataset)."""
+    if not paths:
+        raise CrfError("no mesh files given")
+    if config.palette not in ("random", "mtl"):
+        raise CrfError(f"--palette {config.palette}: expected random or mtl")
+    if config.up not in ("y", "z"):
+        raise CrfError(f"--up {config.up}: expected y or z")
+    synth_like = SynthConfig(instances=len(paths), views=config.views, res=config.res, seed=config.seed, twins=config.twins)
+    check_synth_args(out, synth_like)
+
+
+@dataclass(frozen=True, eq=False)
+class _Instance:
+    """What twin picking needs of a written instance."""
+
+    name: str
+    mesh: PartMesh
+    colors: list[str]
+    cams: dict[str, list[Camera]]
+    room: dict[int, tuple[int, int]]  # part id → scribble_view(train frames, id)
+
+
+def _write_instance(folder: Path, mesh: PartMesh, colors: list[str], cams: dict[str, list[Camera]]) -> dict[str, list[Frame]]:
+    scene, albedo = RayScene(mesh), albedo_table(mesh, colors)
+    frames = {split: [render_view(scene, cam, albedo) for cam in cams_] for split, cams_ in cams.items()}
+    for split, fs in frames.items():
+        write_split(folder, split, fs)
+    present = set(np.unique(mesh.face_part).tolist())
+    write_parts(folder, [{"id": p.id, "name": p.name, "color": c} for p, c in zip(mesh.parts, colors) if p.id in present])
+    return frames
+
+
+def twin_parts(inst: _Instance, res: int) -> tuple[int | None, int | None]:
+    """(part to recolor, part to remove) of an instance, None where there is none.
+
+    Remove the :func:`removable_parts` one with the most scribble room (:func:`scribble_view`);
+    recolor the part with the most room among the others (the removed one if it is the only
+    candidate).  Each needs :func:`min_scribble_pixels`.
+    """
+    need = min_scribble_pixels(res)
+    room = {pid: count for pid, (_, count) in inst.room.items() if count >= need}
+    removable = [pid for pid in removable_parts(inst.mesh) if pid in room]
+    remove = max(removable, key=room.get) if removable else None
+    others = {pid: count for pid, count in room.items() if pid != remove} or room
+    return (max(others, key=others.get) if others else None), remove
+
+
+def pick_twin_sources(instances: list[_Instance], res: int) -> list[int]:
+    """Up to 4 instances spread over the list, drawn from those with a part to remove when
+    enough have one (so most sources get both twins), else from those with a part to recolor."""
+    picks = [twin_parts(inst, res) for inst in instances]
+    both = [i for i, (c, r) in enumerate(picks) if c is not None and r is not None]
+    some = [i for i, (c, r) in enumerate(picks) if c is not None or r is not None]
+    pool = both if len(both) >= min(4, len(some)) else some
+    return [pool[k] for k in twin_sources(len(pool))]
+
+
+def _write_twin(
+    out: Path, inst: _Instance, index: int, kind: str, part_id: int, config: MeshDatasetConfig
+) -> TwinSpec:
+    part = next(p for p in inst.mesh.parts if p.id == part_id)
+    name, folder = f"{inst.name}_{kind}", Path("twins") / f"{inst.name}_{kind}"
+    if kind == "color":
+        color = contrasting_color(inst.colors)
+        twin_mesh, twin_colors = inst.mesh, [color if p.id == part_id else c for p, c in zip(inst.mesh.parts, inst.colors)]
+    else:
+        color = None
+        twin_mesh, twin_colors = inst.mesh.without_part(part_id), inst.colors
+    _write_instance(out / folder, twin_mesh, twin_colors, {"test": inst.cams["test"]})
+    view = inst.room[part_id][0]
+    source_view = render_view(RayScene(inst.mesh), inst.cams["train"][view], albedo_table(inst.mesh, inst.colors))
+    rng = np.random.default_rng([config.seed, index, 2 if kind == "color" else 3])
+    fg, keep = scribbles(rng, source_view.parts, part_id)
+    write_png(out / folder / "scribble.png", fg.astype(np.uint8) * 255)
+    write_png(out / folder / "keep.png", keep.astype(np.uint8) * 255)
+    scribble_path, keep_path = str(folder / "scribble.png"), str(folder / "keep.png")
+    return TwinSpec(name, kind, inst.name, f"train:{view}", part.name, color, scribble_path, keep_path, str(folder))
+
+
+def attribution_text(names: list[str], paths: list[Path], metas: list[dict]) -> str | None:
+    """``ATTRIBUTION.txt``: model name, creator, license and source per instance; None when no
+    mesh came with attribution."""
+    keys = ("name", "title", "creator", "license", "license_url", "source")
+    if not any(any(m.get(k) for k in keys) for m in metas):
+        return None
+    lines = [
+        "The images of this dataset are renders of the 3D models below, by their creators.",
+        "Changes were made: each model was re-oriented, centered, scaled to unit size and recolored;",
+        "the twins under twins/ are further recolored or have a part removed.",
+        "",
+    ]
+    for name, path, meta in zip(names, paths, metas):
+        lines.append(f"{name} (from {Path(path).name})")
+        if not any(meta.get(k) for k in keys):
+            lines.append("  no attribution given")
+        for key in keys:
+            if meta.get(key):
+                lines.append(f"  {key + ':':<12} {' '.join(str(meta[key]).split())}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_mesh_category(
+    out: Path, paths: list[Path], config: MeshDatasetConfig = MeshDatasetConfig(),
+    progress: Callable[[str], None] | None = None,
+) -> MeshDatasetResult:
+    """Render each mesh in ``paths`` as one instance of a category written to ``out``.
+
+    Every mesh is loaded and checked before anything is written.  Twins are picked once all
+    instances are rendered (:func:`pick_twin_sources`).  ``progress(label)`` is called after
+    each instance and each twin source.
+    """
+    start = time.perf_counter()
+    paths, out = [Path(p) for p in paths], Path(out)
+    _check(out, paths, config)
+    loaded = [load_normalized(p, config.up) for p in paths]
+    meshes, metas = [m for m, _ in loaded], [meta for _, meta in loaded]
+    RayScene(meshes[0])  # fail on a missing embreex before touching `out`
+    out.mkdir(parents=True, exist_ok=True)
+    names = instance_names_from(paths)
+    if (out / "twins").is_dir():
+        shutil.rmtree(out / "twins")
+    instances = []
+    for index, (name, mesh) in enumerate(zip(names, meshes)):
+        colors = part_colors(mesh, config.palette, np.random.default_rng([config.seed, index, 0]))
+        cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
+        frames = _write_instance(out / name, mesh, colors, cams)
+        room = {p.id: scribble_view(frames["train"], p.id) for p in mesh.parts}
+        instances.append(_Instance(name, mesh, colors, cams, room))
+        if progress:
+            progress(name)
+    twins: list[TwinSpec] = []
+    for index in pick_twin_sources(instances, config.res) if config.twins else []:
+        recolor, remove = twin_parts(instances[index], config.res)
+        for kind, part_id in (("color", recolor), ("remove", remove)):
+            if part_id is not None:
+                twins.append(_write_twin(out, instances[index], index, kind, part_id, config))
+        if progress:
+            progress(f"{names[index]} twins")
+    write_instances_txt(out, names)
+    if twins:
+        write_twins_json(out, twins)
+    elif (out / "twins.json").is_file():
+        (out / "twins.json").unlink()
+    text = attribution_text(names, paths, metas)
+    if text is not None:
+        atomic_write_text(out / "ATTRIBUTION.txt", text)
+    elif (out / "ATTRIBUTION.txt").is_file():
+        (out / "ATTRIBUTION.txt").unlink()
+    return MeshDatasetResult(names, twins, [len(m.parts) for m in meshes], time.perf_counter() - start)

@@ -1,0 +1,674 @@
+"""Procedural chairs rendered by exact analytic ray casting, with ground-truth edit twins.
+
+A chair is a union of primitives — oriented boxes and cylinders — each tagged with a part
+(seat, back, legs, arms, stretchers, slats, base, wheels).  Rays are intersected exactly
+(slab test for boxes, quadratic + caps for cylinders), the nearest hit wins, and the hit is
+shaded view-independently, ``albedo * (0.35 + 0.65 max(0, n·L))``, so a radiance field can fit
+the images exactly.  World is Z-up; every chair is centered and scaled so its largest extent is
+1 (it fits in [-0.5, 0.5]^3) and stands upright.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import math
+import shutil
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..cameras import Camera, focal_from_angle, look_at, ray_directions_camera, spherical_eye
+from ..errors import CrfError
+from ..io import write_png
+from .format import Frame, TwinSpec, write_instances_txt, write_parts, write_split, write_twins_json
+
+LIGHT = np.array([0.4, -0.3, 0.85]) / np.linalg.norm([0.4, -0.3, 0.85])
+AMBIENT, DIFFUSE = 0.35, 0.65
+CAMERA_RADIUS = 2.0
+CAMERA_ANGLE_X = 0.6911
+ELEVATION_RANGE = (10.0, 60.0)
+PALETTE = (
+    "#8b5a2b", "#c19a6b", "#d8c3a5", "#2f2f2f", "#e6e1d3", "#2a7f7f", "#d4a017", "#a23b2a",
+    "#1f3a5f", "#8a9a5b", "#d8a7a7", "#5a6e7f", "#6b3e75", "#c46a2b", "#9c9c9c", "#3f6b3f",
+)  # walnut, oak, beige, charcoal, cream, teal, mustard, brick, navy, sage, blush, slate, plum, rust, grey, forest
+REMOVABLE_PARTS = ("arms", "stretchers", "slats")
+RECOLORABLE_PARTS = ("seat", "back")
+
+
+# ----------------------------------------------------------------------------- primitives
+
+
+@dataclass(frozen=True, eq=False)
+class Primitive:
+    """A box or cylinder in world space; local axes are the columns of ``rotation``."""
+
+    kind: str  # "box" | "cylinder"
+    center: np.ndarray  # [3]
+    rotation: np.ndarray  # [3, 3] local → world
+    size: np.ndarray  # [3] box: half extents; cylinder: (radius, radius, half length along local z)
+    part: int
+
+
+def rotation_z(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def box(center, half, part: int, yaw: float = 0.0) -> Primitive:
+    """A box with half extents ``half``, rotated by ``yaw`` radians about Z."""
+    return Primitive("box", np.asarray(center, float), rotation_z(yaw), np.asarray(half, float), part)
+
+
+def cylinder(center, radius: float, half_length: float, part: int, horizontal_yaw: float | None = None) -> Primitive:
+    """A vertical cylinder, or a horizontal one whose axis points at ``horizontal_yaw`` in the XY plane."""
+    rot = np.eye(3)
+    if horizontal_yaw is not None:  # local z → (cos yaw, sin yaw, 0)
+        rot = rotation_z(horizontal_yaw) @ np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    return Primitive("cylinder", np.asarray(center, float), rot, np.array([radius, radius, half_length]), part)
+
+
+def primitive_bounds(p: Primitive) -> tuple[np.ndarray, np.ndarray]:
+    """World axis-aligned bounding box (min, max) of a primitive."""
+    if p.kind == "box":
+        ext = np.abs(p.rotation) @ p.size
+    else:
+        axis = p.rotation[:, 2]
+        ext = np.abs(axis) * p.size[2] + p.size[0] * np.sqrt(np.clip(1.0 - axis**2, 0.0, 1.0))
+    return p.center - ext, p.center + ext
+
+
+# ----------------------------------------------------------------------------- ray casting
+
+
+@dataclass(frozen=True, eq=False)
+class Hits:
+    t: np.ndarray  # [N] float64 distance along the unit ray, inf = miss
+    part: np.ndarray  # [N] int64, 0 = miss
+    normal: np.ndarray  # [N, 3] world unit normal, 0 on a miss
+
+
+def _local(o: np.ndarray, d: np.ndarray, prims: list[Primitive]) -> tuple[np.ndarray, np.ndarray]:
+    """Rays in each primitive's frame, ``R^T (o - c)`` and ``R^T d``, component-major.  [3, P, N] each."""
+    P, N = len(prims), len(o)
+    centers = np.stack([p.center for p in prims])  # [P, 3]
+    rots = np.stack([p.rotation for p in prims])  # [P, 3, 3]
+    stacked = rots.transpose(2, 0, 1).reshape(3 * P, 3)  # row k*P + p is column k of R_p: one GEMM
+    shift = np.einsum("pj,pjk->kp", centers, rots)[..., None]  # [3, P, 1]
+    return (stacked @ o.T).reshape(3, P, N) - shift, (stacked @ d.T).reshape(3, P, N)
+
+
+def box_distances(o: np.ndarray, d: np.ndarray, prims: list[Primitive]) -> np.ndarray:
+    """Entry distance of each ray into each box (slab test), inf on a miss.  [P, N]
+
+    ``t = max_k min(t1_k, t2_k)`` over the three slabs ``|x_k| <= h_k``; a hit needs
+    ``t <= min_k max(t1_k, t2_k)`` and ``t > 0`` (cameras are outside every primitive).
+    A ray parallel to a slab gets ±inf there (a NaN, for a ray exactly on a face plane, misses).
+    """
+    o_l, d_l = _local(o, d, prims)
+    half = np.stack([p.size for p in prims]).T[..., None]  # [3, P, 1]
+    t_near = t_far = None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k in range(3):
+            inv = 1.0 / d_l[k]
+            t1, t2 = (-half[k] - o_l[k]) * inv, (half[k] - o_l[k]) * inv
+            lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+            t_near = lo if t_near is None else np.maximum(t_near, lo)
+            t_far = hi if t_far is None else np.minimum(t_far, hi)
+    return np.where((t_near <= t_far) & (t_near > 0), t_near, np.inf)
+
+
+def cylinder_distances(o: np.ndarray, d: np.ndarray, prims: list[Primitive]) -> np.ndarray:
+    """Entry distance of each ray into each capped cylinder, inf on a miss.  [P, N]
+
+    Side: nearer root of ``(ox + t dx)² + (oy + t dy)² = r²`` with ``|oz + t dz| <= h``;
+    caps: ``t = (±h - oz) / dz`` with ``x² + y² <= r²``.  The smallest positive one is the entry.
+    """
+    (ox, oy, oz), (dx, dy, dz) = _local(o, d, prims)
+    r = np.array([p.size[0] for p in prims])[:, None]
+    h = np.array([p.size[2] for p in prims])[:, None]
+    a = dx * dx + dy * dy
+    b = 2.0 * (ox * dx + oy * dy)
+    c = ox * ox + oy * oy - r * r
+    disc = b * b - 4.0 * a * c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_side = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a)
+        side = (disc >= 0) & (a > 1e-18) & (t_side > 0) & (np.abs(oz + t_side * dz) <= h)
+        best = np.where(side, t_side, np.inf)
+        for cap in (h, -h):
+            t_cap = (cap - oz) / dz
+            x, y = ox + t_cap * dx, oy + t_cap * dy
+            hit = (t_cap > 0) & (x * x + y * y <= r * r)
+            best = np.minimum(best, np.where(hit, t_cap, np.inf))
+    return best
+
+
+def aabb_hit(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Which rays ([N, 3] each) hit the world box [lo, hi] in front of their origin.  [N] bool"""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - o) / d, (hi - o) / d
+    t_near, t_far = np.minimum(t1, t2).max(-1), np.maximum(t1, t2).min(-1)
+    return ~(t_near > t_far) & ~(t_far < 0)
+
+
+def _normal_local(p: Primitive, x: np.ndarray) -> np.ndarray:
+    """Outward unit normal at local surface points ``x``.  [M, 3]"""
+    n = np.zeros_like(x)
+    rows = np.arange(len(x))
+    if p.kind == "box":
+        axis = np.argmax(np.abs(x) / p.size, axis=-1)
+        n[rows, axis] = np.sign(x[rows, axis])
+        return n
+    rho = np.hypot(x[:, 0], x[:, 1])
+    on_cap = (np.abs(x[:, 2]) - p.size[2]) > (rho - p.size[0])
+    n[:, 2] = np.where(on_cap, np.sign(x[:, 2]), 0.0)
+    safe = np.where(rho > 0, rho, 1.0)
+    n[:, 0] = np.where(on_cap, 0.0, x[:, 0] / safe)
+    n[:, 1] = np.where(on_cap, 0.0, x[:, 1] / safe)
+    return n
+
+
+def cast_rays(prims: list[Primitive], origins: np.ndarray, directions: np.ndarray) -> Hits:
+    """Nearest hit of each ray (``origins``, unit ``directions``: [N, 3] float64) among ``prims``."""
+    origins = np.asarray(origins, np.float64)
+    directions = np.asarray(directions, np.float64)
+    n = len(origins)
+    t, part, normal = np.full(n, np.inf), np.zeros(n, np.int64), np.zeros((n, 3))
+    boxes = [p for p in prims if p.kind == "box"]
+    cyls = [p for p in prims if p.kind == "cylinder"]
+    ordered = boxes + cyls
+    if not ordered:
+        return Hits(t, part, normal)
+    bounds = [primitive_bounds(p) for p in ordered]
+    near = np.nonzero(aabb_hit(origins, directions, np.min([b[0] for b in bounds], 0), np.max([b[1] for b in bounds], 0)))[0]
+    o, d = origins[near], directions[near]
+    dist = np.concatenate(
+        ([box_distances(o, d, boxes)] if boxes else []) + ([cylinder_distances(o, d, cyls)] if cyls else [])
+    )  # [P, M]
+    winner = np.argmin(dist, axis=0)
+    t_near = dist[winner, np.arange(len(near))]
+    hit = np.isfinite(t_near)
+    t[near] = t_near
+    points = o + d * np.where(hit, t_near, 0.0)[:, None]
+    for k, p in enumerate(ordered):
+        sel = hit & (winner == k)
+        if sel.any():
+            part[near[sel]] = p.part
+            normal[near[sel]] = _normal_local(p, (points[sel] - p.center) @ p.rotation) @ p.rotation.T
+    return Hits(t, part, normal)
+
+
+def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """float64 origins and unit directions of every pixel center, row-major (as rays_from_camera)."""
+    d = ray_directions_camera(camera.width, camera.height, camera.focal).numpy() @ camera.c2w[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.broadcast_to(camera.c2w[:3, 3], d.shape), d
+
+
+def shade(normal: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """View-independent Lambert: ``albedo * (0.35 + 0.65 max(0, n·L))``.  [N, 3]"""
+    return albedo * (AMBIENT + DIFFUSE * np.maximum(0.0, normal @ LIGHT))[:, None]
+
+
+# ----------------------------------------------------------------------------- chairs
+
+
+@dataclass(frozen=True)
+class Part:
+    id: int
+    name: str
+    color: str  # "#rrggbb"
+
+
+@dataclass(frozen=True, eq=False)
+class Chair:
+    primitives: tuple[Primitive, ...]
+    parts: tuple[Part, ...]
+
+    def part(self, name: str) -> Part | None:
+        return next((p for p in self.parts if p.name == name), None)
+
+    def recolored(self, name: str, color: str) -> "Chair":
+        return replace(self, parts=tuple(replace(p, color=color) if p.name == name else p for p in self.parts))
+
+    def without(self, name: str) -> "Chair":
+        gone = self.part(name).id
+        return Chair(tuple(p for p in self.primitives if p.part != gone), tuple(p for p in self.parts if p.id != gone))
+
+    def albedo_table(self) -> np.ndarray:
+        """Linear-in-[0,1] rgb per part id (row 0 unused).  [max_id + 1, 3]"""
+        table = np.ones((max(p.id for p in self.parts) + 1, 3))
+        for p in self.parts:
+            table[p.id] = hex_to_rgb(p.color)
+        return table
+
+
+def hex_to_rgb(color: str) -> np.ndarray:
+    return np.array([int(color[i : i + 2], 16) for i in (1, 3, 5)]) / 255.0
+
+
+def rgb_to_hex(rgb) -> str:
+    return "#" + "".join(f"{int(round(float(np.clip(c, 0, 1)) * 255)):02x}" for c in rgb)
+
+
+def _jitter(rng: np.random.Generator, color: str) -> str:
+    h, s, v = colorsys.rgb_to_hsv(*hex_to_rgb(color))
+    h = (h + rng.uniform(-0.02, 0.02)) % 1.0
+    s = min(1.0, s * rng.uniform(0.85, 1.15))
+    v = min(1.0, v * rng.uniform(0.9, 1.1))
+    return rgb_to_hex(colorsys.hsv_to_rgb(h, s, v))
+
+
+def contrasting_color(colors: list[str]) -> str:
+    """The palette color farthest (max-min rgb distance) from every color in ``colors``."""
+    used = np.stack([hex_to_rgb(c) for c in colors])
+    scores = [np.linalg.norm(used - hex_to_rgb(c), axis=-1).min() for c in PALETTE]
+    return PALETTE[int(np.argmax(scores))]
+
+
+class _Builder:
+    """Collects primitives and part ids while a chair is assembled."""
+
+    def __init__(self):
+        self.prims: list[Primitive] = []
+        self.parts: list[Part] = []
+
+    def part(self, name: str, color: str) -> int:
+        existing = next((p for p in self.parts if p.name == name), None)
+        if existing:
+            return existing.id
+        self.parts.append(Part(len(self.parts) + 1, name, color))
+        return len(self.parts)
+
+    def add(self, *prims: Primitive) -> None:
+        self.prims.extend(prims)
+
+
+def _post(b: _Builder, rounded: bool, x: float, y: float, z0: float, z1: float, thick: float, part: int) -> None:
+    """A vertical leg/post from z0 to z1, square or round."""
+    center = (x, y, 0.5 * (z0 + z1))
+    if rounded:
+        b.add(cylinder(center, 0.5 * thick, 0.5 * (z1 - z0), part))
+    else:
+        b.add(box(center, (0.5 * thick, 0.5 * thick, 0.5 * (z1 - z0)), part))
+
+
+def _rail(b: _Builder, rounded: bool, center, length: float, thick: float, along_y: bool, part: int) -> None:
+    """A horizontal rail along x or y, square or round."""
+    if rounded:
+        b.add(cylinder(center, 0.5 * thick, 0.5 * length, part, horizontal_yaw=0.5 * math.pi if along_y else 0.0))
+    else:
+        half = (0.5 * thick, 0.5 * length, 0.5 * thick) if along_y else (0.5 * length, 0.5 * thick, 0.5 * thick)
+        b.add(box(center, half, part))
+
+
+def make_chair(rng: np.random.Generator, arms: bool | None = None) -> Chair:
+    """A random chair: seat, back, legs or base, optional arms/stretchers/slats; normalized.
+
+    ``arms`` forces arms on (as chunky side panels, so they cover pixels) or off; None = random.
+    """
+    colors = [_jitter(rng, PALETTE[i]) for i in rng.permutation(len(PALETTE))]
+    style = rng.choice(["four_leg", "office", "pedestal"], p=[0.6, 0.25, 0.15])
+    b = _Builder()
+    w, dp = rng.uniform(0.42, 0.6), rng.uniform(0.4, 0.56)
+    round_seat = rng.random() < 0.2
+    if round_seat:
+        dp = w
+    seat_top = rng.uniform(0.4, 0.52)
+    st = rng.uniform(0.06, 0.1) if style == "office" else rng.uniform(0.035, 0.09)
+    seat_bottom = seat_top - st
+    seat = b.part("seat", colors[0])
+    if round_seat:
+        b.add(cylinder((0, 0, seat_top - 0.5 * st), 0.5 * w, 0.5 * st, seat))
+    else:
+        b.add(box((0, 0, seat_top - 0.5 * st), (0.5 * w, 0.5 * dp, 0.5 * st), seat))
+
+    back = b.part("back", colors[0] if rng.random() < 0.3 else colors[1])
+    bh, bt = rng.uniform(0.32, 0.6), rng.uniform(0.03, 0.07)
+    bw = w * (rng.uniform(0.6, 0.85) if round_seat else rng.uniform(0.75, 1.0))
+    yb = 0.5 * dp - 0.5 * bt
+    gap = rng.uniform(0.03, 0.08) if style == "office" else 0.0
+    if style != "office" and rng.random() < 0.45:
+        pw, rh = rng.uniform(0.03, 0.05), rng.uniform(0.05, 0.1)
+        x_post = 0.5 * bw - 0.5 * pw
+        b.add(
+            box((x_post, yb, seat_top + 0.5 * bh), (0.5 * pw, 0.5 * bt, 0.5 * bh), back),
+            box((-x_post, yb, seat_top + 0.5 * bh), (0.5 * pw, 0.5 * bt, 0.5 * bh), back),
+            box((0, yb, seat_top + bh - 0.5 * rh), (0.5 * bw, 0.5 * bt, 0.5 * rh), back),
+        )
+        slats = b.part("slats", colors[1] if rng.random() < 0.5 else colors[5])
+        inner, z_low, z_high = x_post - 0.5 * pw, seat_top, seat_top + bh - rh
+        if rng.random() < 0.6:
+            n, sw = int(rng.integers(2, 6)), rng.uniform(0.02, 0.045)
+            for k in range(n):
+                x = -inner + (k + 1) * 2 * inner / (n + 1)
+                b.add(box((x, yb, 0.5 * (z_low + z_high)), (0.5 * sw, 0.3 * bt, 0.5 * (z_high - z_low)), slats))
+        else:
+            n, sh = int(rng.integers(2, 4)), rng.uniform(0.03, 0.05)
+            for k in range(n):
+                z = z_low + (k + 1) * (z_high - z_low) / (n + 1)
+                b.add(box((0, yb, z), (inner, 0.3 * bt, 0.5 * sh), slats))
+    else:
+        b.add(box((0, yb, seat_top + gap + 0.5 * bh), (0.5 * bw, 0.5 * bt, 0.5 * bh), back))
+        if gap > 0:  # office backrest on a support bar
+            z0, z1 = seat_bottom, seat_top + gap + 0.4 * bh
+            b.add(box((0, yb + 0.5 * bt + 0.012, 0.5 * (z0 + z1)), (0.035, 0.012, 0.5 * (z1 - z0)), back))
+
+    if style == "four_leg":
+        legs = b.part("legs", colors[2])
+        lt, inset, round_legs = rng.uniform(0.03, 0.06), rng.uniform(0.0, 0.04), rng.random() < 0.4
+        if round_seat:
+            lx = ly = (0.5 * w - 0.5 * lt - inset) * math.sqrt(0.5)
+        else:
+            lx, ly = 0.5 * w - 0.5 * lt - inset, 0.5 * dp - 0.5 * lt - inset
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                _post(b, round_legs, sx * lx, sy * ly, 0.0, seat_bottom, lt, legs)
+        if rng.random() < 0.45:
+            stretch = b.part("stretchers", colors[2] if rng.random() < 0.8 else colors[4])
+            zs, s_t = rng.uniform(0.08, 0.2), lt * rng.uniform(0.5, 0.8)
+            for sx in (-1, 1):
+                _rail(b, round_legs, (sx * lx, 0, zs), 2 * ly, s_t, True, stretch)
+            if rng.random() < 0.5:  # H pattern
+                _rail(b, round_legs, (0, 0, zs), 2 * lx, s_t, False, stretch)
+            else:  # box pattern
+                for sy in (-1, 1):
+                    _rail(b, round_legs, (0, sy * ly, zs), 2 * lx, s_t, False, stretch)
+    elif style == "office":
+        base, wheels = b.part("base", colors[2]), b.part("wheels", colors[6])
+        rw, th = rng.uniform(0.025, 0.035), rng.uniform(0.035, 0.05)
+        reach, yaw0 = rng.uniform(0.24, 0.32), rng.uniform(0, 2 * math.pi / 5)
+        z_star = 2 * rw + 0.5 * th - 0.005
+        for k in range(5):
+            yaw = yaw0 + 2 * math.pi * k / 5
+            cx, cy = reach * math.cos(yaw), reach * math.sin(yaw)
+            b.add(box((0.5 * cx, 0.5 * cy, z_star), (0.5 * reach, rng.uniform(0.02, 0.03), 0.5 * th), base, yaw))
+            b.add(cylinder((cx, cy, rw), rw, rng.uniform(0.012, 0.02), wheels, horizontal_yaw=yaw + 0.5 * math.pi))
+        b.add(cylinder((0, 0, z_star), 0.06, 0.5 * th + 0.005, base))
+        _post(b, True, 0, 0, z_star, seat_bottom, 2 * rng.uniform(0.022, 0.035), base)
+    else:
+        base = b.part("base", colors[2])
+        disk_h = rng.uniform(0.01, 0.025)
+        b.add(cylinder((0, 0, disk_h), rng.uniform(0.2, 0.28), disk_h, base))
+        _post(b, True, 0, 0, 2 * disk_h, seat_bottom, 2 * rng.uniform(0.03, 0.05), base)
+
+    has_arms = rng.random() < 0.35 if arms is None else arms
+    if has_arms:
+        arm = b.part("arms", colors[3])
+        al, ah = dp * rng.uniform(0.8, 1.0), rng.uniform(0.18, 0.26)
+        y_mid = -0.5 * dp + 0.5 * al
+        if arms or rng.random() < 0.5:  # side panels
+            at = rng.uniform(0.05, 0.09)
+            for sx in (-1, 1):
+                center = (sx * (0.5 * w + 0.5 * at), y_mid, 0.5 * (seat_bottom + seat_top + ah))
+                b.add(box(center, (0.5 * at, 0.5 * al, 0.5 * (ah + st)), arm))
+        else:  # armrest on a front post
+            aw, ath = rng.uniform(0.05, 0.08), rng.uniform(0.03, 0.05)
+            for sx in (-1, 1):
+                x = sx * (0.5 * w - 0.5 * aw)
+                b.add(box((x, y_mid, seat_top + ah), (0.5 * aw, 0.5 * al, 0.5 * ath), arm))
+                _post(b, True, x, -0.5 * dp + 0.1 * al, seat_top, seat_top + ah, 0.7 * aw, arm)
+    return normalized(Chair(tuple(b.prims), tuple(b.parts)))
+
+
+def normalized(chair: Chair) -> Chair:
+    """Center the chair's bounding box at the origin and scale its largest extent to 1."""
+    bounds = [primitive_bounds(p) for p in chair.primitives]
+    lo = np.min([b[0] for b in bounds], axis=0)
+    hi = np.max([b[1] for b in bounds], axis=0)
+    mid, scale = 0.5 * (lo + hi), 1.0 / float(np.max(hi - lo))
+    prims = tuple(replace(p, center=(p.center - mid) * scale, size=p.size * scale) for p in chair.primitives)
+    return Chair(prims, chair.parts)
+
+
+def render_chair(chair: Chair, camera: Camera, chunk: int = 1 << 15) -> Frame:
+    """Exact render: rgba (white background), ray-distance depth (inf = miss), part ids."""
+    origins, dirs = camera_rays(camera)
+    albedo = chair.albedo_table()
+    n = len(dirs)
+    t, part, rgb = np.full(n, np.inf), np.zeros(n, np.int64), np.ones((n, 3))
+    for s in range(0, n, chunk):
+        hits = cast_rays(list(chair.primitives), origins[s : s + chunk], dirs[s : s + chunk])
+        hit = hits.part > 0
+        t[s : s + chunk], part[s : s + chunk] = hits.t, hits.part
+        rgb[s : s + chunk][hit] = shade(hits.normal[hit], albedo[hits.part[hit]])
+    shape = (camera.height, camera.width)
+    rgba = np.concatenate([rgb, (part > 0)[:, None].astype(np.float64)], axis=-1).reshape(*shape, 4)
+    return Frame(camera, rgba.astype(np.float32), t.reshape(shape).astype(np.float32), part.reshape(shape).astype(np.uint8))
+
+
+# ----------------------------------------------------------------------------- views
+
+
+def split_counts(views: int) -> tuple[int, int, int]:
+    """(train, val, test) — 40/5/5 for 50 views, at least one val and test from 3 views on."""
+    if views < 3:
+        return views, 0, 0
+    n = max(1, round(0.1 * views))
+    return views - 2 * n, n, n
+
+
+def sample_cameras(rng: np.random.Generator, views: int, res: int) -> dict[str, list[Camera]]:
+    """Upper-hemisphere cameras at radius 2 looking at the origin; test azimuths evenly spaced."""
+    focal = focal_from_angle(CAMERA_ANGLE_X, res)
+    counts = dict(zip(("train", "val", "test"), split_counts(views)))
+    cams = {}
+    for split, n in counts.items():
+        if n == 0:
+            continue
+        az = np.arange(n) * 360.0 / n if split == "test" else rng.uniform(0.0, 360.0, n)
+        el = rng.uniform(*ELEVATION_RANGE, n)
+        cams[split] = [Camera(look_at(spherical_eye(a, e, CAMERA_RADIUS)), focal, res, res) for a, e in zip(az, el)]
+    return cams
+
+
+# ----------------------------------------------------------------------------- scribbles
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary dilation by a (2r+1)² square; outside the image counts as off."""
+    if radius <= 0:
+        return mask.copy()
+    h, w = mask.shape
+    padded = np.pad(mask, radius)
+    out = np.zeros_like(mask)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            out |= padded[dy : dy + h, dx : dx + w]
+    return out
+
+
+def erode(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary erosion by a (2r+1)² square; outside the image counts as off."""
+    if radius <= 0:
+        return mask.copy()
+    h, w = mask.shape
+    padded = np.pad(mask, radius)
+    out = np.ones_like(mask)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            out &= padded[dy : dy + h, dx : dx + w]
+    return out
+
+
+def stroke_mask(shape: tuple[int, int], points: np.ndarray, radius: float) -> np.ndarray:
+    """Pixels whose centers lie within ``radius`` of the polyline through ``points`` ([K, 2] x, y)."""
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
+    pix = np.stack([xx, yy], -1).astype(float)  # [H, W, 2] pixel index coordinates
+    segments = list(zip(points[:-1], points[1:])) or [(points[0], points[0])]
+    mask = np.zeros(shape, bool)
+    for a, b in segments:
+        ab = b - a
+        s = np.clip(((pix - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        mask |= np.linalg.norm(pix - (a + s[..., None] * ab), axis=-1) <= radius
+    return mask
+
+
+def random_strokes(rng: np.random.Generator, region: np.ndarray, count: int, step: float, radius: float) -> np.ndarray:
+    """``count`` thick polylines wandering through ``region``, clipped to it."""
+    ys, xs = np.nonzero(region)
+    out = np.zeros_like(region)
+    if len(xs) == 0:
+        return out
+    candidates = np.stack([xs, ys], -1).astype(float)
+    for _ in range(count):
+        pts = [candidates[rng.integers(len(candidates))]]
+        for _ in range(int(rng.integers(1, 4))):
+            dist = np.linalg.norm(candidates - pts[-1], axis=-1)
+            near = np.nonzero((dist >= 0.5 * step) & (dist <= step))[0]
+            if len(near) == 0:
+                break
+            pts.append(candidates[near[rng.integers(len(near))]])
+        out |= stroke_mask(region.shape, np.stack(pts), radius)
+    return out & region
+
+
+def scribbles(rng: np.random.Generator, parts: np.ndarray, part_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """(foreground, keep) masks for editing part ``part_id`` in a part map [H, W].
+
+    Foreground strokes lie inside the part eroded by 2 px (1 or 0 px when the part is too thin);
+    keep strokes lie on other parts and the background, off the part dilated by 3 px.
+    """
+    part = parts == part_id
+    inside = next((m for m in (erode(part, r) for r in (2, 1, 0)) if m.any()), part)
+    size = parts.shape[1]
+    step, radius = max(3.0, size / 10), max(1.0, size / 48)
+    fg = random_strokes(rng, inside, 3, step, radius)
+    away = ~dilate(part, 3)
+    keep = random_strokes(rng, away & (parts > 0), 2, step, radius) | random_strokes(rng, away & (parts == 0), 3, step, radius)
+    return fg, keep
+
+
+# ----------------------------------------------------------------------------- the dataset
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    instances: int = 24
+    """Number of chairs."""
+    views: int = 50
+    """Views per chair, split 80/10/10 into train/val/test."""
+    res: int = 64
+    """Image width and height in pixels."""
+    seed: int = 0
+    """Same seed → byte-identical files."""
+    twins: bool = True
+    """Also write ground-truth color and removal twins of up to 4 chairs."""
+
+
+@dataclass(frozen=True)
+class SynthResult:
+    names: list[str]
+    twins: list[TwinSpec]
+    seconds: float
+
+
+def twin_sources(instances: int) -> list[int]:
+    """Indices of the chairs that get twins: up to 4, spread over the category."""
+    n = min(4, instances)
+    return sorted({round(k * instances / n) for k in range(n)}) if n else []
+
+
+def synth_steps(config: SynthConfig) -> int:
+    """Progress steps :func:`write_synth_category` reports: one per chair, one per twin source."""
+    return config.instances + (len(twin_sources(config.instances)) if config.twins else 0)
+
+
+def check_synth_args(out: Path, config: SynthConfig) -> None:
+    """Raise a one-line CrfError for a bad config or an output folder we must not write into."""
+    if config.instances < 1:
+        raise CrfError(f"--instances {config.instances}: need at least 1")
+    if config.seed < 0:
+        raise CrfError(f"--seed {config.seed}: must be 0 or more")
+    if config.views < 1:
+        raise CrfError(f"--views {config.views}: need at least 1")
+    if config.twins and config.views < 3:
+        raise CrfError(f"--views {config.views}: twins need a test split, i.e. at least 3 views (or --no-twins)")
+    if not 8 <= config.res <= 4096:
+        raise CrfError(f"--res {config.res}: must be between 8 and 4096")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise CrfError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (out / "instances.txt").is_file():
+        raise CrfError(f"{out}: folder is not empty and not a dataset; pick a new folder")
+
+
+def _write_instance(folder: Path, chair: Chair, cams: dict[str, list[Camera]]) -> dict[str, list[Frame]]:
+    frames = {split: [render_chair(chair, cam) for cam in cams_] for split, cams_ in cams.items()}
+    for split, fs in frames.items():
+        write_split(folder, split, fs)
+    write_parts(folder, [{"id": p.id, "name": p.name, "color": p.color} for p in chair.parts])
+    return frames
+
+
+def _best_view(frames: list[Frame], part_id: int) -> tuple[int, int]:
+    """(index, pixel count) of the frame where the part covers the most pixels."""
+    counts = [int((f.parts == part_id).sum()) for f in frames]
+    return int(np.argmax(counts)), max(counts)
+
+
+def _write_twin(
+    out: Path, source: str, kind: str, chair: Chair, part: Part, color: str | None, frames: dict[str, list[Frame]],
+    rng: np.random.Generator,
+) -> TwinSpec:
+    """Render the edited ``chair`` at the source's test poses; scribble ``part`` in its best train view."""
+    view, _ = _best_view(frames["train"], part.id)
+    name = f"{source}_{kind}"
+    folder = Path("twins") / name
+    twin = chair.recolored(part.name, color) if kind == "color" else chair.without(part.name)
+    _write_instance(out / folder, twin, {"test": [f.camera for f in frames["test"]]})
+    fg, keep = scribbles(rng, frames["train"][view].parts, part.id)
+    write_png(out / folder / "scribble.png", fg.astype(np.uint8) * 255)
+    write_png(out / folder / "keep.png", keep.astype(np.uint8) * 255)
+    scribble, keep_path = str(folder / "scribble.png"), str(folder / "keep.png")
+    return TwinSpec(name, kind, source, f"train:{view}", part.name, color, scribble, keep_path, str(folder))
+
+
+def _twins_of(
+    out: Path, name: str, chair: Chair, frames: dict[str, list[Frame]], order: int, seed: list[int]
+) -> list[TwinSpec]:
+    """A color twin (seat or back, alternating with ``order``) and a removal twin (arms, else stretchers/slats)."""
+    wanted = RECOLORABLE_PARTS[order % 2], RECOLORABLE_PARTS[1 - order % 2]
+    first, second = (chair.part(n) for n in wanted)
+    recolor = first if _best_view(frames["train"], first.id)[1] >= 25 else second  # 25 px: room for strokes
+    target = contrasting_color([p.color for p in chair.parts])
+    specs = [_write_twin(out, name, "color", chair, recolor, target, frames, np.random.default_rng([*seed, 2]))]
+    removable = next((chair.part(n) for n in REMOVABLE_PARTS if chair.part(n)), None)
+    if removable is not None:
+        specs.append(_write_twin(out, name, "remove", chair, removable, None, frames, np.random.default_rng([*seed, 3])))
+    return specs
+
+
+def write_synth_category(
+    out: Path, config: SynthConfig = SynthConfig(), progress: Callable[[str], None] | None = None
+) -> SynthResult:
+    """Generate and write the procedural chair category to ``out``; ``progress(label)`` after each step."""
+    check_synth_args(out, config)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    sources = twin_sources(config.instances) if config.twins else []
+    names, twins = [], []
+    if (out / "twins").is_dir():
+        shutil.rmtree(out / "twins")
+    for index in range(config.instances):
+        name = f"chair_{index:03d}"
+        # twin sources get arms, so their removal twin removes a part that covers pixels
+        chair = make_chair(np.random.default_rng([config.seed, index, 0]), arms=True if index in sources else None)
+        cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
+        frames = _write_instance(out / name, chair, cams)
+        names.append(name)
+        if progress:
+            progress(name)
+        if index in sources:
+            twins += _twins_of(out, name, chair, frames, sources.index(index), [config.seed, index])
+            if progress:
+                progress(f"{name} twins")
+    write_instances_txt(out, names)
+    if twins:
+        write_twins_json(out, twins)
+    elif (out / "twins.json").is_file():
+        (out / "twins.json").unlink()
+    return SynthResult(names, twins, time.perf_counter() - start)

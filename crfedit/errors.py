@@ -1,0 +1,30 @@
+"""User-facing errors: one line, exit code 2, no traceback.
+
+Library code raises :class:`CrfError` (or a subclass) for anything a user can cause — a
+missing file, a malformed JSON, an unknown instance, an empty scribble.  The CLI catches it,
+prints ``error: <message>`` to stderr and exits with :data:`EXIT_USER_ERROR`.  Programming
+errors stay ordinary exceptions so they keep their traceback.
+"""
+
+from __future__ import annotations
+
+EXIT_USER_ERROR = 2
+
+
+class CrfError(Exception):
+    """An error caused by user input; its message is a single line that names the problem."""
+
+    def __init__(self, message: str):
+        super().__init__(" ".join(str(message).split()))
+
+
+class DataError(CrfError):
+    """A dataset on disk is missing, malformed or inconsistent."""
+
+
+class ModelFileError(CrfError):
+    """A model or edit file is missing, corrupt, or does not belong to this model."""
+
+
+class NonFiniteError(CrfError):
+    """Optimization produced a NaN/inf; nothing was written."""

@@ -1,0 +1,222 @@
+"""The conditional radiance field of Liu et al. (ICCV 2021), built from the paper's named parts.
+
+    x ─┬─ encode ─┬─ F_share ──────────────┐
+       │          └─ F_inst(· , shape code)─┴─(+)─ F_fuse(· , x, shape code) ─┬─ F_dens → σ
+       │                                                                      └─ bottleneck (8-d)
+    d ─┴─ encode ──────────────────────────────── F_rad(bottleneck, d, color code) → rgb
+
+Parameter names start with the module names (``F_rad.``, ``F_fuse.`` …): edits select what they
+train, and deltas what they store, by these prefixes.  σ depends on position and shape code
+only; colour adds the view direction and the colour code.  The stages are separate methods so
+that an edit can cache the inputs of the stage it trains (``fuse_inputs`` for shape edits,
+``density_and_features`` for colour edits).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .config import Config
+
+
+def positional_encoding(x: Tensor, n_freqs: int) -> Tensor:
+    """[x, sin(2ᵏπx), cos(2ᵏπx)] for k < n_freqs.  [..., D] → [..., D(1 + 2·n_freqs)]"""
+    if n_freqs == 0:
+        return x
+    freqs = torch.pi * 2.0 ** torch.arange(n_freqs, device=x.device, dtype=x.dtype)
+    xf = (x[..., None, :] * freqs[:, None]).flatten(-2)
+    return torch.cat([x, torch.sin(xf), torch.cos(xf)], dim=-1)
+
+
+def mlp(n_in: int, width: int, n_layers: int) -> nn.Sequential:
+    """``n_layers`` of Linear + ReLU, ``width`` wide."""
+    layers: list[nn.Module] = []
+    for i in range(n_layers):
+        layers += [nn.Linear(n_in if i == 0 else width, width), nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
+class CodeEmbed(nn.Module):
+    """A latent code enters the network through Linear + ReLU (as in the paper)."""
+
+    def __init__(self, code_dim: int, out: int):
+        super().__init__()
+        self.linear = nn.Linear(code_dim, out)
+
+    def forward(self, code: Tensor) -> Tensor:
+        return F.relu(self.linear(code))
+
+
+class SharedBranch(nn.Module):
+    """F_share: instance-agnostic.  Owns the position encoding (an optional dense feature grid
+    plus sinusoids), which F_inst reads too."""
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        self.pe_x = cfg.pe_x
+        self.grid = nn.Parameter(torch.zeros(1, cfg.grid_features, *(cfg.grid_res,) * 3)) if cfg.grid_res else None
+        self.encoded_dim = 3 * (1 + 2 * cfg.pe_x) + (cfg.grid_features if cfg.grid_res else 0)
+        self.mlp = mlp(self.encoded_dim, cfg.width, cfg.share_layers) if cfg.arch in ("ours", "nerf") else None
+
+    def encode(self, x: Tensor) -> Tensor:
+        """``x`` in [-1, 1]³ (the normalized scene box) → encoded position.  [M, 3] → [M, E]"""
+        enc = positional_encoding(x, self.pe_x)
+        if self.grid is None:
+            return enc
+        # grid_sample wants (x, y, z) ↔ (W, H, D); trilinear with align_corners → cell corners.
+        g = F.grid_sample(self.grid, x.view(1, 1, 1, -1, 3), mode="bilinear", align_corners=True)
+        return torch.cat([enc, g.view(self.grid.shape[1], -1).T], dim=-1)
+
+
+def linear_with_codes(layer: nn.Linear, per_point: Tensor, per_code: Tensor | None, idx: Tensor | None) -> Tensor:
+    """``layer(cat([per_point, per_code[idx]]))`` without repeating the code part per point.
+
+    The code columns of the weight act on each code row once ([K, out]) and are then gathered;
+    ``idx`` [M] selects a row per point, or is None when there is a single code row.
+    """
+    if per_code is None:
+        return layer(per_point)
+    n = per_point.shape[-1]
+    code_part = F.linear(per_code, layer.weight[:, n:], layer.bias)  # [K, out]
+    code_part = code_part[idx] if idx is not None else code_part.expand(per_point.shape[0], -1)
+    return F.linear(per_point, layer.weight[:, :n]) + code_part
+
+
+def run_mlp(seq: nn.Sequential, per_point: Tensor, per_code: Tensor | None = None, idx: Tensor | None = None) -> Tensor:
+    """An :func:`mlp` whose first layer also sees a per-instance input (see :func:`linear_with_codes`)."""
+    h = F.relu(linear_with_codes(seq[0], per_point, per_code, idx))
+    for layer in list(seq)[2:]:
+        h = layer(h)
+    return h
+
+
+class FieldNet(nn.Module):
+    """One network of the field (the fine one; the paper preset adds a coarse twin).
+
+    Codes are passed as tables ``[K, code_dim]`` with ``idx`` [M] choosing a row per point
+    (None: a single row for all points).
+    """
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        w, e = cfg.width, cfg.code_embed
+        self.arch = cfg.arch
+        self.F_share = SharedBranch(cfg)
+        enc = self.F_share.encoded_dim
+        self.uses_shape_code = cfg.arch != "nerf"
+        self.uses_color_code = cfg.arch in ("ours", "separate")
+        if self.uses_shape_code:
+            self.F_inst = nn.ModuleDict({"code": CodeEmbed(cfg.code_dim, e), "mlp": mlp(enc + e, w, cfg.inst_layers)})
+        skip = 3 * (1 + 2 * cfg.pe_x) + (e if self.uses_shape_code else 0)
+        self.F_fuse = mlp(w + skip, w, cfg.fuse_layers)
+        self.F_dens = nn.Linear(w, 1)
+        self.bottleneck = nn.Linear(w, cfg.bottleneck)
+        d_enc = 3 * (1 + 2 * cfg.pe_d)
+        self.pe_d = cfg.pe_d
+        rad_in = cfg.bottleneck + d_enc + (e if cfg.arch != "nerf" else 0)
+        self.F_rad = nn.ModuleDict({
+            "code": CodeEmbed(cfg.code_dim, e) if cfg.arch != "nerf" else nn.Identity(),
+            "mlp": mlp(rad_in, cfg.rad_width, cfg.rad_layers),
+            "out": nn.Linear(cfg.rad_width, 3),
+        })
+        with torch.no_grad():  # start slightly transparent
+            self.F_dens.bias.fill_(-1.0)
+
+    def fuse_inputs(self, x: Tensor, shape_codes: Tensor | None, idx: Tensor | None = None) -> "FuseInputs":
+        """Everything upstream of F_fuse: the cache of a shape edit.  x [M, 3] in [-1, 1]."""
+        enc = self.F_share.encode(x)
+        pe = enc[:, : 3 * (1 + 2 * self.F_share.pe_x)]
+        h = self.F_share.mlp(enc) if self.F_share.mlp is not None else 0.0
+        s = None
+        if self.uses_shape_code:
+            s = self.F_inst["code"](shape_codes)
+            h = h + run_mlp(self.F_inst["mlp"], enc, s, idx)
+        return FuseInputs(h, pe, s, idx)
+
+    def density_from_fuse_inputs(self, inputs: "FuseInputs") -> tuple[Tensor, Tensor]:
+        """F_fuse → (raw density [M], bottleneck features [M, 8])."""
+        h = run_mlp(self.F_fuse, torch.cat([inputs.hidden, inputs.pe], dim=-1), inputs.code, inputs.idx)
+        return self.F_dens(h).squeeze(-1), self.bottleneck(h)
+
+    def density_and_features(self, x: Tensor, shape_codes: Tensor | None, idx: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(raw density [M], bottleneck features [M, 8]): the cache of a colour edit."""
+        return self.density_from_fuse_inputs(self.fuse_inputs(x, shape_codes, idx))
+
+    def radiance(self, features: Tensor, directions: Tensor, color_codes: Tensor | None, idx: Tensor | None = None) -> Tensor:
+        """F_rad: RGB in [0, 1] from bottleneck features [M, 8], unit directions [M, 3], colour codes."""
+        per_point = torch.cat([features, positional_encoding(directions, self.pe_d)], dim=-1)
+        code = self.F_rad["code"](color_codes) if color_codes is not None else None
+        h = run_mlp(self.F_rad["mlp"], per_point, code, idx)
+        return torch.sigmoid(self.F_rad["out"](h))
+
+
+class FuseInputs(NamedTuple):
+    hidden: Tensor  # [M, W]  F_share + F_inst
+    pe: Tensor  # [M, P]  encoded position (the skip into F_fuse)
+    code: Tensor | None  # [K, E]  embedded shape codes (the other skip)
+    idx: Tensor | None  # [M]  row of ``code`` per point
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp(min(x, 15)) forward; the gradient of exp at min(x, 15) backward, so a saturated
+    density still receives gradient and can come back down (a plain clamp would freeze it)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        y = torch.exp(x.clamp(max=15.0))
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad):
+        (y,) = ctx.saved_tensors
+        return grad * y
+
+
+def density_activation(raw: Tensor) -> Tensor:
+    """σ = exp(raw), capped at e¹⁵ ≈ 3.3e6 with a gradient that never vanishes at the cap."""
+    return _TruncExp.apply(raw)
+
+
+class ConditionalRadianceField(FieldNet):
+    """The category model: the fine network, per-instance codes, occupancy grids, scene box.
+
+    ``shape_codes``/``color_codes`` are [K, code_dim]; ``occupancy`` [K, R, R, R] (bool) marks
+    the cells of each instance worth sampling; ``aabb`` is the scene box.  With the paper's
+    hierarchical sampler a ``coarse`` network of the same design shares the codes.
+    """
+
+    def __init__(self, cfg: Config, n_instances: int, aabb: Tensor | None = None):
+        super().__init__(cfg)
+        self.cfg = cfg
+        self.shape_codes = nn.Parameter(torch.randn(n_instances, cfg.code_dim) * 0.01)
+        self.color_codes = nn.Parameter(torch.randn(n_instances, cfg.code_dim) * 0.01)
+        self.coarse = FieldNet(cfg) if cfg.sampler == "hierarchical" else None
+        default_box = torch.tensor([-0.6, -0.6, -0.6, 0.6, 0.6, 0.6])
+        self.register_buffer("aabb", (aabb if aabb is not None else default_box).float().clone())
+        self.register_buffer("occupancy", torch.ones(n_instances, *(cfg.occ_res,) * 3, dtype=torch.bool))
+
+    @property
+    def n_instances(self) -> int:
+        return self.shape_codes.shape[0]
+
+    def normalize(self, points: Tensor) -> Tensor:
+        """World points → [-1, 1]³ over the scene box."""
+        lo, hi = self.aabb[:3], self.aabb[3:]
+        return (points - lo) / (hi - lo) * 2.0 - 1.0
+
+    def code_tables(self) -> tuple[Tensor | None, Tensor | None]:
+        """(shape codes, colour codes) [K, D] as the architecture uses them (None = unused)."""
+        s = self.shape_codes if self.uses_shape_code else None
+        if self.arch == "single":
+            return s, s
+        return s, (self.color_codes if self.uses_color_code else None)
+
+    def codes(self, instance: int) -> tuple[Tensor | None, Tensor | None]:
+        """The code rows [1, D] of one instance."""
+        s, c = self.code_tables()
+        return (None if s is None else s[instance : instance + 1]), (None if c is None else c[instance : instance + 1])

@@ -1,0 +1,150 @@
+"""File I/O that never leaves a half-written file and never executes code.
+
+Every write goes to a temporary file in the destination folder, is fsync'ed, then renamed over
+the target (atomic on POSIX).  Images are read with Pillow, depth with OpenEXR, tensors with
+safetensors — no pickle anywhere.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from .errors import CrfError
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success fsync and rename it onto ``path``.
+
+    On any exception the temporary file is removed and ``path`` is left as it was.
+    ``suffix`` defaults to the target's own suffix (some writers pick the format from it).
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if folder.exists() and not folder.is_dir():
+        raise CrfError(f"{path}: {folder} is a file, not a folder")
+    if not folder.is_dir():
+        raise CrfError(f"{path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise CrfError(f"{path}: folder {folder} is not writable")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=(path.suffix if suffix is None else suffix) + ".tmp", dir=folder)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        with open(tmp_path, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp_path, path)
+        with contextlib.suppress(OSError):  # make the rename itself durable
+            dfd = os.open(folder, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp_path.unlink()
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2) + "\n")
+
+
+def read_json(path: str | os.PathLike):
+    """Parse a JSON file; a missing or malformed file is a one-line :class:`CrfError`."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CrfError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise CrfError(f"{path}: cannot read ({e.__class__.__name__})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise CrfError(f"{path}: malformed JSON ({e.msg} at line {e.lineno})") from None
+
+
+def _write_with(path: str | os.PathLike, writer: Callable[[Path], None]) -> None:
+    with atomic_path(path) as tmp:
+        writer(tmp)
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write a float [H, W, C] image in [0, 1] (C = 1, 3 or 4) or a uint8 array as 8-bit PNG."""
+    from PIL import Image
+
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8:
+        arr = np.clip(np.round(np.nan_to_num(arr.astype(np.float64)) * 255.0), 0, 255).astype(np.uint8)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    _write_with(path, lambda tmp: Image.fromarray(np.ascontiguousarray(arr)).save(tmp, format="PNG"))
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read an 8-bit image as float32 [H, W, C] in [0, 1] with C = 3 (RGB) or 4 (RGBA).
+
+    Grayscale, palette and 16-bit images are converted; anything Pillow cannot decode is a
+    one-line :class:`CrfError`.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if im.mode in ("I;16", "I;16B", "I;16L", "I"):
+                arr = np.asarray(im, dtype=np.float64) / 65535.0
+                return np.repeat(arr[..., None], 3, axis=2).astype(np.float32)
+            has_alpha = im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info)
+            im = im.convert("RGBA" if has_alpha else "RGB")
+            return np.asarray(im, dtype=np.float32) / 255.0
+    except FileNotFoundError:
+        raise CrfError(f"{path}: file not found") from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+        raise CrfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
+
+
+def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray]) -> None:
+    """Write float32 [H, W] channels (e.g. ``{"Z": depth}``) to a ZIP-compressed scanline EXR.
+
+    Arrays are made contiguous float32 first: OpenEXR silently writes a non-contiguous array
+    wrong and rejects float64.
+    """
+    import OpenEXR
+
+    data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    _write_with(path, lambda tmp: OpenEXR.File(header, data).write(str(tmp)))
+
+
+def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read every channel of an EXR file as float32 [H, W] arrays."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise CrfError(f"{path}: file not found")
+    try:
+        with OpenEXR.File(str(path)) as f:
+            return {k: np.array(v.pixels, dtype=np.float32) for k, v in f.channels().items()}
+    except Exception as e:  # OpenEXR raises bare exceptions for corrupt files
+        raise CrfError(f"{path}: not a readable EXR file ({e.__class__.__name__})") from None

@@ -1,0 +1,108 @@
+"""Reading and writing safetensors files defensively.
+
+Files that users share (models, edits) are parsed without executing anything: the 8-byte
+header length and the JSON header are checked by hand (size limits, dtypes, shapes, offsets)
+before safetensors touches the data, and metadata is only ever treated as strings.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+from pathlib import Path
+
+import torch
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
+
+from .errors import ModelFileError
+from .io import atomic_write_bytes
+
+MAX_HEADER_BYTES = 16 * 1024 * 1024
+MAX_FILE_BYTES = 4 * 1024**3
+DTYPES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1, "BOOL": 1}
+
+
+def read_header(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
+    """Validated (tensor table, metadata) of a safetensors file, reading only its header."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: file not found")
+    size = path.stat().st_size
+    if size < 8:
+        raise ModelFileError(f"{path}: not a safetensors file (only {size} bytes)")
+    if size > MAX_FILE_BYTES:
+        raise ModelFileError(f"{path}: file is larger than {MAX_FILE_BYTES >> 30} GiB")
+    with open(path, "rb") as f:
+        (n,) = struct.unpack("<Q", f.read(8))
+        if n > MAX_HEADER_BYTES or n > size - 8:
+            raise ModelFileError(f"{path}: corrupt safetensors header (length {n})")
+        raw = f.read(n)
+    try:
+        header = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise ModelFileError(f"{path}: corrupt safetensors header (not JSON)") from None
+    if not isinstance(header, dict):
+        raise ModelFileError(f"{path}: corrupt safetensors header")
+    meta = header.pop("__metadata__", {}) or {}
+    if not isinstance(meta, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in meta.items()):
+        raise ModelFileError(f"{path}: metadata must be a table of strings")
+    data_len = size - 8 - n
+    for name, info in header.items():
+        ok = isinstance(info, dict) and info.get("dtype") in DTYPES and isinstance(info.get("shape"), list)
+        ok = ok and all(isinstance(d, int) and d >= 0 for d in info["shape"])
+        offs = info.get("data_offsets") if ok else None
+        ok = ok and isinstance(offs, list) and len(offs) == 2 and all(isinstance(o, int) for o in offs)
+        if ok:
+            numel = 1
+            for d in info["shape"]:
+                numel *= d
+            ok = 0 <= offs[0] <= offs[1] <= data_len and offs[1] - offs[0] == numel * DTYPES[info["dtype"]]
+        if not ok:
+            raise ModelFileError(f"{path}: corrupt entry for tensor {name[:80]!r}")
+    return header, meta
+
+
+def read_safetensors(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """(tensors on CPU, string metadata) after :func:`read_header` validated the file."""
+    read_header(path)
+    try:
+        data = Path(path).read_bytes()
+        tensors = st_load(data)
+    except Exception as e:  # safetensors raises its own error types for corrupt data
+        raise ModelFileError(f"{path}: corrupt safetensors data ({e.__class__.__name__})") from None
+    _, meta = read_header(path)
+    return tensors, meta
+
+
+def write_safetensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
+    """Atomically write ``tensors`` (moved to CPU, made contiguous) with string metadata."""
+    cpu = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
+    atomic_write_bytes(path, st_save(cpu, metadata={k: str(v) for k, v in metadata.items()}))
+
+
+def check_tensors(path, tensors: dict[str, torch.Tensor], expected: dict[str, tuple[tuple[int, ...], torch.dtype]]) -> None:
+    """Every tensor must be expected, with the expected shape and dtype."""
+    for name, t in tensors.items():
+        if name not in expected:
+            raise ModelFileError(f"{path}: unexpected tensor {name[:80]!r}")
+        shape, dtype = expected[name]
+        if tuple(t.shape) != tuple(shape) or t.dtype != dtype:
+            raise ModelFileError(
+                f"{path}: tensor {name} has shape {tuple(t.shape)} {t.dtype}, expected {tuple(shape)} {dtype}"
+            )
+        if t.is_floating_point() and not torch.isfinite(t).all():
+            raise ModelFileError(f"{path}: tensor {name} contains NaN or inf")
+
+
+def fingerprint(tensors: dict[str, torch.Tensor]) -> str:
+    """A stable 16-hex-digit hash of named tensors (names, dtypes, shapes and bytes)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name in sorted(tensors):
+        t = tensors[name].detach().to("cpu").contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()[:16]

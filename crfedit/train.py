@@ -1,0 +1,261 @@
+"""Training a category model: codes and weights jointly, occupancy grids alongside.
+
+1. The scene box and each instance's starting occupancy grid come from its training
+   silhouettes (visual hull), so no sample is ever spent outside the object's hull.
+2. Each step renders a batch of random rays (3/4 from object pixels, 1/4 from background
+   pixels, which carve the hull's margin), takes the MSE to the pixels and one Adam step on
+   weights and codes.
+3. Every ``occ_every`` steps a few instances' grids are refreshed from the density.
+4. Checkpoints hold the optimizer, RNG and grid state, so ``--resume`` continues bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from . import occupancy
+from .cameras import Rays
+from .config import Config
+from .data.format import Category, TrainingRays, training_rays
+from .errors import CrfError, NonFiniteError
+from .field import ConditionalRadianceField, density_activation
+from .model import CategoryModel, ViewTable, load_model, save_model
+from .renderer import render_rays
+
+FG_FRACTION = 0.75
+
+
+@dataclass
+class TrainResult:
+    steps: int
+    seconds: float
+    final_loss: float
+    train_psnr: float
+
+
+def scene_box(category: Category, res: int = 48, views_per_instance: int = 40) -> torch.Tensor:
+    """The world box [6] around every instance's visual hull, carved inside a cube of half the
+    nearest camera distance (which contains the object in object-centric captures)."""
+    views = [v for inst in category.instances for v in inst.splits["train"][:views_per_instance]]
+    radius = min(float((v.camera.center**2).sum() ** 0.5) for v in views)
+    cube = torch.tensor([-0.5, -0.5, -0.5, 0.5, 0.5, 0.5]) * radius
+    union = torch.zeros((res,) * 3, dtype=torch.bool)
+    for inst in category.instances:
+        vs = inst.splits["train"][:views_per_instance]
+        union |= occupancy.carve_visual_hull([v.camera for v in vs], [v.alpha > 0 for v in vs], cube, res, margin=0)
+    return occupancy.occupied_box(union, cube, margin_cells=2)
+
+
+def visual_hulls(category: Category, aabb: torch.Tensor, res: int) -> torch.Tensor:
+    """Each instance's visual hull from all its training silhouettes.  [K, R, R, R] bool"""
+    return torch.stack([
+        occupancy.carve_visual_hull(
+            [v.camera for v in inst.splits["train"]], [v.alpha > 0 for v in inst.splits["train"]], aabb, res, margin=1
+        )
+        for inst in category.instances
+    ])
+
+
+def learning_rate(cfg: Config, base: float, step: int, progress: float | None = None) -> float:
+    """Cosine decay from ``base`` to ``base·lr_final``; ``progress`` in [0, 1] overrides step/steps."""
+    p = min(1.0, step / cfg.steps) if progress is None else min(1.0, progress)
+    return base * (cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * p)))
+
+
+def make_optimizer(field: ConditionalRadianceField, cfg: Config) -> torch.optim.Adam:
+    codes = [field.shape_codes, field.color_codes]
+    grid = [p for n, p in field.named_parameters() if n.endswith(".grid")]
+    ids = {id(p) for p in codes + grid}
+    rest = [p for p in field.parameters() if id(p) not in ids]
+    groups = [
+        {"params": rest, "lr": cfg.lr, "base_lr": cfg.lr},
+        {"params": codes, "lr": cfg.lr_codes, "base_lr": cfg.lr_codes},
+    ]
+    if grid:
+        groups.append({"params": grid, "lr": 2 * cfg.lr, "base_lr": 2 * cfg.lr})
+    return torch.optim.Adam(groups, eps=1e-15)
+
+
+def optimizer_tensors(opt: torch.optim.Adam) -> dict[str, torch.Tensor]:
+    """Adam's moments and step counts as flat named tensors (for the checkpoint)."""
+    out = {}
+    for i, p in enumerate(q for g in opt.param_groups for q in g["params"]):
+        for key, value in opt.state.get(p, {}).items():
+            out[f"opt.{i}.{key}"] = value if isinstance(value, torch.Tensor) else torch.tensor(value)
+    return out
+
+
+def restore_optimizer(opt: torch.optim.Adam, tensors: dict[str, torch.Tensor]) -> None:
+    params = [q for g in opt.param_groups for q in g["params"]]
+    for name, value in tensors.items():
+        if not name.startswith("opt."):
+            continue
+        _, i, key = name.split(".", 2)
+        if not i.isdigit() or int(i) >= len(params):
+            raise CrfError(f"checkpoint optimizer state does not match the model ({name})")
+        p = params[int(i)]
+        if key != "step" and value.shape != p.shape:
+            raise CrfError(f"checkpoint optimizer state does not match the model ({name})")
+        opt.state.setdefault(p, {})[key] = value.to(p.device) if key != "step" else value.cpu().clone()
+
+
+class BatchSampler:
+    """Random training rays: ``FG_FRACTION`` of each batch from object pixels, the rest from background."""
+
+    def __init__(self, data: TrainingRays, device: torch.device):
+        self.data = TrainingRays(*(t.to(device) for t in (data.origins, data.directions, data.rgb, data.alpha, data.instance)))
+        self.fg = (data.alpha > 0).nonzero().squeeze(-1).to(device)
+        self.bg = (data.alpha <= 0).nonzero().squeeze(-1).to(device)
+
+    def __call__(self, n: int, generator: torch.Generator) -> tuple[Rays, torch.Tensor, torch.Tensor]:
+        n_fg = n if len(self.bg) == 0 else (0 if len(self.fg) == 0 else round(n * FG_FRACTION))
+        pick = []
+        for pool, m in ((self.fg, n_fg), (self.bg, n - n_fg)):
+            if m:
+                pick.append(pool[torch.randint(len(pool), (m,), generator=generator).to(pool.device)])
+        idx = torch.cat(pick)
+        d = self.data
+        return Rays(d.origins[idx], d.directions[idx]), d.rgb[idx], d.instance[idx]
+
+
+def view_dependence_penalty(field, rays: Rays, inst: torch.Tensor, depth: torch.Tensor, opacity: torch.Tensor,
+                            generator: torch.Generator, n_points: int = 128, n_dirs: int = 64) -> torch.Tensor:
+    """The paper's regularizer for one-view-per-instance data: the variance of radiance at a
+    surface point over ``n_dirs`` random view directions."""
+    hit = (opacity > 0.5).nonzero().squeeze(-1)[:n_points]
+    if hit.numel() == 0:
+        return depth.sum() * 0.0
+    x = rays.origins[hit] + rays.directions[hit] * (depth[hit] / opacity[hit]).detach()[:, None]
+    s, c = field.code_tables()
+    _, feat = field.density_and_features(field.normalize(x), s, inst[hit])
+    dirs = torch.nn.functional.normalize(torch.randn(hit.numel(), n_dirs, 3, generator=generator).to(x.device), dim=-1)
+    rgb = field.radiance(
+        feat.repeat_interleave(n_dirs, 0), dirs.reshape(-1, 3), c, inst[hit].repeat_interleave(n_dirs, 0)
+    ).view(hit.numel(), n_dirs, 3)
+    return rgb.var(dim=1).mean()
+
+
+def refresh_occupancy(field, hulls, ema, instances, generator) -> None:
+    """Refresh the grids of ``instances`` from the density (candidates = visual hull)."""
+    s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell)
+    with torch.no_grad():
+        for k in instances:
+            shape_code, _ = field.codes(k)
+
+            def density(xn, k=k, shape_code=shape_code):
+                raw, _ = field.density_and_features(xn, shape_code)
+                return density_activation(raw)
+
+            grid = occupancy.update_from_density(
+                ema[k], hulls[k].reshape(-1), density, s, field.cfg.occ_threshold, generator=generator
+            )
+            field.occupancy[k] = grid.view_as(field.occupancy[k])
+
+
+def train(
+    category: Category,
+    cfg: Config,
+    out: str | Path,
+    device: torch.device,
+    seed: int = 0,
+    minutes: float | None = None,
+    resume: bool = False,
+    on_step: Callable[[int, float, float, float], None] | None = None,
+    extra_meta: dict[str, str] | None = None,
+) -> tuple[CategoryModel, TrainResult]:
+    """Train (or, with ``resume``, continue training) a model of ``category`` and write it to ``out``.
+
+    ``on_step(step, loss, psnr, rays_per_s)`` reports progress.  The model file is rewritten
+    atomically every ``checkpoint_every`` steps and at the end.  A non-finite loss stops training
+    with :class:`NonFiniteError`, leaving the last checkpoint as it was.
+    """
+    out = Path(out)
+    generator = torch.Generator().manual_seed(seed)
+    if resume:
+        if not out.is_file():
+            raise CrfError(f"--resume: {out} does not exist (start without --resume)")
+        model, state = load_model(out, device)
+        if not state:
+            raise CrfError(f"--resume: {out} holds no training state (it was baked or stripped)")
+        if model.dataset_fingerprint != category.fingerprint:
+            raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {model.dataset_fingerprint})")
+        if model.cfg.to_json() != cfg.to_json():
+            cfg = model.cfg  # resuming keeps the stored config, whatever the preset flags say
+        field = model.field
+        hulls, ema = state["hull"].to(device), state["occ_ema"].to(device).clone()
+        step, elapsed = int(state["step"]), float(state["elapsed"])
+        generator.set_state(state["rng"].to(torch.uint8))
+    else:
+        aabb = scene_box(category)
+        field = ConditionalRadianceField(cfg, len(category.instances), aabb).to(device)
+        hulls = visual_hulls(category, aabb, cfg.occ_res).to(device) if cfg.sampler == "grid" else None
+        if hulls is not None:
+            field.occupancy.copy_(hulls)
+        ema = torch.zeros(len(category.instances), cfg.occ_res**3, device=device)
+        model = CategoryModel(field, category.names, category.fingerprint)
+        for split in ("train", "val", "test"):
+            table = ViewTable.from_category(category, split)
+            if table is not None:
+                model.views[split] = table
+        step, elapsed = 0, 0.0
+        state = {}
+    opt = make_optimizer(field, cfg)
+    restore_optimizer(opt, state)
+    sampler = BatchSampler(training_rays(category, "train"), device)
+    meta = dict(extra_meta or {})
+
+    def checkpoint() -> None:
+        train_state = {
+            "step": torch.tensor(step),
+            "elapsed": torch.tensor(elapsed, dtype=torch.float64),
+            "rng": generator.get_state(),
+            "occ_ema": ema,
+            **optimizer_tensors(opt),
+        }
+        if hulls is not None:
+            train_state["hull"] = hulls
+        save_model(out, model, train_state, {**meta, "step": str(step)})
+
+    budget = None if minutes is None else 60.0 * minutes
+    loss_value, psnr_value = float("nan"), 0.0
+    next_instance = 0
+    t_start = time.perf_counter() - elapsed
+    while step < cfg.steps and (budget is None or elapsed < budget):
+        progress = None if budget is None else max(step / cfg.steps, elapsed / budget)
+        for g in opt.param_groups:
+            g["lr"] = learning_rate(cfg, g["base_lr"], step, progress)
+        rays, target, inst = sampler(cfg.rays, generator)
+        noise = cfg.density_noise * max(0.0, 1.0 - step / max(1, cfg.occ_warmup))
+        out_r = render_rays(field, rays, inst, generator=generator, density_noise=noise, early_stop=cfg.train_early_stop)
+        loss = torch.mean((out_r.rgb - target) ** 2)
+        mse = loss.detach()
+        if out_r.coarse_rgb is not None:
+            loss = loss + torch.mean((out_r.coarse_rgb - target) ** 2)
+        if cfg.view_reg > 0:
+            loss = loss + cfg.view_reg * view_dependence_penalty(field, rays, inst, out_r.depth, out_r.opacity, generator)
+        if not torch.isfinite(loss):
+            raise NonFiniteError(f"training diverged at step {step} (loss is {float(loss)}); {out} keeps its last checkpoint")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        if hulls is not None and step >= cfg.occ_warmup and step % cfg.occ_every == 0:
+            per_update = max(1, math.ceil(len(category.instances) / 4))
+            ks = [(next_instance + i) % len(category.instances) for i in range(per_update)]
+            next_instance = (next_instance + per_update) % len(category.instances)
+            refresh_occupancy(field, hulls, ema, ks, generator)
+        elapsed = time.perf_counter() - t_start
+        loss_value = float(loss.detach())
+        psnr_value = -10.0 * math.log10(max(float(mse), 1e-10))
+        if on_step is not None:
+            on_step(step, loss_value, psnr_value, cfg.rays * step / max(elapsed, 1e-9))
+        if step % cfg.checkpoint_every == 0:
+            checkpoint()
+    checkpoint()
+    return model, TrainResult(step, elapsed, loss_value, psnr_value)

@@ -1,0 +1,259 @@
+"""Dataset format: write → load round trips, Blender scenes, area resizing, one-line DataErrors."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from typer.testing import CliRunner
+
+from crfedit.cameras import Camera, focal_from_angle, look_at, rays_from_camera, spherical_eye
+from crfedit.cli import app
+from crfedit.data import (
+    Frame,
+    TwinSpec,
+    dataset_info,
+    load_category,
+    load_twins,
+    training_rays,
+    write_instances_txt,
+    write_parts,
+    write_split,
+    write_twins_json,
+)
+from crfedit.errors import DataError
+from crfedit.io import write_exr
+
+RES = 8
+
+
+def camera(k: int, res: int = RES) -> Camera:
+    return Camera(look_at(spherical_eye(40.0 * k + 3.0, 20.0 + 5 * k, 2.0)), focal_from_angle(0.6911, res), res, res)
+
+
+def random_frame(rng: np.random.Generator, k: int, res: int = RES) -> Frame:
+    rgba = rng.integers(0, 256, (res, res, 4)).astype(np.float32) / 255.0
+    depth = rng.uniform(1.0, 3.0, (res, res)).astype(np.float32)
+    depth[0, :] = np.inf
+    parts = rng.integers(0, 4, (res, res)).astype(np.uint8)
+    return Frame(camera(k, res), rgba, depth, parts)
+
+
+def make_category(root: Path, names=("a", "b"), views=3, res=RES, seed=0) -> dict[str, list[Frame]]:
+    rng = np.random.default_rng(seed)
+    frames = {}
+    for name in names:
+        frames[name] = [random_frame(rng, k, res) for k in range(views)]
+        write_split(root / name, "train", frames[name])
+        write_split(root / name, "test", frames[name][:1])
+        write_parts(root / name, [{"id": 1, "name": "seat", "color": "#aa0000"}])
+    write_instances_txt(root, list(names))
+    return frames
+
+
+def test_round_trip_poses_pixels_depth_parts(tmp_path):
+    frames = make_category(tmp_path)
+    cat = load_category(tmp_path, with_depth=True, with_parts=True)
+    assert cat.names == ["a", "b"] and set(cat.instances[0].splits) == {"train", "test"}
+    for inst in cat.instances:
+        for frame, view in zip(frames[inst.name], inst.splits["train"]):
+            np.testing.assert_allclose(view.camera.c2w, frame.camera.c2w, atol=1e-6)
+            assert math.isclose(view.camera.focal, frame.camera.focal, rel_tol=1e-9)
+            png = np.asarray(Image.open(inst.path / (view.file_path + ".png")))
+            np.testing.assert_array_equal(png, np.round(frame.rgba * 255).astype(np.uint8))
+            a = frame.rgba[..., 3]
+            np.testing.assert_array_equal(view.alpha, a)
+            np.testing.assert_allclose(view.rgb, frame.rgba[..., :3] * a[..., None] + 1 - a[..., None], atol=1e-7)
+            np.testing.assert_array_equal(view.depth, frame.depth)  # inf included
+            np.testing.assert_array_equal(view.parts, frame.parts)
+    assert cat.instance("b") is cat.instances[1] and cat.instance(0) is cat.instances[0]
+    assert cat.instance("1") is cat.instances[1]
+    assert cat.instance("b").view("test:0").file_path == "./test/r_000"
+
+
+def test_fingerprint_stable_and_sensitive(tmp_path):
+    make_category(tmp_path / "x")
+    make_category(tmp_path / "y")
+    fx, fy = load_category(tmp_path / "x").fingerprint, load_category(tmp_path / "y").fingerprint
+    assert fx == fy and len(fx) == 16
+    path = tmp_path / "y" / "a" / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    meta["frames"][0]["transform_matrix"][0][3] += 0.5
+    path.write_text(json.dumps(meta))
+    assert load_category(tmp_path / "y").fingerprint != fx
+
+
+def blender_scene(folder: Path, res: int = 32, n: int = 2, angle: float = 0.6911) -> np.ndarray:
+    """A NeRF-synthetic scene as Blender writes it: RGBA PNGs, camera_angle_x, extra keys."""
+    rng = np.random.default_rng(1)
+    (folder / "train").mkdir(parents=True)
+    images = rng.integers(0, 256, (n, res, res, 4), dtype=np.uint8)
+    frames = []
+    for k in range(n):
+        Image.fromarray(images[k], "RGBA").save(folder / "train" / f"r_{k}.png")
+        frames.append({"file_path": f"./train/r_{k}", "rotation": 0.0125, "transform_matrix": camera(k).c2w.tolist()})
+    (folder / "transforms_train.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}, indent=4))
+    return images
+
+
+def test_single_blender_scene_loads_as_one_instance(tmp_path):
+    images = blender_scene(tmp_path / "lego")
+    cat = load_category(tmp_path / "lego")
+    assert cat.names == ["lego"] and list(cat.instances[0].splits) == ["train"]
+    view = cat.instances[0].splits["train"][1]
+    assert (view.camera.width, view.camera.height) == (32, 32)
+    assert math.isclose(view.camera.focal, 16.0 / math.tan(0.5 * 0.6911))
+    np.testing.assert_array_equal(view.alpha, images[1, ..., 3] / np.float32(255))
+    info = dataset_info(cat)
+    assert info["instances"] == 1 and info["views"] == {"train": 2} and info["bbox"]["source"] == "cameras"
+    assert info["resolutions"] == ["32x32"] and info["twins"] == 0
+
+
+def test_focal_in_pixels_and_16bit_png(tmp_path):
+    blender_scene(tmp_path / "s")
+    path = tmp_path / "s" / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    del meta["camera_angle_x"]
+    meta["fl_x"] = 40.0
+    path.write_text(json.dumps(meta))
+    Image.fromarray(np.full((32, 32), 65535, np.uint16)).save(tmp_path / "s" / "train" / "r_0.png")
+    view = load_category(tmp_path / "s").instances[0].splits["train"][0]
+    assert view.camera.focal == 40.0
+    np.testing.assert_allclose(view.rgb, 1.0)
+
+
+def test_resize_is_a_2x2_area_average(tmp_path):
+    images = blender_scene(tmp_path / "s").astype(np.float64) / 255.0
+    write_exr(tmp_path / "s" / "train" / "r_0_depth.exr", {"Z": np.arange(32 * 32, dtype=np.float32).reshape(32, 32)})
+    view = load_category(tmp_path / "s", res=16, with_depth=True).instances[0].splits["train"][0]
+    a = images[0, ..., 3:]
+    composite = images[0, ..., :3] * a + (1 - a)
+    block = lambda x: x.reshape(16, 2, 16, 2, -1).mean((1, 3))  # noqa: E731
+    np.testing.assert_allclose(view.rgb, block(composite), atol=1e-6)
+    np.testing.assert_allclose(view.alpha, block(a)[..., 0], atol=1e-6)
+    assert (view.camera.width, view.camera.height) == (16, 16)
+    assert math.isclose(view.camera.focal, 8.0 / math.tan(0.5 * 0.6911))
+    depth = np.arange(32 * 32, dtype=np.float32).reshape(32, 32)
+    assert set(view.depth.ravel()) <= set(depth.ravel())  # nearest: values copied, not blended
+
+
+def test_training_rays(tmp_path):
+    make_category(tmp_path)
+    cat = load_category(tmp_path)
+    rays = training_rays(cat)
+    n = 2 * 3 * RES * RES
+    assert rays.origins.shape == rays.directions.shape == rays.rgb.shape == (n, 3)
+    assert rays.alpha.shape == rays.instance.shape == (n,)
+    assert rays.origins.dtype == rays.rgb.dtype == torch.float32 and rays.instance.dtype == torch.int64
+    assert rays.instance[0] == 0 and rays.instance[-1] == 1
+    view = cat.instances[0].splits["train"][0]
+    ref = rays_from_camera(view.camera)
+    assert torch.equal(rays.origins[0], ref.origins[0]) and torch.equal(rays.directions[0], ref.directions[0])
+    assert torch.equal(rays.rgb[0], torch.from_numpy(view.rgb[0, 0]))
+    assert len(training_rays(cat, "test").alpha) == 2 * RES * RES
+
+
+def test_twins_json_round_trip(tmp_path):
+    make_category(tmp_path)
+    (tmp_path / "twins").mkdir()
+    write_split(tmp_path / "twins" / "a_color", "test", [random_frame(np.random.default_rng(3), 0)])
+    Image.fromarray(np.zeros((RES, RES), np.uint8)).save(tmp_path / "twins" / "fg.png")
+    spec = TwinSpec("a_color", "color", "a", "train:1", "seat", "#00ff00", "twins/fg.png", "twins/fg.png", "twins/a_color")
+    write_twins_json(tmp_path, [spec])
+    [(loaded, inst)] = load_twins(tmp_path)
+    assert loaded == spec and list(inst.splits) == ["test"] and inst.splits["test"][0].depth is not None
+    assert load_twins(tmp_path / "a") == []
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def _edit_json(path: Path, fn) -> None:
+    meta = json.loads(path.read_text())
+    fn(meta)
+    path.write_text(json.dumps(meta))
+
+
+def _set_matrix(value):
+    return lambda m: m["frames"][1].__setitem__("transform_matrix", value)
+
+
+def _cmyk(root: Path) -> None:
+    Image.new("CMYK", (RES, RES)).save(root / "a" / "train" / "r_001.jpg")
+    _edit_json(root / "a" / "transforms_train.json", lambda m: m["frames"][1].__setitem__("file_path", "./train/r_001.jpg"))
+
+
+def _nan_depth(root: Path) -> None:
+    depth = np.ones((RES, RES), np.float32)
+    depth[2, 3] = np.nan
+    write_exr(root / "a" / "train" / "r_001_depth.exr", {"Z": depth})
+
+
+TRAIN = "a/transforms_train.json"
+BAD_INPUTS = {
+    "missing instances.txt": (lambda r: (r / "instances.txt").unlink(), "instances.txt", "not found"),
+    "missing instance folder": (lambda r: shutil.rmtree(r / "b"), "instances.txt", "instance folder b"),
+    "missing transforms": (lambda r: [(r / "b" / f"transforms_{s}.json").unlink() for s in ("train", "test")], "b", "no transforms"),
+    "missing image": (lambda r: (r / "a" / "train" / "r_001.png").unlink(), "a/train/r_001.png", "not found"),
+    "malformed json": (lambda r: (r / TRAIN).write_text('{"frames": [}'), TRAIN, "malformed JSON"),
+    "matrix not 4x4": (lambda r: _edit_json(r / TRAIN, _set_matrix([[1, 0, 0], [0, 1, 0], [0, 0, 1]])), TRAIN, "4x4"),
+    "matrix non-finite": (lambda r: _edit_json(r / TRAIN, _set_matrix([[1, 0, 0, 0]] * 3 + [[0, 0, 0, 1e999]])), TRAIN, "non-finite"),
+    "matrix singular": (lambda r: _edit_json(r / TRAIN, _set_matrix([[1, 0, 0, 0]] * 3 + [[0, 0, 0, 1]])), TRAIN, "not invertible"),
+    "no camera angle": (lambda r: _edit_json(r / TRAIN, lambda m: m.pop("camera_angle_x")), TRAIN, "camera_angle_x"),
+    "wrong mode": (_cmyk, "a/train/r_001.jpg", "mode CMYK"),
+    "inconsistent sizes": (
+        lambda r: Image.new("RGBA", (RES // 2, RES // 2)).save(r / "a" / "train" / "r_001.png"),
+        "a/train/r_001.png",
+        "differs",
+    ),
+    "nan depth": (_nan_depth, "a/train/r_001_depth.exr", "NaN"),
+    "empty split": (lambda r: _edit_json(r / TRAIN, lambda m: m.__setitem__("frames", [])), TRAIN, "empty split"),
+    "corrupt image": (lambda r: (r / "a" / "train" / "r_001.png").write_bytes(b"not a png"), "a/train/r_001.png", "not a readable image"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUTS))
+def test_bad_input_is_one_line_data_error_naming_the_file(tmp_path, case):
+    make_category(tmp_path)
+    breaker, file, words = BAD_INPUTS[case]
+    breaker(tmp_path)
+    with pytest.raises(DataError) as e:
+        load_category(tmp_path, with_depth=True, with_parts=True)
+    msg = str(e.value)
+    assert "\n" not in msg and str(tmp_path / file) in msg and words in msg
+
+
+def test_unknown_instance_lists_valid_names(tmp_path):
+    make_category(tmp_path)
+    cat = load_category(tmp_path)
+    with pytest.raises(DataError, match=r"unknown instance 'zzz' \(valid: a, b; 2 in all\)"):
+        cat.instance("zzz")
+    with pytest.raises(DataError, match="out of range"):
+        cat.instance(5)
+    with pytest.raises(DataError, match="SPLIT:INDEX"):
+        cat.instances[0].view("train7")
+
+
+@pytest.mark.parametrize("case", ["missing instances.txt", "malformed json"])
+def test_cli_bad_dataset_exits_2_with_one_line(tmp_path, case):
+    make_category(tmp_path)
+    BAD_INPUTS[case][0](tmp_path)
+    result = CliRunner().invoke(app, ["dataset", "info", str(tmp_path)])
+    assert result.exit_code == 2
+    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1
+    assert "Traceback" not in result.output and "Traceback" not in result.stderr
+
+
+def test_cli_info_json(tmp_path):
+    make_category(tmp_path)
+    result = CliRunner().invoke(app, ["dataset", "info", str(tmp_path), "--json"])
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.stdout)
+    assert info["instances"] == 2 and info["views"] == {"train": 6, "test": 2} and info["bbox"]["source"] == "depth"
+    assert info["fingerprint"] == load_category(tmp_path).fingerprint
