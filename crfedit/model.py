@@ -71,13 +71,14 @@ class CategoryModel:
         return fingerprint(self.state())
 
     def field_for(self, instance: int) -> ConditionalRadianceField:
-        """The field that renders ``instance``: the shared one, or a copy carrying its baked weights."""
+        """The field that renders ``instance``: the shared one, or a copy carrying the tensors
+        (weights, code tables, occupancy) that edits of this instance replaced."""
         params = self.overrides.get(instance)
         if not params:
             return self.field
         f = copy.deepcopy(self.field)
         with torch.no_grad():
-            sd = dict(f.named_parameters())
+            sd = f.state_dict(keep_vars=True)
             for name, value in params.items():
                 sd[name].copy_(value)
         return f
@@ -167,7 +168,7 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> t
     tensors, meta = read_safetensors(path)
     field = ConditionalRadianceField(cfg, k)
     expected = {f"field.{n}": (tuple(v.shape), v.dtype) for n, v in field.state_dict().items()}
-    params = {n: (tuple(p.shape), p.dtype) for n, p in field.named_parameters()}
+    params = {n: (tuple(p.shape), p.dtype) for n, p in field.state_dict().items()}
     core = {n: t for n, t in tensors.items() if n.startswith("field.")}
     missing = sorted(set(expected) - set(core))
     if missing:
