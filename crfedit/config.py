@@ -64,13 +64,16 @@ class Config:
     lr_codes: float = 5e-3
     lr_final: float = 0.05
     """Final learning rate as a fraction of the initial one (cosine decay)."""
+    hull_margin: int = 0
+    """Cells of dilation around the visual hull that starts each occupancy grid (-1 = no hull:
+    start all-occupied and let the density prune)."""
     occ_every: int = 16
     """Update occupancy grids from the density every this many steps."""
     occ_warmup: int = 256
     """Steps before the first occupancy update."""
     occ_threshold: float = 0.01
     """A cell stays occupied while its opacity over one step, 1-exp(-σ·step), exceeds this."""
-    density_noise: float = 1.0
+    density_noise: float = 0.0
     """Std of noise added to raw density early in training (avoids the all-empty start)."""
     view_reg: float = 0.0
     """Weight of the paper's view-dependence regularizer (one view per instance)."""

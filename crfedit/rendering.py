@@ -27,14 +27,18 @@ def optical_depth_from_density(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor)
     return sigmas * (t_ends - t_starts).clamp_min(0.0)
 
 
+def exclusive_cumsum(x: Tensor) -> Tensor:
+    """[0, x₀, x₀+x₁, …] along the last axis.  Shifting the inclusive sum (rather than
+    subtracting xᵢ from it) keeps a small prefix exact when a later xᵢ is huge."""
+    return torch.cat([torch.zeros_like(x[..., :1]), torch.cumsum(x, dim=-1)[..., :-1]], dim=-1)
+
+
 def transmittance_from_density(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor) -> Tensor:
     """Tᵢ = exp(-Σ_{j<i} σⱼδⱼ), the light reaching the start of sample i.  [..., N]
 
     Example: σδ = [0.5, 1.0, 2.0] → T = [1, e^-0.5, e^-1.5].
     """
-    tau = optical_depth_from_density(t_starts, t_ends, sigmas)
-    exclusive = torch.cumsum(tau, dim=-1) - tau
-    return torch.exp(-exclusive.clamp_min(0.0))
+    return torch.exp(-exclusive_cumsum(optical_depth_from_density(t_starts, t_ends, sigmas)))
 
 
 def render_weight_from_density(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -45,8 +49,7 @@ def render_weight_from_density(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor)
     """
     tau = optical_depth_from_density(t_starts, t_ends, sigmas)
     alphas = -torch.expm1(-tau)
-    exclusive = torch.cumsum(tau, dim=-1) - tau
-    trans = torch.exp(-exclusive.clamp_min(0.0))
+    trans = torch.exp(-exclusive_cumsum(tau))
     return trans * alphas, trans, alphas
 
 
@@ -81,7 +84,7 @@ def ray_aabb_intersect(origins: Tensor, directions: Tensor, aabb: Tensor) -> tup
 
     Returns (t_near, t_far, hit), each [N]; t_near ≥ 0 (a ray starting inside begins at 0);
     rays that miss get t_near = t_far = 0 and hit = False.  Axis-parallel rays are handled
-    without NaN by treating 1/0 as ±1e30.
+    without NaN by treating 1/0 as ±1e12.
     """
     safe = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
     inv = 1.0 / safe
@@ -134,7 +137,7 @@ def intervals_from_points(t: Tensor, t_near: Tensor, t_far: Tensor) -> tuple[Ten
     """Contiguous intervals around sorted distances ``t`` [N, n] that tile [t_near, t_far].
 
     Interval i spans the midpoints to its neighbours; the first starts at ``t_near`` and the
-    last ends at ``t_far`` (both [N]), so Σδ = t_far - t_near exactly.
+    last ends at ``t_far`` (both [N]), so the intervals meet end to end (Σδ = t_far - t_near up to rounding).
     """
     mids = 0.5 * (t[:, 1:] + t[:, :-1])
     starts = torch.cat([torch.minimum(t_near[:, None], t[:, :1]), mids], dim=-1)

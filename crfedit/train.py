@@ -52,11 +52,16 @@ def scene_box(category: Category, res: int = 48, views_per_instance: int = 40) -
     return occupancy.occupied_box(union, cube, margin_cells=2)
 
 
-def visual_hulls(category: Category, aabb: torch.Tensor, res: int) -> torch.Tensor:
-    """Each instance's visual hull from all its training silhouettes.  [K, R, R, R] bool"""
+def visual_hulls(category: Category, aabb: torch.Tensor, res: int, margin: int = 1) -> torch.Tensor:
+    """Each instance's visual hull from all its training silhouettes.  [K, R, R, R] bool
+
+    ``margin`` < 0 skips carving: every cell starts occupied.
+    """
+    if margin < 0:
+        return torch.ones(len(category.instances), res, res, res, dtype=torch.bool)
     return torch.stack([
         occupancy.carve_visual_hull(
-            [v.camera for v in inst.splits["train"]], [v.alpha > 0 for v in inst.splits["train"]], aabb, res, margin=1
+            [v.camera for v in inst.splits["train"]], [v.alpha > 0 for v in inst.splits["train"]], aabb, res, margin=margin
         )
         for inst in category.instances
     ])
@@ -194,7 +199,7 @@ def train(
     else:
         aabb = scene_box(category)
         field = ConditionalRadianceField(cfg, len(category.instances), aabb).to(device)
-        hulls = visual_hulls(category, aabb, cfg.occ_res).to(device) if cfg.sampler == "grid" else None
+        hulls = visual_hulls(category, aabb, cfg.occ_res, cfg.hull_margin).to(device) if cfg.sampler == "grid" else None
         if hulls is not None:
             field.occupancy.copy_(hulls)
         ema = torch.zeros(len(category.instances), cfg.occ_res**3, device=device)

@@ -1,0 +1,312 @@
+"""``crfedit edit-color | remove | add | transfer`` and ``crfedit edits show | check | bake``.
+
+Each edit command loads the model, applies the ``--edit`` files it builds on, edits one
+instance as seen from one ``--view`` and writes the edit file ``--out`` (docs/edit-format.md).
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ..errors import CrfError
+from .common import DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
+
+
+class Strategy(str, enum.Enum):
+    hybrid = "hybrid"
+    codes = "codes"
+    all = "all"
+
+
+class AddMethod(str, enum.Enum):
+    composite = "composite"
+    density = "density"
+
+
+ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors).")]
+InstanceOpt = Annotated[str, typer.Option("--instance", help="Instance to edit: a name or an index.")]
+ViewOpt = Annotated[str, typer.Option("--view", help="The one view the scribbles belong to: train:5, test:0, orbit:36@30 with one view, or a camera JSON.")]
+OutOpt = Annotated[Path, typer.Option("--out", help="Edit file to write (.safetensors); written atomically.")]
+PriorOpt = Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")]
+StrategyOpt = Annotated[Strategy, typer.Option("--strategy", help="What to train: hybrid (the paper's), codes (the instance's code only) or all (every weight).")]
+StepsOpt = Annotated[int, typer.Option("--steps", help="Optimization steps.")]
+LrOpt = Annotated[float, typer.Option("--lr", help="Adam learning rate.")]
+RaysOpt = Annotated[int, typer.Option("--rays", help="Most rays rendered per step (scribbled + kept).")]
+ScribbleOpt = Annotated[Optional[Path], typer.Option("--scribble", help="Mask PNG of the part to edit (white on black, the view's size).")]
+ScribbleJsonOpt = Annotated[Optional[Path], typer.Option("--scribble-json", help='Strokes JSON: {"strokes": [[[x, y], ...], ...], "radius": r} or a list of strokes.')]
+KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (default: a random sample of the rest of the view).")]
+KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
+
+
+def _check_out(out: Path, model: Path) -> None:
+    if out.exists() and out.resolve() == Path(model).resolve():
+        raise CrfError(f"--out {out}: is the model file; pick another name for the edit")
+    if out.is_dir():
+        raise CrfError(f"--out {out}: is a folder; give a file name such as edit.safetensors")
+    folder = out.parent if str(out.parent) else Path(".")
+    if not folder.is_dir():
+        raise CrfError(f"--out {out}: folder {folder} does not exist")
+
+
+def _load(model: Path, edits: list[Path] | None, device: DeviceChoice):
+    from ..delta import apply_edit_files
+    from ..model import load_model
+    from ..runtime import resolve_device
+
+    base, _ = load_model(model, resolve_device(device))
+    return apply_edit_files(base, list(edits or []))
+
+
+def _one_view(model, spec: str, instance: int, option: str = "--view"):
+    from ..views import resolve_views
+
+    views = resolve_views(spec, model, instance)
+    if len(views) != 1:
+        raise CrfError(f"{option} {spec}: names {len(views)} views; an edit is drawn on exactly one (e.g. train:5)")
+    return views[0]
+
+
+def _masks(scribble: Path | None, scribble_json: Path | None, keep: Path | None, keep_json: Path | None, camera, what: str):
+    from ..edit.scribble import load_mask
+
+    if scribble is None and scribble_json is None:
+        raise CrfError(f"give the {what} as --scribble MASK.png or --scribble-json STROKES.json")
+    fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble")
+    bg = load_mask(keep, keep_json, camera.width, camera.height, "keep")
+    return fg, bg
+
+
+def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int):
+    from ..edit import EditOptions
+
+    return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed).validated()
+
+
+def _write(result, out: Path, label: str) -> None:
+    result.save(out, command=command_line(), **({"view": label} if label else {}))
+    meta = result.meta
+    size = out.stat().st_size
+    typer.echo(
+        f"wrote {out}: {meta['kind']} edit of {meta['instance']}, {len(result.tensors)} tensors, "
+        f"{size / 1024:.1f} KiB, final loss {result.final_loss:.4g}, {result.seconds:.2f} s"
+    )
+
+
+@app.command("edit-color")
+@user_errors
+def edit_color_cmd(
+    model: ModelArg,
+    instance: InstanceOpt,
+    view: ViewOpt,
+    out: OutOpt,
+    color: Annotated[str, typer.Option("--color", help="Target colour: #rgb, #rrggbb or a name such as red, navy, orange.")],
+    scribble: ScribbleOpt = None,
+    scribble_json: ScribbleJsonOpt = None,
+    keep: KeepOpt = None,
+    keep_json: KeepJsonOpt = None,
+    edit: PriorOpt = None,
+    strategy: StrategyOpt = Strategy.hybrid,
+    steps: StepsOpt = 100,
+    lr: LrOpt = 1e-2,
+    rays: RaysOpt = 1024,
+    device: DeviceOpt = DeviceChoice.auto,
+    seed: SeedOpt = 0,
+) -> None:
+    """Recolour the scribbled part of one instance (trains F_rad and its colour code)."""
+    from ..edit import edit_color
+    from ..edit.scribble import parse_color
+
+    rgb = parse_color(color)
+    options = _options(strategy, steps, lr, rays, seed)
+    _check_out(out, model)
+    m = _load(model, edit, device)
+    k = m.instance_index(instance)
+    label, camera = _one_view(m, view, k)
+    fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera, "part to recolour")
+    _write(edit_color(m, k, camera, fg, rgb, bg, options), out, label)
+
+
+@app.command("remove")
+@user_errors
+def remove_cmd(
+    model: ModelArg,
+    instance: InstanceOpt,
+    view: ViewOpt,
+    out: OutOpt,
+    scribble: ScribbleOpt = None,
+    scribble_json: ScribbleJsonOpt = None,
+    keep: KeepOpt = None,
+    keep_json: KeepJsonOpt = None,
+    occluded: Annotated[bool, typer.Option("--occluded", help="Remove only the first surface along each scribbled ray (a part in front of others).")] = False,
+    edit: PriorOpt = None,
+    strategy: StrategyOpt = Strategy.hybrid,
+    steps: StepsOpt = 100,
+    lr: LrOpt = 1e-2,
+    rays: RaysOpt = 1024,
+    device: DeviceOpt = DeviceChoice.auto,
+    seed: SeedOpt = 0,
+) -> None:
+    """Remove the scribbled part of one instance (trains F_fuse and F_dens, updates its occupancy grid)."""
+    from ..edit import remove
+
+    options = _options(strategy, steps, lr, rays, seed)
+    _check_out(out, model)
+    m = _load(model, edit, device)
+    k = m.instance_index(instance)
+    label, camera = _one_view(m, view, k)
+    fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera, "part to remove")
+    _write(remove(m, k, camera, fg, bg, occluded, options), out, label)
+
+
+@app.command("add")
+@user_errors
+def add_cmd(
+    model: ModelArg,
+    instance: InstanceOpt,
+    view: ViewOpt,
+    out: OutOpt,
+    donor: Annotated[str, typer.Option("--donor", help="Instance to copy a part from: a name or an index.")],
+    copy_mask: Annotated[Path, typer.Option("--copy", help="Mask PNG of the part to copy, drawn on the donor view.")],
+    offset: Annotated[str, typer.Option("--offset", help="Where to paste: DX,DY pixels right and down (--offset=-4,2 for negative DX).")],
+    donor_view: Annotated[Optional[str], typer.Option("--donor-view", help="The donor view the copy mask belongs to (default: --view).")] = None,
+    method: Annotated[AddMethod, typer.Option("--method", help="composite: fit the pasted image; density: match the donor's density along the pasted rays.")] = AddMethod.composite,
+    keep: KeepOpt = None,
+    keep_json: KeepJsonOpt = None,
+    edit: PriorOpt = None,
+    strategy: StrategyOpt = Strategy.hybrid,
+    steps: StepsOpt = 100,
+    lr: LrOpt = 1e-2,
+    rays: RaysOpt = 1024,
+    device: DeviceOpt = DeviceChoice.auto,
+    seed: SeedOpt = 0,
+) -> None:
+    """Add a part copied from another instance (trains F_fuse and F_dens, grows its occupancy grid)."""
+    from ..data.format import read_mask
+    from ..edit import add
+    from ..edit.scribble import load_mask
+    from ..edit.shape import parse_offset
+
+    dxdy = parse_offset(offset)
+    options = _options(strategy, steps, lr, rays, seed)
+    _check_out(out, model)
+    m = _load(model, edit, device)
+    k, j = m.instance_index(instance), m.instance_index(donor)
+    label, camera = _one_view(m, view, k)
+    donor_camera = camera if donor_view is None else _one_view(m, donor_view, j, "--donor-view")[1]
+    mask = read_mask(copy_mask)
+    if mask.shape != (donor_camera.height, donor_camera.width):
+        raise CrfError(
+            f"{copy_mask}: copy mask is {mask.shape[1]}x{mask.shape[0]} but the donor view is {donor_camera.width}x{donor_camera.height}"
+        )
+    bg = load_mask(keep, keep_json, camera.width, camera.height, "keep")
+    _write(add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options), out, label)
+
+
+@app.command("transfer")
+@user_errors
+def transfer_cmd(
+    model: ModelArg,
+    instance: InstanceOpt,
+    out: OutOpt,
+    shape_from: Annotated[Optional[str], typer.Option("--shape-from", help="Take the shape code (and occupancy grid) of this instance.")] = None,
+    color_from: Annotated[Optional[str], typer.Option("--color-from", help="Take the colour code of this instance.")] = None,
+    edit: PriorOpt = None,
+    device: DeviceOpt = DeviceChoice.auto,
+) -> None:
+    """Give one instance another instance's shape or colour code (no optimization)."""
+    from ..edit import transfer
+
+    if shape_from is None and color_from is None:
+        raise CrfError("transfer: give --shape-from or --color-from (or both)")
+    _check_out(out, model)
+    m = _load(model, edit, device)
+    k = m.instance_index(instance)
+    result = transfer(
+        m, k,
+        shape_from=None if shape_from is None else m.instance_index(shape_from),
+        color_from=None if color_from is None else m.instance_index(color_from),
+    )
+    _write(result, out, "")
+
+
+# ----------------------------------------------------------------------------- edits …
+
+
+def _show_rows(delta, size: int) -> list[tuple[str, str]]:
+    meta = delta.meta
+    rows = [(key, meta.get(key, "")) for key in ("kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint")]
+    rows = [(k, v if v else "(none)" if k == "parent" else v) for k, v in rows if v or k == "parent"]
+    rows += [(key, meta[key]) for key in ("final_loss", "seconds", "view", "command") if meta.get(key)]
+    if meta.get("hyperparameters"):
+        try:
+            hyper = json.loads(meta["hyperparameters"])
+        except json.JSONDecodeError:
+            hyper = None
+        if isinstance(hyper, dict):
+            shown = {k: v for k, v in hyper.items() if not isinstance(v, dict)}
+            rows.append(("hyper", ", ".join(f"{k}={v}" for k, v in shown.items())))
+    rows.append(("size", f"{size} bytes, {len(delta.tensors)} tensors"))
+    for name, t in delta.tensors.items():
+        rows.append(("tensor", f"{name} {list(t.shape)} {str(t.dtype).replace('torch.', '')}"))
+    return rows
+
+
+@edits_app.command("show")
+@user_errors
+def show_cmd(
+    edit: Annotated[Path, typer.Argument(help="Edit file (.safetensors).")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
+) -> None:
+    """Print an edit file's metadata and tensors."""
+    from ..delta import read_delta
+
+    delta = read_delta(edit)
+    size = edit.stat().st_size
+    if as_json:
+        tensors = {n: {"shape": list(t.shape), "dtype": str(t.dtype).replace("torch.", "")} for n, t in delta.tensors.items()}
+        typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": delta.meta, "tensors": tensors}, indent=2))
+        return
+    for key, value in _show_rows(delta, size):
+        typer.echo(f"{key:<13} {value}")
+
+
+@edits_app.command("check")
+@user_errors
+def check_cmd(
+    model: ModelArg,
+    edit: Annotated[list[Path], typer.Option("--edit", help="Edit file (repeatable, in the order they apply).")],
+) -> None:
+    """Check that a stack of edits applies to a model (files, order, instances, shapes)."""
+    from ..delta import check_stack, read_delta
+    from ..model import load_model
+
+    m, _ = load_model(model, "cpu")
+    deltas = [read_delta(p) for p in edit]
+    check_stack(m, deltas)
+    typer.echo(f"ok: {len(deltas)} edit(s) apply to {model} in this order")
+    for i, d in enumerate(deltas, 1):
+        typer.echo(f"  {i}. {d.path}: {d.kind} edit of {d.instance} ({d.fingerprint})")
+
+
+@edits_app.command("bake")
+@user_errors
+def bake_cmd(
+    model: ModelArg,
+    edit: Annotated[list[Path], typer.Option("--edit", help="Edit file to fold in (repeatable, in the order they apply).")],
+    out: Annotated[Path, typer.Option("--out", help="Model file to write (atomically).")],
+) -> None:
+    """Fold a stack of edits into a new model file (renders like the model with the stack applied)."""
+    from ..delta import bake
+    from ..model import load_model, save_model
+
+    if out.exists() and out.resolve() == model.resolve():
+        raise CrfError(f"--out {out}: is the input model; write the baked model to a new file")
+    m, _ = load_model(model, "cpu")
+    baked = bake(m, edit)
+    save_model(out, baked, extra_meta={"command": command_line()})
+    typer.echo(f"wrote {out}: {len(edit)} edit(s) baked into {model} ({out.stat().st_size / 1024:.1f} KiB)")

@@ -1,0 +1,372 @@
+"""``crfedit train``, ``crfedit info`` and ``crfedit quickstart``."""
+
+from __future__ import annotations
+
+import enum
+import json
+import math
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ..errors import CrfError
+from .common import DeviceChoice, DeviceOpt, SeedOpt, app, command_line, user_errors
+
+
+class PresetChoice(str, enum.Enum):
+    fast = "fast"
+    paper = "paper"
+
+
+class ArchChoice(str, enum.Enum):
+    ours = "ours"
+    separate = "separate"
+    single = "single"
+    nerf = "nerf"
+
+
+# ----------------------------------------------------------------------------- progress
+
+
+class TrainProgress:
+    """A rich progress bar fed by :func:`crfedit.train.train`'s ``on_step``.
+
+    Columns: step/total, loss, PSNR (of the training batch), rays/s, elapsed, ETA.  With a time
+    budget the bar tracks whichever limit comes first, steps or minutes.
+    """
+
+    def __init__(self, cfg, minutes: float | None, first_step: int = 0):
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.cfg, self.budget, self.first_step = cfg, None if minutes is None else 60.0 * minutes, first_step
+        self.t0 = time.perf_counter()
+        self.bar = Progress(
+            TextColumn("{task.fields[step]:>6}/{task.fields[steps]}"),
+            BarColumn(),
+            TextColumn("loss {task.fields[loss]}  PSNR {task.fields[psnr]}  {task.fields[rate]} rays/s"),
+            TimeElapsedColumn(),
+            TextColumn("ETA {task.fields[eta]}"),
+        )
+        self.task = self.bar.add_task("train", total=1.0, step=first_step, steps=cfg.steps, loss="-", psnr="-", rate="-", eta="-")
+
+    def __enter__(self) -> "TrainProgress":
+        self.bar.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.bar.stop()
+
+    def on_step(self, step: int, loss: float, psnr: float, rays_per_s: float) -> None:
+        # train() reports rays/s as rays so far over the run's total elapsed time, which gives
+        # that elapsed time back (it includes the time before a --resume).
+        elapsed = self.cfg.rays * step / rays_per_s if rays_per_s > 0 else 0.0
+        done = step / self.cfg.steps
+        if self.budget is not None:
+            done = max(done, elapsed / self.budget)
+        steps_per_s = (step - self.first_step) / max(time.perf_counter() - self.t0, 1e-9)
+        remaining = (self.cfg.steps - step) / steps_per_s if steps_per_s > 0 else math.inf
+        if self.budget is not None:
+            remaining = min(remaining, self.budget - elapsed)
+        self.bar.update(
+            self.task, completed=min(done, 1.0), step=step, loss=f"{loss:.4f}", psnr=f"{psnr:5.2f}",
+            rate=_si(rays_per_s), eta=_clock(max(remaining, 0.0)),
+        )
+
+
+def _si(x: float) -> str:
+    return f"{x / 1e6:.2f}M" if x >= 1e6 else f"{x / 1e3:.1f}k" if x >= 1e3 else f"{x:.0f}"
+
+
+def _clock(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "-:--:--"
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def check_output_file(out: Path, what: str = "--out") -> None:
+    """The folder of ``out`` must exist and ``out`` must not be a folder (checked before work starts)."""
+    if out.is_dir():
+        raise CrfError(f"{what} {out}: is a folder; give a file name such as {out / 'model.safetensors'}")
+    folder = out.parent
+    if not folder.is_dir():
+        raise CrfError(f"{what} {out}: folder {folder} does not exist")
+
+
+def stored_training(path: Path):
+    """(config, step, view sizes) recorded in a model file, read from its header only."""
+    from ..config import Config
+    from ..safefile import read_header
+
+    _, meta = read_header(path)
+    cfg = Config.from_json(meta.get("config", ""))
+    step = int(meta["step"]) if meta.get("step", "").isdigit() else 0
+    try:
+        sizes = json.loads(meta.get("view_sizes", "{}"))
+    except json.JSONDecodeError:
+        sizes = {}
+    return cfg, step, sizes if isinstance(sizes, dict) else {}
+
+
+def held_out_split(category) -> str:
+    """``val`` when any instance has validation views, else ``test``."""
+    return "val" if any("val" in inst.splits for inst in category.instances) else "test"
+
+
+def format_score(score: dict) -> str:
+    text = f"PSNR {score['psnr']:.2f} dB, SSIM {score['ssim']:.3f}"
+    return text + (f", LPIPS {score['lpips']:.3f}" if score["lpips"] is not None else "")
+
+
+def run_training(category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool):
+    """Train on a loaded category with a progress bar; return (model, TrainResult)."""
+    from ..train import train
+
+    first_step = 0
+    if resume and out.is_file():
+        stored_cfg, first_step, _ = stored_training(out)
+        if stored_cfg != cfg:
+            typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps)")
+        cfg = stored_cfg
+    with TrainProgress(cfg, minutes, first_step) as progress:
+        return train(
+            category, cfg, out, device, seed=seed, minutes=minutes, resume=resume,
+            on_step=progress.on_step, extra_meta={"command": command_line()},
+        )
+
+
+# ----------------------------------------------------------------------------- train
+
+
+@app.command("train")
+@user_errors
+def train_cmd(
+    data: Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt) or a NeRF-synthetic scene.")],
+    out: Annotated[Path, typer.Option("--out", help="Model file to write, e.g. model.safetensors (its folder must exist).")],
+    preset: Annotated[PresetChoice, typer.Option("--preset", help="fast: minutes on a CPU; paper: the paper's networks and sampling.")] = PresetChoice.fast,
+    arch: Annotated[Optional[ArchChoice], typer.Option("--arch", help="Ablation variant (paper Table 1); default ours.")] = None,
+    steps: Annotated[Optional[int], typer.Option("--steps", help="Training steps (default: the preset's).")] = None,
+    minutes: Annotated[Optional[float], typer.Option("--minutes", help="Stop after this much training time; the learning-rate schedule ends there.")] = None,
+    res: Annotated[Optional[int], typer.Option("--res", help="Train at this image width (images are area-resized); default: as stored.")] = None,
+    seed: SeedOpt = 0,
+    device: DeviceOpt = DeviceChoice.auto,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run stored in --out from its last checkpoint (stored config and resolution).")] = False,
+    view_reg: Annotated[Optional[float], typer.Option("--view-reg", help="Weight of the view-dependence regularizer (one-view-per-instance data).")] = None,
+    sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override any config field, KEY=VALUE (repeatable), e.g. --set rays=1024.")] = None,
+) -> None:
+    """Train one model over a category: shared networks plus a shape and a color code per instance.
+
+    Writes the model (with a checkpoint every checkpoint_every steps), then prints held-out
+    PSNR/SSIM on a few validation views per instance (test views when there is no val split).
+    """
+    from ..config import make_config
+    from ..data.format import load_category
+    from ..evaluate import score_model
+    from ..runtime import resolve_device, seed_everything
+    from ..views import parse_resolution
+
+    if steps is not None and steps < 1:
+        raise CrfError(f"--steps {steps}: must be at least 1")
+    if minutes is not None and not (minutes > 0 and math.isfinite(minutes)):
+        raise CrfError(f"--minutes {minutes:g}: must be a positive number")
+    if view_reg is not None and not (view_reg >= 0 and math.isfinite(view_reg)):
+        raise CrfError(f"--view-reg {view_reg:g}: must be 0 or more")
+    res = parse_resolution(res)
+    check_output_file(out)
+    cfg = make_config(
+        preset.value, {"arch": arch.value if arch else None, "steps": steps, "view_reg": view_reg}, sets or []
+    )
+    if resume:
+        if not out.is_file():
+            raise CrfError(f"--resume: {out} does not exist (start without --resume)")
+        _, _, sizes = stored_training(out)
+        stored_width = (sizes.get("train") or [None])[0]
+        if res is None:
+            res = stored_width
+        elif stored_width is not None and res != stored_width:
+            raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
+    dev = resolve_device(device)
+    category = load_category(data, res=res)
+    seed_everything(seed)  # train() draws the initial weights from torch's global generator
+    model, result = run_training(category, out, cfg, dev, seed, minutes, resume)
+    score = score_model(model, category, held_out_split(category), max_views=model.cfg.eval_views)
+    typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
+    rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)
+    typer.echo(
+        f"trained {len(model.names)} instances for {result.steps} steps in {result.seconds:.1f} s "
+        f"({_si(rate)} rays/s, train PSNR {result.train_psnr:.2f} dB) -> {out}"
+    )
+
+
+# ----------------------------------------------------------------------------- info
+
+
+MODULE_ORDER = ("F_share", "F_inst", "F_fuse", "F_dens", "bottleneck", "F_rad", "shape_codes", "color_codes")
+
+
+def model_info(path: Path) -> dict:
+    """What ``crfedit info`` prints, as plain JSON types."""
+    from ..model import load_model
+
+    model, state = load_model(path)
+    field = model.field
+    modules: dict[str, dict[str, int]] = {}
+    for name, p in field.named_parameters():
+        parts = name.split(".")
+        key = ".".join(parts[:2]) if parts[0] == "coarse" else parts[0]
+        entry = modules.setdefault(key, {"params": 0, "bytes": 0})
+        entry["params"] += p.numel()
+        entry["bytes"] += p.numel() * p.element_size()
+    order = {name: i for i, name in enumerate(MODULE_ORDER)}
+    modules = dict(sorted(modules.items(), key=lambda kv: (kv[0].startswith("coarse."), order.get(kv[0].removeprefix("coarse."), len(order)))))
+    buffers = {name: b.numel() * b.element_size() for name, b in field.named_buffers()}
+    fill = field.occupancy.flatten(1).float().mean(dim=1).tolist()
+    cfg = model.cfg
+    meta = model.meta
+    return {
+        "path": str(path),
+        "file_bytes": path.stat().st_size,
+        "preset": cfg.preset,
+        "arch": cfg.arch,
+        "sampler": cfg.sampler,
+        "instances": len(model.names),
+        "names": model.names,
+        "parameters": sum(m["params"] for m in modules.values()),
+        "modules": modules,
+        "buffer_bytes": buffers,
+        "occupancy": {
+            "used": cfg.sampler == "grid",
+            "res": cfg.occ_res,
+            "mean_fill": sum(fill) / len(fill),
+            "fill": dict(zip(model.names, fill)),
+        },
+        "scene_box": {"min": field.aabb[:3].tolist(), "max": field.aabb[3:].tolist()},
+        "views": {split: {"count": int(t.focal.numel()), "size": [t.width, t.height]} for split, t in model.views.items()},
+        "baked_instances": [model.names[k] for k in sorted(model.overrides)],
+        "dataset_fingerprint": model.dataset_fingerprint,
+        "fingerprint": model.fingerprint(),
+        "step": int(meta["step"]) if meta.get("step", "").isdigit() else None,
+        "steps": cfg.steps,
+        "train_seconds": float(state["elapsed"]) if "elapsed" in state else None,
+        "resumable": bool(state),
+        "command": meta.get("command"),
+        "config": json.loads(cfg.to_json()),
+    }
+
+
+def _bytes(n: int) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return ""
+
+
+@app.command("info")
+@user_errors
+def info_cmd(
+    model: Annotated[Path, typer.Argument(help="Model file (.safetensors) written by crfedit train.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
+) -> None:
+    """Summarize a model: preset, instances, parameters and bytes per module, occupancy, fingerprints."""
+    meta = model_info(model)
+    if as_json:
+        typer.echo(json.dumps(meta, indent=2))
+        return
+    names = meta["names"]
+    shown = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+    occ = meta["occupancy"]
+    fills = list(occ["fill"].values())
+    occupancy = (
+        f"{100 * occ['mean_fill']:.1f} % of {occ['res']}^3 cells per instance on average "
+        f"(min {100 * min(fills):.1f} %, max {100 * max(fills):.1f} %)"
+        if occ["used"] else f"not used ({meta['sampler']} sampler)"
+    )
+    lo, hi = meta["scene_box"]["min"], meta["scene_box"]["max"]
+    step = "unknown" if meta["step"] is None else f"{meta['step']} of {meta['steps']}"
+    if meta["train_seconds"] is not None:
+        step += f" ({meta['train_seconds']:.0f} s of training)"
+    rows = [
+        ("model", f"{meta['path']} ({_bytes(meta['file_bytes'])})"),
+        ("preset", f"{meta['preset']}, arch {meta['arch']}, sampler {meta['sampler']}"),
+        ("instances", f"{meta['instances']}: {shown}"),
+        ("parameters", f"{meta['parameters']:,}"),
+    ]
+    rows += [(f"  {name}", f"{m['params']:>10,}  {_bytes(m['bytes']):>9}") for name, m in meta["modules"].items()]
+    rows += [
+        ("occupancy", occupancy),
+        ("scene box", "[" + ", ".join(f"{x:.3f}" for x in lo) + "] .. [" + ", ".join(f"{x:.3f}" for x in hi) + "]"),
+        ("views", ", ".join(f"{s} {v['count']} at {v['size'][0]}x{v['size'][1]}" for s, v in meta["views"].items()) or "none stored"),
+        ("step", step),
+        ("baked edits", ", ".join(meta["baked_instances"]) or "none"),
+        ("dataset", meta["dataset_fingerprint"] or "unknown"),
+        ("fingerprint", meta["fingerprint"]),
+    ]
+    for key, value in rows:
+        typer.echo(f"{key:<14} {value}")
+
+
+# ----------------------------------------------------------------------------- quickstart
+
+
+@app.command("quickstart")
+@user_errors
+def quickstart_cmd(
+    out: Annotated[Path, typer.Option("--out", help="Folder for the dataset, model, renders and score.")] = Path("runs/quickstart"),
+    minutes: Annotated[float, typer.Option("--minutes", help="Training time.")] = 3.0,
+    instances: Annotated[int, typer.Option("--instances", help="Procedural chairs in the category.")] = 8,
+    res: Annotated[int, typer.Option("--res", help="Image width and height in pixels.")] = 64,
+    seed: SeedOpt = 0,
+    device: DeviceOpt = DeviceChoice.auto,
+) -> None:
+    """Generate procedural chairs, train the fast preset, render a turntable, score held-out views.
+
+    Everything goes under --out: data/ (the category), model.safetensors, turntable/ (24 PNGs of
+    chair 0 and turntable.gif) and score.json (test-split PSNR/SSIM per chair).
+    """
+    from ..config import make_config
+    from ..data.format import load_category
+    from ..data.synth import SynthConfig, check_synth_args, write_synth_category
+    from ..evaluate import score_model
+    from ..io import write_json
+    from ..runtime import resolve_device, seed_everything
+    from .render import render_to_folder
+
+    if not (minutes > 0 and math.isfinite(minutes)):
+        raise CrfError(f"--minutes {minutes:g}: must be a positive number")
+    if out.exists() and not out.is_dir():
+        raise CrfError(f"--out {out}: exists and is not a folder")
+    synth = SynthConfig(instances=instances, views=50, res=res, seed=seed, twins=False)
+    check_synth_args(out / "data", synth)
+    dev = resolve_device(device)
+    start = time.perf_counter()
+
+    out.mkdir(parents=True, exist_ok=True)
+    typer.echo(f"1/4 generating {instances} procedural chairs x 50 views at {res}x{res} -> {out / 'data'}")
+    write_synth_category(out / "data", synth)
+
+    typer.echo(f"2/4 training the fast preset for {minutes:g} min on {dev.type}")
+    model_path = out / "model.safetensors"
+    category = load_category(out / "data")
+    seed_everything(seed)
+    model, result = run_training(category, model_path, make_config("fast"), dev, seed, minutes, False)
+
+    typer.echo("3/4 rendering a turntable of chair 0 (orbit:24)")
+    frames_dir = out / "turntable"
+    turntable = render_to_folder(model, 0, "orbit:24", frames_dir, video=out / "turntable.gif")
+
+    typer.echo("4/4 scoring every held-out test view")
+    score = score_model(model, category, "test")
+    write_json(out / "score.json", {**score, "steps": result.steps, "train_seconds": result.seconds})
+
+    typer.echo(f"held-out test ({score['n']} views): {format_score(score)}")
+    typer.echo(f"dataset    {out / 'data'}")
+    typer.echo(f"model      {model_path} ({result.steps} steps in {result.seconds:.0f} s; crfedit info {model_path})")
+    typer.echo(f"turntable  {frames_dir}/0000.png .. {turntable.count - 1:04d}.png and {turntable.video}")
+    typer.echo(f"score      {out / 'score.json'}")
+    typer.echo(f"done in {time.perf_counter() - start:.0f} s")

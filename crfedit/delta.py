@@ -1,0 +1,413 @@
+"""Edit files ("deltas"): what one edit changed, relative to the state it was made on.
+
+An edit of instance k replaces some of the tensors that render k (see
+:attr:`~crfedit.model.CategoryModel.overrides`); its file stores only those tensors, as
+differences from the state the edit started from (docs/edit-format.md):
+
+=========================  =====================================================================
+``F_rad.mlp.0.weight`` …   weight differences θ_after − θ_before, under their state-dict names
+``shape_code``             [D] difference of row k of ``shape_codes``
+``color_code``             [D] difference of row k of ``color_codes``
+``occupancy``              [R, R, R] bool: instance k's new occupancy grid itself (not a difference)
+=========================  =====================================================================
+
+String metadata names the edit (``kind``, ``instance``, ``modules``) and pins it to its place:
+``base`` is the fingerprint of the model file it was made for, ``parent`` a hash of ``base`` and
+the fingerprints of the edits applied before it (``""`` for the first), ``fingerprint`` a hash of
+this file's tensors and identity.  :func:`apply_edit_files` checks all of it, for every file,
+before it computes anything, so a stack applies completely or not at all.
+
+Applying is functional: a new :class:`CategoryModel` sharing the (untouched) base field, whose
+``overrides[k]`` carries k's replaced tensors — other instances render bit-identically by
+construction.  The stack applied so far is recorded in the returned model's ``meta``
+(``edit_base``, ``edit_stack``, ``edit_state``), so an edit made on it knows its parent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+from .errors import ModelFileError
+from .field import ConditionalRadianceField
+from .model import CategoryModel
+from .safefile import fingerprint, read_header, read_safetensors, write_safetensors
+
+FORMAT = "crfedit-edit"
+VERSION = "1"
+KINDS = ("color", "remove", "add", "transfer", "fit-real")
+CODE_ROWS = {"shape_code": "shape_codes", "color_code": "color_codes"}
+"""Delta tensor name → the code table (state-dict name) whose row k it changes."""
+GRID = "occupancy"
+GRID_KINDS = ("remove", "add", "transfer", "fit-real")
+"""Kinds that may carry a new occupancy grid (a color edit leaves density alone)."""
+IDENTITY = ("format", "version", "kind", "instance", "modules", "base", "parent", "adds_instance")
+"""Metadata that, with the tensors, makes up an edit's fingerprint (timings and the command do not)."""
+RESERVED = (*IDENTITY, "fingerprint")
+STACK_KEYS = ("edit_base", "edit_stack", "edit_state")
+"""``CategoryModel.meta`` keys through which an applied model remembers its stack."""
+
+
+@dataclass(frozen=True)
+class Delta:
+    """One edit file, read and checked on its own (model-independent checks only)."""
+
+    path: str
+    tensors: dict[str, Tensor]
+    meta: dict[str, str]
+
+    @property
+    def kind(self) -> str:
+        return self.meta["kind"]
+
+    @property
+    def instance(self) -> str:
+        return self.meta["instance"]
+
+    @property
+    def modules(self) -> list[str]:
+        return json.loads(self.meta["modules"])
+
+    @property
+    def fingerprint(self) -> str:
+        return self.meta["fingerprint"]
+
+
+# ----------------------------------------------------------------------------- fingerprints
+
+
+def delta_fingerprint(tensors: Mapping[str, Tensor], meta: Mapping[str, str]) -> str:
+    """16 hex digits over the tensors and the identity metadata (:data:`IDENTITY`)."""
+    identity = json.dumps({k: meta.get(k, "") for k in IDENTITY}, sort_keys=True)
+    return hashlib.sha256(f"{fingerprint(dict(tensors))}|{identity}".encode()).hexdigest()[:16]
+
+
+def chain_fingerprint(base: str, deltas: Sequence[str]) -> str:
+    """The ``parent`` of an edit made after ``deltas`` (their fingerprints, in order) on ``base``.
+
+    ``""`` when no edit precedes it; else 16 hex digits of sha256("base|d1|d2…").
+    """
+    if not deltas:
+        return ""
+    return hashlib.sha256("|".join([base, *deltas]).encode()).hexdigest()[:16]
+
+
+def stack_of(model: CategoryModel) -> tuple[str, list[str]]:
+    """(base fingerprint, fingerprints of the edits applied) of ``model``.
+
+    A model returned by :func:`apply_edit_files` records its stack in ``meta``; that record is
+    trusted only while the model still has the state it was recorded for (``edit_state``), so a
+    model changed since (or any other model) counts as a base of its own with no edits.
+    """
+    meta = model.meta
+    if all(k in meta for k in STACK_KEYS):
+        try:
+            stack = json.loads(meta["edit_stack"])
+        except json.JSONDecodeError:
+            stack = None
+        if isinstance(stack, list) and all(isinstance(s, str) for s in stack) and meta["edit_state"] == model.fingerprint():
+            return meta["edit_base"], stack
+    return model.fingerprint(), []
+
+
+# ----------------------------------------------------------------------------- per-instance state
+
+
+def instance_state(model: CategoryModel, instance: int) -> dict[str, Tensor]:
+    """Every state-dict tensor that renders ``instance``: the shared field's, with the
+    instance's overrides on top (no copies)."""
+    state = model.field.state_dict()
+    state.update(model.overrides.get(instance, {}))
+    return state
+
+
+def _parameter_names(field: ConditionalRadianceField) -> dict[str, Tensor]:
+    return dict(field.named_parameters())
+
+
+def selected_names(field: ConditionalRadianceField, modules: Sequence[str]) -> list[str]:
+    """Delta tensor names an edit that trains ``modules`` (state-dict prefixes) stores."""
+    out = []
+    for name in _parameter_names(field):
+        if not name.startswith(tuple(modules)):
+            continue
+        row = next((r for r, table in CODE_ROWS.items() if table == name), None)
+        out.append(row or name)
+    if GRID in modules:
+        out.append(GRID)
+    return out
+
+
+def make_delta(
+    before: CategoryModel,
+    after: CategoryModel,
+    instance: int | str,
+    kind: str,
+    modules: Sequence[str],
+    meta: Mapping[str, object] | None = None,
+) -> tuple[dict[str, Tensor], dict[str, str]]:
+    """(tensors, metadata) of the edit that turned ``before`` into ``after`` for one instance.
+
+    ``modules`` are the state-dict prefixes the edit trained (``("F_rad.", "color_codes")``);
+    every tensor under them is stored (weights as differences, code tables as the difference
+    of row k, ``occupancy`` as k's new grid).  ``meta`` adds string metadata (hyper-parameters,
+    ``final_loss``, ``seconds``, ``command``); ``base``, ``parent`` and ``fingerprint`` come from
+    ``before``'s stack.  For ``kind="fit-real"`` the instance is new in ``after`` (see :func:`grow`)
+    and its code rows are stored as differences from zero.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"kind {kind!r}: expected one of {', '.join(KINDS)}")
+    extra = {k: str(v) for k, v in (meta or {}).items()}
+    clash = sorted(set(extra) & set(RESERVED))
+    if clash:
+        raise ValueError(f"make_delta: metadata keys {clash} are set by make_delta itself")
+    k = after.instance_index(instance)
+    name = after.names[k]
+    adding = kind == "fit-real"
+    if adding and name in before.names:
+        raise ValueError(f"fit-real delta: instance {name!r} already exists in the model it was made on")
+    if not adding and before.names[k] != name:
+        raise ValueError("make_delta: before and after list different instances")
+    old = instance_state(before, k) if not adding else None
+    new = instance_state(after, k)
+    tensors: dict[str, Tensor] = {}
+    for dname in selected_names(after.field, modules):
+        with torch.no_grad():
+            if dname in CODE_ROWS:
+                table = CODE_ROWS[dname]
+                start = old[table][k] if old is not None else torch.zeros_like(new[table][k])
+                tensors[dname] = (new[table][k] - start).detach().cpu().clone()
+            elif dname == GRID:
+                tensors[dname] = new[GRID][k].detach().cpu().clone()
+            else:
+                start = old[dname] if old is not None else before.field.state_dict()[dname]
+                tensors[dname] = (new[dname] - start).detach().cpu().clone()
+    for dname, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise ModelFileError(f"edit result {dname} contains NaN or inf; nothing was written")
+    base, stack = stack_of(before)
+    metadata = {
+        **extra,
+        "format": FORMAT,
+        "version": VERSION,
+        "kind": kind,
+        "instance": name,
+        "modules": json.dumps(list(modules)),
+        "base": base,
+        "parent": chain_fingerprint(base, stack),
+        "adds_instance": name if adding else "",
+    }
+    metadata["fingerprint"] = delta_fingerprint(tensors, metadata)
+    return tensors, metadata
+
+
+def save_delta(path: str | os.PathLike, tensors: Mapping[str, Tensor], metadata: Mapping[str, str]) -> None:
+    """Write an edit file atomically (temp file, fsync, rename): never a partial file."""
+    write_safetensors(path, dict(tensors), {k: str(v) for k, v in metadata.items()})
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def read_delta(path: str | os.PathLike) -> Delta:
+    """Read an edit file and check what can be checked without the model: format, version,
+    kind, metadata, dtypes, finite values and the recorded fingerprint."""
+    path = str(path)
+    header, meta = read_header(path)
+    if meta.get("format") != FORMAT:
+        raise ModelFileError(f"{path}: not a crfedit edit file (format {meta.get('format', 'unknown')!r})")
+    if meta.get("version") != VERSION:
+        raise ModelFileError(f"{path}: edit format version {meta.get('version')!r} is not supported (expected {VERSION})")
+    missing = [k for k in RESERVED if k not in meta and k != "adds_instance"]
+    if missing:
+        raise ModelFileError(f"{path}: bad edit metadata (missing {', '.join(missing)})")
+    if meta["kind"] not in KINDS:
+        raise ModelFileError(f"{path}: unknown edit kind {meta['kind']!r} (expected one of {', '.join(KINDS)})")
+    try:
+        modules = json.loads(meta["modules"])
+    except json.JSONDecodeError:
+        modules = None
+    if not isinstance(modules, list) or not modules or not all(isinstance(m, str) and m for m in modules):
+        raise ModelFileError(f"{path}: bad edit metadata (modules must be a non-empty JSON list of names)")
+    if not meta["instance"]:
+        raise ModelFileError(f"{path}: bad edit metadata (no instance)")
+    if (meta["kind"] == "fit-real") != bool(meta.get("adds_instance")) or (
+        meta.get("adds_instance") and meta["adds_instance"] != meta["instance"]
+    ):
+        raise ModelFileError(f"{path}: bad edit metadata (adds_instance must name the instance of a fit-real edit, only)")
+    if not header:
+        raise ModelFileError(f"{path}: edit file holds no tensors")
+    for name, info in header.items():
+        if info["dtype"] not in ("F32", "F64", "F16", "BF16", "BOOL"):
+            raise ModelFileError(f"{path}: tensor {name[:80]} has dtype {info['dtype']} (edits hold floats and a bool grid)")
+    tensors, meta = read_safetensors(path)
+    for name, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise ModelFileError(f"{path}: tensor {name[:80]} contains NaN or inf")
+    if delta_fingerprint(tensors, meta) != meta["fingerprint"]:
+        raise ModelFileError(f"{path}: contents do not match the recorded fingerprint (file damaged?)")
+    return Delta(path, tensors, meta)
+
+
+# ----------------------------------------------------------------------------- validating a stack
+
+
+def _allowed(field: ConditionalRadianceField, kind: str) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """Delta tensor name → (shape, dtype) a ``kind`` edit of ``field`` may store."""
+    out: dict[str, tuple[tuple[int, ...], torch.dtype]] = {}
+    params = _parameter_names(field)
+    if kind != "transfer":
+        out.update({n: (tuple(p.shape), p.dtype) for n, p in params.items() if n not in CODE_ROWS.values()})
+    for row, table in CODE_ROWS.items():
+        out[row] = (tuple(params[table].shape[1:]), params[table].dtype)
+    if kind in GRID_KINDS:
+        out[GRID] = (tuple(field.occupancy.shape[1:]), field.occupancy.dtype)
+    return out
+
+
+def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str, applied: Sequence[str]) -> ModelFileError:
+    """Why ``delta``'s parent does not match its place in the stack, in one line."""
+    where = f"{delta.path}: "
+    parent = delta.meta["parent"]
+    if parent == "":
+        return ModelFileError(f"{where}made on the bare model, so it must come first (it is edit {position + 1} of the stack)")
+    names = [d.path for d in deltas]
+    fps = [d.fingerprint for d in deltas]
+    # Which earlier prefix (in some order of the other given files) was it made after?
+    prefix = list(applied)
+    for i, fp in enumerate(fps):
+        if i == position:
+            continue
+        prefix.append(fp)
+        if chain_fingerprint(base, prefix) == parent:
+            after = ", ".join(n for j, n in enumerate(names) if j != position and j <= i)
+            return ModelFileError(f"{where}was made after {after}; pass the --edit files in the order they were made")
+    return ModelFileError(
+        f"{where}was made after other edits than the ones before it here (parent {parent}, "
+        f"expected {chain_fingerprint(base, list(applied) + fps[:position]) or 'none'}); "
+        "pass the --edit files in the order they were made"
+    )
+
+
+def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str, list[str]] | None = None) -> None:
+    """Raise a one-line :class:`ModelFileError` naming the first file that does not fit, before
+    anything is applied: base model, parent chain (order), instance, tensor names for the kind,
+    shapes and dtypes.  ``stack`` is :func:`stack_of` ``(model)`` when the caller has it."""
+    base, applied = stack if stack is not None else stack_of(model)
+    fps = list(applied)
+    names = list(model.names)
+    for i, d in enumerate(deltas):
+        if d.meta["base"] != base:
+            raise ModelFileError(f"{d.path}: made for model {d.meta['base']}, not this model ({base}); edits apply only to the model they were made on")
+        if d.meta["parent"] != chain_fingerprint(base, fps):
+            raise _order_error(d, i, deltas, base, applied)
+        if d.kind == "fit-real":
+            if d.instance in names:
+                raise ModelFileError(f"{d.path}: adds instance {d.instance!r}, which the model already has")
+            names.append(d.instance)
+        elif d.instance not in names:
+            raise ModelFileError(f"{d.path}: edits instance {d.instance!r}, which the model does not have")
+        allowed = _allowed(model.field, d.kind)
+        modules = tuple(d.modules)
+        for name, t in d.tensors.items():
+            if name not in allowed:
+                raise ModelFileError(f"{d.path}: a {d.kind} edit may not hold tensor {name[:80]!r}")
+            state = CODE_ROWS.get(name, name)
+            if not state.startswith(modules):
+                raise ModelFileError(f"{d.path}: tensor {name} lies outside the edit's modules {list(modules)}")
+            shape, dtype = allowed[name]
+            if tuple(t.shape) != shape or t.dtype != dtype:
+                raise ModelFileError(f"{d.path}: tensor {name} has shape {tuple(t.shape)} {t.dtype}, expected {shape} {dtype}")
+        fps.append(d.fingerprint)
+
+
+# ----------------------------------------------------------------------------- applying
+
+
+def grow(model: CategoryModel, name: str) -> CategoryModel:
+    """``model`` with one more instance ``name``: zero code rows, an all-occupied grid (safe: it
+    renders correctly, only slower).  Overrides of other instances are padded with the same rows."""
+    if name in model.names:
+        raise ValueError(f"grow: instance {name!r} exists")
+    old = model.field
+    k = old.n_instances
+    field = ConditionalRadianceField(old.cfg, k + 1, old.aabb.detach().clone()).to(model.device)
+    state = {n: t.clone() for n, t in old.state_dict().items()}
+    state = _pad(state, k)
+    field.load_state_dict(state)
+    overrides = {i: _pad(dict(p), k) for i, p in model.overrides.items()}
+    return dataclasses.replace(model, field=field, names=[*model.names, name], overrides=overrides, meta=dict(model.meta))
+
+
+def _pad(state: dict[str, Tensor], k: int) -> dict[str, Tensor]:
+    """Append instance row ``k`` (zeros for codes, all-occupied for the grid) to per-instance tables."""
+    out = dict(state)
+    for table in CODE_ROWS.values():
+        if table in out and out[table].shape[0] == k:
+            out[table] = torch.cat([out[table], torch.zeros_like(out[table][:1])])
+    if GRID in out and out[GRID].shape[0] == k:
+        out[GRID] = torch.cat([out[GRID], torch.ones_like(out[GRID][:1])])
+    return out
+
+
+def apply_one(model: CategoryModel, delta: Delta) -> CategoryModel:
+    """``model`` with one delta applied, without any check (see :func:`apply_deltas`)."""
+    if delta.kind == "fit-real":
+        model = grow(model, delta.instance)
+    k = model.names.index(delta.instance)
+    current = instance_state(model, k)
+    replaced = dict(model.overrides.get(k, {}))
+    with torch.no_grad():
+        for name, t in delta.tensors.items():
+            t = t.to(model.device)
+            if name in CODE_ROWS:
+                table = current[CODE_ROWS[name]].clone()
+                table[k] = table[k] + t
+                replaced[CODE_ROWS[name]] = current[CODE_ROWS[name]] = table
+            elif name == GRID:
+                grid = current[GRID].clone()
+                grid[k] = t
+                replaced[GRID] = current[GRID] = grid
+            else:
+                replaced[name] = current[name] = current[name] + t
+    return dataclasses.replace(model, overrides={**model.overrides, k: replaced})
+
+
+def apply_deltas(model: CategoryModel, deltas: Sequence[Delta]) -> CategoryModel:
+    """Check the whole stack (:func:`check_stack`), then apply it; ``model`` is not modified."""
+    base, applied = stack_of(model)
+    check_stack(model, deltas, (base, applied))
+    out = dataclasses.replace(model, meta=dict(model.meta))
+    for d in deltas:
+        out = apply_one(out, d)
+    stack = [*applied, *(d.fingerprint for d in deltas)]
+    out.meta.update(edit_base=base, edit_stack=json.dumps(stack))
+    out.meta["edit_state"] = out.fingerprint()
+    return out
+
+
+def apply_edit_files(model: CategoryModel, paths: Sequence[str | os.PathLike]) -> CategoryModel:
+    """The model with the edit files applied in order.  Every file is read and checked (format,
+    version, fingerprint, base model, parent chain, instance, tensor names, shapes, dtypes,
+    finite values) before anything is applied; a problem is one :class:`ModelFileError` line
+    naming the file and what was expected."""
+    return apply_deltas(model, [read_delta(p) for p in paths])
+
+
+def bake(model: CategoryModel, paths: Sequence[str | os.PathLike]) -> CategoryModel:
+    """The stack folded into a model of its own: the edited tensors become ``overrides`` (which
+    :func:`~crfedit.model.save_model` writes as ``override.<k>.<name>``).  The baked model is a new
+    base: edits made on the unbaked stack do not apply to it."""
+    applied = apply_edit_files(model, paths)
+    base, stack = stack_of(applied)
+    meta = {k: v for k, v in applied.meta.items() if k not in STACK_KEYS}
+    meta.update(baked_from=base, baked_edits=json.dumps(stack))
+    return dataclasses.replace(applied, names=list(applied.names), meta=meta)
+

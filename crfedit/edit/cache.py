@@ -1,0 +1,225 @@
+"""Feature caching: an edit renders the same rays at every step, so everything upstream of the
+trained parameters is computed once.
+
+The samples of the edit's rays are fixed up front (the deterministic samples the renderer
+uses: the full occupancy-grid march, or the paper's coarse + importance samples taken at the
+starting weights).  What is cached depends on what is trained (:func:`cache_stage`):
+
+========== ===================================  ================================================
+stage      trained                              cached once            each step runs
+========== ===================================  ================================================
+radiance   F_rad, colour code                   bottleneck features,   F_rad; Σ wᵢcᵢ + (1−Σw)·bg
+                                                compositing weights
+fuse       F_fuse, F_dens (and F_rad, codes…)   :class:`FuseInputs`    F_fuse → σ, features → F_rad,
+                                                                       compositing
+points     anything upstream (F_share, codes)   normalized points      the whole field
+========== ===================================  ================================================
+
+Samples are stored *compacted*: column j of a ray is its j-th evaluated sample.  Skipped
+samples have σ = 0 and contribute nothing, so compositing the compacted layout equals
+compositing the march's full layout, with far fewer columns.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import torch
+from torch import Tensor
+
+from ..cameras import Rays
+from ..field import ConditionalRadianceField, FieldNet, FuseInputs, density_activation, positional_encoding, run_mlp
+from ..renderer import PackedSamples, composite_packed, evaluate, grid_samples
+from ..rendering import (
+    composite_from_density,
+    importance_sample,
+    intervals_from_points,
+    ray_aabb_intersect,
+    render_weight_from_density,
+    stratified_samples,
+)
+
+STAGES = ("radiance", "fuse", "points")
+PRUNE_WEIGHT = 1e-3
+"""Radiance stage: samples whose compositing weight is below this leave the trained sum; their
+colour at the starting weights stays in as a constant, so the starting render is unchanged."""
+
+_RADIANCE = ("F_rad.", "color_codes")
+_DOWNSTREAM_OF_FUSE = ("F_fuse.", "F_dens.", "bottleneck.", "F_rad.")
+
+
+def cache_stage(trained: Sequence[str], density_changes: bool) -> str:
+    """The deepest stage whose inputs ``trained`` (parameter names) cannot change.
+
+    ``density_changes`` is False for colour edits: with F_rad and the colour code trained the
+    compositing weights are constants.
+    """
+    if not density_changes and all(n.startswith(_RADIANCE) for n in trained):
+        return "radiance"
+    fuse = (*_DOWNSTREAM_OF_FUSE, *("coarse." + p for p in _DOWNSTREAM_OF_FUSE), "color_codes")
+    if all(n.startswith(fuse) for n in trained):
+        return "fuse"
+    return "points"
+
+
+def radiance_inputs(net: FieldNet, features: Tensor, directions: Tensor) -> Tensor:
+    """The per-point input of F_rad, [bottleneck features, encoded direction].  [M, 8 + D]
+
+    Constant during a colour edit, so it is built once (:meth:`FieldNet.radiance` builds it
+    at every call).
+    """
+    return torch.cat([features, positional_encoding(directions, net.pe_d)], dim=-1)
+
+
+def radiance_from_inputs(net: FieldNet, per_point: Tensor, color_codes: Tensor | None) -> Tensor:
+    """F_rad from :func:`radiance_inputs`: equals ``net.radiance(features, directions, color_codes)``
+    for a single code row (tests/test_edits.py checks it)."""
+    code = net.F_rad["code"](color_codes) if color_codes is not None else None
+    return torch.sigmoid(net.F_rad["out"](run_mlp(net.F_rad["mlp"], per_point, code)))
+
+
+class PassOutput(NamedTuple):
+    rgb: Tensor  # [N, 3]
+    opacity: Tensor  # [N]
+    sigmas: Tensor | None  # [N, S] compacted densities (None in the radiance stage)
+    weights: Tensor | None  # [N, S] compacted compositing weights (None in the radiance stage)
+    rgbs: Tensor | None  # [N, S, 3] compacted sample colours (None in the radiance stage)
+
+
+def compact(samples: PackedSamples) -> PackedSamples:
+    """The same samples sorted by (ray, t) with ``step`` = rank within the ray and
+    ``n_steps`` = the most samples any ray has."""
+    if samples.ray.numel() == 0:
+        return samples._replace(n_steps=1)
+    order = torch.argsort(samples.ray * samples.n_steps + samples.step, stable=True)
+    ray = samples.ray[order]
+    counts = torch.bincount(ray, minlength=samples.n_rays)
+    first = torch.cumsum(counts, 0) - counts
+    rank = torch.arange(ray.numel(), device=ray.device) - first[ray]
+    return PackedSamples(
+        ray, rank, samples.t_starts[order], samples.t_ends[order], samples.points[order], samples.n_rays, int(counts.max())
+    )
+
+
+def _packed_from_t(rays: Rays, t: Tensor, t_near: Tensor, t_far: Tensor, hit: Tensor) -> PackedSamples:
+    starts, ends = intervals_from_points(t, t_near, t_far)
+    pts = rays.origins[:, None] + t[..., None] * rays.directions[:, None]
+    ray_i, col = hit[:, None].expand_as(t).nonzero(as_tuple=True)
+    return PackedSamples(ray_i, col, starts[ray_i, col], ends[ray_i, col], pts[ray_i, col], t.shape[0], t.shape[1])
+
+
+@torch.no_grad()
+def edit_samples(field: ConditionalRadianceField, rays: Rays, instance: int) -> list[tuple[str, PackedSamples]]:
+    """The renderer's deterministic samples of ``rays`` for one instance, per network.
+
+    Grid sampler: ``[("fine", the full march through occupied cells)]`` (no early stop, so
+    samples behind a surface that an edit may uncover are there).  Hierarchical sampler:
+    ``[("coarse", stratified), ("fine", coarse + importance samples)]``, the importance samples
+    drawn from the starting weights and then held fixed.
+    """
+    n = rays.origins.shape[0]
+    inst = torch.full((n,), instance, dtype=torch.long, device=rays.origins.device)
+    cfg = field.cfg
+    if cfg.sampler == "grid":
+        return [("fine", compact(grid_samples(field, rays, inst)))]
+    t_near, t_far, hit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
+    t_c = stratified_samples(t_near, t_far, cfg.n_coarse)
+    coarse = _packed_from_t(rays, t_c, t_near, t_far, hit)
+    if cfg.n_fine == 0:
+        return [("coarse", coarse)]
+    sig, rgb = evaluate(field.coarse, field, coarse, rays, inst)
+    weights = composite_packed(coarse, sig, rgb, 1.0).weights
+    edges = torch.cat([t_near[:, None], 0.5 * (t_c[:, 1:] + t_c[:, :-1]), t_far[:, None]], dim=-1)
+    t_f = importance_sample(edges, weights, cfg.n_fine)
+    t_all = torch.sort(torch.cat([t_c, t_f], dim=-1), dim=-1).values
+    return [("coarse", coarse), ("fine", _packed_from_t(rays, t_all, t_near, t_far, hit))]
+
+
+class EditPass:
+    """One network's fixed samples of the edit's rays, with its stage's inputs cached.
+
+    ``field`` is the trainable copy that renders ``instance``; :meth:`forward` reads its current
+    parameters (and the instance's code rows) at every call.
+    """
+
+    def __init__(
+        self,
+        field: ConditionalRadianceField,
+        net_name: str,
+        rays: Rays,
+        samples: PackedSamples,
+        instance: int,
+        stage: str,
+        background: float = 1.0,
+    ):
+        if stage not in STAGES:
+            raise ValueError(f"stage {stage!r}: expected one of {STAGES}")
+        self.field, self.instance, self.stage, self.background = field, instance, stage, background
+        self.net: FieldNet = field if net_name == "fine" else field.coarse
+        self.samples = samples
+        self.n_rays = samples.n_rays
+        self.dirs = rays.directions[samples.ray]  # [M, 3]
+        dense = lambda v: torch.zeros(samples.n_rays, samples.n_steps, dtype=v.dtype, device=v.device).index_put(
+            (samples.ray, samples.step), v
+        )
+        self.t_starts, self.t_ends = dense(samples.t_starts), dense(samples.t_ends)  # [N, S]
+        self.xn = field.normalize(samples.points)  # [M, 3]
+        with torch.no_grad():
+            shape_code, _ = field.codes(instance)
+            if stage == "points":
+                self.inputs = None
+            else:
+                self.inputs = FuseInputs(*(t.detach() if t is not None else None for t in self.net.fuse_inputs(self.xn, shape_code)))
+            if stage == "radiance":
+                raw, feat = self.net.density_from_fuse_inputs(self.inputs)
+                weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, dense(density_activation(raw)))
+                w = weights[samples.ray, samples.step]
+                keep = w > PRUNE_WEIGHT
+                per_point = radiance_inputs(self.net, feat, self.dirs)
+                _, color_code = field.codes(instance)
+                dropped = (w * ~keep)[:, None] * radiance_from_inputs(self.net, per_point, color_code)
+                self.opacity = weights.sum(dim=-1)  # [N]
+                # Σ of the dropped samples' w·c, plus the background: the constant part of each ray's colour.
+                self.constant = torch.zeros(samples.n_rays, 3, device=w.device).index_add(0, samples.ray, dropped)
+                self.constant += (1.0 - self.opacity)[:, None] * background
+                self.w, self.ray, self.per_point = w[keep], samples.ray[keep], per_point[keep]
+                self.inputs = None
+            self.n_cached = int(self.ray.numel()) if stage == "radiance" else int(samples.ray.numel())
+
+    def densities(self) -> tuple[Tensor, Tensor]:
+        """(σ [M], bottleneck features [M, 8]) at the current parameters (not the radiance stage)."""
+        shape_code, _ = self.field.codes(self.instance)
+        inputs = self.inputs if self.inputs is not None else self.net.fuse_inputs(self.xn, shape_code)
+        raw, feat = self.net.density_from_fuse_inputs(inputs)
+        return density_activation(raw), feat
+
+    def dense(self, values: Tensor) -> Tensor:
+        """Packed per-sample values [M, ...] → compacted layout [N, S, ...] (zeros elsewhere)."""
+        s = self.samples
+        out = torch.zeros((s.n_rays, s.n_steps, *values.shape[1:]), dtype=values.dtype, device=values.device)
+        return out.index_put((s.ray, s.step), values)
+
+    def forward(self) -> PassOutput:
+        """Render the edit's rays with the field's current parameters."""
+        _, color_code = self.field.codes(self.instance)
+        if self.stage == "radiance":
+            rgb_s = radiance_from_inputs(self.net, self.per_point, color_code)
+            rgb = self.constant.index_add(0, self.ray, self.w[:, None] * rgb_s)
+            return PassOutput(rgb, self.opacity, None, None, None)
+        sigma, feat = self.densities()
+        rgb_s = self.net.radiance(feat, self.dirs, color_code)
+        sigmas, rgbs = self.dense(sigma), self.dense(rgb_s)
+        comp = composite_from_density(self.t_starts, self.t_ends, sigmas, rgbs, self.background)
+        return PassOutput(comp.rgb, comp.opacity, sigmas, comp.weights, rgbs)
+
+
+def edit_passes(
+    field: ConditionalRadianceField, rays: Rays, instance: int, trained: Sequence[str], density_changes: bool
+) -> list[EditPass]:
+    """The cached passes an edit optimizes: only the final network's for colour edits (the
+    coarse one only places samples), every network's when density changes."""
+    stage = cache_stage(trained, density_changes)
+    passes = edit_samples(field, rays, instance)
+    if not density_changes:
+        passes = passes[-1:]
+    return [EditPass(field, name, rays, samples, instance, stage) for name, samples in passes]

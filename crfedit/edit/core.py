@@ -1,0 +1,173 @@
+"""The machinery every optimized edit shares: a trainable copy of the field that renders one
+instance, the weight penalty against its starting point, the optimization loop, and the
+delta that records the result.
+
+Edits are instance-scoped: instance k's edit trains a *copy* of the tensors that render k
+(θ₀ = the state it starts from, prior edits included) and the result replaces them for k only
+(``CategoryModel.overrides[k]``).  The returned model is the one the delta reproduces
+(``before`` + delta, exactly as :func:`~crfedit.delta.apply_edit_files` computes it).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..cameras import Camera, Rays, rays_from_camera
+from ..delta import Delta, apply_deltas, make_delta, save_delta
+from ..errors import CrfError, NonFiniteError
+from ..model import CategoryModel
+from .losses import weight_penalty
+from .params import STRATEGIES, trained_names, trained_prefixes
+
+
+@dataclass(frozen=True)
+class EditOptions:
+    """How an edit optimizes.  Defaults follow the paper's editing protocol."""
+
+    strategy: str = "hybrid"
+    """hybrid (the paper's: see params.TRAINED) | codes (the instance's code row only) | all."""
+    steps: int = 100
+    """Adam steps."""
+    lr: float = 1e-2
+    """Adam learning rate."""
+    rays: int = 1024
+    """Most rays the edit renders per step (scribbled rays plus rays that keep their colour)."""
+    seed: int = 0
+    """Seeds the choice of rays and the occupancy probes; the same seed gives the same edit."""
+    lambda_reg: float = 10.0
+    """Weight of Σ_tensors mean((θ − θ₀)²)."""
+    lambda_dens: float = 0.01
+    """Weight of the density entropy of scribbled rays (removal)."""
+
+    def validated(self) -> "EditOptions":
+        checks = [
+            (self.strategy in STRATEGIES, f"--strategy {self.strategy}: expected one of {', '.join(STRATEGIES)}"),
+            (self.steps >= 1, f"--steps {self.steps}: need at least 1"),
+            (np.isfinite(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a positive number"),
+            (self.rays >= 2, f"--rays {self.rays}: need at least 2"),
+            (self.lambda_reg >= 0 and self.lambda_dens >= 0, "loss weights must be ≥ 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise CrfError(message)
+        return self
+
+
+@dataclass
+class EditResult:
+    """An edit: the edited model and the delta file's contents."""
+
+    model: CategoryModel
+    tensors: dict[str, Tensor]
+    meta: dict[str, str]
+    final_loss: float
+    seconds: float
+
+    def save(self, path, **extra_meta: str) -> None:
+        """Write the delta atomically; ``extra_meta`` (``command``, ``view`` …) is provenance
+        only and does not change the edit's fingerprint."""
+        save_delta(path, self.tensors, {**self.meta, **{k: str(v) for k, v in extra_meta.items()}})
+
+
+class InstanceEdit:
+    """A trainable copy of the field that renders ``instance``, with θ₀ kept for the penalty.
+
+    Only the parameters under the strategy's prefixes require gradients.
+    """
+
+    def __init__(self, model: CategoryModel, instance: int, group: str, strategy: str):
+        self.before, self.instance = model, instance
+        field = model.field_for(instance)
+        self.field = copy.deepcopy(field) if field is model.field else field
+        self.prefixes = trained_prefixes(self.field, group, strategy)
+        names = set(trained_names(self.field, self.prefixes))
+        self.params: dict[str, Tensor] = {}
+        for name, p in self.field.named_parameters():
+            p.requires_grad_(name in names)
+            if name in names:
+                self.params[name] = p
+        if not self.params:
+            raise CrfError(f"--strategy {strategy}: this model has no parameters to train for a {group} edit")
+        self.start = {n: p.detach().clone() for n, p in self.params.items()}
+        self.rows = {n: instance for n in self.params if n in ("shape_codes", "color_codes")}
+
+    def penalty(self) -> Tensor:
+        return weight_penalty(self.params, self.start, self.rows)
+
+    def after(self, extra: Mapping[str, Tensor] | None = None) -> CategoryModel:
+        """``before`` with the instance's trained tensors (and ``extra`` state, e.g. a new
+        occupancy table) replaced; code tables keep every other row."""
+        replaced = dict(self.before.overrides.get(self.instance, {}))
+        with torch.no_grad():
+            for name, p in self.params.items():
+                value = p.detach().clone()
+                if name in self.rows:
+                    row = value[self.instance].clone()
+                    value = self.start[name].clone()
+                    value[self.instance] = row
+                replaced[name] = value
+        replaced.update(extra or {})
+        return dataclasses.replace(self.before, overrides={**self.before.overrides, self.instance: replaced})
+
+
+def optimize(params: Sequence[Tensor], loss_fn: Callable[[], Tensor], steps: int, lr: float, what: str) -> float:
+    """``steps`` Adam steps on ``loss_fn``; returns the last loss.  A NaN/inf loss or parameter
+    raises :class:`NonFiniteError` (nothing is written)."""
+    opt = torch.optim.Adam(list(params), lr=lr, fused=True)
+    value = float("nan")
+    for step in range(steps):
+        loss = loss_fn()
+        value = float(loss.detach())
+        if not np.isfinite(value):
+            raise NonFiniteError(f"{what} diverged at step {step} (loss is {value}); nothing was written")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    for p in params:
+        if not bool(torch.isfinite(p).all()):
+            raise NonFiniteError(f"{what} produced NaN or inf weights; nothing was written")
+    return value
+
+
+def finish(
+    edit: InstanceEdit,
+    kind: str,
+    hyper: Mapping[str, object],
+    final_loss: float,
+    started: float,
+    extra: Mapping[str, Tensor] | None = None,
+    extra_modules: Sequence[str] = (),
+) -> EditResult:
+    """Record the edit as a delta and return the model that delta reproduces."""
+    after = edit.after(extra)
+    seconds = time.perf_counter() - started
+    meta = {
+        "hyperparameters": json.dumps(hyper, sort_keys=True),
+        "final_loss": repr(final_loss),
+        "seconds": f"{seconds:.3f}",
+        "command": "",
+    }
+    tensors, meta = make_delta(edit.before, after, edit.instance, kind, (*edit.prefixes, *extra_modules), meta)
+    model = apply_deltas(edit.before, [Delta("(new edit)", tensors, meta)])
+    return EditResult(model, tensors, meta, final_loss, seconds)
+
+
+def camera_meta(camera: Camera) -> dict:
+    return {"c2w": np.asarray(camera.c2w).tolist(), "focal": camera.focal, "width": camera.width, "height": camera.height}
+
+
+def select_rays(camera: Camera, pixels: Tensor, device: torch.device) -> Rays:
+    """The rays of ``camera`` through the flat pixel indices ``pixels``."""
+    rays = rays_from_camera(camera, device)
+    idx = pixels.to(device)
+    return Rays(rays.origins[idx], rays.directions[idx])
+

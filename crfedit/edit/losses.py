@@ -1,0 +1,67 @@
+"""Loss terms of the edits, as small pure functions over tensors."""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import torch
+from torch import Tensor
+
+VALID_SIGMA = 1e-20
+"""Densities at or below this count as "no sample" (the compacted layout pads rays with σ = 0)."""
+_MASKED = -1e4  # logit of a padded sample: exp(−1e4 − ·) = 0 exactly, yet finite
+
+
+def log_density_distribution(sigmas: Tensor) -> tuple[Tensor, Tensor]:
+    """(log pᵢ, valid) of pᵢ = σᵢ / Σⱼ σⱼ along the last axis, computed as a masked softmax of
+    log σ so it is finite for σ from 0 to any finite size.  [..., S] → ([..., S], [..., S] bool)
+
+    Padded samples (σ ≤ :data:`VALID_SIGMA`) get pᵢ = 0 and no gradient.  Through σ = exp(raw)
+    the gradient with respect to the raw density is ∂/∂zᵢ of a softmax, bounded by 1.
+    Example: σ = [1, 3, 0] → p = [0.25, 0.75, 0].
+    """
+    valid = sigmas > VALID_SIGMA
+    logits = torch.where(valid, torch.log(sigmas.clamp_min(VALID_SIGMA)), torch.full_like(sigmas, _MASKED))
+    return torch.log_softmax(logits, dim=-1), valid
+
+
+def density_entropy(sigmas: Tensor) -> Tensor:
+    """Entropy of the normalized densities along each ray, H = −Σᵢ pᵢ log pᵢ with pᵢ = σᵢ/Σσ.
+    [..., S] → [...]
+
+    Minimizing it makes a ray's density peaky (one surface or none).  A ray with no density
+    (every σ = 0) has H = 0 and zero gradient.  Example: σ = [1, 1, 0, 0] → H = log 2.
+    """
+    log_p, valid = log_density_distribution(sigmas)
+    h = -(log_p.exp() * log_p).sum(dim=-1)
+    return torch.where(valid.any(dim=-1), h, torch.zeros_like(h))
+
+
+def density_cross_entropy(target_sigmas: Tensor, sigmas: Tensor) -> Tensor:
+    """−Σᵢ qᵢ log pᵢ between the normalized target densities q (no gradient) and the normalized
+    densities p, per ray; 0 where the target ray is empty.  [..., S] → [...]"""
+    log_q, valid_q = log_density_distribution(target_sigmas.detach())
+    log_p, _ = log_density_distribution(sigmas)
+    ce = -(log_q.exp() * log_p).sum(dim=-1)
+    return torch.where(valid_q.any(dim=-1), ce, torch.zeros_like(ce))
+
+
+def weight_penalty(current: Mapping[str, Tensor], start: Mapping[str, Tensor], rows: Mapping[str, int]) -> Tensor:
+    """Σ over trained tensors of mean((θ − θ₀)²); a code table (named in ``rows``) counts only
+    the edited instance's row.  Per-tensor means keep the penalty on the scale of a pixel loss
+    whatever the tensor sizes (a plain sum over every weight swamps it)."""
+    total = None
+    for name, theta in current.items():
+        theta0 = start[name]
+        if name in rows:
+            theta, theta0 = theta[rows[name]], theta0[rows[name]]
+        term = torch.mean((theta - theta0) ** 2)
+        total = term if total is None else total + term
+    if total is None:
+        raise ValueError("weight_penalty: no trained tensors")
+    return total
+
+
+def mse(rgb: Tensor, target: Tensor) -> Tensor:
+    """Mean squared error over rays and channels."""
+    return torch.mean((rgb - target) ** 2)

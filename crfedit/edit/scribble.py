@@ -1,0 +1,154 @@
+"""User input of an edit: scribble masks (PNG or strokes JSON), colours, and the rays they pick.
+
+Masks are bool [H, W] at the edited view's resolution, True where the user scribbled.  Pixel
+coordinates are (x, y) = (column, row) with row 0 at the top, as in the images.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..data.format import read_mask
+from ..errors import CrfError
+from ..io import read_json
+
+CSS_COLORS = {
+    "black": "#000000", "silver": "#c0c0c0", "gray": "#808080", "grey": "#808080", "white": "#ffffff",
+    "maroon": "#800000", "red": "#ff0000", "purple": "#800080", "fuchsia": "#ff00ff", "magenta": "#ff00ff",
+    "green": "#008000", "lime": "#00ff00", "olive": "#808000", "yellow": "#ffff00", "navy": "#000080",
+    "blue": "#0000ff", "teal": "#008080", "aqua": "#00ffff", "cyan": "#00ffff", "orange": "#ffa500",
+}
+"""The CSS basic colour keywords (plus grey, magenta, cyan and orange)."""
+
+
+def parse_color(text: str) -> tuple[float, float, float]:
+    """``#rgb``, ``#rrggbb`` or a CSS basic colour name → RGB in [0, 1].
+
+    ``parse_color("#f80") == parse_color("#ff8800") == (1.0, 0.533…, 0.0)``; ``"red"`` → (1, 0, 0).
+    """
+    value = str(text).strip().lower()
+    value = CSS_COLORS.get(value, value)
+    m = re.fullmatch(r"#([0-9a-f]{3}|[0-9a-f]{6})", value)
+    if not m:
+        raise CrfError(f"--color {text!r}: expected #rgb, #rrggbb or a colour name like red, navy, orange")
+    digits = m.group(1)
+    if len(digits) == 3:
+        digits = "".join(c * 2 for c in digits)
+    return tuple(int(digits[i : i + 2], 16) / 255.0 for i in (0, 2, 4))  # type: ignore[return-value]
+
+
+def stroke_mask(shape: tuple[int, int], points: np.ndarray, radius: float) -> np.ndarray:
+    """Pixels whose centers lie within ``radius`` of the polyline through ``points`` ([K, 2] x, y,
+    pixel units with (0, 0) the center of the top-left pixel).  A single point draws a dot."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    pix = np.stack([xx, yy], -1).astype(np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    segments = list(zip(pts[:-1], pts[1:])) or [(pts[0], pts[0])]
+    mask = np.zeros(shape, bool)
+    for a, b in segments:
+        ab = b - a
+        s = np.clip(((pix - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        mask |= np.linalg.norm(pix - (a + s[..., None] * ab), axis=-1) <= radius
+    return mask
+
+
+def default_radius(width: int) -> float:
+    return max(1.0, width / 48)
+
+
+def strokes_mask(data, width: int, height: int, where: str) -> np.ndarray:
+    """Rasterize strokes JSON at (width, height): ``{"strokes": [[[x, y], …], …], "radius": r}``
+    or a bare list of strokes ``[[[x, y], …], …]``; the radius defaults to max(1, width/48) px."""
+    radius = default_radius(width)
+    strokes = data
+    if isinstance(data, dict):
+        strokes = data.get("strokes")
+        if "radius" in data:
+            r = data["radius"]
+            if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0 < r <= max(width, height):
+                raise CrfError(f"{where}: radius must be a number of pixels above 0")
+            radius = float(r)
+    if not isinstance(strokes, list) or not strokes:
+        raise CrfError(f"{where}: expected {{\"strokes\": [[[x, y], ...], ...], \"radius\": r}} or a list of strokes")
+    mask = np.zeros((height, width), bool)
+    for i, stroke in enumerate(strokes):
+        ok = isinstance(stroke, list) and len(stroke) > 0 and all(
+            isinstance(p, list) and len(p) == 2 and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)
+            for p in stroke
+        )
+        pts = np.asarray(stroke, dtype=np.float64) if ok else None
+        if pts is None or not np.isfinite(pts).all():
+            raise CrfError(f"{where}: stroke {i} is not a list of [x, y] pixel positions")
+        mask |= stroke_mask((height, width), pts, radius)
+    return mask
+
+
+def load_mask(png: Path | None, strokes: Path | None, width: int, height: int, what: str) -> np.ndarray | None:
+    """The union of a mask PNG and a strokes JSON (either may be None) at the view's size; None
+    when neither is given.  A PNG of another size is an error naming both sizes."""
+    mask = None
+    if png is not None:
+        mask = read_mask(Path(png))
+        if mask.shape != (height, width):
+            raise CrfError(
+                f"{png}: {what} mask is {mask.shape[1]}x{mask.shape[0]} but the view is {width}x{height} (draw it on a render of that view)"
+            )
+    if strokes is not None:
+        drawn = strokes_mask(read_json(Path(strokes)), width, height, str(strokes))
+        mask = drawn if mask is None else mask | drawn
+    return mask
+
+
+def check_masks(scribble: np.ndarray, keep: np.ndarray | None, width: int, height: int) -> np.ndarray | None:
+    """Validate an edit's masks; returns the keep mask minus the scribble (the scribble wins)."""
+    for what, mask in (("scribble", scribble), ("keep", keep)):
+        if mask is not None and tuple(mask.shape) != (height, width):
+            raise CrfError(f"{what} mask is {mask.shape[1]}x{mask.shape[0]} but the view is {width}x{height}")
+    if not scribble.any():
+        raise CrfError("the scribble is empty: no pixel is set (white strokes on black, 8-bit PNG)")
+    if scribble.all():
+        raise CrfError("the scribble covers the whole view: nothing is left to keep (scribble only the part to edit)")
+    if keep is None:
+        return None
+    if keep.all():
+        raise CrfError("the keep mask covers the whole view (an all-white mask?): scribble only what must not change")
+    keep = keep & ~scribble
+    if not keep.any():
+        raise CrfError("the keep mask has no pixel outside the scribble (empty, or all under the scribble)")
+    return keep
+
+
+def pick_pixels(
+    scribble: np.ndarray, keep: np.ndarray | None, max_rays: int, generator: torch.Generator, also_random: bool = False
+) -> tuple[Tensor, Tensor]:
+    """(foreground pixel indices, background pixel indices), flat row-major, for an edit.
+
+    Foreground: the scribble (a random third of ``max_rays`` if it has more pixels).
+    Background: the keep mask, else — or also, with ``also_random`` — a seeded random sample of
+    the rest of the view twice the size of the foreground; together at most ``max_rays``.
+    """
+    if max_rays < 2:
+        raise CrfError(f"--rays {max_rays}: need at least 2")
+    fg = torch.from_numpy(np.flatnonzero(scribble))
+    if fg.numel() > max(1, max_rays // 3):
+        fg = fg[torch.randperm(fg.numel(), generator=generator)[: max(1, max_rays // 3)]].sort().values
+    room = max_rays - fg.numel()
+    parts = []
+    if keep is not None:
+        kept = torch.from_numpy(np.flatnonzero(keep))
+        if kept.numel() > room:
+            kept = kept[torch.randperm(kept.numel(), generator=generator)[:room]].sort().values
+        parts.append(kept)
+        room -= kept.numel()
+    if keep is None or also_random:
+        rest = ~scribble if keep is None else ~(scribble | keep)
+        pool = torch.from_numpy(np.flatnonzero(rest))
+        n = min(2 * fg.numel(), room)
+        parts.append(pool[torch.randperm(pool.numel(), generator=generator)[:n]].sort().values)
+    return fg, torch.cat(parts) if parts else torch.zeros(0, dtype=torch.long)

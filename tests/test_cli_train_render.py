@@ -1,0 +1,238 @@
+"""``crfedit train``, ``info``, ``render`` end to end on a tiny category (2 chairs × 6 views, 16×16)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+import crfedit.train
+from crfedit.cli import app
+from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.evaluate import render_views
+from crfedit.io import read_exr, read_image
+from crfedit.model import load_model
+from crfedit.video import write_video
+from crfedit.views import resolve_views
+
+TINY = ["--device", "cpu", "--set", "rays=256", "--set", "occ_res=16", "--set", "grid_res=16"]
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def assert_user_error(result, *fragments: str) -> None:
+    """Exit 2 with one line ``error: ...`` on stderr that contains every fragment, no traceback."""
+    assert result.exit_code == 2, result.output
+    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1, result.stderr
+    assert "Traceback" not in result.output
+    for fragment in fragments:
+        assert fragment in result.stderr, result.stderr
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("cli") / "chairs"
+    write_synth_category(root, SynthConfig(instances=2, views=6, res=16, twins=False))
+    return root
+
+
+@pytest.fixture(scope="module")
+def model_path(data) -> Path:
+    out = data.parent / "model.safetensors"
+    result = invoke("train", data, "--out", out, "--steps", 30, *TINY)
+    assert result.exit_code == 0, result.output
+    assert "held-out val (2 views): PSNR" in result.stdout
+    assert "trained 2 instances for 30 steps" in result.stdout
+    return out
+
+
+def test_train_writes_a_loadable_model(model_path, data):
+    model, state = load_model(model_path)
+    assert model.names == ["chair_000", "chair_001"]
+    assert model.meta["step"] == "30" and model.meta["command"].startswith("crfedit")  # sys.argv: pytest here
+    assert model.cfg.rays == 256 and model.cfg.occ_res == 16 and model.cfg.steps == 30
+    assert set(model.views) == {"train", "val", "test"} and model.views["train"].width == 16
+    assert int(state["step"]) == 30
+
+
+def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path, monkeypatch):
+    """Ctrl-C at step 11 leaves the step-10 checkpoint; --resume must then reach exactly the
+    weights, optimizer moments and sampler state of an uninterrupted run.  Occupancy refreshes
+    (every 3 steps from step 3) fall on both sides of the interruption."""
+    args = ["--steps", 20, "--seed", 5, *TINY, "--set", "checkpoint_every=10", "--set", "occ_warmup=3", "--set", "occ_every=3"]
+    full, part = tmp_path / "full.safetensors", tmp_path / "part.safetensors"
+    assert invoke("train", data, "--out", full, *args).exit_code == 0
+
+    real_train = crfedit.train.train
+
+    def interrupted_at_11(*a, on_step=None, **kw):
+        def hook(step, *rest):
+            on_step(step, *rest)
+            if step == 11:
+                raise KeyboardInterrupt
+
+        return real_train(*a, on_step=hook, **kw)
+
+    monkeypatch.setattr(crfedit.train, "train", interrupted_at_11)
+    result = invoke("train", data, "--out", part, *args)
+    assert result.exit_code == 130 and "interrupted" in result.stderr
+    assert load_model(part)[0].meta["step"] == "10"
+    monkeypatch.setattr(crfedit.train, "train", real_train)
+    result = invoke("train", data, "--out", part, *args, "--resume")
+    assert result.exit_code == 0, result.output
+
+    (a, state_a), (b, state_b) = load_model(full), load_model(part)
+    assert b.meta["step"] == "20"
+    differ = [k for k, v in a.state().items() if not torch.equal(v, b.state()[k])]
+    assert not differ, f"weights differ after resume: {differ}"
+    differ = [k for k, v in state_a.items() if k != "elapsed" and not torch.equal(v, state_b[k])]
+    assert not differ, f"training state differs after resume: {differ}"
+    assert a.fingerprint() == b.fingerprint()
+
+
+def test_resume_errors(data, model_path, tmp_path):
+    assert_user_error(invoke("train", data, "--out", tmp_path / "none.safetensors", "--resume", *TINY), "--resume", "does not exist")
+    assert_user_error(invoke("train", data, "--out", model_path, "--resume", "--res", 8, *TINY), "trained at width 16")
+
+
+def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
+    out = tmp_path / "deep" / "renders"  # created with its parents
+    result = invoke("render", model_path, "--instance", "chair_001", "--views", "orbit:3", "--res", 12, "--out", out, "--depth", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert "rendered 3 views of chair_001 at 12x12" in result.stdout and "s per view" in result.stdout
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["0000.png", "0000_depth.exr", "0001.png", "0001_depth.exr", "0002.png", "0002_depth.exr", "views.json"]
+
+    model, _ = load_model(model_path)
+    cams = [cam for _, cam in resolve_views("orbit:3", model, 1, res=12)]
+    refs = render_views(model, 1, cams)
+    for i, ref in enumerate(refs):
+        image = read_image(out / f"{i:04d}.png")
+        assert image.shape == (12, 12, 3)
+        np.testing.assert_array_equal(np.round(image * 255), np.round(ref.rgb.clamp(0, 1).numpy() * 255))
+        exr = read_exr(out / f"{i:04d}_depth.exr")
+        assert set(exr) == {"Z", "A"} and exr["Z"].dtype == np.float32 and exr["Z"].shape == (12, 12)
+        z, a = exr["Z"], exr["A"]
+        np.testing.assert_array_equal(a, ref.opacity.numpy())
+        assert (a > 0.5).any()
+        assert np.isfinite(z[a > 1e-3]).all() and (z[a > 1e-3] > 0).all()
+        assert np.isposinf(z[a <= 1e-3]).all()
+        hit = a > 1e-3
+        np.testing.assert_allclose(z[hit] * a[hit], ref.depth.numpy()[hit], rtol=1e-5)
+    listed = json.loads((out / "views.json").read_text())
+    assert [v["view"] for v in listed["views"]] == ["orbit:0", "orbit:1", "orbit:2"] and listed["instance"] == "chair_001"
+
+    again = tmp_path / "again"
+    assert invoke("render", model_path, "--instance", "1", "--views", "orbit:3", "--res", 12, "--out", again, "--depth").exit_code == 0
+    for name in names:
+        if name.endswith(".exr"):
+            for channel, values in read_exr(out / name).items():
+                np.testing.assert_array_equal(values, read_exr(again / name)[channel])
+        else:
+            assert (out / name).read_bytes() == (again / name).read_bytes(), name
+
+
+def test_render_split_views_at_stored_size_and_gif(model_path, tmp_path):
+    out = tmp_path / "r"
+    result = invoke("render", model_path, "--instance", 0, "--views", "train:0-2", "--out", out, "--video", tmp_path / "t.gif")
+    assert result.exit_code == 0, result.output
+    assert read_image(out / "0002.png").shape == (16, 16, 3) and not (out / "0003.png").exists()
+    assert f"wrote GIF {tmp_path / 't.gif'}" in result.stdout
+    from PIL import Image
+
+    with Image.open(tmp_path / "t.gif") as gif:
+        assert gif.n_frames == 3 and gif.size == (16, 16)
+
+
+def test_video_falls_back_to_gif_without_imageio_ffmpeg(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import fails
+    frames = [np.full((5, 7, 3), k / 4, dtype=np.float32) for k in range(4)]
+    assert write_video(tmp_path / "v.mp4", frames) == tmp_path / "v.gif"
+    assert (tmp_path / "v.gif").is_file() and not (tmp_path / "v.mp4").exists()
+
+
+@pytest.mark.skipif(not __import__("crfedit.video").video.mp4_available(), reason="imageio-ffmpeg is not installed")
+def test_video_mp4(tmp_path):
+    frames = [np.full((5, 7, 3), k / 4, dtype=np.float32) for k in range(4)]
+    assert write_video(tmp_path / "v.mp4", frames) == tmp_path / "v.mp4"
+    assert (tmp_path / "v.mp4").read_bytes()[4:8] == b"ftyp"
+
+
+def test_render_with_swapped_codes_differs(model_path, tmp_path):
+    pytest.importorskip("crfedit.edit.transfer")
+    plain, swapped = tmp_path / "plain", tmp_path / "swapped"
+    assert invoke("render", model_path, "--instance", 0, "--views", "test", "--out", plain).exit_code == 0
+    result = invoke("render", model_path, "--instance", 0, "--views", "test", "--out", swapped, "--color-from", "chair_001")
+    assert result.exit_code == 0, result.output
+    assert (plain / "0000.png").read_bytes() != (swapped / "0000.png").read_bytes()
+    assert_user_error(invoke("render", model_path, "--instance", 0, "--views", "test", "--out", swapped, "--shape-from", "nope"), "nope")
+
+
+def test_render_with_missing_edit_file(model_path, tmp_path):
+    pytest.importorskip("crfedit.delta")
+    result = invoke("render", model_path, "--instance", 0, "--views", "test", "--out", tmp_path / "r", "--edit", tmp_path / "none.safetensors")
+    assert_user_error(result, "none.safetensors")
+
+
+def test_info_json_and_text(model_path):
+    result = invoke("info", model_path, "--json")
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.stdout)
+    model, _ = load_model(model_path)
+    assert info["instances"] == 2 and info["names"] == model.names and info["preset"] == "fast" and info["arch"] == "ours"
+    assert list(info["modules"]) == ["F_share", "F_inst", "F_fuse", "F_dens", "bottleneck", "F_rad", "shape_codes", "color_codes"]
+    assert info["parameters"] == sum(p.numel() for p in model.field.parameters())
+    assert info["modules"]["shape_codes"] == {"params": 2 * 32, "bytes": 2 * 32 * 4}
+    assert info["fingerprint"] == model.fingerprint() and info["dataset_fingerprint"] == model.dataset_fingerprint
+    assert info["step"] == 30 and 0 < info["occupancy"]["mean_fill"] <= 1
+    text = invoke("info", model_path)
+    assert text.exit_code == 0 and "F_rad" in text.stdout and model.fingerprint() in text.stdout
+
+
+def test_user_errors_exit_2(data, model_path, tmp_path):
+    def render(*extra):
+        return invoke("render", model_path, "--out", tmp_path / "r", *extra)
+
+    assert_user_error(render("--instance", "chair_999", "--views", "test"), "unknown instance 'chair_999'")
+    assert_user_error(render("--instance", "7", "--views", "test"), "instance 7: out of range")
+    assert_user_error(render("--instance", "0", "--views", "tset:1"), "'tset:1'")
+    assert_user_error(render("--instance", "0", "--views", "test:5"), "'test:5'", "out of range")
+    assert_user_error(render("--instance", "0", "--views", "test", "--res", "0"), "--res 0")
+    assert_user_error(render("--instance", "0", "--views", "test", "--chunk", "0"), "--chunk 0")
+    assert_user_error(render("--instance", "0", "--views", "test", "--video", tmp_path / "v.avi"), ".mp4 or .gif")
+    (tmp_path / "file").write_text("x")
+    assert_user_error(invoke("render", model_path, "--instance", 0, "--views", "test", "--out", tmp_path / "file"), "not a folder")
+    assert_user_error(invoke("render", tmp_path / "nope.safetensors", "--instance", 0, "--views", "test", "--out", tmp_path / "r"), "not found")
+    assert_user_error(invoke("info", tmp_path / "file"), "not a safetensors file")
+
+    out = tmp_path / "m.safetensors"
+    assert_user_error(invoke("train", data, "--out", out, "--steps", 0, *TINY), "--steps 0")
+    assert_user_error(invoke("train", data, "--out", out, "--res", -4, *TINY), "--res -4")
+    assert_user_error(invoke("train", data, "--out", out, "--minutes", 0, *TINY), "--minutes 0")
+    assert_user_error(invoke("train", tmp_path / "no-such-data", "--out", out, *TINY), "no-such-data", "not found")
+    assert_user_error(invoke("train", data, "--out", tmp_path / "missing" / "m.safetensors", *TINY), "does not exist")
+    assert_user_error(invoke("train", data, "--out", tmp_path, *TINY), "is a folder")
+    assert_user_error(invoke("train", data, "--out", out, "--set", "bogus=1", *TINY), "--set bogus=1")
+    assert not out.exists()
+
+
+def test_quickstart_end_to_end(tmp_path):
+    out = tmp_path / "qs"
+    result = invoke("quickstart", "--out", out, "--minutes", 0.02, "--instances", 1, "--res", 16, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert "held-out test (5 views): PSNR" in result.stdout
+    assert sorted(p.name for p in (out / "turntable").glob("*.png")) == [f"{i:04d}.png" for i in range(24)]
+    assert (out / "turntable.gif").is_file() and load_model(out / "model.safetensors")[0].names == ["chair_000"]
+    score = json.loads((out / "score.json").read_text())
+    assert score["split"] == "test" and score["n"] == 5 and set(score["instances"]) == {"chair_000"}
+    (tmp_path / "file").write_text("x")
+    assert_user_error(invoke("quickstart", "--out", tmp_path / "file"), "not a folder")
+    assert_user_error(invoke("quickstart", "--out", out, "--minutes", -1), "--minutes -1")

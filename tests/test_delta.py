@@ -1,0 +1,362 @@
+"""Edit files: exactly the touched tensors, instance scoping, stacks (order, base, parent), revert,
+bake, and clear one-line errors for files that are damaged or belong elsewhere.
+
+Uses a tiny untrained field with hand-set occupancy: every property here is bitwise, not about
+what an edit looks like (tests/test_edits.py covers that on a trained model).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import save_file
+from typer.testing import CliRunner
+
+from crfedit.cameras import Camera, look_at
+from crfedit.cli import app
+from crfedit.config import make_config
+from crfedit.delta import (
+    Delta,
+    apply_deltas,
+    apply_edit_files,
+    bake,
+    chain_fingerprint,
+    grow,
+    make_delta,
+    read_delta,
+    save_delta,
+    stack_of,
+)
+from crfedit.edit import EditOptions, edit_color, swap_codes, transfer
+from crfedit.errors import CrfError, ModelFileError
+from crfedit.field import ConditionalRadianceField
+from crfedit.model import CategoryModel, ViewTable, load_model, save_model
+from crfedit.renderer import render_camera
+
+RES = 12
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny tensors: one thread is faster, and much faster on a loaded machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def camera(azimuth: float = 0.3) -> Camera:
+    eye = np.array([2.0 * np.cos(azimuth), 2.0 * np.sin(azimuth), 0.6])
+    return Camera(look_at(eye), 14.0, RES, RES)
+
+
+def make_model(n: int = 3, seed: int = 0) -> CategoryModel:
+    cfg = make_config("fast", overrides=dict(code_dim=4, code_embed=5, width=16, rad_width=12, grid_res=4, grid_features=2, occ_res=8))
+    torch.manual_seed(seed)
+    field = ConditionalRadianceField(cfg, n)
+    with torch.no_grad():
+        field.shape_codes.normal_()
+        field.color_codes.normal_()
+        field.F_share.grid.normal_()
+        field.F_dens.bias.fill_(2.0)
+        c = (torch.arange(8) + 0.5) / 4 - 1
+        r = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), -1).norm(dim=-1)
+        for k in range(n):
+            field.occupancy[k] = r < 0.5 + 0.2 * k
+    cams = [camera(a) for a in (0.3, 1.5, 2.7)]
+    table = ViewTable(
+        torch.tensor(np.stack([c.c2w for c in cams * n])), torch.full((3 * n,), 14.0, dtype=torch.float64),
+        torch.arange(n).repeat_interleave(3), RES, RES,
+    )
+    return CategoryModel(field, [f"chair_{i}" for i in range(n)], "dataset0", views={"train": table})
+
+
+def render(model: CategoryModel, k: int, cam: Camera | None = None) -> torch.Tensor:
+    return render_camera(model.field_for(k), cam or camera(), k).rgb
+
+
+def perturbed(model: CategoryModel, k: int, names: dict[str, float]) -> CategoryModel:
+    """``model`` with instance k's tensors ``names`` shifted by the given amounts (code tables: row k)."""
+    state = dict(model.field.state_dict())
+    state.update(model.overrides.get(k, {}))
+    replaced = dict(model.overrides.get(k, {}))
+    for name, shift in names.items():
+        t = state[name].clone()
+        if name in ("shape_codes", "color_codes"):
+            t[k] += shift
+        elif name == "occupancy":
+            t[k] = ~t[k]
+        else:
+            t += shift
+        replaced[name] = t
+    return dataclasses.replace(model, overrides={**model.overrides, k: replaced})
+
+
+def delta_file(tmp_path: Path, name: str, before: CategoryModel, k: int, kind: str, shifts: dict[str, float], modules) -> Path:
+    tensors, meta = make_delta(before, perturbed(before, k, shifts), k, kind, modules, {"command": "test"})
+    path = tmp_path / name
+    save_delta(path, tensors, meta)
+    return path
+
+
+@pytest.fixture()
+def model() -> CategoryModel:
+    return make_model()
+
+
+def test_delta_holds_exactly_the_touched_tensors(tmp_path, model):
+    path = delta_file(tmp_path, "a.safetensors", model, 1, "color", {"F_rad.out.bias": 0.1, "color_codes": 0.5}, ("F_rad.", "color_codes"))
+    d = read_delta(path)
+    f_rad = {n for n, _ in model.field.named_parameters() if n.startswith("F_rad.")}
+    assert set(d.tensors) == f_rad | {"color_code"}
+    assert d.tensors["color_code"].shape == (4,)
+    torch.testing.assert_close(d.tensors["color_code"], torch.full((4,), 0.5), rtol=0, atol=1e-6)
+    torch.testing.assert_close(d.tensors["F_rad.out.bias"], torch.full((3,), 0.1), rtol=0, atol=1e-6)
+    assert float(d.tensors["F_rad.out.weight"].abs().max()) == 0.0
+    meta = d.meta
+    assert (meta["format"], meta["kind"], meta["instance"], meta["parent"]) == ("crfedit-edit", "color", "chair_1", "")
+    assert json.loads(meta["modules"]) == ["F_rad.", "color_codes"] and meta["base"] == model.fingerprint()
+    grid = delta_file(tmp_path, "g.safetensors", model, 0, "remove", {"F_dens.bias": -0.5, "occupancy": 0}, ("F_dens.", "occupancy"))
+    g = read_delta(grid)
+    assert set(g.tensors) == {"F_dens.weight", "F_dens.bias", "occupancy"}
+    assert g.tensors["occupancy"].dtype == torch.bool and g.tensors["occupancy"].shape == (8, 8, 8)
+    assert torch.equal(g.tensors["occupancy"], ~model.field.occupancy[0])  # the new grid itself
+
+
+def test_other_instances_bit_identical_and_input_untouched(tmp_path, model):
+    fp = model.fingerprint()
+    renders = [render(model, k) for k in range(3)]
+    path = delta_file(tmp_path, "a.safetensors", model, 1, "color", {"F_rad.out.bias": 0.3, "color_codes": 1.0}, ("F_rad.", "color_codes"))
+    edited = apply_edit_files(model, [path])
+    assert model.fingerprint() == fp and not model.overrides
+    assert edited.field is model.field and set(edited.overrides) == {1}
+    for k in (0, 2):
+        assert edited.field_for(k) is model.field
+        assert torch.equal(render(edited, k), renders[k])
+    assert not torch.allclose(render(edited, 1), renders[1])
+
+
+def test_real_edit_roundtrips_through_its_file(tmp_path, model):
+    cam = camera()
+    scribble = np.zeros((RES, RES), bool)
+    scribble[4:8, 4:8] = True
+    result = edit_color(model, 0, cam, scribble, "red", options=EditOptions(steps=3, rays=64))
+    result.save(tmp_path / "e.safetensors", command="crfedit edit-color …")
+    loaded = apply_edit_files(model, [tmp_path / "e.safetensors"])
+    assert torch.equal(render(loaded, 0), render(result.model, 0))
+    assert not torch.equal(render(loaded, 0), render(model, 0))
+    assert read_delta(tmp_path / "e.safetensors").meta["command"] == "crfedit edit-color …"
+
+
+def test_stack_then_revert_is_bit_identical(tmp_path, model):
+    original = [render(model, k) for k in range(3)]
+    a = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    after_a = apply_edit_files(model, [a])
+    b = delta_file(tmp_path, "b.safetensors", after_a, 0, "remove", {"F_dens.bias": -1.0}, ("F_dens.",))
+    after_ab = apply_edit_files(model, [a, b])
+    assert read_delta(b).meta["parent"] == chain_fingerprint(model.fingerprint(), [read_delta(a).fingerprint])
+    assert not torch.equal(render(after_ab, 0), render(after_a, 0))
+    assert torch.equal(render(apply_edit_files(model, [a]), 0), render(after_a, 0))  # b left out
+    reverted = apply_edit_files(model, [])
+    for k in range(3):
+        assert torch.equal(render(reverted, k), original[k])
+    # applying in two goes continues the same stack
+    assert apply_edit_files(after_a, [b]).fingerprint() == after_ab.fingerprint()
+
+
+def test_wrong_order_parent_and_base_are_rejected(tmp_path, model):
+    a = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    b = delta_file(tmp_path, "b.safetensors", apply_edit_files(model, [a]), 1, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    c = delta_file(tmp_path, "c.safetensors", model, 2, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    with pytest.raises(ModelFileError, match=r"b\.safetensors: was made after .*a\.safetensors; pass the --edit files in the order"):
+        apply_edit_files(model, [b, a])
+    with pytest.raises(ModelFileError, match=r"b\.safetensors: was made after other edits"):
+        apply_edit_files(model, [b])
+    with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, so it must come first \(it is edit 2"):
+        apply_edit_files(model, [a, c])
+    other = make_model(seed=1)
+    with pytest.raises(ModelFileError, match=rf"a\.safetensors: made for model {model.fingerprint()}, not this model \({other.fingerprint()}\)"):
+        apply_edit_files(other, [a])
+    for bad in ([b, a], [a, c]):
+        with pytest.raises(ModelFileError) as e:
+            apply_edit_files(model, bad)
+        assert "\n" not in str(e.value)
+
+
+def test_instance_and_names_checked_against_the_model(tmp_path, model):
+    a = delta_file(tmp_path, "a.safetensors", model, 2, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    two = dataclasses.replace(model, names=["chair_0", "chair_1", "other"])
+    with pytest.raises(ModelFileError, match="instance 'chair_2', which the model does not have"):
+        apply_edit_files(two, [a])
+    # any parameter may be stored by a weight-training edit (strategy all), none by a transfer
+    tensors, meta = make_delta(model, perturbed(model, 0, {"F_dens.bias": 0.1}), 0, "color", ("F_dens.",))
+    save_delta(tmp_path / "bad.safetensors", tensors, meta)
+    apply_edit_files(model, [tmp_path / "bad.safetensors"])
+    tensors, meta = make_delta(model, perturbed(model, 0, {"F_dens.bias": 0.1}), 0, "transfer", ("F_dens.",))
+    save_delta(tmp_path / "t.safetensors", tensors, meta)
+    with pytest.raises(ModelFileError, match="a transfer edit may not hold tensor 'F_dens\\.(weight|bias)'"):
+        apply_edit_files(model, [tmp_path / "t.safetensors"])
+
+
+def test_bake_renders_bit_identical_to_the_stack(tmp_path, model):
+    a = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2, "color_codes": 0.7}, ("F_rad.", "color_codes"))
+    b = delta_file(tmp_path, "b.safetensors", apply_edit_files(model, [a]), 0, "remove",
+                   {"F_dens.bias": -0.5, "occupancy": 0}, ("F_fuse.", "F_dens.", "occupancy"))
+    stacked = apply_edit_files(model, [a, b])
+    baked = bake(model, [a, b])
+    save_model(tmp_path / "baked.safetensors", baked)
+    loaded, state = load_model(tmp_path / "baked.safetensors")
+    assert not state and set(loaded.overrides) == {0}
+    for k in range(3):
+        assert torch.equal(render(loaded, k), render(stacked, k))
+    assert json.loads(loaded.meta["baked_edits"]) == [read_delta(a).fingerprint, read_delta(b).fingerprint]
+    with pytest.raises(ModelFileError, match="made for model"):  # the baked model is a new base
+        apply_edit_files(loaded, [a])
+    c = delta_file(tmp_path, "c.safetensors", loaded, 1, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    assert read_delta(c).meta["base"] == loaded.fingerprint() and read_delta(c).meta["parent"] == ""
+    apply_edit_files(loaded, [c])
+
+
+def test_transfer_delta_equals_swap_codes(tmp_path, model):
+    result = transfer(model, 0, shape_from=2, color_from=1)
+    assert set(result.tensors) == {"shape_code", "color_code", "occupancy"}
+    result.save(tmp_path / "t.safetensors")
+    via_file = apply_edit_files(model, [tmp_path / "t.safetensors"])
+    swapped = swap_codes(model, 0, shape_from=2, color_from=1)
+    assert swapped.field is model.field
+    assert torch.equal(render(via_file, 0), render(swapped, 0))
+    assert torch.equal(swapped.overrides[0]["occupancy"][0], model.field.occupancy[2])
+    torch.testing.assert_close(swapped.overrides[0]["color_codes"][0], model.field.color_codes[1].detach(), rtol=1e-6, atol=1e-6)
+    with pytest.raises(CrfError, match="give --shape-from or --color-from"):
+        swap_codes(model, 0)
+
+
+def test_fit_real_delta_adds_an_instance(tmp_path, model):
+    after = grow(model, "real_0")
+    with torch.no_grad():
+        table = after.field.shape_codes.detach().clone()
+        table[3] = model.field.shape_codes[1]
+        grid = after.field.occupancy.clone()
+        grid[3] = model.field.occupancy[1]
+    after.overrides[3] = {"shape_codes": table, "color_codes": after.field.color_codes.detach().clone(), "occupancy": grid}
+    tensors, meta = make_delta(model, after, "real_0", "fit-real", ("shape_codes", "color_codes", "occupancy"))
+    assert meta["adds_instance"] == "real_0"
+    save_delta(tmp_path / "fit.safetensors", tensors, meta)
+    grown = apply_edit_files(model, [tmp_path / "fit.safetensors"])
+    assert grown.names == ["chair_0", "chair_1", "chair_2", "real_0"] and model.names == ["chair_0", "chair_1", "chair_2"]
+    assert grown.field.n_instances == 4
+    torch.testing.assert_close(grown.field_for(3).shape_codes[3], model.field.shape_codes[1].detach())
+    base, stack = stack_of(grown)
+    again = Delta("again.safetensors", tensors, {**meta, "parent": chain_fingerprint(base, stack)})
+    with pytest.raises(ModelFileError, match="again.safetensors: adds instance 'real_0', which the model already has"):
+        apply_deltas(grown, [again])
+
+# ----------------------------------------------------------------------------- damaged files
+
+
+def assert_one_line(error: pytest.ExceptionInfo, path: Path) -> str:
+    msg = str(error.value)
+    assert "\n" not in msg and str(path) in msg
+    return msg
+
+
+def test_zero_byte_truncated_and_corrupt_files(tmp_path, model):
+    good = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    data = good.read_bytes()
+    cases = {
+        "zero.safetensors": b"",
+        "truncated.safetensors": data[: len(data) // 2],
+        "header.safetensors": struct.pack("<Q", 40) + b"{not json" + b" " * 31,
+        "flipped.safetensors": data[:-4] + bytes([data[-4] ^ 1]) + data[-3:],  # a last-bit change of one float
+    }
+    expected = {
+        "zero.safetensors": "only 0 bytes",
+        "truncated.safetensors": "corrupt",
+        "header.safetensors": "corrupt safetensors header",
+        "flipped.safetensors": "do not match the recorded fingerprint",
+    }
+    for name, blob in cases.items():
+        (tmp_path / name).write_bytes(blob)
+        with pytest.raises(ModelFileError) as e:
+            apply_edit_files(model, [good, tmp_path / name])
+        assert expected[name] in assert_one_line(e, tmp_path / name)
+    with pytest.raises(ModelFileError, match="file not found"):
+        apply_edit_files(model, [tmp_path / "missing.safetensors"])
+    save_model(tmp_path / "model.safetensors", model)
+    with pytest.raises(ModelFileError, match="not a crfedit edit file \\(format 'crfedit-model'\\)"):
+        read_delta(tmp_path / "model.safetensors")
+
+
+def rewrite(path: Path, out: Path, tensors: dict, meta_changes: dict | None = None, refingerprint: bool = True) -> Path:
+    """Write ``tensors`` with ``path``'s metadata (changed), fingerprint recomputed so only the
+    model-dependent checks can catch the problem."""
+    from crfedit.delta import delta_fingerprint
+
+    meta = {**read_delta(path).meta, **(meta_changes or {})}
+    if refingerprint:
+        meta["fingerprint"] = delta_fingerprint(tensors, meta)
+    save_file({k: v.contiguous() for k, v in tensors.items()}, str(out), metadata=meta)
+    return out
+
+
+def test_wrong_shapes_dtypes_and_names(tmp_path, model):
+    good = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2, "color_codes": 0.1}, ("F_rad.", "color_codes"))
+    tensors = dict(read_delta(good).tensors)
+    cases = [
+        ({**tensors, "F_rad.out.bias": torch.zeros(4)}, {}, "tensor F_rad.out.bias has shape (4,) torch.float32, expected (3,) torch.float32"),
+        ({**tensors, "F_rad.out.bias": torch.zeros(3, dtype=torch.float64)}, {}, "expected (3,) torch.float32"),
+        ({**tensors, "color_code": torch.zeros(5)}, {}, "tensor color_code has shape (5,)"),
+        ({**tensors, "F_share.mlp.0.bias": torch.zeros(16)}, {}, "outside the edit's modules"),
+        ({**tensors, "aabb": torch.zeros(6)}, {}, "may not hold tensor 'aabb'"),
+        ({**tensors, "occupancy": torch.zeros(8, 8, 8, dtype=torch.bool)}, {"modules": '["F_rad.", "color_codes", "occupancy"]'}, "a color edit may not hold tensor 'occupancy'"),
+        ({**tensors, "F_rad.out.bias": torch.tensor([0.0, float("nan"), 0.0])}, {}, "contains NaN or inf"),
+        (tensors, {"kind": "sculpt"}, "unknown edit kind 'sculpt'"),
+        (tensors, {"version": "9"}, "edit format version '9' is not supported"),
+        (tensors, {"modules": "F_rad."}, "modules must be a non-empty JSON list"),
+    ]
+    for i, (t, meta, message) in enumerate(cases):
+        path = rewrite(good, tmp_path / f"bad{i}.safetensors", t, meta)
+        with pytest.raises(ModelFileError) as e:
+            apply_edit_files(model, [path])
+        assert message in assert_one_line(e, path), (i, str(e.value))
+    with pytest.raises(ModelFileError, match="has dtype I64"):
+        apply_edit_files(model, [rewrite(good, tmp_path / "int.safetensors", {**tensors, "color_code": torch.zeros(4, dtype=torch.int64)})])
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def test_edits_show_check_bake_cli(tmp_path, model):
+    save_model(tmp_path / "m.safetensors", model)
+    loaded, _ = load_model(tmp_path / "m.safetensors")
+    a = delta_file(tmp_path, "a.safetensors", loaded, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    b = delta_file(tmp_path, "b.safetensors", apply_edit_files(loaded, [a]), 1, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    runner = CliRunner()
+    shown = runner.invoke(app, ["edits", "show", str(a), "--json"])
+    assert shown.exit_code == 0, shown.output
+    info = json.loads(shown.output)
+    assert info["metadata"]["kind"] == "color" and info["tensors"]["F_rad.out.bias"] == {"shape": [3], "dtype": "float32"}
+    table = runner.invoke(app, ["edits", "show", str(a)])
+    assert table.exit_code == 0 and "parent        (none)" in table.output and "tensor        F_rad.out.bias [3] float32" in table.output
+    ok = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(a), "--edit", str(b)])
+    assert ok.exit_code == 0 and "ok: 2 edit(s)" in ok.output
+    bad = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(a)])
+    assert bad.exit_code == 2 and bad.output.startswith("error: ") and "in the order they were made" in bad.output
+    baked = runner.invoke(app, ["edits", "bake", str(tmp_path / "m.safetensors"), "--edit", str(a), "--edit", str(b), "--out", str(tmp_path / "baked.safetensors")])
+    assert baked.exit_code == 0, baked.output
+    m2, _ = load_model(tmp_path / "baked.safetensors")
+    stacked = apply_edit_files(loaded, [a, b])
+    for k in range(3):
+        assert torch.equal(render(m2, k), render(stacked, k))
+    other = make_model(seed=3)
+    save_model(tmp_path / "other.safetensors", other)
+    wrong = runner.invoke(app, ["edits", "check", str(tmp_path / "other.safetensors"), "--edit", str(a)])
+    assert wrong.exit_code == 2 and "made for model" in wrong.output and len(wrong.output.strip().splitlines()) == 1
+    same = runner.invoke(app, ["edits", "bake", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out", str(tmp_path / "m.safetensors")])
+    assert same.exit_code == 2 and "write the baked model to a new file" in same.output
