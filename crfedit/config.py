@@ -145,6 +145,7 @@ PRESETS: dict[str, Config] = {
         lr=1e-4,
         lr_codes=1e-4,
         lr_final=0.1,
+        density_noise=1.0,
     ),
 }
 

@@ -35,7 +35,7 @@ from typing import Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .errors import ModelFileError
+from .errors import ModelFileError, NonFiniteError
 from .field import ConditionalRadianceField
 from .model import CategoryModel
 from .safefile import fingerprint, read_header, read_safetensors, write_safetensors
@@ -191,7 +191,7 @@ def make_delta(
                 tensors[dname] = (new[dname] - start).detach().cpu().clone()
     for dname, t in tensors.items():
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-            raise ModelFileError(f"edit result {dname} contains NaN or inf; nothing was written")
+            raise NonFiniteError(f"the edit's {dname} contains NaN or inf; nothing was written")
     base, stack = stack_of(before)
     metadata = {
         **extra,

@@ -82,7 +82,9 @@ def linear_with_codes(layer: nn.Linear, per_point: Tensor, per_code: Tensor | No
         return layer(per_point)
     n = per_point.shape[-1]
     code_part = F.linear(per_code, layer.weight[:, n:], layer.bias)  # [K, out]
-    code_part = code_part[idx] if idx is not None else code_part.expand(per_point.shape[0], -1)
+    # index_select (not code_part[idx]): its CPU backward accumulates in a fixed order, so
+    # training is bit-for-bit repeatable.
+    code_part = torch.index_select(code_part, 0, idx) if idx is not None else code_part.expand(per_point.shape[0], -1)
     return F.linear(per_point, layer.weight[:, :n]) + code_part
 
 

@@ -195,10 +195,13 @@ def train(
         field = model.field
         hulls, ema = state["hull"].to(device), state["occ_ema"].to(device).clone()
         step, elapsed = int(state["step"]), float(state["elapsed"])
+        next_instance = int(state.get("next_instance", torch.tensor(0)))
         generator.set_state(state["rng"].to(torch.uint8))
     else:
         aabb = scene_box(category)
-        field = ConditionalRadianceField(cfg, len(category.instances), aabb).to(device)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)  # the initial weights depend on the seed alone
+            field = ConditionalRadianceField(cfg, len(category.instances), aabb).to(device)
         hulls = visual_hulls(category, aabb, cfg.occ_res, cfg.hull_margin).to(device) if cfg.sampler == "grid" else None
         if hulls is not None:
             field.occupancy.copy_(hulls)
@@ -208,7 +211,7 @@ def train(
             table = ViewTable.from_category(category, split)
             if table is not None:
                 model.views[split] = table
-        step, elapsed = 0, 0.0
+        step, elapsed, next_instance = 0, 0.0, 0
         state = {}
     opt = make_optimizer(field, cfg)
     restore_optimizer(opt, state)
@@ -221,6 +224,7 @@ def train(
             "elapsed": torch.tensor(elapsed, dtype=torch.float64),
             "rng": generator.get_state(),
             "occ_ema": ema,
+            "next_instance": torch.tensor(next_instance),
             **optimizer_tensors(opt),
         }
         if hulls is not None:
@@ -229,7 +233,6 @@ def train(
 
     budget = None if minutes is None else 60.0 * minutes
     loss_value, psnr_value = float("nan"), 0.0
-    next_instance = 0
     t_start = time.perf_counter() - elapsed
     while step < cfg.steps and (budget is None or elapsed < budget):
         progress = None if budget is None else max(step / cfg.steps, elapsed / budget)

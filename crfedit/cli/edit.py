@@ -40,6 +40,7 @@ RaysOpt = Annotated[int, typer.Option("--rays", help="Most rays rendered per ste
 ScribbleOpt = Annotated[Optional[Path], typer.Option("--scribble", help="Mask PNG of the part to edit (white on black, the view's size).")]
 ScribbleJsonOpt = Annotated[Optional[Path], typer.Option("--scribble-json", help='Strokes JSON: {"strokes": [[[x, y], ...], ...], "radius": r} or a list of strokes.')]
 KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (default: a random sample of the rest of the view).")]
+KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (a random sample of the rest of the view is kept as well).")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
 
 
@@ -140,7 +141,7 @@ def remove_cmd(
     out: OutOpt,
     scribble: ScribbleOpt = None,
     scribble_json: ScribbleJsonOpt = None,
-    keep: KeepOpt = None,
+    keep: KeepShapeOpt = None,
     keep_json: KeepJsonOpt = None,
     occluded: Annotated[bool, typer.Option("--occluded", help="Remove only the first surface along each scribbled ray (a part in front of others).")] = False,
     edit: PriorOpt = None,
@@ -172,10 +173,10 @@ def add_cmd(
     out: OutOpt,
     donor: Annotated[str, typer.Option("--donor", help="Instance to copy a part from: a name or an index.")],
     copy_mask: Annotated[Path, typer.Option("--copy", help="Mask PNG of the part to copy, drawn on the donor view.")],
-    offset: Annotated[str, typer.Option("--offset", help="Where to paste: DX,DY pixels right and down (--offset=-4,2 for negative DX).")],
+    offset: Annotated[str, typer.Option("--offset", help="Where to paste: DX,DY pixels right and down, e.g. 6,0 or -4,2.")],
     donor_view: Annotated[Optional[str], typer.Option("--donor-view", help="The donor view the copy mask belongs to (default: --view).")] = None,
     method: Annotated[AddMethod, typer.Option("--method", help="composite: fit the pasted image; density: match the donor's density along the pasted rays.")] = AddMethod.composite,
-    keep: KeepOpt = None,
+    keep: KeepShapeOpt = None,
     keep_json: KeepJsonOpt = None,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,

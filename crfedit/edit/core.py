@@ -47,6 +47,12 @@ class EditOptions:
     """Weight of Σ_tensors mean((θ − θ₀)²)."""
     lambda_dens: float = 0.01
     """Weight of the density entropy of scribbled rays (removal)."""
+    lambda_surface: float = 0.1
+    """Shape edits: weight of the log-density terms that lower what scribbled rays see and hold
+    what kept rays see (losses.visible_log_density / log_density_drift)."""
+    lambda_match: float = 0.1
+    """add --method density: weight of the cross-entropy to the donor's density distribution
+    (at 1 its gradient, which never saturates, overrides the colour terms and smears the object)."""
 
     def validated(self) -> "EditOptions":
         checks = [
@@ -54,7 +60,7 @@ class EditOptions:
             (self.steps >= 1, f"--steps {self.steps}: need at least 1"),
             (np.isfinite(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a positive number"),
             (self.rays >= 2, f"--rays {self.rays}: need at least 2"),
-            (self.lambda_reg >= 0 and self.lambda_dens >= 0, "loss weights must be ≥ 0"),
+            (min(self.lambda_reg, self.lambda_dens, self.lambda_surface, self.lambda_match) >= 0, "loss weights must be ≥ 0"),
         ]
         for ok, message in checks:
             if not ok:

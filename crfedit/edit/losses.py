@@ -46,6 +46,25 @@ def density_cross_entropy(target_sigmas: Tensor, sigmas: Tensor) -> Tensor:
     return torch.where(valid_q.any(dim=-1), ce, torch.zeros_like(ce))
 
 
+def visible_log_density(weights: Tensor, sigmas: Tensor) -> Tensor:
+    """Σᵢ sg(wᵢ) · log(1 + σᵢ) per ray ([..., S] → [...]): lowers the density of what each ray
+    sees now, each sample in proportion to its share of the pixel (weights carry no gradient).
+
+    A colour or opacity target alone barely moves a saturated surface: ∂αᵢ/∂σᵢ = δᵢe^(−σᵢδᵢ)
+    vanishes once σδ ≫ 1, and the fast preset's exp activation reaches σδ ~ 10⁴.  Here the
+    gradient with respect to the raw density is wᵢσᵢ/(1 + σᵢ): about wᵢ on a dense surface, and
+    it fades as the surface clears (wᵢ → 0) or thins (σᵢ → 0).
+    """
+    return (weights.detach() * torch.log1p(sigmas)).sum(dim=-1)
+
+
+def log_density_drift(weights0: Tensor, sigmas: Tensor, sigmas0: Tensor) -> Tensor:
+    """Σᵢ w⁰ᵢ (log(1 + σᵢ) − log(1 + σ⁰ᵢ))² per ray: keeps the surfaces a ray saw (weights
+    ``weights0``, no gradient) at their starting density — the counterpart of
+    :func:`visible_log_density` for rays whose look must not change.  [..., S] → [...]"""
+    return (weights0.detach() * (torch.log1p(sigmas) - torch.log1p(sigmas0.detach())) ** 2).sum(dim=-1)
+
+
 def weight_penalty(current: Mapping[str, Tensor], start: Mapping[str, Tensor], rows: Mapping[str, int]) -> Tensor:
     """Σ over trained tensors of mean((θ − θ₀)²); a code table (named in ``rows``) counts only
     the edited instance's row.  Per-tensor means keep the penalty on the scale of a pixel loss

@@ -2,22 +2,27 @@
 
 Both train the fusion and density layers (hybrid strategy: F_fuse, F_dens, and their coarse
 twins in the paper preset) on fixed samples of the chosen rays, with the inputs of F_fuse
-(F_share + F_inst outputs and the skips) computed once (cache.py).  Rays that keep their look
-target the starting render (keep strokes, else a seeded random sample twice the edited rays).
+(F_share + F_inst outputs and the skips) computed once (cache.py).  Kept rays — the keep
+strokes *plus* a seeded random sample of the rest of the view twice the edited rays' count —
+keep their colour, their opacity and (λ_surface · :func:`~.losses.log_density_drift`) the
+density of the surfaces they see.  The random sample is added even with keep strokes: strokes
+drawn mostly on the background leave the rest of the object unconstrained, and removals then
+thinned the whole chair (docs/editing.md has the measurements).
 
-* **remove**: scribbled rays target the background — white, with opacity 0 — and their
-  normalized densities pᵢ = σᵢ/Σσ are pushed to one peak or none by λ_dens · entropy
-  (losses.py); kept rays keep their colour and opacity.  (The opacity term matters: with the
-  colour target alone the edit can, and on our chairs did, whiten the part instead of removing it.)
-  ``occluded`` is the paper's variant for a part in front of others: only the first density
-  mode along each scribbled ray is removed — the ray targets the colour and opacity it renders
-  with that mode's density zeroed, and the light that mode absorbs (Σ of its weights) is
-  pushed to 0.
+* **remove**: scribbled rays target the background — white, opacity 0 — and the density they
+  see is lowered directly (λ_surface · :func:`~.losses.visible_log_density`; a colour/opacity
+  target alone cannot move a saturated surface, and the edit either whitened the part or got
+  stuck).  Their normalized densities pᵢ = σᵢ/Σσ are also pushed to one peak or none by
+  λ_dens · entropy, as in the paper.  ``occluded`` is the paper's variant for a part in front
+  of others: only the first density mode along each scribbled ray is removed — the ray targets
+  the colour and opacity it renders with that mode zeroed, only the mode's density is lowered,
+  and the surface behind is held like a kept ray's.
 * **add**: the donor instance is rendered with this instance's colour code, the copy mask's
   opaque pixels are pasted at an offset into this instance's render, and the edit fits that
-  image (``composite``) or, on the pasted rays, the donor's normalized density distribution by
-  cross-entropy plus its opacity (``density``).  The pasted part keeps its distance from the
-  camera: a pasted ray gets the donor density found at the same distance along the donor ray.
+  image, colour and opacity (``composite``), or, on the pasted rays, the donor's normalized
+  density distribution by cross-entropy plus its opacity (``density``).  The pasted part keeps
+  its distance from the camera: a pasted ray gets the donor density found at the same distance
+  along the donor ray.
 
 The occupancy grid follows the density.  Before adding, the cells that the donor's occupied
 samples map to along the pasted rays are opened (dilated by one cell).  After either edit, the
@@ -29,6 +34,7 @@ only where no density is left nearby.
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -43,7 +49,7 @@ from ..renderer import grid_samples, render_camera
 from ..rendering import composite_from_density
 from .cache import EditPass, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
-from .losses import density_cross_entropy, density_entropy, mse
+from .losses import density_cross_entropy, density_entropy, log_density_drift, mse, visible_log_density
 from .params import used_code_tables
 from .scribble import check_masks, pick_pixels
 from .transfer import swap_codes
@@ -52,6 +58,16 @@ ADD_METHODS = ("composite", "density")
 MODE_ALPHA = 0.01
 """A sample belongs to a density mode while its opacity 1 − exp(−σδ) exceeds this."""
 OCC_PROBES = 4
+
+
+class RemovalTarget(NamedTuple):
+    """What one pass of a removal aims at, per ray of the edit (scribbled rays first)."""
+
+    rgb: Tensor  # [N, 3]
+    opacity: Tensor  # [N]
+    seen: Tensor  # [N, S] weights of the surfaces to keep at their density (w⁰; the surface behind for --occluded)
+    sigmas: Tensor  # [N, S] starting densities
+    push: Tensor  # [n_fg, S] bool: samples of the scribbled rays whose density is to go
 
 
 @torch.no_grad()
@@ -116,51 +132,37 @@ def remove(
     k = model.instance_index(instance)
     keep = check_masks(scribble, keep, camera.width, camera.height)
     generator = torch.Generator().manual_seed(options.seed)
-    import os
-    fg, bg = pick_pixels(scribble, keep, options.rays, generator, also_random=bool(int(os.environ.get("EXP_RK", "0"))))
+    fg, bg = pick_pixels(scribble, keep, options.rays, generator, also_random=True)
     n_fg = fg.numel()
     edit = InstanceEdit(model, k, "shape", options.strategy)
     candidates = edit.field.occupancy[k].clone()
     rays = select_rays(camera, torch.cat([fg, bg]), model.device)
     passes = edit_passes(edit.field, rays, k, list(edit.params), density_changes=True)
-    targets, modes, taus0, w0, logs0 = [], [], [], [], []
+    targets = []
     with torch.no_grad():
         for p in passes:
             out = p.forward()
-            rgb, alpha = out.rgb.clone(), out.opacity.clone()
+            rgb, alpha, seen = out.rgb.clone(), out.opacity.clone(), out.weights.clone()
+            push = out.sigmas[:n_fg] > 0
             if occluded:
-                mode = first_mode(p.t_starts[:n_fg], p.t_ends[:n_fg], out.sigmas[:n_fg])
+                push = first_mode(p.t_starts[:n_fg], p.t_ends[:n_fg], out.sigmas[:n_fg])
                 behind = composite_from_density(
-                    p.t_starts[:n_fg], p.t_ends[:n_fg], out.sigmas[:n_fg] * ~mode, out.rgbs[:n_fg], p.background
+                    p.t_starts[:n_fg], p.t_ends[:n_fg], out.sigmas[:n_fg] * ~push, out.rgbs[:n_fg], p.background
                 )
-                rgb[:n_fg], alpha[:n_fg] = behind.rgb, behind.opacity
-                modes.append(mode)
+                rgb[:n_fg], alpha[:n_fg], seen[:n_fg] = behind.rgb, behind.opacity, behind.weights
             else:
-                rgb[:n_fg], alpha[:n_fg] = p.background, 0.0
-            targets.append((rgb, alpha))
-            taus0.append(torch.log1p((out.sigmas * (p.t_ends - p.t_starts)).sum(-1)))
-            w0.append(out.weights); logs0.append(torch.log1p(out.sigmas) if os.environ.get("EXP_L1P") else torch.log(out.sigmas.clamp_min(1e-20)))
+                rgb[:n_fg], alpha[:n_fg], seen[:n_fg] = p.background, 0.0, 0.0
+            targets.append(RemovalTarget(rgb, alpha, seen, out.sigmas, push))
 
     def loss_fn():
         total = options.lambda_reg * edit.penalty()
-        for i, p in enumerate(passes):
+        for p, target in zip(passes, targets):
             out = p.forward()
-            rgb, alpha = targets[i]
-            total = total + mse(out.rgb, rgb) + mse(out.opacity, alpha)
-            if float(os.environ.get("EXP_VIS", "0")) > 0:
-                lv = float(os.environ.get("EXP_VIS"))
-                logs = torch.log1p(out.sigmas) if os.environ.get("EXP_L1P") else torch.log(out.sigmas.clamp_min(1e-20))
-                total = total + lv * (out.weights[:n_fg].detach() * logs[:n_fg]).sum(-1).mean()
-                total = total + lv * (w0[i][n_fg:] * (logs[n_fg:] - logs0[i][n_fg:]) ** 2).sum(-1).mean()
-            if float(os.environ.get("EXP_TAU", "0")) > 0 and not occluded:
-                tau = torch.log1p((out.sigmas * (p.t_ends - p.t_starts)).sum(-1))
-                lt = float(os.environ.get("EXP_TAU"))
-                total = total + lt * tau[:n_fg].mean()
-                if int(os.environ.get("EXP_KT", "0")):
-                    total = total + lt * ((tau[n_fg:] - taus0[i][n_fg:]) ** 2).mean()
+            total = total + mse(out.rgb, target.rgb) + mse(out.opacity, target.opacity)
             total = total + options.lambda_dens * density_entropy(out.sigmas[:n_fg]).mean()
-            if occluded:
-                total = total + torch.mean((out.weights[:n_fg] * modes[i]).sum(dim=-1) ** 2)
+            lowered = visible_log_density(out.weights[:n_fg] * target.push, out.sigmas[:n_fg])
+            kept = log_density_drift(target.seen, out.sigmas, target.sigmas)
+            total = total + options.lambda_surface * (lowered.mean() + kept.mean())
         return total
 
     final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "removal")
@@ -168,8 +170,8 @@ def remove(
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
         "seed": options.seed, "lambda_reg": options.lambda_reg, "lambda_dens": options.lambda_dens,
-        "occluded": occluded, "scribble_rays": n_fg, "keep_rays": bg.numel(),
-        "keep": "strokes" if keep is not None else "random", "stage": passes[-1].stage,
+        "lambda_surface": options.lambda_surface, "occluded": occluded, "scribble_rays": n_fg, "keep_rays": bg.numel(),
+        "keep": "strokes+random" if keep is not None else "random", "stage": passes[-1].stage,
         "cached_samples": sum(p.n_cached for p in passes), "camera": camera_meta(camera),
     }
     return finish(edit, "remove", hyper, final, started, extra, extra_modules)
@@ -268,44 +270,58 @@ def add(
     pasted = src_of.reshape(h, w) >= 0
     keep = check_masks(pasted, keep, w, h)
     generator = torch.Generator().manual_seed(options.seed)
-    fg, bg = pick_pixels(pasted, keep, options.rays, generator)
+    fg, bg = pick_pixels(pasted, keep, options.rays, generator, also_random=True)
     n_fg = fg.numel()
     src = torch.from_numpy(src_of[fg.numpy()])
     device = model.device
-    target_img = target_out.rgb.reshape(-1, 3).clone()
-    target_img[fg.to(device)] = donor_out.rgb.reshape(-1, 3)[src.to(device)]
+    pixels = torch.cat([fg, bg]).to(device)
+    target_rgb = target_out.rgb.reshape(-1, 3)[pixels].clone()
+    target_alpha = target_out.opacity.reshape(-1)[pixels].clone()
+    target_rgb[:n_fg] = donor_out.rgb.reshape(-1, 3)[src.to(device)]
+    target_alpha[:n_fg] = donor_out.opacity.reshape(-1)[src.to(device)]
 
     edit = InstanceEdit(model, k, "shape", options.strategy)
-    all_dst = torch.from_numpy(np.flatnonzero(pasted))
+    original = edit.field.occupancy[k].clone()
     if edit.field.cfg.sampler == "grid":
+        all_dst = torch.from_numpy(np.flatnonzero(pasted))
         donor_all = select_rays(donor_camera, torch.from_numpy(src_of[all_dst.numpy()]), device)
-        grid = open_donor_cells(donor_field, j, donor_all, select_rays(camera, all_dst, device), edit.field.occupancy[k])
-        edit.field.occupancy[k] = grid
+        edit.field.occupancy[k] = open_donor_cells(donor_field, j, donor_all, select_rays(camera, all_dst, device), original)
     candidates = edit.field.occupancy[k].clone()
-    rays = select_rays(camera, torch.cat([fg, bg]), device)
-    donor_rays = select_rays(donor_camera, src, device)
+    rays = select_rays(camera, pixels, device)
     passes = edit_passes(edit.field, rays, k, list(edit.params), density_changes=True)
-    target = target_img[torch.cat([fg, bg]).to(device)]
-    if method == "density":
-        donor_sigmas = [donor_densities(donor_field, j, donor_rays, p, rays, n_fg) for p in passes]
-        donor_opacity = donor_out.opacity.reshape(-1)[src.to(device)]
+    seen, sigmas0, donor_sigmas = [], [], []
+    with torch.no_grad():
+        for p in passes:
+            out = p.forward()
+            # what the kept rays saw before the cells were opened (the surfaces to hold)
+            inside = occupancy.lookup(original[None], torch.zeros_like(p.samples.ray), p.xn) if edit.field.cfg.sampler == "grid" else None
+            before = out.sigmas if inside is None else out.sigmas * p.dense(inside.to(out.sigmas.dtype))
+            w0 = composite_from_density(p.t_starts, p.t_ends, before, out.rgbs, p.background).weights
+            w0[:n_fg] = 0.0
+            seen.append(w0)
+            sigmas0.append(out.sigmas)
+            if method == "density":
+                donor_sigmas.append(donor_densities(donor_field, j, select_rays(donor_camera, src, device), p, rays, n_fg))
 
     def loss_fn():
         total = options.lambda_reg * edit.penalty()
         for i, p in enumerate(passes):
             out = p.forward()
             if method == "composite":
-                total = total + mse(out.rgb, target)
+                total = total + mse(out.rgb, target_rgb) + mse(out.opacity, target_alpha)
             else:
-                total = total + density_cross_entropy(donor_sigmas[i], out.sigmas[:n_fg]).mean()
-                total = total + torch.mean((out.opacity[:n_fg] - donor_opacity) ** 2) + mse(out.rgb[n_fg:], target[n_fg:])
+                total = total + options.lambda_match * density_cross_entropy(donor_sigmas[i], out.sigmas[:n_fg]).mean()
+                total = total + mse(out.opacity[:n_fg], target_alpha[:n_fg])
+                total = total + mse(out.rgb[n_fg:], target_rgb[n_fg:]) + mse(out.opacity[n_fg:], target_alpha[n_fg:])
+            total = total + options.lambda_surface * log_density_drift(seen[i], out.sigmas, sigmas0[i]).mean()
         return total
 
     final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "add edit")
     extra, extra_modules = _occupancy_after(edit, candidates, generator)
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
-        "seed": options.seed, "lambda_reg": options.lambda_reg, "method": method, "donor": model.names[j],
+        "seed": options.seed, "lambda_reg": options.lambda_reg, "lambda_surface": options.lambda_surface,
+        "lambda_match": options.lambda_match, "method": method, "donor": model.names[j],
         "offset": [dx, dy], "pasted_rays": n_fg, "keep_rays": bg.numel(), "stage": passes[-1].stage,
         "cached_samples": sum(p.n_cached for p in passes), "camera": camera_meta(camera),
         "donor_camera": camera_meta(donor_camera),

@@ -1,0 +1,366 @@
+"""``crfedit eval recon | edits | ablation`` and ``crfedit bench``.
+
+Each command calls :mod:`crfedit.evaluation` or :mod:`crfedit.bench` and prints a table
+(``--json``: JSON only on stdout; progress and warnings go to stderr).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ..errors import CrfError
+from .common import DeviceChoice, DeviceOpt, SeedOpt, app, eval_app, user_errors
+
+ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors) written by crfedit train.")]
+DataArg = Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt), the one the model was trained on.")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print JSON only (progress and warnings go to stderr).")]
+LpipsOpt = Annotated[
+    Optional[Path],
+    typer.Option("--lpips-weights", help="LPIPS-AlexNet weights (.safetensors); default $CRFEDIT_LPIPS_WEIGHTS; without, LPIPS is skipped."),
+]
+StrictOpt = Annotated[bool, typer.Option("--strict", help="A dataset other than the model's training data is an error, not a warning.")]
+
+
+def _json_safe(obj):
+    """Non-finite floats become null, so the output is valid JSON."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj
+
+
+def _echo_json(obj) -> None:
+    typer.echo(json.dumps(_json_safe(obj), indent=2, allow_nan=False, ensure_ascii=False))
+
+
+def _err(message: str) -> None:
+    typer.echo(message, err=True)
+
+
+def _num(value, fmt: str) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float) and math.isinf(value):
+        return "inf"
+    return format(value, fmt)
+
+
+def _print_table(title: str, columns: list[str], rows: list[list[str]], footer: list[str] | None = None) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title, title_justify="left")
+    for i, name in enumerate(columns):
+        table.add_column(name, justify="left" if i == 0 else "right")
+    for row in rows:
+        table.add_row(*row)
+    if footer is not None:
+        table.add_section()
+        table.add_row(*footer)
+    Console(soft_wrap=True).print(table)
+
+
+def _lpips_line(reported: bool, note: str | None) -> str:
+    from ..evaluation import LPIPS_SKIPPED
+
+    if reported:
+        return "LPIPS: AlexNet v0.1 (lower is better)"
+    if note and "no weights" in note:
+        return LPIPS_SKIPPED
+    return f"LPIPS: skipped ({note})" if note else LPIPS_SKIPPED
+
+
+def _load(model: Path, data: Path, device: DeviceChoice, strict: bool, split: str = "test"):
+    """(model, category at the model's resolution), after the fingerprint check."""
+    from ..evaluation import fingerprint_warning, load_category_for
+    from ..model import load_model
+    from ..runtime import resolve_device
+
+    m, _ = load_model(model, resolve_device(device))
+    category = load_category_for(m, data, split)
+    warning = fingerprint_warning(m, category)
+    if warning is not None:
+        if strict:
+            raise CrfError(warning)
+        _err(f"warning: {warning}")
+    return m, category
+
+
+# ----------------------------------------------------------------------------- eval recon
+
+
+@eval_app.command("recon")
+@user_errors
+def recon_cmd(
+    model: ModelArg,
+    data: DataArg,
+    split: Annotated[str, typer.Option("--split", help="Held-out split to score: test, val or train.")] = "test",
+    max_views: Annotated[Optional[int], typer.Option("--max-views", help="Score only the first N views of each instance.")] = None,
+    lpips_weights: LpipsOpt = None,
+    as_json: JsonOpt = False,
+    strict: StrictOpt = False,
+    device: DeviceOpt = DeviceChoice.auto,
+) -> None:
+    """Reconstruction quality of held-out views: PSNR, SSIM (and LPIPS with weights), per instance and mean."""
+    from ..evaluation import evaluate_recon
+
+    if split not in ("train", "val", "test"):
+        raise CrfError(f"--split {split}: expected train, val or test")
+    if max_views is not None and max_views < 1:
+        raise CrfError(f"--max-views {max_views}: must be at least 1")
+    m, category = _load(model, data, device, strict, split)
+    score = evaluate_recon(m, category, split, max_views, lpips_weights)
+    if as_json:
+        _echo_json({"model": str(model), "data": str(data), **score})
+        return
+    with_lpips = score["lpips"] is not None
+    columns = ["instance", "views", "PSNR (dB)", "SSIM"] + (["LPIPS"] if with_lpips else [])
+    rows = [
+        [name, str(s["n"]), _num(s["psnr"], ".2f"), _num(s["ssim"], ".4f")] + ([_num(s["lpips"], ".4f")] if with_lpips else [])
+        for name, s in score["instances"].items()
+    ]
+    footer = ["mean", str(score["n"]), _num(score["psnr"], ".2f"), _num(score["ssim"], ".4f")]
+    footer += [_num(score["lpips"], ".4f")] if with_lpips else []
+    _print_table(f"{model.name} on {data} ({split} split)", columns, rows, footer)
+    typer.echo(score["ssim_note"])
+    typer.echo(_lpips_line(score["lpips"] is not None, score["lpips_note"]))
+
+
+# ----------------------------------------------------------------------------- eval edits
+
+
+def _strategies(text: str) -> tuple[str, ...]:
+    from ..edit import STRATEGIES
+
+    items = tuple(s.strip() for s in text.split(",") if s.strip())
+    if not items:
+        raise CrfError(f"--strategies {text!r}: give one or more of {', '.join(STRATEGIES)}, comma-separated")
+    for s in items:
+        if s not in STRATEGIES:
+            raise CrfError(f"--strategies {text}: {s!r} is not one of {', '.join(STRATEGIES)}")
+    return items
+
+
+TABLE_TITLES = {"color": "Table 2 (colour edits)", "remove": "Table 3 (shape edits: removal)"}
+
+
+@eval_app.command("edits")
+@user_errors
+def edits_cmd(
+    model: ModelArg,
+    data: DataArg,
+    strategies: Annotated[str, typer.Option("--strategies", help="Update strategies to compare, comma-separated: hybrid, codes, all.")] = "hybrid,codes,all",
+    nerf_baseline: Annotated[bool, typer.Option("--nerf-baseline/--no-nerf-baseline", help="Also train a single-instance NeRF per source and fine-tune it (slow).")] = False,
+    nerf_steps: Annotated[int, typer.Option("--nerf-steps", help="Training steps of each single-instance NeRF.")] = 1000,
+    nerf_minutes: Annotated[Optional[float], typer.Option("--nerf-minutes", help="Optional time budget of each single-instance NeRF.")] = None,
+    steps: Annotated[int, typer.Option("--steps", help="Optimization steps of each edit.")] = 100,
+    rays: Annotated[int, typer.Option("--rays", help="Most rays rendered per edit step.")] = 1024,
+    lr: Annotated[float, typer.Option("--lr", help="Adam learning rate of the edits.")] = 1e-2,
+    lpips_weights: LpipsOpt = None,
+    as_json: JsonOpt = False,
+    strict: StrictOpt = False,
+    seed: SeedOpt = 0,
+    device: DeviceOpt = DeviceChoice.auto,
+) -> None:
+    """The paper's edit protocol on the dataset's ground-truth twins (Tables 2 and 3).
+
+    Each colour and removal twin is edited from its scribbles with each strategy; every test
+    view of the source is rendered with the edit and scored against the twin's test views.
+    Rows: strategies (mean over twins), the unedited model as a reference, and optionally a
+    single-instance NeRF fine-tuned with the same edit.
+    """
+    from ..edit import EditOptions
+    from ..evaluation import NerfBaseline, evaluate_edits, load_twin_cases
+    from ..runtime import resolve_device
+
+    chosen = _strategies(strategies)
+    options = EditOptions(steps=steps, rays=rays, lr=lr, seed=seed).validated()
+    if nerf_steps < 1:
+        raise CrfError(f"--nerf-steps {nerf_steps}: must be at least 1")
+    if nerf_minutes is not None and not (nerf_minutes > 0 and math.isfinite(nerf_minutes)):
+        raise CrfError(f"--nerf-minutes {nerf_minutes:g}: must be a positive number")
+    m, category = _load(model, data, device, strict)
+    cases = load_twin_cases(m, category)
+    nerf = NerfBaseline(nerf_steps, nerf_minutes) if nerf_baseline else None
+    result = evaluate_edits(
+        m, category, cases, chosen, options, nerf, lpips_weights, resolve_device(device), seed, progress=_err,
+    )
+    if as_json:
+        _echo_json({"model": str(model), "data": str(data), **result})
+        return
+    with_lpips = any(r["lpips"] is not None for rows in result["tables"].values() for r in rows)
+    for kind, rows in result["tables"].items():
+        columns = ["method", "twins", "PSNR (dB)", "SSIM"] + (["LPIPS"] if with_lpips else []) + ["seconds"]
+        body = [
+            [r["method"], str(r["n"]), _num(r["psnr"], ".2f"), _num(r["ssim"], ".4f")]
+            + ([_num(r["lpips"], ".4f")] if with_lpips else []) + [_num(r["seconds"], ".2f")]
+            for r in rows
+        ]
+        _print_table(f"{TABLE_TITLES[kind]}: {model.name} on {data}", columns, body)
+    for method, reason in result["skipped"].items():
+        typer.echo(f"skipped {method}: {reason}")
+    typer.echo("unedited: the model's renders of the source before editing, scored against the twin (reference)")
+    typer.echo("seconds: edit optimization time, mean over twins")
+    if result["nerf_train_seconds"]:
+        train_s = sum(result["nerf_train_seconds"].values()) / len(result["nerf_train_seconds"])
+        typer.echo(f"nerf (single instance): a NeRF trained {train_s:.1f} s on the source alone, then every weight fine-tuned")
+    typer.echo(result["ssim_note"])
+    typer.echo(_lpips_line(with_lpips, result["lpips_note"]))
+
+
+# ----------------------------------------------------------------------------- eval ablation
+
+
+@eval_app.command("ablation")
+@user_errors
+def ablation_cmd(
+    data: DataArg,
+    minutes: Annotated[Optional[float], typer.Option("--minutes", help="Training time of each variant.")] = None,
+    steps: Annotated[Optional[int], typer.Option("--steps", help="Training steps of each variant (with --minutes: whichever ends first).")] = None,
+    preset: Annotated[str, typer.Option("--preset", help="Preset the variants are built from: fast or paper.")] = "fast",
+    sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override a config field of every variant, KEY=VALUE (repeatable).")] = None,
+    res: Annotated[Optional[int], typer.Option("--res", help="Train and score at this image width (default: as stored).")] = None,
+    max_views: Annotated[Optional[int], typer.Option("--max-views", help="Score only the first N held-out views of each instance.")] = None,
+    models: Annotated[Optional[Path], typer.Option("--models", help="Keep the trained variants in this folder (default: a temporary one).")] = None,
+    as_json: JsonOpt = False,
+    seed: SeedOpt = 0,
+    device: DeviceOpt = DeviceChoice.auto,
+) -> None:
+    """Table 1: the architecture variants at equal network parameters and an equal budget.
+
+    nerf (no codes), single (one code for shape and colour), separate (shape and colour codes,
+    no shared branch) and ours each train for --minutes (or --steps) with the width that brings
+    their network parameters (codes and feature grid excluded) within 5 % of ours; held-out
+    PSNR and SSIM are reported.
+    """
+    from ..config import make_config
+    from ..data.format import load_category
+    from ..evaluation import SSIM_NOTE, run_ablation
+    from ..runtime import resolve_device
+    from ..views import parse_resolution
+
+    if minutes is None and steps is None:
+        raise CrfError("give a budget per variant: --minutes M and/or --steps N")
+    if max_views is not None and max_views < 1:
+        raise CrfError(f"--max-views {max_views}: must be at least 1")
+    if models is not None and models.exists() and not models.is_dir():
+        raise CrfError(f"--models {models}: exists and is not a folder")
+    base = make_config(preset, sets=sets or [])
+    dev = resolve_device(device)
+    category = load_category(data, res=parse_resolution(res))
+    rows = run_ablation(
+        category, minutes, steps, seed, dev, base=base, max_views=max_views, workdir=models, progress=_err,
+    )
+    if as_json:
+        _echo_json({"data": str(data), "preset": preset, "minutes": minutes, "steps": steps, "rows": rows})
+        return
+    split = rows[0]["split"] if rows else "test"
+    body = [
+        [r["arch"], str(r["width"]), f"{r['params']:,}", f"{r['params_vs_ours']:.3f}", str(r["steps"]), f"{r['seconds']:.1f}",
+         _num(r["psnr"], ".2f"), _num(r["ssim"], ".4f")]
+        for r in rows
+    ]
+    budget = " and ".join(x for x in (f"{minutes:g} min" if minutes else "", f"{steps} steps" if steps else "") if x)
+    _print_table(
+        f"Table 1 (ablation): {data}, {budget} each, held-out {split}",
+        ["arch", "width", "params", "vs ours", "steps", "seconds", "PSNR (dB)", "SSIM"], body,
+    )
+    typer.echo("params: network parameters without the per-instance codes and the shared feature grid")
+    typer.echo(SSIM_NOTE)
+
+
+# ----------------------------------------------------------------------------- bench
+
+
+def _floats(option: str, text: str | None) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    try:
+        values = tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise CrfError(f"{option} {text}: expected numbers separated by commas, e.g. 0.5,1,2") from None
+    if not values or not all(math.isfinite(v) and v > 0 for v in values):
+        raise CrfError(f"{option} {text}: expected positive numbers separated by commas")
+    return values
+
+
+def _ints(option: str, text: str | None) -> tuple[int, ...] | None:
+    if text is None:
+        return None
+    items = [x.strip() for x in text.split(",") if x.strip()]
+    if not items or not all(x.isdigit() and int(x) > 0 for x in items):
+        raise CrfError(f"{option} {text}: expected positive whole numbers separated by commas, e.g. 10,30,100")
+    return tuple(int(x) for x in items)
+
+
+@app.command("bench")
+@user_errors
+def bench_cmd(
+    data: Annotated[Optional[Path], typer.Argument(help="Category dataset with twins (default with --tiny: a generated 2-chair one).")] = None,
+    tiny: Annotated[bool, typer.Option("--tiny", help="A seconds-long sweep on tiny settings (a smoke test of the pipeline).")] = False,
+    csv_path: Annotated[Path, typer.Option("--csv", help="CSV to write; the plots go beside it as <stem>_<group>.png.")] = Path("docs/benchmarks/bench.csv"),
+    md_path: Annotated[Path, typer.Option("--md", help="Markdown page whose bench section (between the markers) is rewritten.")] = Path("docs/benchmarks.md"),
+    presets: Annotated[Optional[str], typer.Option("--presets", help="Training curves, comma-separated (default fast,paper).")] = None,
+    minutes: Annotated[Optional[float], typer.Option("--minutes", help="Training time per curve (default 5).")] = None,
+    steps: Annotated[Optional[int], typer.Option("--steps", help="Step cap per training curve.")] = None,
+    checkpoints: Annotated[Optional[int], typer.Option("--checkpoints", help="Points scored along each training run (default 6).")] = None,
+    train_spc: Annotated[Optional[str], typer.Option("--train-samples-per-cell", help="Extra fast-preset training curves at these steps_per_cell (default 1,4).")] = None,
+    render_spc: Annotated[Optional[str], typer.Option("--samples-per-cell", help="steps_per_cell values to render at (default 0.5,1,2,4,8).")] = None,
+    edit_steps: Annotated[Optional[str], typer.Option("--edit-steps", help="Edit steps to sweep (default 10,30,100,300).")] = None,
+    edit_rays: Annotated[Optional[str], typer.Option("--edit-rays", help="Edit rays to sweep, one curve each (default 256,1024,4096).")] = None,
+    eval_instances: Annotated[Optional[int], typer.Option("--eval-instances", help="Instances scored at each point (default 4).")] = None,
+    eval_views: Annotated[Optional[int], typer.Option("--eval-views", help="Held-out views per scored instance (default 2).")] = None,
+    sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override a config field of every training run, KEY=VALUE (repeatable).")] = None,
+    work: Annotated[Optional[Path], typer.Option("--work", help="Keep the trained models in this folder (default: a temporary one).")] = None,
+    seed: SeedOpt = 0,
+    device: DeviceOpt = DeviceChoice.auto,
+) -> None:
+    """Speed against error: sweep presets, training time, samples per ray, edit steps and rays.
+
+    Writes a CSV, one PNG plot of PSNR against seconds per group (training, rendering,
+    editing) and markdown tables into the bench section of --md, stamped with the machine,
+    date and git revision.
+    """
+    import dataclasses
+    import tempfile
+
+    from ..bench import BenchSettings, run_bench, tiny_category, write_outputs
+    from ..data.format import load_category
+    from ..runtime import resolve_device
+
+    settings = BenchSettings.tiny() if tiny else BenchSettings()
+    changes = {
+        "presets": None if presets is None else tuple(p.strip() for p in presets.split(",") if p.strip()),
+        "minutes": minutes, "steps": steps, "checkpoints": checkpoints,
+        "train_steps_per_cell": _floats("--train-samples-per-cell", train_spc),
+        "render_steps_per_cell": _floats("--samples-per-cell", render_spc),
+        "edit_steps": _ints("--edit-steps", edit_steps), "edit_rays": _ints("--edit-rays", edit_rays),
+        "eval_instances": eval_instances, "eval_views": eval_views,
+        "sets": None if sets is None else tuple(settings.sets) + tuple(sets), "seed": seed,
+    }
+    settings = dataclasses.replace(settings, **{k: v for k, v in changes.items() if v is not None}).validated()
+    for option, path in (("--csv", csv_path), ("--md", md_path)):
+        if path.is_dir():
+            raise CrfError(f"{option} {path}: is a folder; give a file name")
+    dev = resolve_device(device)
+    with tempfile.TemporaryDirectory(prefix="crfedit-tiny-") as tmp:
+        if data is not None:
+            category = load_category(data)
+        elif tiny:
+            category = tiny_category(Path(tmp) / "chairs")
+        else:
+            raise CrfError("give a DATA folder (a category with twins, e.g. from crfedit dataset synth), or --tiny")
+        report = run_bench(category, settings, dev, workdir=work, progress=_err)
+        written = write_outputs(report, csv_path, md_path)
+    for path in written:
+        typer.echo(f"wrote {path}")
+    for note in report.notes:
+        typer.echo(f"note: {note}")

@@ -1,0 +1,125 @@
+"""``crfedit fit-real``: a new instance fitted to one photo, written as a ``fit-real`` edit file."""
+
+from __future__ import annotations
+
+import enum
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ..errors import CrfError
+from .common import DeviceChoice, DeviceOpt, SeedOpt, app, command_line, user_errors
+
+
+class JointWeights(str, enum.Enum):
+    heads = "heads"
+    all = "all"
+
+
+class FitProgress:
+    """A rich progress bar over both stages: stage, step/total, loss and PSNR of the batch, elapsed.
+
+    Stage reports (a full render of the pose against the photo) are printed as they come.
+    """
+
+    def __init__(self, total: int):
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        console = Console()
+        self.bar = Progress(
+            TextColumn("{task.description:<6}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("loss {task.fields[loss]}  PSNR {task.fields[psnr]}"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+            disable=not console.is_terminal,
+        )
+        self.task = self.bar.add_task("codes", total=max(total, 1), loss="-", psnr="-")
+
+    def __enter__(self) -> "FitProgress":
+        self.bar.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.bar.stop()
+
+    def on_step(self, stage: str, step: int, steps: int, loss: float, psnr: float) -> None:
+        self.bar.update(self.task, advance=1, description=stage, loss=f"{loss:.4f}", psnr=f"{psnr:5.2f}")
+
+    def on_stage(self, report) -> None:
+        line = (
+            f"{report.stage:<6} {report.steps:>5} steps  photo loss {report.loss:.5f}  "
+            f"PSNR {report.psnr:5.2f} dB  ({report.seconds:.1f} s)"
+        )
+        if self.bar.live.is_started:
+            self.bar.console.print(line, highlight=False, markup=False)
+        else:
+            typer.echo(line)
+
+
+def _check_out(out: Path, model: Path) -> None:
+    if out.exists() and out.resolve() == Path(model).resolve():
+        raise CrfError(f"--out {out}: is the model file; pick another name for the edit")
+    if out.is_dir():
+        raise CrfError(f"--out {out}: is a folder; give a file name such as real.safetensors")
+    folder = out.parent if str(out.parent) else Path(".")
+    if not folder.is_dir():
+        raise CrfError(f"--out {out}: folder {folder} does not exist")
+
+
+@app.command("fit-real")
+@user_errors
+def fit_real_cmd(
+    model: Annotated[Path, typer.Argument(help="Model file (.safetensors).")],
+    photo: Annotated[Path, typer.Argument(help="Photo of an object of the category (PNG or JPEG; an alpha channel marks the object).")],
+    pose: Annotated[str, typer.Option("--pose", help="Camera of the photo: one view of a training instance with a similar pose (train:5, orbit:36 with one view …) or a camera JSON file.")],
+    out: Annotated[Path, typer.Option("--out", help="Edit file to write (.safetensors); written atomically.")],
+    mask: Annotated[Optional[Path], typer.Option("--mask", help="Object mask, the photo's size: alpha > 0, else non-black pixels are the object (replaces the photo's alpha).")] = None,
+    name: Annotated[Optional[str], typer.Option("--name", help="Name of the new instance (default: the photo's file name without extension).")] = None,
+    pose_instance: Annotated[str, typer.Option("--pose-instance", help="The training instance whose views --pose names (name or index).")] = "0",
+    steps_codes: Annotated[int, typer.Option("--steps-codes", help="Stage 1: steps on the new instance's shape and colour codes only.")] = 200,
+    steps_joint: Annotated[int, typer.Option("--steps-joint", help="Stage 2: steps on codes and an instance-scoped copy of the weights (0: codes only).")] = 200,
+    weights: Annotated[JointWeights, typer.Option("--weights", help="Weights stage 2 fine-tunes: heads (F_fuse, F_dens, F_rad) or all (the whole network, as the paper).")] = JointWeights.heads,
+    lr_codes: Annotated[float, typer.Option("--lr-codes", help="Adam learning rate of the codes.")] = 1e-2,
+    lr_weights: Annotated[float, typer.Option("--lr-weights", help="Adam learning rate of the weights (stage 2).")] = 1e-3,
+    rays: Annotated[int, typer.Option("--rays", help="Rays per step, drawn from the photo's pixels (all of them at 64x64 by default).")] = 4096,
+    edit: Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")] = None,
+    device: DeviceOpt = DeviceChoice.auto,
+    seed: SeedOpt = 0,
+) -> None:
+    """Fit a new instance to a photo of a real object: its codes first, then codes and a copy of
+    the weights; writes a fit-real edit that adds the instance (the model file is untouched)."""
+    from ..delta import apply_edit_files
+    from ..edit.fit_real import FitOptions, check_new_name, fit_real, prepare_photo, read_photo
+    from ..model import load_model
+    from ..runtime import resolve_device
+    from ..views import resolve_views
+
+    options = FitOptions(
+        steps_codes=steps_codes, steps_joint=steps_joint, weights=weights.value, lr_codes=lr_codes,
+        lr_weights=lr_weights, rays=rays, seed=seed,
+    ).validated()
+    _check_out(out, model)
+    name = photo.stem if name is None else name
+    image, object_mask = read_photo(photo, mask)
+    base, _ = load_model(model, resolve_device(device))
+    m = apply_edit_files(base, list(edit or []))
+    check_new_name(m, name)
+    j = m.instance_index(pose_instance)
+    train = m.views.get("train")
+    views = resolve_views(pose, m, j, train.width if train is not None else None)
+    if len(views) != 1:
+        raise CrfError(f"--pose {pose}: names {len(views)} views; the photo has exactly one (e.g. train:5)")
+    label, camera = views[0]
+    prepared = prepare_photo(image, object_mask, camera.width, camera.height, str(mask or photo))
+    with FitProgress(options.steps_codes + options.steps_joint) as progress:
+        result = fit_real(m, prepared, camera, name, options, progress.on_step, progress.on_stage)
+    result.save(out, command=command_line(), photo=str(photo), pose=label, **({"mask": str(mask)} if mask else {}))
+    typer.echo(
+        f"wrote {out}: fit-real edit adding instance {name} ({len(result.tensors)} tensors, "
+        f"{out.stat().st_size / 1024:.1f} KiB), photo PSNR {result.stages[-1].psnr:.2f} dB, {result.seconds:.2f} s"
+    )

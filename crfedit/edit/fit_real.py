@@ -1,0 +1,414 @@
+"""Fitting a new instance to one photo of a real object of the category (paper, Sec. 5).
+
+The photo is center-cropped to the pose camera's aspect, area-resized to its size (the model's
+training resolution) and composited on white with its object mask (alpha channel or a mask
+file).  The new instance k is then fitted in two stages, both on the photometric MSE
+``mean_r ‖C(r) − C_photo(r)‖²`` over the photo's pixels:
+
+1. **codes**: only k's shape and colour codes, started from the mean code of the training
+   instances; every weight is frozen.
+2. **joint**: k's codes and a copy of the network weights under :data:`JOINT` (by default
+   ``F_fuse``, ``F_dens`` and ``F_rad``; the paper fine-tunes the whole network, ``all``),
+   with ``λ · Σ_tensors mean((θ − θ₀)²)`` pulling the copy towards the shared weights θ₀
+   (λ = 10, as the edits do).  The copy renders k only.
+
+Occupancy: k's grid starts as the union of every training instance's grid carved by the
+photo's silhouette seen from the pose (a one-view visual hull), dilated by one cell; after
+fitting it is re-thresholded from the fitted density within that hull.
+
+The result is a ``fit-real`` delta (crfedit/delta.py) that *adds* instance k: its code rows,
+its occupancy grid and the weight differences of stage 2.  The base model is untouched.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .. import occupancy
+from ..cameras import Camera, Rays, rays_from_camera
+from ..data.format import resize_area
+from ..delta import Delta, apply_deltas, grow, make_delta
+from ..errors import CrfError, NonFiniteError
+from ..field import ConditionalRadianceField
+from ..io import read_image
+from ..metrics import mse_to_psnr
+from ..model import CategoryModel
+from ..renderer import render_camera, render_rays
+from .core import EditResult, camera_meta
+from .losses import mse, weight_penalty
+from .params import used_code_tables
+from .shape import rethreshold
+
+JOINT: dict[str, tuple[str, ...]] = {
+    "heads": ("F_fuse.", "F_dens.", "F_rad.", "coarse.F_fuse.", "coarse.F_dens.", "coarse.F_rad."),
+    "all": ("F_share.", "F_inst.", "F_fuse.", "F_dens.", "bottleneck.", "F_rad.", "coarse."),
+}
+"""The weights stage 2 fine-tunes (state-dict prefixes; those the field lacks are dropped):
+``heads`` — fusion, density and radiance layers (of both networks in the paper preset);
+``all`` — every network weight, as the paper does."""
+
+MASK_LEVEL = 0.1
+"""A mask-file pixel is object when its brightest channel exceeds this (non-black, robust to
+JPEG noise around black)."""
+
+
+# ----------------------------------------------------------------------------- the photo
+
+
+@dataclass(frozen=True, eq=False)
+class Photo:
+    """A photo ready to fit: composited on white at the camera's size."""
+
+    rgb: np.ndarray  # [H, W, 3] float32, rgb·a + (1 − a)
+    alpha: np.ndarray  # [H, W] float32 object coverage in [0, 1]
+
+    @property
+    def mask(self) -> np.ndarray:
+        """[H, W] bool: pixels the object covers at all (the silhouette that carves the hull)."""
+        return self.alpha > 0
+
+
+def read_object_mask(path: str | Path) -> np.ndarray:
+    """A mask file as bool [H, W]: where the image has transparency, alpha > 0 is the object;
+    otherwise non-black pixels (brightest channel > :data:`MASK_LEVEL`) are."""
+    image = read_image(path)
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise CrfError(f"{path}: mask is empty (0 pixels)")
+    if image.shape[2] == 4 and bool((image[..., 3] < 1.0).any()):
+        mask = image[..., 3] > 0
+    else:
+        mask = image[..., :3].max(axis=-1) > MASK_LEVEL
+    if not mask.any():
+        raise CrfError(f"{path}: mask is empty (no non-black or non-transparent pixel marks the object)")
+    return mask
+
+
+def center_crop(image: np.ndarray, aspect: float) -> np.ndarray:
+    """The largest centered window of ``image`` [H, W, ...] with width / height = ``aspect``.
+
+    Example: a 40×30 (W×H) image cropped to aspect 1 keeps columns 5…34, every row.
+    """
+    h, w = image.shape[:2]
+    if w > aspect * h:
+        cw = max(1, round(aspect * h))
+        x0 = (w - cw) // 2
+        return image[:, x0 : x0 + cw]
+    ch = max(1, round(w / aspect))
+    y0 = (h - ch) // 2
+    return image[y0 : y0 + ch]
+
+
+def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height: int, where: str = "photo") -> Photo:
+    """Crop ``image`` [H, W, 3|4] (floats in [0, 1]) to the aspect width/height, area-resize it
+    to (width, height) and composite it on white.
+
+    The object is ``mask`` [H, W] bool when given, else the image's alpha channel, else the whole
+    photo.  Compositing happens before resizing (straight alpha), so edge pixels blend with white
+    as the training images do.
+    """
+    if image.ndim != 3 or image.shape[0] == 0 or image.shape[1] == 0:
+        raise CrfError(f"{where}: image is empty (0 pixels)")
+    h, w = image.shape[:2]
+    if mask is not None:
+        if tuple(mask.shape) != (h, w):
+            raise CrfError(f"{where}: mask is {mask.shape[1]}x{mask.shape[0]} but the photo is {w}x{h}")
+        alpha = mask.astype(np.float32)
+    elif image.shape[2] == 4:
+        alpha = image[..., 3].astype(np.float32)
+    else:
+        alpha = np.ones((h, w), np.float32)
+    if not (alpha > 0).any():
+        raise CrfError(f"{where}: the object mask is empty (every pixel is transparent)")
+    rgb = image[..., :3] * alpha[..., None] + (1.0 - alpha[..., None])
+    stacked = center_crop(np.concatenate([rgb, alpha[..., None]], axis=-1).astype(np.float32), width / height)
+    out = np.clip(resize_area(stacked, width, height), 0.0, 1.0)
+    photo = Photo(np.ascontiguousarray(out[..., :3]), np.ascontiguousarray(out[..., 3]))
+    if not photo.mask.any():
+        raise CrfError(f"{where}: the object mask is empty once the photo is cropped to the view's aspect")
+    return photo
+
+
+def read_photo(path: str | Path, mask_path: str | Path | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """(image [H, W, 3|4] float32, mask [H, W] bool or None) from a PNG/JPEG and an optional mask
+    file, checked: readable, not empty, the mask the photo's size and not empty."""
+    image = read_image(path)
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise CrfError(f"{path}: image is empty (0 pixels)")
+    if mask_path is None:
+        if image.shape[2] == 4 and not (image[..., 3] > 0).any():
+            raise CrfError(f"{path}: the object mask is empty (every pixel is transparent)")
+        return image, None
+    mask = read_object_mask(mask_path)
+    if mask.shape != image.shape[:2]:
+        raise CrfError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]} but the photo {path} is {image.shape[1]}x{image.shape[0]}")
+    return image, mask
+
+
+# ----------------------------------------------------------------------------- options
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How ``fit-real`` optimizes."""
+
+    steps_codes: int = 200
+    """Stage 1: Adam steps on the new instance's codes only."""
+    steps_joint: int = 200
+    """Stage 2: Adam steps on codes and the :data:`JOINT` weights (0 = codes only)."""
+    weights: str = "heads"
+    """Which weights stage 2 opens: a key of :data:`JOINT`."""
+    lr_codes: float = 1e-2
+    """Adam learning rate of the codes (both stages)."""
+    lr_weights: float = 1e-3
+    """Adam learning rate of the weights (stage 2)."""
+    rays: int = 4096
+    """Rays per step, sampled from the photo's pixels (all of them when it has no more)."""
+    lambda_reg: float = 10.0
+    """Weight of Σ_tensors mean((θ − θ₀)²) towards the shared weights in stage 2."""
+    seed: int = 0
+    """Seeds the rays, the sample jitter and the occupancy probes."""
+
+    def validated(self) -> "FitOptions":
+        checks = [
+            (self.steps_codes >= 0, f"--steps-codes {self.steps_codes}: must be 0 or more"),
+            (self.steps_joint >= 0, f"--steps-joint {self.steps_joint}: must be 0 or more"),
+            (self.weights in JOINT, f"--weights {self.weights}: expected one of {', '.join(JOINT)}"),
+            (math.isfinite(self.lr_codes) and self.lr_codes > 0, f"--lr-codes {self.lr_codes}: must be a positive number"),
+            (math.isfinite(self.lr_weights) and self.lr_weights > 0, f"--lr-weights {self.lr_weights}: must be a positive number"),
+            (self.rays >= 1, f"--rays {self.rays}: need at least 1"),
+            (math.isfinite(self.lambda_reg) and self.lambda_reg >= 0, f"lambda_reg {self.lambda_reg}: must be ≥ 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise CrfError(message)
+        return self
+
+
+@dataclass(frozen=True)
+class StageReport:
+    """The photometric fit at the end of a stage: a deterministic render of the pose vs the photo."""
+
+    stage: str  # "codes" | "joint" | "final" (the stored result, occupancy refreshed)
+    steps: int
+    loss: float  # MSE over every pixel of the photo
+    psnr: float
+    seconds: float  # time spent in this stage
+
+
+@dataclass
+class FitResult(EditResult):
+    """A fit-real edit: the model with the new instance (as the delta reproduces it), the delta
+    file's contents, and one :class:`StageReport` per stage."""
+
+    stages: list[StageReport]
+    instance: int
+
+
+# ----------------------------------------------------------------------------- pieces
+
+
+def check_new_name(model: CategoryModel, name: str) -> str:
+    """A valid name for an added instance: non-empty, not a number, not taken."""
+    if not name or name != name.strip() or any(c in name for c in "\n\r\t"):
+        raise CrfError(f"--name {name!r}: must be non-empty, without surrounding spaces or line breaks")
+    if name.lstrip("-").isdigit():
+        raise CrfError(f"--name {name}: must not be a number (numbers select instances by index)")
+    if name in model.names:
+        raise CrfError(f"--name {name}: the model already has an instance of that name (pick another with --name)")
+    return name
+
+
+def joint_prefixes(field: ConditionalRadianceField, weights: str) -> tuple[str, ...]:
+    """The :data:`JOINT` prefixes of ``weights`` that match parameters of ``field``."""
+    names = [n for n, _ in field.named_parameters()]
+    return tuple(p for p in JOINT[weights] if any(n.startswith(p) for n in names))
+
+
+def mean_codes(field: ConditionalRadianceField, tables: list[str]) -> dict[str, Tensor]:
+    """The mean row [D] of each code table in ``tables`` (the start of a fit)."""
+    return {t: getattr(field, t).detach().mean(dim=0) for t in tables}
+
+
+def photo_hull(model: CategoryModel, camera: Camera, mask: np.ndarray) -> Tensor:
+    """The new instance's starting grid [R, R, R]: the union of the training instances' grids,
+    carved by the photo's silhouette seen from ``camera`` (cells outside the view or off the
+    object go), dilated by one cell."""
+    field = model.field
+    union = field.occupancy.any(dim=0).cpu()
+    carved = occupancy.carve_visual_hull([camera], [mask], field.aabb.detach().cpu(), field.cfg.occ_res, margin=0)
+    hull = occupancy.dilate(union & carved, 1)
+    if not hull.any():
+        raise CrfError(
+            "the photo's silhouette, seen from --pose, covers no occupied cell of the category: "
+            "check that --pose views the object as the photo does"
+        )
+    return hull.to(model.device)
+
+
+def photo_error(field: ConditionalRadianceField, camera: Camera, instance: int, target: Tensor) -> tuple[float, float]:
+    """(MSE, PSNR) of a deterministic render of ``camera`` against ``target`` [H·W, 3]."""
+    rgb = render_camera(field, camera, instance).rgb.reshape(-1, 3)
+    value = float(mse(rgb, target))
+    return value, mse_to_psnr(value)
+
+
+class _Fitter:
+    """The photometric loss of instance ``k`` of ``field`` on random photo rays."""
+
+    def __init__(self, field: ConditionalRadianceField, k: int, camera: Camera, photo: Photo, rays: int, generator: torch.Generator):
+        device = field.aabb.device
+        self.field, self.k, self.rays, self.generator = field, k, rays, generator
+        self.all_rays = rays_from_camera(camera, device)
+        self.target = torch.from_numpy(photo.rgb.reshape(-1, 3)).to(device)
+
+    def loss(self) -> tuple[Tensor, float]:
+        """(loss to minimize, photometric MSE of the batch)."""
+        n = self.target.shape[0]
+        if self.rays >= n:
+            idx = torch.arange(n, device=self.target.device)
+        else:
+            idx = torch.randperm(n, generator=self.generator)[: self.rays].to(self.target.device)
+        rays = Rays(self.all_rays.origins[idx], self.all_rays.directions[idx])
+        out = render_rays(self.field, rays, self.k, generator=self.generator, early_stop=self.field.cfg.train_early_stop)
+        loss = mse(out.rgb, self.target[idx])
+        photometric = float(loss.detach())
+        if out.coarse_rgb is not None:
+            loss = loss + mse(out.coarse_rgb, self.target[idx])
+        return loss, photometric
+
+
+StepCallback = Callable[[str, int, int, float, float], None]
+"""``on_step(stage, step, steps, loss, psnr)``: after every Adam step (PSNR of the batch)."""
+
+
+def _run_stage(
+    stage: str, fitter: _Fitter, groups: list[dict], steps: int, penalty: Callable[[], Tensor] | None,
+    lambda_reg: float, on_step: StepCallback | None,
+) -> None:
+    params = [p for g in groups for p in g["params"]]
+    opt = torch.optim.Adam(groups)
+    for step in range(steps):
+        loss, photometric = fitter.loss()
+        if penalty is not None and lambda_reg > 0:
+            loss = loss + lambda_reg * penalty()
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise NonFiniteError(f"fit-real diverged in the {stage} stage at step {step} (loss is {value}); nothing was written")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if on_step is not None:
+            on_step(stage, step + 1, steps, photometric, mse_to_psnr(photometric))
+    for p in params:
+        if not bool(torch.isfinite(p).all()):
+            raise NonFiniteError(f"fit-real produced NaN or inf in the {stage} stage; nothing was written")
+
+
+# ----------------------------------------------------------------------------- fitting
+
+
+def fit_real(
+    model: CategoryModel,
+    photo: Photo,
+    camera: Camera,
+    name: str,
+    options: FitOptions = FitOptions(),
+    on_step: StepCallback | None = None,
+    on_stage: Callable[[StageReport], None] | None = None,
+) -> FitResult:
+    """Fit a new instance ``name`` to ``photo`` seen from ``camera`` (same size as the photo).
+
+    Returns the ``fit-real`` delta and the model it reproduces (``model`` + delta, exactly as
+    :func:`~crfedit.delta.apply_edit_files` computes it).  ``model`` is not modified.
+    """
+    started = time.perf_counter()
+    options = options.validated()
+    check_new_name(model, name)
+    if photo.rgb.shape[:2] != (camera.height, camera.width):
+        raise CrfError(
+            f"the photo is {photo.rgb.shape[1]}x{photo.rgb.shape[0]} but the pose camera is {camera.width}x{camera.height}"
+        )
+    tables = used_code_tables(model.field)
+    if not tables:
+        raise CrfError(f"fit-real: a model of arch {model.field.arch!r} has no per-instance codes to fit")
+    grid_sampler = model.cfg.sampler == "grid"
+    hull = photo_hull(model, camera, photo.mask) if grid_sampler else None
+    grown = grow(model, name)
+    k = len(model.names)
+    field = grown.field
+    with torch.no_grad():
+        for table, row in mean_codes(model.field, tables).items():
+            getattr(field, table)[k] = row
+        if hull is not None:
+            field.occupancy[k] = hull
+    for p in field.parameters():
+        p.requires_grad_(False)
+    generator = torch.Generator().manual_seed(options.seed)
+    fitter = _Fitter(field, k, camera, photo, options.rays, generator)
+    codes = [getattr(field, t) for t in tables]
+    reports: list[StageReport] = []
+
+    def report(stage: str, steps: int, since: float, f: ConditionalRadianceField, index: int) -> None:
+        loss, psnr = photo_error(f, camera, index, fitter.target)
+        reports.append(StageReport(stage, steps, loss, psnr, time.perf_counter() - since))
+        if on_stage is not None:
+            on_stage(reports[-1])
+
+    t0 = time.perf_counter()
+    for p in codes:
+        p.requires_grad_(True)
+    _run_stage("codes", fitter, [{"params": codes, "lr": options.lr_codes}], options.steps_codes, None, 0.0, on_step)
+    report("codes", options.steps_codes, t0, field, k)
+
+    prefixes: tuple[str, ...] = ()
+    if options.steps_joint > 0:
+        t0 = time.perf_counter()
+        prefixes = joint_prefixes(field, options.weights)
+        weights = {n: p for n, p in field.named_parameters() if n.startswith(prefixes)}
+        start = {n: p.detach().clone() for n, p in weights.items()}
+        for p in weights.values():
+            p.requires_grad_(True)
+        groups = [{"params": codes, "lr": options.lr_codes}, {"params": list(weights.values()), "lr": options.lr_weights}]
+        _run_stage(
+            "joint", fitter, groups, options.steps_joint, lambda: weight_penalty(weights, start, {}), options.lambda_reg, on_step
+        )
+        report("joint", options.steps_joint, t0, field, k)
+    for p in field.parameters():
+        p.requires_grad_(False)
+
+    t0 = time.perf_counter()
+    if hull is not None:
+        with torch.no_grad():
+            field.occupancy[k] = rethreshold(field, k, hull, generator)
+    modules = (*prefixes, *tables, *(("occupancy",) if grid_sampler else ()))
+    hyper = {
+        "steps_codes": options.steps_codes, "steps_joint": options.steps_joint, "weights": options.weights,
+        "lr_codes": options.lr_codes, "lr_weights": options.lr_weights, "rays": options.rays,
+        "lambda_reg": options.lambda_reg, "seed": options.seed, "init": "mean code", "camera": camera_meta(camera),
+        "hull_cells": int(hull.sum()) if hull is not None else None,
+    }
+    after = dataclasses.replace(grown, field=field)
+    tensors, meta = make_delta(model, after, k, "fit-real", modules, {"hyperparameters": json.dumps(hyper, sort_keys=True)})
+    result = apply_deltas(model, [Delta("(new edit)", tensors, meta)])
+    report("final", 0, t0, result.field_for(k), k)
+    seconds = time.perf_counter() - started
+    final = reports[-1]
+    # Provenance only: none of these is part of the edit's fingerprint (delta.IDENTITY).
+    meta.update(
+        stages=json.dumps([dataclasses.asdict(r) for r in reports]),
+        final_loss=repr(final.loss),
+        photo_psnr=f"{final.psnr:.4f}",
+        seconds=f"{seconds:.3f}",
+        command="",
+    )
+    return FitResult(result, tensors, meta, final.loss, seconds, reports, k)

@@ -1,0 +1,145 @@
+"""``crfedit bench``: the tiny sweep end to end (CSV, PNGs, markdown section), and the pieces it
+is written with (ticks, plots, the markdown markers, the machine stamp)."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from PIL import Image
+from typer.testing import CliRunner
+
+from crfedit.bench import (
+    BEGIN,
+    CSV_COLUMNS,
+    END,
+    PLOT_SIZE,
+    BenchSettings,
+    log_ticks,
+    machine_info,
+    nice_ticks,
+    plot_curves,
+    update_markdown,
+)
+from crfedit.cli import app
+from crfedit.errors import CrfError
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """The ``--tiny`` sweep on its own generated 2-chair category, into a docs page that already
+    has other sections."""
+    folder = tmp_path_factory.mktemp("bench")
+    md = folder / "docs" / "benchmarks.md"
+    md.parent.mkdir()
+    md.write_text(f"# Benchmarks\n\nIntro kept.\n\n{BEGIN}\nold numbers\n{END}\n\n## Other section\n\nKept too.\n")
+    csv_path = folder / "docs" / "benchmarks" / "bench.csv"
+    result = invoke("bench", "--tiny", "--csv", csv_path, "--md", md, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    return result, csv_path, md
+
+
+def test_tiny_bench_writes_a_csv_with_a_header_and_rows_of_every_group(tiny_run):
+    result, csv_path, _ = tiny_run
+    assert f"wrote {csv_path}" in result.stdout
+    with open(csv_path, newline="") as f:
+        rows = list(csv.reader(f))
+    assert tuple(rows[0]) == CSV_COLUMNS
+    body = [dict(zip(CSV_COLUMNS, r)) for r in rows[1:]]
+    groups = {r["group"] for r in body}
+    assert groups == {"train", "render", "edit"}
+    train = [r for r in body if r["group"] == "train"]
+    assert len(train) >= 2 and [int(r["value"]) for r in train] == sorted(int(r["value"]) for r in train)
+    assert int(train[-1]["value"]) == BenchSettings.tiny().steps  # the end of training is the last point
+    seconds = [float(r["seconds"]) for r in train]
+    assert seconds == sorted(seconds) and seconds[0] > 0
+    assert {r["value"] for r in body if r["group"] == "render"} == {"1", "2"}
+    assert {r["curve"] for r in body if r["group"] == "edit"} == {"color, 64 rays", "remove, 64 rays"}
+    for r in body:
+        assert math.isfinite(float(r["psnr"])) and -1 <= float(r["ssim"]) <= 1 and int(r["views"]) >= 1
+
+
+def test_tiny_bench_writes_one_readable_png_per_group(tiny_run):
+    _, csv_path, _ = tiny_run
+    for group in ("train", "render", "edit"):
+        path = csv_path.with_name(f"bench_{group}.png")
+        with Image.open(path) as im:
+            im.load()
+            assert im.format == "PNG" and im.size == PLOT_SIZE and im.mode == "RGB"
+            colors = im.getcolors(maxcolors=1 << 20)
+        assert len(colors) > 10  # axes, text and curves, not a blank canvas
+
+
+def test_tiny_bench_rewrites_only_its_markdown_section(tiny_run):
+    _, _, md = tiny_run
+    text = md.read_text()
+    assert text.startswith("# Benchmarks\n\nIntro kept.\n\n") and text.endswith("## Other section\n\nKept too.\n")
+    assert "old numbers" not in text and text.count(BEGIN) == 1 and text.count(END) == 1
+    section = text[text.index(BEGIN) : text.index(END)]
+    assert "## Speed against error" in section and "torch " in section and "revision `" in section
+    assert "](benchmarks/bench_train.png)" in section and "](benchmarks/bench.csv)" in section
+    assert "| curve |" in section and "| fast | step = 24 |" in section
+
+
+def test_update_markdown_creates_appends_and_replaces(tmp_path):
+    page = tmp_path / "b.md"
+    update_markdown(page, f"{BEGIN}\none\n{END}")
+    assert page.read_text().startswith("# Benchmarks") and f"{BEGIN}\none\n{END}" in page.read_text()
+    update_markdown(page, f"{BEGIN}\ntwo\n{END}")
+    assert "one" not in page.read_text() and page.read_text().count(BEGIN) == 1
+    plain = tmp_path / "plain.md"
+    plain.write_text("# Title\n\nText.\n")
+    update_markdown(plain, f"{BEGIN}\nthree\n{END}")
+    assert plain.read_text() == f"# Title\n\nText.\n\n{BEGIN}\nthree\n{END}\n"
+
+
+def test_bench_needs_data_or_tiny(tmp_path):
+    result = invoke("bench", "--csv", tmp_path / "b.csv", "--md", tmp_path / "b.md")
+    assert result.exit_code == 2 and result.stderr.startswith("error: give a DATA folder"), result.output
+    result = invoke("bench", "--tiny", "--edit-steps", "3,x", "--csv", tmp_path / "b.csv")
+    assert result.exit_code == 2 and "--edit-steps 3,x" in result.stderr
+    result = invoke("bench", "--tiny", "--presets", "fast,slow", "--csv", tmp_path / "b.csv")
+    assert result.exit_code == 2 and "slow" in result.stderr
+    assert not (tmp_path / "b.csv").exists()
+
+
+def test_nice_ticks_are_round_and_cover_the_range():
+    assert nice_ticks(11.3, 23.8) == [10.0, 12.5, 15.0, 17.5, 20.0, 22.5, 25.0]
+    assert nice_ticks(0.0, 600.0) == [0.0, 100.0, 200.0, 300.0, 400.0, 500.0, 600.0]
+    ticks = nice_ticks(5.0, 5.0)  # a flat curve still gets an axis
+    assert ticks[0] < 5.0 < ticks[-1]
+
+
+def test_log_ticks_show_decades_and_their_2_and_5_multiples():
+    assert log_ticks(0.08, 18.75) == [0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0]
+    assert log_ticks(1e-3, 1e3) == [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1000.0]
+
+
+def test_plot_leaves_out_non_finite_points_and_refuses_an_empty_plot(tmp_path):
+    path = plot_curves({"a": [(1.0, 20.0), (2.0, float("nan")), (3.0, 22.0)], "b": [(2.0, float("inf"))]}, tmp_path / "p.png", "t", "x", "y")
+    with Image.open(path) as im:
+        assert im.size == PLOT_SIZE
+    with pytest.raises(CrfError, match="nothing to plot"):
+        plot_curves({"b": [(1.0, float("nan"))]}, tmp_path / "q.png", "t", "x", "y")
+
+
+def test_machine_stamp_names_cpu_cores_torch_threads_date_and_revision():
+    info = machine_info("cpu")
+    assert {"cpu", "cores", "torch", "threads", "device", "date", "revision"} <= set(info)
+    assert info["torch"] == torch.__version__ and info["threads"] == str(torch.get_num_threads())
+    assert info["cpu"] and info["revision"] and info["date"].endswith("UTC")

@@ -1,0 +1,267 @@
+"""``crfedit eval recon | edits | ablation`` and the protocols behind them, on a tiny trained
+category (2 chairs × 6 views at 16×16 with ground-truth twins, 40 training steps, once per module).
+
+PSNR and SSIM themselves are checked against known values in tests/test_metrics.py."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from crfedit.cli import app
+from crfedit.config import ARCHS, make_config
+from crfedit.data.format import load_category
+from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.edit import EditOptions
+from crfedit.errors import CrfError
+from crfedit.evaluation import (
+    ABLATION_ARCHS,
+    NERF_BASELINE,
+    PARAM_TOLERANCE,
+    SSIM_NOTE,
+    UNEDITED,
+    NerfBaseline,
+    ablation_configs,
+    edit_tables,
+    evaluate_edits,
+    evaluate_recon,
+    fingerprint_warning,
+    load_twin_cases,
+    matched_width,
+    network_parameters,
+    run_ablation,
+    strategy_problem,
+)
+from crfedit.field import ConditionalRadianceField
+from crfedit.model import CategoryModel, load_model
+from crfedit.train import train
+
+TINY = dict(steps=40, rays=256, occ_res=16, grid_res=16, checkpoint_every=10**9)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Small tensors: one thread is faster, and far faster on a loaded machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(autouse=True)
+def no_lpips(monkeypatch):
+    monkeypatch.delenv("CRFEDIT_LPIPS_WEIGHTS", raising=False)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("eval") / "chairs"
+    write_synth_category(root, SynthConfig(instances=2, views=6, res=16))
+    return root
+
+
+@pytest.fixture(scope="module")
+def model_path(data) -> Path:
+    path = data.parent / "model.safetensors"
+    torch.manual_seed(0)
+    train(load_category(data), make_config("fast", TINY), path, torch.device("cpu"), seed=0)
+    return path
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def assert_user_error(result, *fragments: str) -> None:
+    assert result.exit_code == 2, result.output
+    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1, result.stderr
+    for fragment in fragments:
+        assert fragment in result.stderr, result.stderr
+
+
+# ----------------------------------------------------------------------------- eval recon
+
+
+def test_recon_prints_a_table_per_instance_with_the_metric_notes(model_path, data):
+    result = invoke("eval", "recon", model_path, data, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    out = result.stdout
+    for text in ("chair_000", "chair_001", "mean", "PSNR (dB)", "SSIM", "test split"):
+        assert text in out, out
+    assert "SSIM: 11×11 Gaussian window, σ=1.5, on RGB" in out
+    assert "LPIPS: skipped (no weights)" in out
+    assert "LPIPS " not in out.split("SSIM: 11")[0]  # no LPIPS column without weights
+    assert result.stderr == ""  # the dataset is the model's: no warning
+
+
+def test_recon_json_is_valid_json_with_the_expected_keys(model_path, data):
+    result = invoke("eval", "recon", model_path, data, "--json", "--max-views", 1, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert {"model", "data", "split", "n", "psnr", "ssim", "lpips", "lpips_note", "ssim_note", "dataset_match", "instances"} <= set(report)
+    assert report["split"] == "test" and report["n"] == 2 and report["dataset_match"] is True
+    assert report["lpips"] is None and "no weights" in report["lpips_note"]
+    assert report["ssim_note"] == SSIM_NOTE
+    assert set(report["instances"]) == {"chair_000", "chair_001"}
+    for scores in report["instances"].values():
+        assert set(scores) == {"n", "psnr", "ssim", "lpips"} and scores["n"] == 1
+        assert 0 < scores["psnr"] < 60 and -1 <= scores["ssim"] <= 1
+    mean = sum(s["psnr"] for s in report["instances"].values()) / 2
+    assert report["psnr"] == pytest.approx(mean)
+
+
+def test_recon_scores_match_the_library(model_path, data):
+    model, _ = load_model(model_path)
+    score = evaluate_recon(model, load_category(data), "test")
+    cli = json.loads(invoke("eval", "recon", model_path, data, "--json", "--device", "cpu").stdout)
+    assert cli["psnr"] == pytest.approx(score["psnr"]) and cli["ssim"] == pytest.approx(score["ssim"])
+
+
+def test_recon_on_another_dataset_warns_or_fails_with_strict(model_path, data, tmp_path):
+    other = tmp_path / "other"
+    shutil.copytree(data, other)
+    (other / "instances.txt").write_text((data / "instances.txt").read_text() + "# edited\n")
+    model, _ = load_model(model_path)
+    assert fingerprint_warning(model, load_category(other)) is not None
+
+    result = invoke("eval", "recon", model_path, other, "--json", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert result.stderr.startswith("warning: ") and "not the one the model was trained on" in result.stderr
+    assert json.loads(result.stdout)["dataset_match"] is False  # stdout stays pure JSON
+
+    assert_user_error(invoke("eval", "recon", model_path, other, "--strict", "--device", "cpu"), "fingerprint")
+
+
+def test_recon_user_errors(model_path, data, tmp_path):
+    assert_user_error(invoke("eval", "recon", model_path, data, "--max-views", 0), "--max-views 0")
+    assert_user_error(invoke("eval", "recon", model_path, data, "--split", "dev"), "--split dev")
+    assert_user_error(invoke("eval", "recon", model_path, data, "--lpips-weights", tmp_path / "none.safetensors"), "not found")
+    assert_user_error(invoke("eval", "recon", tmp_path / "missing.safetensors", data), "missing.safetensors")
+
+
+# ----------------------------------------------------------------------------- eval edits
+
+
+def test_edits_with_one_strategy_runs_end_to_end(model_path, data):
+    args = ["eval", "edits", model_path, data, "--strategies", "hybrid", "--steps", 3, "--rays", 64, "--no-nerf-baseline", "--device", "cpu"]
+    result = invoke(*args)
+    assert result.exit_code == 0, result.output
+    for text in ("Table 2 (colour edits)", "Table 3 (shape edits: removal)", "unedited", "hybrid", SSIM_NOTE, "LPIPS: skipped (no weights)"):
+        assert text in result.stdout, result.stdout
+    assert "chair_000_color: hybrid" in result.stderr  # progress goes to stderr
+
+    report = json.loads(invoke(*args, "--json").stdout)
+    assert set(report["tables"]) == {"color", "remove"}
+    for kind, rows in report["tables"].items():
+        assert [r["method"] for r in rows] == [UNEDITED, "hybrid"]
+        assert all(r["n"] == 2 and r["psnr"] is not None and r["seconds"] >= 0 for r in rows)
+        assert rows[0]["seconds"] == 0.0
+    assert len(report["runs"]) == 4 * 2  # 4 twins × (unedited, hybrid)
+    assert {r["twin"] for r in report["runs"]} == {"chair_000_color", "chair_000_remove", "chair_001_color", "chair_001_remove"}
+
+
+def test_edits_user_errors(model_path, data, tmp_path):
+    assert_user_error(invoke("eval", "edits", model_path, data, "--strategies", "hybrid,best"), "'best'")
+    assert_user_error(invoke("eval", "edits", model_path, data, "--steps", 0), "--steps 0")
+    bare = tmp_path / "bare"
+    shutil.copytree(data, bare)
+    (bare / "twins.json").unlink()
+    assert_user_error(invoke("eval", "edits", model_path, bare, "--device", "cpu"), "no ground-truth twins")
+
+
+def test_edit_protocol_with_the_single_instance_nerf_baseline(model_path, data, tmp_path):
+    model, _ = load_model(model_path)
+    category = load_category(data)
+    cases = load_twin_cases(model, category)
+    assert [c.spec.kind for c in cases] == ["color", "remove", "color", "remove"]
+    case = cases[0]
+    assert case.scribble.shape == (16, 16) and case.scribble.any() and case.keep.any()
+    assert len(case.views) == 1  # the twin's test views: the source's test poses
+
+    report = evaluate_edits(
+        model, category, cases[:1], ("codes",), EditOptions(steps=2, rays=64), NerfBaseline(steps=3),
+        workdir=tmp_path,
+    )
+    assert [r["method"] for r in report["tables"]["color"]] == [UNEDITED, "codes", NERF_BASELINE]
+    assert (tmp_path / "nerf_chair_000.safetensors").is_file()
+    baseline, _ = load_model(tmp_path / "nerf_chair_000.safetensors")
+    assert baseline.cfg.arch == "nerf" and baseline.names == ["chair_000"] and baseline.cfg.steps == 3
+    assert set(report["nerf_train_seconds"]) == {"chair_000"}
+
+
+def test_a_strategy_the_arch_cannot_use_is_skipped_not_fatal():
+    cfg = make_config("fast", {"arch": "nerf", "grid_res": 0, "occ_res": 4})
+    model = CategoryModel(ConditionalRadianceField(cfg, 2), ["a", "b"])
+    assert "no separate color code" in strategy_problem(model, "color", "codes")
+    assert strategy_problem(model, "color", "hybrid") is None and strategy_problem(model, "remove", "all") is None
+
+
+def test_edit_tables_average_per_kind_and_method_in_order():
+    runs = [
+        {"kind": "color", "method": "hybrid", "psnr": 20.0, "ssim": 0.8, "lpips": None, "seconds": 1.0},
+        {"kind": "color", "method": "hybrid", "psnr": 24.0, "ssim": 0.9, "lpips": None, "seconds": 3.0},
+        {"kind": "color", "method": UNEDITED, "psnr": 15.0, "ssim": 0.7, "lpips": None, "seconds": 0.0},
+        {"kind": "remove", "method": "all", "psnr": 18.0, "ssim": 0.6, "lpips": 0.2, "seconds": 2.0},
+    ]
+    tables = edit_tables(runs, [UNEDITED, "hybrid", "all"])
+    assert [r["method"] for r in tables["color"]] == [UNEDITED, "hybrid"]
+    hybrid = tables["color"][1]
+    assert hybrid["n"] == 2 and hybrid["psnr"] == 22.0 and hybrid["ssim"] == pytest.approx(0.85) and hybrid["seconds"] == 2.0
+    assert hybrid["lpips"] is None and tables["remove"][0]["lpips"] == 0.2
+
+
+# ----------------------------------------------------------------------------- ablation
+
+
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_matched_widths_give_parameter_counts_within_5_percent(preset):
+    base = make_config(preset)
+    configs = ablation_configs(base)
+    assert list(configs) == list(ABLATION_ARCHS) and set(ABLATION_ARCHS) == set(ARCHS)
+    target = network_parameters(configs["ours"])
+    assert configs["ours"].width == base.width
+    for arch, cfg in configs.items():
+        assert cfg.arch == arch
+        assert abs(network_parameters(cfg) / target - 1) <= PARAM_TOLERANCE, (arch, cfg.width)
+    # the variants that drop modules need a wider trunk to hold as many parameters
+    assert configs["separate"].width > base.width and configs["nerf"].width > configs["separate"].width
+
+
+def test_matched_width_is_the_closest_width():
+    base = make_config("fast")
+    target = network_parameters(base)
+    w = matched_width(base, "nerf", target)
+    count = lambda width: abs(network_parameters(dataclasses.replace(base, arch="nerf", width=width)) - target)
+    assert count(w) <= count(w - 1) and count(w) <= count(w + 1)
+    assert matched_width(base, "ours") == base.width
+    with pytest.raises(CrfError, match="arch 'big'"):
+        matched_width(base, "big")
+
+
+def test_network_parameters_leave_out_codes_and_the_feature_grid():
+    cfg = make_config("fast", {"occ_res": 4})
+    field = ConditionalRadianceField(cfg, 3)
+    total = sum(p.numel() for p in field.parameters())
+    assert network_parameters(cfg) == total - 2 * 3 * cfg.code_dim - cfg.grid_features * cfg.grid_res**3
+
+
+def test_run_ablation_trains_each_arch_and_scores_held_out(data, tmp_path):
+    base = make_config("fast", {k: v for k, v in TINY.items() if k != "steps"})
+    rows = run_ablation(load_category(data), steps=2, base=base, archs=("nerf", "ours"), max_views=1, workdir=tmp_path)
+    assert [r["arch"] for r in rows] == ["nerf", "ours"]
+    for r in rows:
+        assert r["steps"] == 2 and r["split"] == "test" and r["n"] == 2
+        assert abs(r["params_vs_ours"] - 1) <= PARAM_TOLERANCE and r["psnr"] > 0
+        assert load_model(tmp_path / f"{r['arch']}.safetensors")[0].cfg.width == r["width"]
+    with pytest.raises(CrfError, match="budget"):
+        run_ablation(load_category(data))
+
+
+def test_ablation_command_needs_a_budget(data):
+    assert_user_error(invoke("eval", "ablation", data), "--minutes")

@@ -1,0 +1,289 @@
+"""``fit-real``: a new instance fitted to one photo of a chair the model never saw.
+
+Fixture: 4 procedural chairs × 8 views at 24×24; the model trains on the first 3 for 150 steps
+and chair_003 is held out.  Its train:0 image plays the photo.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from typer.testing import CliRunner
+
+from crfedit import occupancy
+from crfedit.cli import app
+from crfedit.config import make_config
+from crfedit.data.format import Category, load_category
+from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.delta import apply_edit_files, read_delta
+from crfedit.edit.fit_real import (
+    JOINT,
+    FitOptions,
+    center_crop,
+    check_new_name,
+    fit_real,
+    joint_prefixes,
+    photo_hull,
+    prepare_photo,
+    read_photo,
+)
+from crfedit.errors import CrfError
+from crfedit.field import ConditionalRadianceField
+from crfedit.metrics import psnr
+from crfedit.model import load_model
+from crfedit.renderer import render_camera
+from crfedit.train import train
+
+RES = 24
+HELD_OUT = 3
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny tensors: one thread is faster, and much faster on a loaded machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """(model file, model, held-out chair's data): 3 chairs trained for 150 steps, a few seconds."""
+    folder = tmp_path_factory.mktemp("fit_real")
+    write_synth_category(folder / "chairs", SynthConfig(instances=4, views=8, res=RES, seed=0, twins=False))
+    category = load_category(folder / "chairs")
+    trained_on = Category(category.root, category.instances[:HELD_OUT], category.fingerprint)
+    cfg = make_config("fast", overrides=dict(
+        steps=150, rays=256, lr=2e-2, lr_codes=2e-2, grid_res=16, occ_res=16, occ_warmup=50, checkpoint_every=10**9,
+    ))
+    path = folder / "model.safetensors"
+    train(trained_on, cfg, path, torch.device("cpu"), seed=0)
+    model, _ = load_model(path)
+    return path, model, category.instances[HELD_OUT]
+
+
+def photo_of(view):
+    """The dataset view as a photo (RGBA: its alpha marks the object)."""
+    return prepare_photo(np.concatenate([view.rgb, view.alpha[..., None]], axis=-1), None, view.camera.width, view.camera.height)
+
+
+def mean_psnr(model, k: int, views) -> float:
+    field = model.field_for(k)
+    return float(np.mean([float(psnr(render_camera(field, v.camera, k).rgb, torch.from_numpy(v.rgb))) for v in views]))
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def assert_user_error(result, *fragments: str) -> None:
+    assert result.exit_code == 2, result.output
+    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1, result.stderr
+    assert "Traceback" not in result.output
+    for fragment in fragments:
+        assert fragment in result.stderr, result.stderr
+
+
+FAST = FitOptions(steps_codes=60, steps_joint=30)
+
+
+@pytest.fixture(scope="module")
+def fitted(setup):
+    _, model, held = setup
+    view = held.splits["train"][0]
+    return fit_real(model, photo_of(view), view.camera, "real", FAST)
+
+
+# ----------------------------------------------------------------------------- fitting
+
+
+def test_fit_beats_the_mean_code_at_other_views(setup, fitted):
+    _, model, held = setup
+    view = held.splits["train"][0]
+    others = held.splits["val"] + held.splits["test"]  # views the fit never saw
+    start = fit_real(model, photo_of(view), view.camera, "mean", FitOptions(steps_codes=0, steps_joint=0))
+    k = fitted.instance
+    assert k == len(model.names) and fitted.model.names[k] == "real"
+    mean_score, fit_score = mean_psnr(start.model, k, others), mean_psnr(fitted.model, k, others)
+    assert fit_score > mean_score + 1.0, (mean_score, fit_score)
+    stages = {s.stage: s for s in fitted.stages}
+    assert list(stages) == ["codes", "joint", "final"]
+    assert stages["codes"].psnr > start.stages[0].psnr + 1.0  # the codes alone fit the photo better
+    assert stages["joint"].psnr > stages["codes"].psnr  # opening the weights fits it better still
+    assert abs(stages["final"].psnr - stages["joint"].psnr) < 0.5  # the refreshed grid keeps the look
+
+
+def test_base_model_untouched_and_other_instances_identical(setup, fitted):
+    path, model, _ = setup
+    fresh, _ = load_model(path)
+    assert model.fingerprint() == fresh.fingerprint() and model.names == fresh.names and not model.overrides
+    view = fresh.views["test"].cameras(0)[0]
+    for k in range(len(model.names)):
+        # equal up to float rounding: the code tables gained a row, so their matmuls run one row longer
+        torch.testing.assert_close(render_camera(fitted.model.field_for(k), view, k).rgb, render_camera(model.field, view, k).rgb, rtol=0, atol=1e-5)
+
+
+def test_delta_adds_the_instance_and_reapplies_bit_identically(setup, fitted, tmp_path):
+    path, _, held = setup
+    out = tmp_path / "real.safetensors"
+    fitted.save(out, command="test")
+    delta = read_delta(out)
+    assert delta.kind == "fit-real" and delta.meta["adds_instance"] == "real" == delta.instance
+    heads = {n for n, _ in ConditionalRadianceField(fitted.model.cfg, 1).named_parameters() if n.startswith(JOINT["heads"])}
+    assert set(delta.tensors) == heads | {"shape_code", "color_code", "occupancy"}
+    assert [s["stage"] for s in json.loads(delta.meta["stages"])] == ["codes", "joint", "final"]
+    model, _ = load_model(path)
+    camera = held.splits["test"][0].camera
+    a, b = apply_edit_files(model, [out]), apply_edit_files(model, [out])
+    k = a.instance_index("real")
+    ra, rb = render_camera(a.field_for(k), camera, k).rgb, render_camera(b.field_for(k), camera, k).rgb
+    assert torch.equal(ra, rb)
+    assert torch.equal(ra, render_camera(fitted.model.field_for(k), camera, k).rgb)  # what fit_real returned
+    assert torch.equal(a.field_for(k).occupancy[k], delta.tensors["occupancy"])
+
+
+def test_codes_only_stores_no_weights(setup):
+    _, model, held = setup
+    view = held.splits["train"][0]
+    result = fit_real(model, photo_of(view), view.camera, "codes_only", FitOptions(steps_codes=5, steps_joint=0))
+    assert set(result.tensors) == {"shape_code", "color_code", "occupancy"}
+    assert [s.stage for s in result.stages] == ["codes", "final"]
+    # started from the mean code of the training instances
+    start = fit_real(model, photo_of(view), view.camera, "mean", FitOptions(steps_codes=0, steps_joint=0))
+    torch.testing.assert_close(start.tensors["shape_code"], model.field.shape_codes.detach().mean(0), rtol=0, atol=1e-6)
+
+
+def test_hull_is_the_carved_union_dilated(setup):
+    _, model, held = setup
+    view = held.splits["train"][0]
+    photo = photo_of(view)
+    hull = photo_hull(model, view.camera, photo.mask)
+    union = model.field.occupancy.any(0)
+    carved = occupancy.carve_visual_hull([view.camera], [photo.mask], model.field.aabb, model.cfg.occ_res, margin=0)
+    assert torch.equal(hull, occupancy.dilate(union & carved, 1))
+    assert 0 < int(hull.sum()) < int(occupancy.dilate(union, 1).sum())  # the silhouette carved something
+    empty = np.zeros_like(photo.mask)
+    empty[0, 0] = True  # a silhouette of one corner pixel sees no chair
+    with pytest.raises(CrfError, match="covers no occupied cell"):
+        photo_hull(model, view.camera, empty)
+
+
+def test_joint_prefixes_match_parameters():
+    fast = ConditionalRadianceField(make_config("fast", overrides=dict(grid_res=4, occ_res=8)), 2)
+    assert joint_prefixes(fast, "heads") == ("F_fuse.", "F_dens.", "F_rad.")
+    assert joint_prefixes(fast, "all") == tuple(p for p in JOINT["all"] if p != "coarse.")
+    paper = ConditionalRadianceField(make_config("paper", overrides=dict(width=8, rad_width=8, share_layers=1, inst_layers=1, fuse_layers=1)), 2)
+    for weights, prefixes in JOINT.items():
+        assert joint_prefixes(paper, weights) == prefixes  # every prefix names parameters
+    names = [n for n, _ in paper.named_parameters()]
+    covered = {n for n in names if n.startswith(JOINT["all"])}
+    assert covered == set(names) - {"shape_codes", "color_codes"}
+
+
+# ----------------------------------------------------------------------------- the photo
+
+
+def test_center_crop_and_area_resize():
+    image = np.zeros((30, 40, 3), np.float32)
+    image[:, :5] = 0.25
+    cropped = center_crop(image, 1.0)
+    assert cropped.shape == (30, 30, 3) and not (cropped == 0.25).any()
+    assert center_crop(np.zeros((40, 30, 3)), 1.0).shape == (30, 30, 3)
+    # a 4x4 photo, left half object (red), right half transparent -> 2x2: red | white
+    rgba = np.zeros((4, 4, 4), np.float32)
+    rgba[:, :2] = (1.0, 0.0, 0.0, 1.0)
+    rgba[:, 2:] = (0.0, 0.0, 0.0, 0.0)
+    photo = prepare_photo(rgba, None, 2, 2)
+    np.testing.assert_allclose(photo.rgb[:, 0], [[1, 0, 0]] * 2)
+    np.testing.assert_allclose(photo.rgb[:, 1], [[1, 1, 1]] * 2)
+    np.testing.assert_allclose(photo.alpha, [[1, 0], [1, 0]])
+    # area filter: a pixel half covered blends with white, and still counts for the silhouette
+    half = prepare_photo(rgba[:, 1:3], None, 1, 1)
+    np.testing.assert_allclose(half.rgb[0, 0], [1.0, 0.5, 0.5], atol=1e-6)
+    assert half.mask.all()
+    # a mask replaces the alpha channel
+    masked = prepare_photo(rgba, np.ones((4, 4), bool), 2, 2)
+    np.testing.assert_allclose(masked.rgb[:, 1], [[0, 0, 0]] * 2)
+
+
+def test_read_photo_with_mask_file(tmp_path):
+    rgb = np.full((6, 8, 3), 80, np.uint8)
+    Image.fromarray(rgb).save(tmp_path / "p.jpg")
+    mask = np.zeros((6, 8), np.uint8)
+    mask[2:4, 3:5] = 255
+    Image.fromarray(mask).save(tmp_path / "m.png")
+    image, m = read_photo(tmp_path / "p.jpg", tmp_path / "m.png")
+    assert image.shape == (6, 8, 3) and m.sum() == 4 and m[2:4, 3:5].all()
+    transparent = np.zeros((6, 8, 4), np.uint8)
+    transparent[1, 1] = (0, 0, 0, 255)  # a black stroke on a transparent layer: alpha decides
+    Image.fromarray(transparent).save(tmp_path / "t.png")
+    assert read_photo(tmp_path / "p.jpg", tmp_path / "t.png")[1].sum() == 1
+
+
+def test_check_new_name(setup):
+    _, model, _ = setup
+    assert check_new_name(model, "my_chair") == "my_chair"
+    for bad, fragment in (("chair_000", "already has"), ("7", "not be a number"), ("", "non-empty"), (" x", "non-empty")):
+        with pytest.raises(CrfError, match=fragment):
+            check_new_name(model, bad)
+
+
+# ----------------------------------------------------------------------------- the command
+
+
+def test_fit_real_command_then_render_and_edit(setup, tmp_path):
+    path, _, held = setup
+    photo = tmp_path / "my_chair.png"
+    shutil.copy(held.path / "train" / "r_000.png", photo)
+    out = tmp_path / "real.safetensors"
+    result = invoke("fit-real", path, photo, "--pose", "train:0", "--out", out, "--steps-codes", 4, "--steps-joint", 2, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    for stage in ("codes", "joint", "final"):
+        assert any(line.startswith(stage) and "PSNR" in line for line in result.stdout.splitlines()), result.stdout
+    assert "adding instance my_chair" in result.stdout
+    delta = read_delta(out)
+    assert delta.meta["pose"] == "train:0" and delta.meta["photo"] == str(photo)
+    rendered = invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "orbit:2", "--out", tmp_path / "r", "--device", "cpu")
+    assert rendered.exit_code == 0, rendered.output
+    assert (tmp_path / "r" / "0001.png").is_file()
+    moved = tmp_path / "t.safetensors"
+    transferred = invoke("transfer", path, "--instance", "my_chair", "--color-from", "chair_001", "--edit", out, "--out", moved, "--device", "cpu")
+    assert transferred.exit_code == 0, transferred.output
+    assert invoke("edits", "check", path, "--edit", out, "--edit", moved).exit_code == 0
+
+
+def test_fit_real_command_errors_write_nothing(setup, tmp_path):
+    path, _, held = setup
+    photo = tmp_path / "p.png"
+    shutil.copy(held.path / "train" / "r_000.png", photo)
+    out = tmp_path / "e.safetensors"
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    Image.fromarray(np.zeros((RES, RES), np.uint8)).save(tmp_path / "black.png")
+    Image.fromarray(np.full((RES + 1, RES), 255, np.uint8)).save(tmp_path / "big.png")
+    Image.fromarray(np.zeros((RES, RES, 4), np.uint8)).save(tmp_path / "clear.png")
+    (tmp_path / "cam.json").write_text('{"transform_matrix": [[1, 0], [0, 1]], "camera_angle_x": 0.7}')
+    (tmp_path / "broken.json").write_text('{"transform_matrix": ')
+    base = ("fit-real", path)
+    cases = [
+        ((tmp_path / "junk.png", "--pose", "train:0"), ("junk.png", "not a readable image")),
+        ((tmp_path / "missing.png", "--pose", "train:0"), ("missing.png", "not found")),
+        ((tmp_path / "clear.png", "--pose", "train:0"), ("clear.png", "mask is empty")),
+        ((photo, "--pose", "train:0", "--mask", tmp_path / "black.png"), ("black.png", "mask is empty")),
+        ((photo, "--pose", "train:0", "--mask", tmp_path / "big.png"), ("big.png", f"{RES}x{RES + 1}", f"{RES}x{RES}")),
+        ((photo, "--pose", tmp_path / "cam.json"), ("cam.json", "transform_matrix")),
+        ((photo, "--pose", tmp_path / "broken.json"), ("broken.json", "malformed JSON")),
+        ((photo, "--pose", "train:0-1"), ("--pose", "2 views")),
+        ((photo, "--pose", "train:0", "--name", "chair_001"), ("chair_001", "already has")),
+        ((photo, "--pose", "train:0", "--steps-codes", -1), ("--steps-codes",)),
+        ((photo, "--pose", "train:0", "--pose-instance", "nope"), ("nope",)),
+    ]
+    for args, fragments in cases:
+        assert_user_error(invoke(*base, *args, "--out", out, "--device", "cpu"), *fragments)
+        assert not out.exists() and not list(tmp_path.glob(".e.safetensors*"))
