@@ -62,6 +62,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--rays", type=int, default=FitOptions.rays)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice).")
     p.add_argument("--json", type=Path, default=DEFAULT_JSON, help=f"Where to write the numbers (default {DEFAULT_JSON}).")
     return p.parse_args(argv)
 
@@ -202,6 +203,8 @@ def markdown(report: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.threads is not None:
+        torch.set_num_threads(max(1, args.threads))
     try:
         report = run(args)
         args.json.parent.mkdir(parents=True, exist_ok=True)

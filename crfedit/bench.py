@@ -41,12 +41,16 @@ from typing import Callable, Sequence
 import torch
 
 from .config import Config, make_config
-from .data.format import Category
+from .data.format import Category, load_category
+from .data.synth import SynthConfig, write_synth_category
+from .edit import EditOptions
 from .errors import CrfError
 from .evaluate import render_views, score_model
+from .evaluation import apply_twin_edit, held_out_split, load_twin_cases, score_instance, warm_up_training
 from .io import atomic_path, atomic_write_text
 from .metrics import score_images
-from .model import CategoryModel
+from .model import CategoryModel, load_model
+from .train import train
 
 BEGIN = "<!-- bench:begin -->"
 END = "<!-- bench:end -->"
@@ -195,21 +199,14 @@ def machine_info(device: torch.device | str = "cpu") -> dict[str, str]:
 # ----------------------------------------------------------------------------- training curves
 
 
-def held_out(category: Category) -> str:
-    return "test" if all("test" in inst.splits for inst in category.instances) else "val"
-
-
 def _score(model: CategoryModel, category: Category, settings: BenchSettings) -> dict:
     instances = range(min(settings.eval_instances, len(model.names)))
-    return score_model(model, category, held_out(category), settings.eval_views, instances)
+    return score_model(model, category, held_out_split(category), settings.eval_views, instances)
 
 
 def probe_steps_per_second(category: Category, cfg: Config, device, seconds: float, folder: Path, seed: int) -> float:
     """Training steps per second of ``cfg`` measured by a short throwaway run."""
-    from .runtime import seed_everything
-    from .train import train
 
-    seed_everything(seed)
     probe = dataclasses.replace(cfg, steps=UNBOUNDED_STEPS, checkpoint_every=UNBOUNDED_STEPS)
     path = folder / "probe.safetensors"
     _, result = train(category, probe, path, device, seed=seed, minutes=seconds / 60.0)
@@ -222,9 +219,6 @@ def train_curve(
 ) -> tuple[list[BenchRow], CategoryModel]:
     """Train ``cfg`` once for the settings' budget; score ``checkpoints`` points along the run
     and its end (see the module docstring).  Returns (rows, the trained model)."""
-    from .model import load_model
-    from .runtime import seed_everything
-    from .train import train
 
     budget = 60.0 * settings.minutes
     n = settings.checkpoints
@@ -257,9 +251,14 @@ def train_curve(
 
     progress(f"train {label}: {settings.minutes:g} min" + (f" or {settings.steps} steps" if settings.steps else "")
              + f", checkpoint every {interval} steps")
-    seed_everything(settings.seed)
     model, result = train(category, cfg, out, device, seed=settings.seed, minutes=settings.minutes, on_step=on_step)
-    points = [(s, sec, load_model(p, device)[0]) for s, sec, p in snapshots if s < result.steps]
+    points = []
+    for s, sec, p in snapshots:
+        if s < result.steps:
+            m = load_model(p, device)[0]
+            if m.meta.get("step") != str(s):  # train() writes step s's checkpoint right after on_step(s)
+                raise RuntimeError(f"checkpoint copied after step {s} holds step {m.meta.get('step')}")
+            points.append((s, sec, m))
     points.append((result.steps, result.seconds - state["overhead"], model))
     rows = []
     for step, seconds, m in points:
@@ -287,7 +286,7 @@ def render_curve(
     settings: BenchSettings, progress: Progress,
 ) -> list[BenchRow]:
     """Seconds per view and PSNR of held-out views rendered with each sampling variant."""
-    split = held_out(category)
+    split = held_out_split(category)
     pairs = [
         (k, view)
         for k in range(min(settings.eval_instances, len(model.names)))
@@ -321,8 +320,6 @@ def render_variants(cfg: Config, settings: BenchSettings) -> tuple[str, list[tup
 
 def edit_curves(model: CategoryModel, category: Category, settings: BenchSettings, progress: Progress) -> list[BenchRow]:
     """PSNR against the first colour twin and the first removal twin over edit steps × rays."""
-    from .edit import EditOptions
-    from .evaluation import apply_twin_edit, load_twin_cases, score_instance
 
     cases = load_twin_cases(model, category)
     firsts = [next((c for c in cases if c.spec.kind == kind), None) for kind in ("color", "remove")]
@@ -358,8 +355,6 @@ def run_bench(
     final model is the one rendered with other samples per ray and edited (when the dataset has
     twins); every hierarchical preset's model is rendered too.
     """
-    from .evaluation import warm_up_training
-
     settings = settings.validated()
     device = torch.device(device)
     say = progress or (lambda _msg: None)
@@ -395,8 +390,7 @@ def run_bench(
             rows += edit_curves(first, category, settings, say)
         else:
             notes.append(f"no edit curves: {category.root} has no ground-truth twins (twins.json)")
-        from .edit import EditOptions
-
+    
         if not any(f.name == "cache" for f in dataclasses.fields(EditOptions)):
             notes.append("edits always cache the features upstream of what they train (the edit library has no switch to compare against)")
     resolution = category.instances[0].splits["train"][0].camera.width if "train" in category.instances[0].splits else 0
@@ -641,9 +635,6 @@ def write_outputs(report: BenchReport, csv_path: str | Path, md_path: str | Path
 
 def tiny_category(folder: str | Path) -> Category:
     """The procedural 2-chair, 6-view, 16-pixel category with twins that ``--tiny`` runs on."""
-    from .data.format import load_category
-    from .data.synth import SynthConfig, write_synth_category
-
     folder = Path(folder)
     if not (folder / "instances.txt").is_file():
         write_synth_category(folder, SynthConfig(instances=2, views=6, res=16))

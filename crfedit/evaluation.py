@@ -26,13 +26,16 @@ import numpy as np
 import torch
 
 from .cameras import Camera
-from .config import ARCHS, Config
+from .config import ARCHS, Config, make_config
 from .data.format import Category, TwinSpec, View, load_category, load_twins, read_mask
+from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
+from .edit.params import GROUP, trained_prefixes
 from .errors import CrfError
 from .evaluate import render_views, score_model
 from .field import ConditionalRadianceField
 from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
+from .train import train
 
 SSIM_NOTE = "SSIM: 11×11 Gaussian window, σ=1.5, on RGB"
 LPIPS_SKIPPED = "LPIPS: skipped (no weights)"
@@ -175,12 +178,11 @@ def load_twin_cases(model: CategoryModel, category: Category) -> list[TwinCase]:
     return twin_cases(model, category, load_twins(category.root, res=model_width(model, "test")))
 
 
-def apply_twin_edit(model: CategoryModel, case: TwinCase, options, instance: int | None = None):
+def apply_twin_edit(model: CategoryModel, case: TwinCase, options: EditOptions, instance: int | None = None) -> EditResult:
     """Make the twin's edit of ``case`` (colour or removal) from its scribbles; an EditResult.
 
     ``instance`` overrides the edited index (the single-instance baseline edits its index 0).
     """
-    from .edit import edit_color, remove
 
     k = case.instance if instance is None else instance
     if case.spec.kind == "color":
@@ -190,7 +192,6 @@ def apply_twin_edit(model: CategoryModel, case: TwinCase, options, instance: int
 
 def strategy_problem(model: CategoryModel, kind: str, strategy: str) -> str | None:
     """Why ``strategy`` cannot edit this model for a ``kind`` twin (e.g. ``codes`` on arch nerf), else None."""
-    from .edit.params import GROUP, trained_prefixes
 
     try:
         trained_prefixes(model.field, GROUP[kind], strategy)
@@ -219,11 +220,8 @@ def train_single_instance_nerf(
     category: Category, name: str, base: Config, baseline: NerfBaseline, out: str | Path, device, seed: int = 0
 ) -> tuple[CategoryModel, float]:
     """(model, training seconds) of a NeRF trained on instance ``name`` of ``category`` alone."""
-    from .runtime import seed_everything
-    from .train import train
 
     cfg = dataclasses.replace(base, arch="nerf", steps=baseline.steps).validated()
-    seed_everything(seed)
     model, result = train(single_instance(category, name), cfg, out, device, seed=seed, minutes=baseline.minutes)
     return model, result.seconds
 
@@ -262,7 +260,7 @@ def evaluate_edits(
     category: Category,
     cases: Sequence[TwinCase],
     strategies: Sequence[str] = ("hybrid", "codes", "all"),
-    options=None,
+    options: EditOptions | None = None,
     nerf: NerfBaseline | None = None,
     lpips_weights: str | Path | None = None,
     device: torch.device | str = "cpu",
@@ -280,14 +278,14 @@ def evaluate_edits(
     default) and fine-tuned with the same edit, strategy ``all``.  Returns::
 
         {"runs": [{"twin", "kind", "source", "method", "n", "psnr", "ssim", "lpips", "seconds"}],
-         "tables": {"color": [rows], "remove": [rows]}, "skipped": {method: reason},
+         "tables": {"color": [rows], "remove": [rows]}, "skipped": [{"method", "kind", "reason"}],
          "nerf_train_seconds": {source: s}, "ssim_note", "lpips_note"}
 
     ``seconds`` is the edit's optimization time (0 for ``unedited``), measured after a one-step
     warm-up edit that absorbs the process's one-off costs.  A strategy the model's
-    architecture cannot use (``codes`` without a separate code) is listed under ``skipped``.
+    architecture cannot use for a kind of twin (``codes`` without a separate code of that kind)
+    is listed under ``skipped``.
     """
-    from .edit import STRATEGIES, EditOptions
 
     options = options or EditOptions()
     unknown = [s for s in strategies if s not in STRATEGIES]
@@ -297,7 +295,7 @@ def evaluate_edits(
         raise CrfError(f"{category.root}: the dataset has no ground-truth twins (twins.json) to evaluate edits on")
     say = progress or (lambda _msg: None)
     runs: list[dict] = []
-    skipped: dict[str, str] = {}
+    skipped: list[dict] = []
     note = lpips_unavailable_reason(lpips_weights)
 
     def record(case: TwinCase, method: str, score: dict, seconds: float) -> None:
@@ -320,7 +318,9 @@ def evaluate_edits(
         for strategy in strategies:
             problem = strategy_problem(model, case.spec.kind, strategy)
             if problem is not None:
-                skipped[strategy] = problem
+                entry = {"method": strategy, "kind": case.spec.kind, "reason": problem}
+                if entry not in skipped:
+                    skipped.append(entry)
                 continue
             result = apply_twin_edit(model, case, dataclasses.replace(options, strategy=strategy))
             record(case, strategy, score_instance(result.model, case.instance, case.views, lpips_weights), result.seconds)
@@ -334,7 +334,8 @@ def evaluate_edits(
             for case in cases:
                 source = case.spec.source
                 if source not in baselines:
-                    say(f"{source}: training a single-instance NeRF ({nerf.steps} steps)")
+                    budget = f"{nerf.steps} steps" + (f" or {nerf.minutes:g} min" if nerf.minutes else "")
+                    say(f"{source}: training a single-instance NeRF ({budget})")
                     path = folder / f"nerf_{source}.safetensors"
                     baselines[source], train_seconds[source] = train_single_instance_nerf(
                         category, source, model.cfg, nerf, path, device, seed
@@ -342,7 +343,7 @@ def evaluate_edits(
                 result = apply_twin_edit(baselines[source], case, dataclasses.replace(options, strategy="all"), instance=0)
                 record(case, NERF_BASELINE, score_instance(result.model, 0, case.views, lpips_weights), result.seconds)
 
-    methods = [UNEDITED, *[s for s in strategies if s not in skipped], *([NERF_BASELINE] if nerf else [])]
+    methods = [UNEDITED, *strategies, *([NERF_BASELINE] if nerf else [])]
     return {
         "runs": runs,
         "tables": edit_tables(runs, methods),
@@ -412,7 +413,6 @@ def ablation_configs(base: Config, archs: Sequence[str] = ABLATION_ARCHS) -> dic
 def warm_up_training(category: Category, cfg: Config, device, folder: Path) -> None:
     """Two throwaway training steps: the first training of a process pays one-off costs (kernel
     and allocator warm-up, seconds on a CPU) that must not come out of a timed budget."""
-    from .train import train
 
     path = Path(folder) / "warm-up.safetensors"
     train(category, dataclasses.replace(cfg, steps=2, checkpoint_every=2), path, device)
@@ -450,9 +450,6 @@ def run_ablation(
     ``ours``; :func:`matched_width` keeps it within ``1 ± PARAM_TOLERANCE``.  Model files go to
     ``workdir`` (kept) or a temporary folder (deleted).
     """
-    from .config import make_config
-    from .runtime import seed_everything
-    from .train import train
 
     if minutes is None and steps is None:
         raise CrfError("ablation: give a time budget (--minutes) or a step budget (--steps)")
@@ -478,7 +475,6 @@ def run_ablation(
             params = network_parameters(cfg)
             budget = f"{minutes:g} min" if minutes is not None else f"{steps} steps"
             say(f"{arch}: width {cfg.width}, {params:,} network parameters, training for {budget}")
-            seed_everything(seed)
             model, result = train(category, cfg, folder / f"{arch}.safetensors", device, seed=seed, minutes=minutes)
             score = score_model(model, category, split, max_views)
             rows.append({

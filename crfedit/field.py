@@ -75,17 +75,26 @@ class SharedBranch(nn.Module):
 def linear_with_codes(layer: nn.Linear, per_point: Tensor, per_code: Tensor | None, idx: Tensor | None) -> Tensor:
     """``layer(cat([per_point, per_code[idx]]))`` without repeating the code part per point.
 
-    The code columns of the weight act on each code row once ([K, out]) and are then gathered;
-    ``idx`` [M] selects a row per point, or is None when there is a single code row.
+    The code columns of the weight act on each code row once ([K, out]) and are then gathered.
+    ``idx`` picks a row per point: [M] int64, or a one-hot [M, K] float selector (a matmul,
+    whose backward is fast and accumulates in a fixed order), or None for a single code row.
     """
     if per_code is None:
         return layer(per_point)
     n = per_point.shape[-1]
     code_part = F.linear(per_code, layer.weight[:, n:], layer.bias)  # [K, out]
-    # index_select (not code_part[idx]): its CPU backward accumulates in a fixed order, so
-    # training is bit-for-bit repeatable.
-    code_part = torch.index_select(code_part, 0, idx) if idx is not None else code_part.expand(per_point.shape[0], -1)
+    if idx is None:
+        code_part = code_part.expand(per_point.shape[0], -1)
+    elif idx.is_floating_point():
+        code_part = idx @ code_part
+    else:
+        code_part = torch.index_select(code_part, 0, idx)
     return F.linear(per_point, layer.weight[:, :n]) + code_part
+
+
+def code_selector(idx: Tensor, n_codes: int, dtype: torch.dtype = torch.float32) -> Tensor:
+    """One-hot [M, K] selector for :func:`linear_with_codes` (deterministic, fast backward)."""
+    return F.one_hot(idx, n_codes).to(dtype)
 
 
 def run_mlp(seq: nn.Sequential, per_point: Tensor, per_code: Tensor | None = None, idx: Tensor | None = None) -> Tensor:

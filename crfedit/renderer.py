@@ -19,7 +19,7 @@ from torch import Tensor
 
 from . import occupancy
 from .cameras import Camera, Rays, rays_from_camera
-from .field import ConditionalRadianceField, FieldNet, density_activation
+from .field import ConditionalRadianceField, FieldNet, code_selector, density_activation
 from .rendering import (
     composite_from_density,
     importance_sample,
@@ -83,15 +83,12 @@ def grid_samples(
         count = max(1, math.ceil(span / s) - first)
     j = torch.arange(first, first + count, device=t_near.device, dtype=t_near.dtype)
     starts = t_near[:, None] + j * s  # [N, S]
-    frac = 0.5 if jitter is None else jitter[:, None]
-    t = starts + frac * s
-    valid = starts < t_far[:, None]
-    pts = rays.origins[:, None, :] + t[..., None] * rays.directions[:, None, :]
-    ray_i, col = valid.nonzero(as_tuple=True)
-    p = pts[ray_i, col]
-    keep = occupancy.lookup(field.occupancy, instance[ray_i], field.normalize(p))
-    ray_i, col, p = ray_i[keep], col[keep], p[keep]
+    ray_i, col = (starts < t_far[:, None]).nonzero(as_tuple=True)
     t0 = starts[ray_i, col]
+    frac = 0.5 if jitter is None else jitter[ray_i]
+    p = rays.origins[ray_i] + (t0 + frac * s)[:, None] * rays.directions[ray_i]
+    keep = occupancy.lookup(field.occupancy, instance[ray_i], field.normalize(p))
+    ray_i, col, p, t0 = ray_i[keep], col[keep], p[keep], t0[keep]
     return PackedSamples(ray_i, col, t0, torch.minimum(t0 + s, t_far[ray_i]), p, n, count)
 
 
@@ -100,8 +97,8 @@ def evaluate(
     noise: float = 0.0, generator: torch.Generator | None = None,
 ) -> tuple[Tensor, Tensor]:
     """σ [M] and rgb [M, 3] of ``net`` at the packed samples."""
-    idx = instance[samples.ray]
     shape_codes, color_codes = field.code_tables()
+    idx = code_selector(instance[samples.ray], field.n_instances)
     raw, feat = net.density_and_features(field.normalize(samples.points), shape_codes, idx)
     if noise > 0:
         raw = raw + noise * torch.randn(raw.shape, generator=generator).to(raw.device)

@@ -24,7 +24,7 @@ from .cameras import Rays
 from .config import Config
 from .data.format import Category, TrainingRays, training_rays
 from .errors import CrfError, NonFiniteError
-from .field import ConditionalRadianceField, density_activation
+from .field import ConditionalRadianceField, code_selector, density_activation
 from .model import CategoryModel, ViewTable, load_model, save_model
 from .renderer import render_rays
 
@@ -138,10 +138,11 @@ def view_dependence_penalty(field, rays: Rays, inst: torch.Tensor, depth: torch.
         return depth.sum() * 0.0
     x = rays.origins[hit] + rays.directions[hit] * (depth[hit] / opacity[hit]).detach()[:, None]
     s, c = field.code_tables()
-    _, feat = field.density_and_features(field.normalize(x), s, inst[hit])
+    _, feat = field.density_and_features(field.normalize(x), s, code_selector(inst[hit], field.n_instances))
     dirs = torch.nn.functional.normalize(torch.randn(hit.numel(), n_dirs, 3, generator=generator).to(x.device), dim=-1)
     rgb = field.radiance(
-        feat.repeat_interleave(n_dirs, 0), dirs.reshape(-1, 3), c, inst[hit].repeat_interleave(n_dirs, 0)
+        feat.repeat_interleave(n_dirs, 0), dirs.reshape(-1, 3), c,
+        code_selector(inst[hit].repeat_interleave(n_dirs, 0), field.n_instances)
     ).view(hit.numel(), n_dirs, 3)
     return rgb.var(dim=1).mean()
 

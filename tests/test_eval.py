@@ -69,7 +69,6 @@ def data(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def model_path(data) -> Path:
     path = data.parent / "model.safetensors"
-    torch.manual_seed(0)
     train(load_category(data), make_config("fast", TINY), path, torch.device("cpu"), seed=0)
     return path
 
@@ -140,7 +139,8 @@ def test_recon_on_another_dataset_warns_or_fails_with_strict(model_path, data, t
 
 def test_recon_user_errors(model_path, data, tmp_path):
     assert_user_error(invoke("eval", "recon", model_path, data, "--max-views", 0), "--max-views 0")
-    assert_user_error(invoke("eval", "recon", model_path, data, "--split", "dev"), "--split dev")
+    result = invoke("eval", "recon", model_path, data, "--split", "dev")
+    assert result.exit_code == 2 and "'dev'" in result.stderr and "Traceback" not in result.output
     assert_user_error(invoke("eval", "recon", model_path, data, "--lpips-weights", tmp_path / "none.safetensors"), "not found")
     assert_user_error(invoke("eval", "recon", tmp_path / "missing.safetensors", data), "missing.safetensors")
 
@@ -200,6 +200,19 @@ def test_a_strategy_the_arch_cannot_use_is_skipped_not_fatal():
     model = CategoryModel(ConditionalRadianceField(cfg, 2), ["a", "b"])
     assert "no separate color code" in strategy_problem(model, "color", "codes")
     assert strategy_problem(model, "color", "hybrid") is None and strategy_problem(model, "remove", "all") is None
+
+
+def test_a_strategy_is_skipped_only_for_the_kinds_it_cannot_edit(data):
+    """arch single has one code for shape and colour: ``codes`` can edit shape (the shared code)
+    but has no colour code of its own."""
+    cfg = make_config("fast", {"arch": "single", "grid_res": 0, "occ_res": 8})
+    model = CategoryModel(ConditionalRadianceField(cfg, 2), ["chair_000", "chair_001"])
+    category = load_category(data)
+    cases = load_twin_cases(model, category)[:2]
+    report = evaluate_edits(model, category, cases, ("codes",), EditOptions(steps=1, rays=16))
+    assert [r["method"] for r in report["tables"]["color"]] == [UNEDITED]
+    assert [r["method"] for r in report["tables"]["remove"]] == [UNEDITED, "codes"]
+    assert [(e["method"], e["kind"]) for e in report["skipped"]] == [("codes", "color")]
 
 
 def test_edit_tables_average_per_kind_and_method_in_order():

@@ -6,6 +6,7 @@ Each command calls :mod:`crfedit.evaluation` or :mod:`crfedit.bench` and prints 
 
 from __future__ import annotations
 
+import enum
 import json
 import math
 from pathlib import Path
@@ -15,6 +16,14 @@ import typer
 
 from ..errors import CrfError
 from .common import DeviceChoice, DeviceOpt, SeedOpt, app, eval_app, user_errors
+from .train import PresetChoice
+
+
+class SplitChoice(str, enum.Enum):
+    test = "test"
+    val = "val"
+    train = "train"
+
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors) written by crfedit train.")]
 DataArg = Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt), the one the model was trained on.")]
@@ -102,7 +111,7 @@ def _load(model: Path, data: Path, device: DeviceChoice, strict: bool, split: st
 def recon_cmd(
     model: ModelArg,
     data: DataArg,
-    split: Annotated[str, typer.Option("--split", help="Held-out split to score: test, val or train.")] = "test",
+    split: Annotated[SplitChoice, typer.Option("--split", help="Split to score (test and val are held out).")] = SplitChoice.test,
     max_views: Annotated[Optional[int], typer.Option("--max-views", help="Score only the first N views of each instance.")] = None,
     lpips_weights: LpipsOpt = None,
     as_json: JsonOpt = False,
@@ -112,12 +121,10 @@ def recon_cmd(
     """Reconstruction quality of held-out views: PSNR, SSIM (and LPIPS with weights), per instance and mean."""
     from ..evaluation import evaluate_recon
 
-    if split not in ("train", "val", "test"):
-        raise CrfError(f"--split {split}: expected train, val or test")
     if max_views is not None and max_views < 1:
         raise CrfError(f"--max-views {max_views}: must be at least 1")
-    m, category = _load(model, data, device, strict, split)
-    score = evaluate_recon(m, category, split, max_views, lpips_weights)
+    m, category = _load(model, data, device, strict, split.value)
+    score = evaluate_recon(m, category, split.value, max_views, lpips_weights)
     if as_json:
         _echo_json({"model": str(model), "data": str(data), **score})
         return
@@ -129,7 +136,7 @@ def recon_cmd(
     ]
     footer = ["mean", str(score["n"]), _num(score["psnr"], ".2f"), _num(score["ssim"], ".4f")]
     footer += [_num(score["lpips"], ".4f")] if with_lpips else []
-    _print_table(f"{model.name} on {data} ({split} split)", columns, rows, footer)
+    _print_table(f"{model.name} on {data} ({split.value} split)", columns, rows, footer)
     typer.echo(score["ssim_note"])
     typer.echo(_lpips_line(score["lpips"] is not None, score["lpips_note"]))
 
@@ -205,8 +212,8 @@ def edits_cmd(
             for r in rows
         ]
         _print_table(f"{TABLE_TITLES[kind]}: {model.name} on {data}", columns, body)
-    for method, reason in result["skipped"].items():
-        typer.echo(f"skipped {method}: {reason}")
+    for entry in result["skipped"]:
+        typer.echo(f"skipped {entry['method']} for {entry['kind']} twins: {entry['reason']}")
     typer.echo("unedited: the model's renders of the source before editing, scored against the twin (reference)")
     typer.echo("seconds: edit optimization time, mean over twins")
     if result["nerf_train_seconds"]:
@@ -225,7 +232,7 @@ def ablation_cmd(
     data: DataArg,
     minutes: Annotated[Optional[float], typer.Option("--minutes", help="Training time of each variant.")] = None,
     steps: Annotated[Optional[int], typer.Option("--steps", help="Training steps of each variant (with --minutes: whichever ends first).")] = None,
-    preset: Annotated[str, typer.Option("--preset", help="Preset the variants are built from: fast or paper.")] = "fast",
+    preset: Annotated[PresetChoice, typer.Option("--preset", help="Preset the variants are built from.")] = PresetChoice.fast,
     sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override a config field of every variant, KEY=VALUE (repeatable).")] = None,
     res: Annotated[Optional[int], typer.Option("--res", help="Train and score at this image width (default: as stored).")] = None,
     max_views: Annotated[Optional[int], typer.Option("--max-views", help="Score only the first N held-out views of each instance.")] = None,
@@ -253,14 +260,14 @@ def ablation_cmd(
         raise CrfError(f"--max-views {max_views}: must be at least 1")
     if models is not None and models.exists() and not models.is_dir():
         raise CrfError(f"--models {models}: exists and is not a folder")
-    base = make_config(preset, sets=sets or [])
+    base = make_config(preset.value, sets=sets or [])
     dev = resolve_device(device)
     category = load_category(data, res=parse_resolution(res))
     rows = run_ablation(
         category, minutes, steps, seed, dev, base=base, max_views=max_views, workdir=models, progress=_err,
     )
     if as_json:
-        _echo_json({"data": str(data), "preset": preset, "minutes": minutes, "steps": steps, "rows": rows})
+        _echo_json({"data": str(data), "preset": preset.value, "minutes": minutes, "steps": steps, "rows": rows})
         return
     split = rows[0]["split"] if rows else "test"
     body = [

@@ -292,15 +292,15 @@ StepCallback = Callable[[str, int, int, float, float], None]
 
 
 def _run_stage(
-    stage: str, fitter: _Fitter, groups: list[dict], steps: int, penalty: Callable[[], Tensor] | None,
-    lambda_reg: float, on_step: StepCallback | None,
+    stage: str, fitter: _Fitter, groups: list[dict], steps: int, penalty: Callable[[], Tensor] | None, on_step: StepCallback | None
 ) -> None:
+    """``steps`` Adam steps on the photometric loss (+ ``penalty()``); NaN/inf stops with nothing written."""
     params = [p for g in groups for p in g["params"]]
     opt = torch.optim.Adam(groups)
     for step in range(steps):
         loss, photometric = fitter.loss()
-        if penalty is not None and lambda_reg > 0:
-            loss = loss + lambda_reg * penalty()
+        if penalty is not None:
+            loss = loss + penalty()
         value = float(loss.detach())
         if not math.isfinite(value):
             raise NonFiniteError(f"fit-real diverged in the {stage} stage at step {step} (loss is {value}); nothing was written")
@@ -358,8 +358,8 @@ def fit_real(
     codes = [getattr(field, t) for t in tables]
     reports: list[StageReport] = []
 
-    def report(stage: str, steps: int, since: float, f: ConditionalRadianceField, index: int) -> None:
-        loss, psnr = photo_error(f, camera, index, fitter.target)
+    def report(stage: str, steps: int, since: float, f: ConditionalRadianceField) -> None:
+        loss, psnr = photo_error(f, camera, k, fitter.target)
         reports.append(StageReport(stage, steps, loss, psnr, time.perf_counter() - since))
         if on_stage is not None:
             on_stage(reports[-1])
@@ -367,8 +367,8 @@ def fit_real(
     t0 = time.perf_counter()
     for p in codes:
         p.requires_grad_(True)
-    _run_stage("codes", fitter, [{"params": codes, "lr": options.lr_codes}], options.steps_codes, None, 0.0, on_step)
-    report("codes", options.steps_codes, t0, field, k)
+    _run_stage("codes", fitter, [{"params": codes, "lr": options.lr_codes}], options.steps_codes, None, on_step)
+    report("codes", options.steps_codes, t0, field)
 
     prefixes: tuple[str, ...] = ()
     if options.steps_joint > 0:
@@ -379,10 +379,12 @@ def fit_real(
         for p in weights.values():
             p.requires_grad_(True)
         groups = [{"params": codes, "lr": options.lr_codes}, {"params": list(weights.values()), "lr": options.lr_weights}]
-        _run_stage(
-            "joint", fitter, groups, options.steps_joint, lambda: weight_penalty(weights, start, {}), options.lambda_reg, on_step
-        )
-        report("joint", options.steps_joint, t0, field, k)
+
+        def penalty() -> Tensor:
+            return options.lambda_reg * weight_penalty(weights, start, {})
+
+        _run_stage("joint", fitter, groups, options.steps_joint, penalty, on_step)
+        report("joint", options.steps_joint, t0, field)
     for p in field.parameters():
         p.requires_grad_(False)
 
@@ -400,7 +402,7 @@ def fit_real(
     after = dataclasses.replace(grown, field=field)
     tensors, meta = make_delta(model, after, k, "fit-real", modules, {"hyperparameters": json.dumps(hyper, sort_keys=True)})
     result = apply_deltas(model, [Delta("(new edit)", tensors, meta)])
-    report("final", 0, t0, result.field_for(k), k)
+    report("final", 0, t0, result.field_for(k))
     seconds = time.perf_counter() - started
     final = reports[-1]
     # Provenance only: none of these is part of the edit's fingerprint (delta.IDENTITY).

@@ -1,0 +1,79 @@
+"""Run crfedit's speed-against-error benchmark and update the docs.
+
+    python benchmarks/run.py                  # the full sweep: about an hour on 2 CPU cores
+    python benchmarks/run.py --minutes 2      # shorter training curves
+    python benchmarks/run.py --tiny           # seconds: a smoke test of the pipeline
+
+Measures with :func:`crfedit.bench.run_bench` (the library behind ``crfedit bench``) and writes
+``docs/benchmarks/bench.csv``, ``docs/benchmarks/bench_{train,render,edit}.png`` and the bench
+section of ``docs/benchmarks.md``.  Without ``--data`` it runs on the procedural chair category
+(24 chairs × 50 views at 64×64 with ground-truth twins), generated once into
+``runs/bench/chairs``.  See benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+from crfedit.bench import BenchSettings, run_bench, tiny_category, write_outputs
+from crfedit.data.format import load_category
+from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.errors import CrfError
+from crfedit.runtime import resolve_device
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, help="category dataset with twins (default: runs/bench/chairs, generated if missing)")
+    parser.add_argument("--minutes", type=float, help="training time per curve (default 5)")
+    parser.add_argument("--presets", help="training curves, comma-separated (default fast,paper)")
+    parser.add_argument("--csv", type=Path, default=ROOT / "docs" / "benchmarks" / "bench.csv", help="CSV to write (plots go beside it)")
+    parser.add_argument("--md", type=Path, default=ROOT / "docs" / "benchmarks.md", help="markdown page with the bench section")
+    parser.add_argument("--work", type=Path, help="keep the trained models here")
+    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tiny", action="store_true", help="a seconds-long sweep on a generated 2-chair category")
+    args = parser.parse_args(argv)
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    settings = BenchSettings.tiny() if args.tiny else BenchSettings()
+    changes = {"minutes": args.minutes, "seed": args.seed}
+    if args.presets:
+        changes["presets"] = tuple(p.strip() for p in args.presets.split(",") if p.strip())
+    settings = dataclasses.replace(settings, **{k: v for k, v in changes.items() if v is not None})
+    try:
+        settings = settings.validated()
+        device = resolve_device(args.device)
+        with tempfile.TemporaryDirectory(prefix="crfedit-bench-data-") as tmp:
+            if args.data is not None:
+                category = load_category(args.data)
+            elif args.tiny:
+                category = tiny_category(Path(tmp) / "chairs")
+            else:
+                data = ROOT / "runs" / "bench" / "chairs"
+                if not (data / "instances.txt").is_file():
+                    print(f"generating the benchmark category into {data}", file=sys.stderr)
+                    write_synth_category(data, SynthConfig())
+                category = load_category(data)
+            report = run_bench(category, settings, device, workdir=args.work, progress=lambda m: print(m, file=sys.stderr))
+            written = write_outputs(report, args.csv, args.md)
+    except CrfError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
