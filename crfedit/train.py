@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 
 from . import occupancy
@@ -52,16 +53,26 @@ def scene_box(category: Category, res: int = 48, views_per_instance: int = 40) -
     return occupancy.occupied_box(union, cube, margin_cells=2)
 
 
-def visual_hulls(category: Category, aabb: torch.Tensor, res: int, margin: int = 1) -> torch.Tensor:
+def silhouette(alpha: np.ndarray, grow: int = 1) -> np.ndarray:
+    """Object mask grown by ``grow`` pixels, so a cell whose center projects just outside the
+    silhouette but whose footprint overlaps it is not carved away (thin legs survive)."""
+    mask = alpha > 0
+    for _ in range(grow):
+        padded = np.pad(mask, 1)
+        mask = padded[1:-1, 1:-1] | padded[:-2, 1:-1] | padded[2:, 1:-1] | padded[1:-1, :-2] | padded[1:-1, 2:]
+    return mask
+
+
+def visual_hulls(category: Category, aabb: torch.Tensor, res: int, margin: int = 0) -> torch.Tensor:
     """Each instance's visual hull from all its training silhouettes.  [K, R, R, R] bool
 
-    ``margin`` < 0 skips carving: every cell starts occupied.
+    ``margin`` cells of 3-D dilation on top; ``margin`` < 0 skips carving (all cells occupied).
     """
     if margin < 0:
         return torch.ones(len(category.instances), res, res, res, dtype=torch.bool)
     return torch.stack([
         occupancy.carve_visual_hull(
-            [v.camera for v in inst.splits["train"]], [v.alpha > 0 for v in inst.splits["train"]], aabb, res, margin=margin
+            [v.camera for v in inst.splits["train"]], [silhouette(v.alpha) for v in inst.splits["train"]], aabb, res, margin=margin
         )
         for inst in category.instances
     ])

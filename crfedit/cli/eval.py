@@ -288,8 +288,11 @@ def ablation_cmd(
 
 
 def _floats(option: str, text: str | None) -> tuple[float, ...] | None:
+    """``"0.5,1,2"`` → (0.5, 1.0, 2.0); ``"none"`` → () (leave that sweep out); None → None."""
     if text is None:
         return None
+    if text.strip().lower() == "none":
+        return ()
     try:
         values = tuple(float(x) for x in text.split(",") if x.strip())
     except ValueError:
@@ -300,8 +303,11 @@ def _floats(option: str, text: str | None) -> tuple[float, ...] | None:
 
 
 def _ints(option: str, text: str | None) -> tuple[int, ...] | None:
+    """``"10,30"`` → (10, 30); ``"none"`` → (); None → None."""
     if text is None:
         return None
+    if text.strip().lower() == "none":
+        return ()
     items = [x.strip() for x in text.split(",") if x.strip()]
     if not items or not all(x.isdigit() and int(x) > 0 for x in items):
         raise CrfError(f"{option} {text}: expected positive whole numbers separated by commas, e.g. 10,30,100")
@@ -319,9 +325,9 @@ def bench_cmd(
     minutes: Annotated[Optional[float], typer.Option("--minutes", help="Training time per curve (default 5).")] = None,
     steps: Annotated[Optional[int], typer.Option("--steps", help="Step cap per training curve.")] = None,
     checkpoints: Annotated[Optional[int], typer.Option("--checkpoints", help="Points scored along each training run (default 6).")] = None,
-    train_spc: Annotated[Optional[str], typer.Option("--train-samples-per-cell", help="Extra fast-preset training curves at these steps_per_cell (default 1,4).")] = None,
-    render_spc: Annotated[Optional[str], typer.Option("--samples-per-cell", help="steps_per_cell values to render at (default 0.5,1,2,4,8).")] = None,
-    edit_steps: Annotated[Optional[str], typer.Option("--edit-steps", help="Edit steps to sweep (default 10,30,100,300).")] = None,
+    train_spc: Annotated[Optional[str], typer.Option("--train-samples-per-cell", help="Extra fast-preset training curves at these steps_per_cell (default 1,4; none: leave out).")] = None,
+    render_spc: Annotated[Optional[str], typer.Option("--samples-per-cell", help="steps_per_cell values to render at (default 0.5,1,2,4,8; none: leave out).")] = None,
+    edit_steps: Annotated[Optional[str], typer.Option("--edit-steps", help="Edit steps to sweep (default 10,30,100,300; none: no edit curves).")] = None,
     edit_rays: Annotated[Optional[str], typer.Option("--edit-rays", help="Edit rays to sweep, one curve each (default 256,1024,4096).")] = None,
     eval_instances: Annotated[Optional[int], typer.Option("--eval-instances", help="Instances scored at each point (default 4).")] = None,
     eval_views: Annotated[Optional[int], typer.Option("--eval-views", help="Held-out views per scored instance (default 2).")] = None,

@@ -158,7 +158,8 @@ class EditPass:
         self.net: FieldNet = field if net_name == "fine" else field.coarse
         self.samples = samples
         self.n_rays = samples.n_rays
-        self.dirs = rays.directions[samples.ray]  # [M, 3]
+        dirs = rays.directions[samples.ray]  # [M, 3]
+        self.encoded_dirs = positional_encoding(dirs, self.net.pe_d)  # [M, D]: constant, encoded once
         dense = lambda v: torch.zeros(samples.n_rays, samples.n_steps, dtype=v.dtype, device=v.device).index_put(
             (samples.ray, samples.step), v
         )
@@ -175,7 +176,7 @@ class EditPass:
                 weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, dense(density_activation(raw)))
                 w = weights[samples.ray, samples.step]
                 keep = w > PRUNE_WEIGHT
-                per_point = radiance_inputs(self.net, feat, self.dirs)
+                per_point = radiance_inputs(self.net, feat, dirs)
                 _, color_code = field.codes(instance)
                 dropped = (w * ~keep)[:, None] * radiance_from_inputs(self.net, per_point, color_code)
                 self.opacity = weights.sum(dim=-1)  # [N]
@@ -183,7 +184,7 @@ class EditPass:
                 self.constant = torch.zeros(samples.n_rays, 3, device=w.device).index_add(0, samples.ray, dropped)
                 self.constant += (1.0 - self.opacity)[:, None] * background
                 self.w, self.ray, self.per_point = w[keep], samples.ray[keep], per_point[keep]
-                self.inputs = None
+                self.inputs = self.encoded_dirs = None
             self.n_cached = int(self.ray.numel()) if stage == "radiance" else int(samples.ray.numel())
 
     def densities(self) -> tuple[Tensor, Tensor]:
@@ -207,7 +208,7 @@ class EditPass:
             rgb = self.constant.index_add(0, self.ray, self.w[:, None] * rgb_s)
             return PassOutput(rgb, self.opacity, None, None, None)
         sigma, feat = self.densities()
-        rgb_s = self.net.radiance(feat, self.dirs, color_code)
+        rgb_s = radiance_from_inputs(self.net, torch.cat([feat, self.encoded_dirs], dim=-1), color_code)
         sigmas, rgbs = self.dense(sigma), self.dense(rgb_s)
         comp = composite_from_density(self.t_starts, self.t_ends, sigmas, rgbs, self.background)
         return PassOutput(comp.rgb, comp.opacity, sigmas, comp.weights, rgbs)
