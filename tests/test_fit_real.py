@@ -16,6 +16,7 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from crfedit import occupancy
+from crfedit.cameras import Camera, look_at, spherical_eye
 from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data.format import Category, load_category
@@ -35,7 +36,7 @@ from crfedit.edit.fit_real import (
 from crfedit.errors import CrfError
 from crfedit.field import ConditionalRadianceField
 from crfedit.metrics import psnr
-from crfedit.model import load_model
+from crfedit.model import CategoryModel, load_model
 from crfedit.renderer import render_camera
 from crfedit.train import train
 
@@ -184,6 +185,21 @@ def test_joint_prefixes_match_parameters():
     names = [n for n, _ in paper.named_parameters()]
     covered = {n for n in names if n.startswith(JOINT["all"])}
     assert covered == set(names) - {"shape_codes", "color_codes"}
+
+
+def test_paper_preset_fits_both_networks_without_a_grid():
+    cfg = make_config("paper", overrides=dict(
+        width=8, rad_width=8, share_layers=1, inst_layers=1, fuse_layers=1, n_coarse=8, n_fine=8, pe_x=2, pe_d=1,
+    ))
+    torch.manual_seed(0)
+    model = CategoryModel(ConditionalRadianceField(cfg, 2), ["a", "b"])
+    camera = Camera(look_at(spherical_eye(30.0, 20.0, 2.0)), 10.0, 8, 8)
+    photo = prepare_photo(np.full((8, 8, 3), 0.5, np.float32), None, 8, 8)
+    result = fit_real(model, photo, camera, "c", FitOptions(steps_codes=2, steps_joint=2, rays=16))
+    names = {n for n, _ in model.field.named_parameters() if n.startswith(JOINT["heads"])}
+    assert any(n.startswith("coarse.F_rad.") for n in names)
+    assert set(result.tensors) == names | {"shape_code", "color_code"}  # no occupancy: the sampler ignores it
+    assert result.model.names == ["a", "b", "c"]
 
 
 # ----------------------------------------------------------------------------- the photo

@@ -72,11 +72,14 @@ def _one_view(model, spec: str, instance: int, option: str = "--view"):
     return views[0]
 
 
-def _masks(scribble: Path | None, scribble_json: Path | None, keep: Path | None, keep_json: Path | None, camera, what: str):
-    from ..edit.scribble import load_mask
-
+def _require_scribble(scribble: Path | None, scribble_json: Path | None, what: str) -> None:
     if scribble is None and scribble_json is None:
         raise CrfError(f"give the {what} as --scribble MASK.png or --scribble-json STROKES.json")
+
+
+def _masks(scribble: Path | None, scribble_json: Path | None, keep: Path | None, keep_json: Path | None, camera):
+    from ..edit.scribble import load_mask
+
     fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble")
     bg = load_mask(keep, keep_json, camera.width, camera.height, "keep")
     return fg, bg
@@ -123,12 +126,13 @@ def edit_color_cmd(
     from ..edit.scribble import parse_color
 
     rgb = parse_color(color)
+    _require_scribble(scribble, scribble_json, "part to recolour")
     options = _options(strategy, steps, lr, rays, seed)
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
-    fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera, "part to recolour")
+    fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera)
     _write(edit_color(m, k, camera, fg, rgb, bg, options), out, label)
 
 
@@ -155,12 +159,13 @@ def remove_cmd(
     """Remove the scribbled part of one instance (trains F_fuse and F_dens, updates its occupancy grid)."""
     from ..edit import remove
 
+    _require_scribble(scribble, scribble_json, "part to remove")
     options = _options(strategy, steps, lr, rays, seed)
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
-    fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera, "part to remove")
+    fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera)
     _write(remove(m, k, camera, fg, bg, occluded, options), out, label)
 
 
@@ -252,7 +257,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
             shown = {k: v for k, v in hyper.items() if not isinstance(v, dict)}
             rows.append(("hyper", ", ".join(f"{k}={v}" for k, v in shown.items())))
     rows.append(("size", f"{size} bytes, {len(delta.tensors)} tensors"))
-    for name, t in delta.tensors.items():
+    for name, t in sorted(delta.tensors.items()):
         rows.append(("tensor", f"{name} {list(t.shape)} {str(t.dtype).replace('torch.', '')}"))
     return rows
 
@@ -269,7 +274,7 @@ def show_cmd(
     delta = read_delta(edit)
     size = edit.stat().st_size
     if as_json:
-        tensors = {n: {"shape": list(t.shape), "dtype": str(t.dtype).replace("torch.", "")} for n, t in delta.tensors.items()}
+        tensors = {n: {"shape": list(t.shape), "dtype": str(t.dtype).replace("torch.", "")} for n, t in sorted(delta.tensors.items())}
         typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": delta.meta, "tensors": tensors}, indent=2))
         return
     for key, value in _show_rows(delta, size):

@@ -107,11 +107,11 @@ def render_cmd(
 
     res = parse_resolution(res)
     m, _ = load_model(model, resolve_device(device))
-    k = m.instance_index(instance)
-    if edit:
+    if edit:  # before the instance lookup: an edit may add the instance (fit-real)
         from ..delta import apply_edit_files
 
         m = apply_edit_files(m, list(edit))
+    k = m.instance_index(instance)
     if shape_from is not None or color_from is not None:
         from ..edit.transfer import swap_codes
 
