@@ -278,6 +278,8 @@ def test_fit_real_command_errors_write_nothing(setup, tmp_path):
     path, _, held = setup
     photo = tmp_path / "p.png"
     shutil.copy(held.path / "train" / "r_000.png", photo)
+    clash = tmp_path / "chair_002.png"
+    shutil.copy(photo, clash)
     out = tmp_path / "e.safetensors"
     (tmp_path / "junk.png").write_bytes(b"not an image")
     Image.fromarray(np.zeros((RES, RES), np.uint8)).save(tmp_path / "black.png")
@@ -296,6 +298,7 @@ def test_fit_real_command_errors_write_nothing(setup, tmp_path):
         ((photo, "--pose", tmp_path / "broken.json"), ("broken.json", "malformed JSON")),
         ((photo, "--pose", "train:0-1"), ("--pose", "2 views")),
         ((photo, "--pose", "train:0", "--name", "chair_001"), ("chair_001", "already has")),
+        ((clash, "--pose", "train:0"), ("chair_002", "photo's file name", "--name")),
         ((photo, "--pose", "train:0", "--steps-codes", -1), ("--steps-codes",)),
         ((photo, "--pose", "train:0", "--pose-instance", "nope"), ("nope",)),
     ]

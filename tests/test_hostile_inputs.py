@@ -118,7 +118,8 @@ def header_over_limit(tmp: Path) -> Path:
 
 
 def header_not_json(tmp: Path) -> Path:
-    (tmp / "notjson.safetensors").write_bytes(struct.pack("<Q", 24) + b"\xff\xfe{not json at all}\x00\x01\x02\x03")
+    blob = b"\xff\xfe{not json at all}".ljust(24, b"\x00")
+    (tmp / "notjson.safetensors").write_bytes(struct.pack("<Q", len(blob)) + blob)
     return tmp / "notjson.safetensors"
 
 

@@ -104,11 +104,12 @@ def fit_real_cmd(
         lr_weights=lr_weights, rays=rays, seed=seed,
     ).validated()
     _check_out(out, model)
+    name_from = "--name" if name is not None else "instance name (the photo's file name)"
     name = photo.stem if name is None else name
     image, object_mask = read_photo(photo, mask)
     base, _ = load_model(model, resolve_device(device))
     m = apply_edit_files(base, list(edit or []))
-    check_new_name(m, name)
+    check_new_name(m, name, name_from)
     j = m.instance_index(pose_instance)
     train = m.views.get("train")
     views = resolve_views(pose, m, j, train.width if train is not None else None)

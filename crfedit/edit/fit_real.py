@@ -217,14 +217,15 @@ class FitResult(EditResult):
 # ----------------------------------------------------------------------------- pieces
 
 
-def check_new_name(model: CategoryModel, name: str) -> str:
-    """A valid name for an added instance: non-empty, not a number, not taken."""
+def check_new_name(model: CategoryModel, name: str, what: str = "--name") -> str:
+    """A valid name for an added instance: non-empty, not a number, not taken.  ``what`` says
+    where the name came from in the error message."""
     if not name or name != name.strip() or any(c in name for c in "\n\r\t"):
-        raise CrfError(f"--name {name!r}: must be non-empty, without surrounding spaces or line breaks")
+        raise CrfError(f"{what} {name!r}: must be non-empty, without surrounding spaces or line breaks")
     if name.lstrip("-").isdigit():
-        raise CrfError(f"--name {name}: must not be a number (numbers select instances by index)")
+        raise CrfError(f"{what} {name}: must not be a number (numbers select instances by index); pick a name with --name")
     if name in model.names:
-        raise CrfError(f"--name {name}: the model already has an instance of that name (pick another with --name)")
+        raise CrfError(f"{what} {name}: the model already has an instance of that name (pick another with --name)")
     return name
 
 
