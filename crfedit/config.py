@@ -35,6 +35,9 @@ class Config:
     grid_res: int = 48
     """Instance-agnostic dense feature grid inside F_share (0 = none)."""
     grid_features: int = 8
+    density_act: str = "softplus"
+    """σ from the raw output: exp (truncated at e¹⁵) or softplus (grows linearly, so density
+    cannot saturate within a few hundred steps and trap the geometry)."""
     width: int = 64
     """Width of F_share, F_inst and F_fuse."""
     share_layers: int = 1
@@ -104,6 +107,7 @@ class Config:
             (self.preset in PRESETS, f"preset {self.preset!r}: expected one of {', '.join(PRESETS)}"),
             (self.arch in ARCHS, f"arch {self.arch!r}: expected one of {', '.join(ARCHS)}"),
             (self.sampler in ("grid", "hierarchical"), f"sampler {self.sampler!r}: expected grid or hierarchical"),
+            (self.density_act in ("exp", "softplus"), f"density_act {self.density_act!r}: expected exp or softplus"),
             (self.code_dim > 0 and self.code_embed > 0, "code_dim and code_embed must be positive"),
             (self.width > 0 and self.rad_width > 0 and self.bottleneck > 0, "widths must be positive"),
             (min(self.share_layers, self.inst_layers, self.fuse_layers, self.rad_layers) >= 1, "layer counts must be ≥ 1"),
@@ -146,6 +150,7 @@ PRESETS: dict[str, Config] = {
         lr_codes=1e-4,
         lr_final=0.1,
         density_noise=1.0,
+        density_act="exp",
     ),
 }
 

@@ -116,6 +116,7 @@ class FieldNet(nn.Module):
         super().__init__()
         w, e = cfg.width, cfg.code_embed
         self.arch = cfg.arch
+        self.density_act = cfg.density_act
         self.F_share = SharedBranch(cfg)
         enc = self.F_share.encoded_dim
         self.uses_shape_code = cfg.arch != "nerf"
@@ -157,6 +158,10 @@ class FieldNet(nn.Module):
         """(raw density [M], bottleneck features [M, 8]): the cache of a colour edit."""
         return self.density_from_fuse_inputs(self.fuse_inputs(x, shape_codes, idx))
 
+    def sigma(self, raw: Tensor) -> Tensor:
+        """Density σ ≥ 0 from the raw F_dens output (see :func:`density_activation`)."""
+        return density_activation(raw, self.density_act)
+
     def radiance(self, features: Tensor, directions: Tensor, color_codes: Tensor | None, idx: Tensor | None = None) -> Tensor:
         """F_rad: RGB in [0, 1] from bottleneck features [M, 8], unit directions [M, 3], colour codes."""
         per_point = torch.cat([features, positional_encoding(directions, self.pe_d)], dim=-1)
@@ -188,8 +193,11 @@ class _TruncExp(torch.autograd.Function):
         return grad * y
 
 
-def density_activation(raw: Tensor) -> Tensor:
-    """σ = exp(raw), capped at e¹⁵ ≈ 3.3e6 with a gradient that never vanishes at the cap."""
+def density_activation(raw: Tensor, kind: str = "exp") -> Tensor:
+    """σ = exp(raw), capped at e¹⁵ ≈ 3.3e6 with a gradient that never vanishes at the cap;
+    or σ = softplus(raw), which grows linearly and keeps compositing gradients alive."""
+    if kind == "softplus":
+        return F.softplus(raw)
     return _TruncExp.apply(raw)
 
 

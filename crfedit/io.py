@@ -54,6 +54,24 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         raise
 
 
+def check_folder_target(path: str | os.PathLike, what: str = "") -> None:
+    """``path`` is a folder or can be made one: it is not a file and no existing ancestor is.
+
+    Called before long work, so a bad output path fails in a second rather than at the end.
+    """
+    p = Path(path)
+    label = f"{what} {p}".strip()
+    if p.exists():
+        if not p.is_dir():
+            raise CrfError(f"{label}: exists and is not a folder")
+        return
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise CrfError(f"{label}: {parent} is a file, not a folder")
+            return
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
@@ -145,6 +163,14 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise CrfError(f"{path}: file not found")
     try:
         with OpenEXR.File(str(path)) as f:
-            return {k: np.array(v.pixels, dtype=np.float32) for k, v in f.channels().items()}
+            out = {}
+            for name, channel in f.channels().items():
+                pixels = np.array(channel.pixels, dtype=np.float32)
+                if pixels.ndim == 3:  # OpenEXR 3 groups R, G, B(, A) into one "RGB(A)" channel
+                    for i, c in enumerate(name if len(name) == pixels.shape[2] else "RGBA"[: pixels.shape[2]]):
+                        out[c] = np.ascontiguousarray(pixels[..., i])
+                else:
+                    out[name] = pixels
+            return out
     except Exception as e:  # OpenEXR raises bare exceptions for corrupt files
         raise CrfError(f"{path}: not a readable EXR file ({e.__class__.__name__})") from None

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from . import occupancy
 from .cameras import Camera, Rays, rays_from_camera
-from .field import ConditionalRadianceField, FieldNet, code_selector, density_activation
+from .field import ConditionalRadianceField, FieldNet, code_selector
 from .rendering import (
     composite_from_density,
     importance_sample,
@@ -103,7 +103,7 @@ def evaluate(
     if noise > 0:
         raw = raw + noise * torch.randn(raw.shape, generator=generator).to(raw.device)
     rgb = net.radiance(feat, rays.directions[samples.ray], color_codes, idx)
-    return density_activation(raw), rgb
+    return net.sigma(raw), rgb
 
 
 def composite_packed(samples: PackedSamples, sigmas: Tensor, rgbs: Tensor, background: Tensor | float):

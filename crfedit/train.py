@@ -25,7 +25,7 @@ from .cameras import Rays
 from .config import Config
 from .data.format import Category, TrainingRays, training_rays
 from .errors import CrfError, NonFiniteError
-from .field import ConditionalRadianceField, code_selector, density_activation
+from .field import ConditionalRadianceField, code_selector
 from .model import CategoryModel, ViewTable, load_model, save_model
 from .renderer import render_rays
 
@@ -167,7 +167,7 @@ def refresh_occupancy(field, hulls, ema, instances, generator) -> None:
 
             def density(xn, k=k, shape_code=shape_code):
                 raw, _ = field.density_and_features(xn, shape_code)
-                return density_activation(raw)
+                return field.sigma(raw)
 
             grid = occupancy.update_from_density(
                 ema[k], hulls[k].reshape(-1), density, s, field.cfg.occ_threshold, generator=generator
@@ -260,7 +260,7 @@ def train(
         if cfg.view_reg > 0:
             loss = loss + cfg.view_reg * view_dependence_penalty(field, rays, inst, out_r.depth, out_r.opacity, generator)
         if not torch.isfinite(loss):
-            raise NonFiniteError(f"training diverged at step {step} (loss is {float(loss)}); {out} keeps its last checkpoint")
+            raise NonFiniteError(f"training diverged at step {step} (loss is {float(loss.detach())}); {out} keeps its last checkpoint")
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

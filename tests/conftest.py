@@ -2,11 +2,15 @@
 
 * torch runs single-threaded for the whole session.  The tests use tiny tensors (16×16 views,
   256-ray batches) on a shared 2-core machine, where OpenMP's second thread mostly spin-waits:
-  ``tests/test_cli_train_render.py`` (quickstart deselected) took 78 s with torch's default
-  2 threads and 32 s with one (docs/robustness.md, "Hostile inputs").  Modules that set one
-  thread themselves and restore the count afterwards keep working unchanged.
-* ``tiny_chairs``: a 2-chair × 6-view 16×16 synthetic category, written once per session, for
-  tests that need a dataset and do not modify it.
+  ``tests/test_cli_train_render.py`` (quickstart deselected), five alternating runs each, took
+  12–78 s (median 38 s) with torch's default two threads and 5.6–7.7 s (median 6.3 s) with one
+  (docs/robustness.md, "Hostile inputs").  Modules that set one thread themselves and restore
+  the previous count afterwards keep working unchanged.
+* ``tiny_chairs``: a 2-chair × 6-view 16×16 synthetic category, written once per session.
+* ``tiny_model``: a model of it trained for 30 steps (fast preset, 256 rays, a checkpoint every
+  10 steps, seed 0).
+
+Tests must not modify the session fixtures' files (tests/test_hostile_inputs.py hashes them).
 """
 
 from __future__ import annotations
@@ -35,19 +39,14 @@ def tiny_chairs(tmp_path_factory) -> Path:
     return root
 
 
-def tiny_config(**overrides):
-    """The fast preset cut down for tests: 30 steps of 256 rays, a checkpoint every 10 steps."""
-    from crfedit.config import make_config
-
-    return make_config("fast", overrides=dict(steps=30, rays=256, checkpoint_every=10, **overrides))
-
-
 @pytest.fixture(scope="session")
 def tiny_model(tiny_chairs) -> Path:
-    """A model of ``tiny_chairs`` trained for 30 steps (seed 0); tests must not modify the file."""
+    """A read-only model of ``tiny_chairs``: 30 steps of the fast preset, seed 0."""
+    from crfedit.config import make_config
     from crfedit.data import load_category
     from crfedit.train import train
 
     path = tiny_chairs.parent / "model.safetensors"
-    train(load_category(tiny_chairs), tiny_config(), path, torch.device("cpu"), seed=0)
+    cfg = make_config("fast", overrides=dict(steps=30, rays=256, checkpoint_every=10))
+    train(load_category(tiny_chairs), cfg, path, torch.device("cpu"), seed=0)
     return path

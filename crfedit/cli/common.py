@@ -27,9 +27,15 @@ app.add_typer(edits_app, name="edits")
 app.add_typer(eval_app, name="eval")
 
 
+def printable(text: object) -> str:
+    """``text`` with control characters (ESC, BEL, …) escaped: strings from shared files must
+    not be able to drive the user's terminal."""
+    return "".join(c if c.isprintable() or c in "\n\t" else repr(c)[1:-1] for c in str(text))
+
+
 def fail(message: str) -> "typer.Exit":
     """Print ``error: message`` to stderr and return the exit to raise (code 2)."""
-    typer.echo(f"error: {' '.join(str(message).split())}", err=True)
+    typer.echo(f"error: {printable(' '.join(str(message).split()))}", err=True)
     return typer.Exit(EXIT_USER_ERROR)
 
 

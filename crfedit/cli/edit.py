@@ -14,7 +14,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from .common import DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
+from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
 
 
 class Strategy(str, enum.Enum):
@@ -278,7 +278,7 @@ def show_cmd(
         typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": delta.meta, "tensors": tensors}, indent=2))
         return
     for key, value in _show_rows(delta, size):
-        typer.echo(f"{key:<13} {value}")
+        typer.echo(printable(f"{key:<13} {value}"))
 
 
 @edits_app.command("check")
@@ -296,7 +296,7 @@ def check_cmd(
     check_stack(m, deltas)
     typer.echo(f"ok: {len(deltas)} edit(s) apply to {model} in this order")
     for i, d in enumerate(deltas, 1):
-        typer.echo(f"  {i}. {d.path}: {d.kind} edit of {d.instance} ({d.fingerprint})")
+        typer.echo(printable(f"  {i}. {d.path}: {d.kind} edit of {d.instance} ({d.fingerprint})"))
 
 
 @edits_app.command("bake")

@@ -14,6 +14,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from ..io import check_folder_target
 from ..errors import CrfError
 from .common import DeviceChoice, DeviceOpt, SeedOpt, app, eval_app, user_errors
 from .train import PresetChoice
@@ -258,8 +259,8 @@ def ablation_cmd(
         raise CrfError("give a budget per variant: --minutes M and/or --steps N")
     if max_views is not None and max_views < 1:
         raise CrfError(f"--max-views {max_views}: must be at least 1")
-    if models is not None and models.exists() and not models.is_dir():
-        raise CrfError(f"--models {models}: exists and is not a folder")
+    if models is not None:
+        check_folder_target(models, "--models")
     base = make_config(preset.value, sets=sets or [])
     dev = resolve_device(device)
     category = load_category(data, res=parse_resolution(res))
@@ -363,6 +364,7 @@ def bench_cmd(
     for option, path in (("--csv", csv_path), ("--md", md_path)):
         if path.is_dir():
             raise CrfError(f"{option} {path}: is a folder; give a file name")
+        check_folder_target(path.parent, option)
     dev = resolve_device(device)
     with tempfile.TemporaryDirectory(prefix="crfedit-tiny-") as tmp:
         if data is not None:

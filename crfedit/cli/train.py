@@ -11,8 +11,9 @@ from typing import Annotated, Optional
 
 import typer
 
+from ..io import check_folder_target
 from ..errors import CrfError
-from .common import DeviceChoice, DeviceOpt, SeedOpt, app, command_line, user_errors
+from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, user_errors
 
 
 class PresetChoice(str, enum.Enum):
@@ -308,7 +309,7 @@ def info_cmd(
         ("fingerprint", meta["fingerprint"]),
     ]
     for key, value in rows:
-        typer.echo(f"{key:<14} {value}")
+        typer.echo(printable(f"{key:<14} {value}"))
 
 
 # ----------------------------------------------------------------------------- quickstart
@@ -339,8 +340,7 @@ def quickstart_cmd(
 
     if not (minutes > 0 and math.isfinite(minutes)):
         raise CrfError(f"--minutes {minutes:g}: must be a positive number")
-    if out.exists() and not out.is_dir():
-        raise CrfError(f"--out {out}: exists and is not a folder")
+    check_folder_target(out, "--out")
     synth = SynthConfig(instances=instances, views=50, res=res, seed=seed, twins=False)
     check_synth_args(out / "data", synth)
     dev = resolve_device(device)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..cameras import Camera, focal_from_angle, look_at, ray_directions_camera, spherical_eye
 from ..errors import CrfError
-from ..io import write_png
+from ..io import check_folder_target, write_png
 from .format import Frame, TwinSpec, write_instances_txt, write_parts, write_split, write_twins_json
 
 LIGHT = np.array([0.4, -0.3, 0.85]) / np.linalg.norm([0.4, -0.3, 0.85])
@@ -589,8 +589,7 @@ def check_synth_args(out: Path, config: SynthConfig) -> None:
     if not 8 <= config.res <= 4096:
         raise CrfError(f"--res {config.res}: must be between 8 and 4096")
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise CrfError(f"{out}: exists and is not a folder")
+    check_folder_target(out)
     if out.is_dir() and any(out.iterdir()) and not (out / "instances.txt").is_file():
         raise CrfError(f"{out}: folder is not empty and not a dataset; pick a new folder")
 

@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Rays
-from ..field import ConditionalRadianceField, FieldNet, FuseInputs, density_activation, positional_encoding, run_mlp
+from ..field import ConditionalRadianceField, FieldNet, FuseInputs, positional_encoding, run_mlp
 from ..renderer import PackedSamples, composite_packed, evaluate, grid_samples
 from ..rendering import (
     composite_from_density,
@@ -173,7 +173,7 @@ class EditPass:
                 self.inputs = FuseInputs(*(t.detach() if t is not None else None for t in self.net.fuse_inputs(self.xn, shape_code)))
             if stage == "radiance":
                 raw, feat = self.net.density_from_fuse_inputs(self.inputs)
-                weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, dense(density_activation(raw)))
+                weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, dense(self.net.sigma(raw)))
                 w = weights[samples.ray, samples.step]
                 keep = w > PRUNE_WEIGHT
                 per_point = radiance_inputs(self.net, feat, dirs)
@@ -192,7 +192,7 @@ class EditPass:
         shape_code, _ = self.field.codes(self.instance)
         inputs = self.inputs if self.inputs is not None else self.net.fuse_inputs(self.xn, shape_code)
         raw, feat = self.net.density_from_fuse_inputs(inputs)
-        return density_activation(raw), feat
+        return self.net.sigma(raw), feat
 
     def dense(self, values: Tensor) -> Tensor:
         """Packed per-sample values [M, ...] → compacted layout [N, S, ...] (zeros elsewhere)."""

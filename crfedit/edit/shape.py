@@ -43,7 +43,7 @@ from torch import Tensor
 from .. import occupancy
 from ..cameras import Camera, Rays
 from ..errors import CrfError
-from ..field import ConditionalRadianceField, density_activation
+from ..field import ConditionalRadianceField
 from ..model import CategoryModel
 from ..renderer import grid_samples, render_camera
 from ..rendering import composite_from_density
@@ -80,7 +80,7 @@ def rethreshold(field: ConditionalRadianceField, instance: int, candidates: Tens
     shape_code, _ = field.codes(instance)
 
     def density(xn: Tensor) -> Tensor:
-        return density_activation(field.density_and_features(xn, shape_code)[0])
+        return field.sigma(field.density_and_features(xn, shape_code)[0])
 
     ema = torch.zeros(res**3, device=candidates.device)
     step = occupancy.step_size(field.aabb, res, cfg.steps_per_cell)
@@ -218,7 +218,7 @@ def donor_densities(
     xn = donor.normalize(pts)
     shape_code, _ = donor.codes(donor_instance)
     net = donor if target.net is target.field else donor.coarse
-    sigma = density_activation(net.density_and_features(xn, shape_code)[0])
+    sigma = net.sigma(net.density_and_features(xn, shape_code)[0])
     if donor.cfg.sampler == "grid":
         inst = torch.full_like(ray, donor_instance)
         sigma = torch.where(occupancy.lookup(donor.occupancy, inst, xn), sigma, torch.zeros_like(sigma))
