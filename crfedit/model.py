@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .cameras import Camera
 from .config import Config
 from .errors import CrfError, ModelFileError
 from .field import ConditionalRadianceField
@@ -99,9 +100,7 @@ class ViewTable:
     width: int
     height: int
 
-    def cameras(self, instance: int) -> list["Camera"]:
-        from .cameras import Camera
-
+    def cameras(self, instance: int) -> list[Camera]:
         rows = (self.instance == instance).nonzero().squeeze(-1).tolist()
         return [Camera(self.c2w[i].numpy().copy(), float(self.focal[i]), self.width, self.height) for i in rows]
 

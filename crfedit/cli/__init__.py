@@ -21,4 +21,14 @@ _register()
 
 
 def main() -> None:
+    import sys
+
+    from ..errors import CrfError
+    from ..runtime import configure_threads
+
+    try:
+        configure_threads()
+    except CrfError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
     app()
