@@ -350,10 +350,12 @@ def test_grid_samples_only_in_occupied_cells_and_tile_the_march():
     field.occupancy[0, :, :, 16:] = True  # the upper half of the box (z > 0) for instance 0
     rays = Rays(torch.tensor([[0.1, 0.05, -2.0]]), torch.tensor([[0.0, 0.0, 1.0]]))
     s = grid_samples(field, rays, torch.tensor([0]))
-    step = 1.2 / 32 / 2
+    per_cell = field.cfg.steps_per_cell
+    step = 1.2 / 32 / per_cell  # box side / cells / steps per cell
+    n = round(16 * per_cell)  # the ray crosses 16 occupied cells (0.6 of depth)
     assert (s.points[:, 2] > 0).all() and torch.allclose(s.points[:, :2], torch.tensor([0.1, 0.05]))
-    assert s.ray.numel() == 32  # the ray crosses 0.6 of occupied depth in steps of 0.01875
-    torch.testing.assert_close(s.t_ends - s.t_starts, torch.full((32,), step), rtol=0, atol=1e-6)
+    assert s.ray.numel() == n
+    torch.testing.assert_close(s.t_ends - s.t_starts, torch.full((n,), step), rtol=0, atol=1e-6)
     torch.testing.assert_close(s.t_starts[1:], s.t_ends[:-1], rtol=0, atol=1e-6)
     torch.testing.assert_close(s.t_ends[-1], torch.tensor(2.6), rtol=0, atol=1e-6)  # exit of the box
     assert grid_samples(field, rays, torch.tensor([1])).ray.numel() == 0  # instance 1 is empty
