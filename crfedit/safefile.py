@@ -66,13 +66,11 @@ def read_header(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
 
 def read_safetensors(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """(tensors on CPU, string metadata) after :func:`read_header` validated the file."""
-    read_header(path)
+    _, meta = read_header(path)
     try:
-        data = Path(path).read_bytes()
-        tensors = st_load(data)
+        tensors = st_load(Path(path).read_bytes())
     except Exception as e:  # safetensors raises its own error types for corrupt data
         raise ModelFileError(f"{path}: corrupt safetensors data ({e.__class__.__name__})") from None
-    _, meta = read_header(path)
     return tensors, meta
 
 

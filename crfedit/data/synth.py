@@ -494,9 +494,14 @@ def erode(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def stroke_mask(shape: tuple[int, int], points: np.ndarray, radius: float) -> np.ndarray:
-    """Pixels whose centers lie within ``radius`` of the polyline through ``points`` ([K, 2] x, y)."""
+    """Pixels whose centers lie within ``radius`` of the polyline through ``points`` ([K, 2] x, y,
+    pixel units with (0, 0) the center of the top-left pixel).  A single point draws a dot.
+
+    Shared by the generator's twin scribbles and the edit commands' ``--scribble-json`` strokes.
+    """
     yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
-    pix = np.stack([xx, yy], -1).astype(float)  # [H, W, 2] pixel index coordinates
+    pix = np.stack([xx, yy], -1).astype(np.float64)  # [H, W, 2] pixel index coordinates
+    points = np.asarray(points, dtype=np.float64)
     segments = list(zip(points[:-1], points[1:])) or [(points[0], points[0])]
     mask = np.zeros(shape, bool)
     for a, b in segments:

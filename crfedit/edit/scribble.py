@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from ..data.format import read_mask
+from ..data.synth import stroke_mask
 from ..errors import CrfError
 from ..io import read_json
 
@@ -40,22 +41,6 @@ def parse_color(text: str) -> tuple[float, float, float]:
     if len(digits) == 3:
         digits = "".join(c * 2 for c in digits)
     return tuple(int(digits[i : i + 2], 16) / 255.0 for i in (0, 2, 4))  # type: ignore[return-value]
-
-
-def stroke_mask(shape: tuple[int, int], points: np.ndarray, radius: float) -> np.ndarray:
-    """Pixels whose centers lie within ``radius`` of the polyline through ``points`` ([K, 2] x, y,
-    pixel units with (0, 0) the center of the top-left pixel).  A single point draws a dot."""
-    h, w = shape
-    yy, xx = np.mgrid[0:h, 0:w]
-    pix = np.stack([xx, yy], -1).astype(np.float64)
-    pts = np.asarray(points, dtype=np.float64)
-    segments = list(zip(pts[:-1], pts[1:])) or [(pts[0], pts[0])]
-    mask = np.zeros(shape, bool)
-    for a, b in segments:
-        ab = b - a
-        s = np.clip(((pix - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
-        mask |= np.linalg.norm(pix - (a + s[..., None] * ab), axis=-1) <= radius
-    return mask
 
 
 def default_radius(width: int) -> float:
