@@ -53,18 +53,27 @@ class Rays(NamedTuple):
     directions: torch.Tensor  # [N, 3]
 
 
-def ray_directions_camera(width: int, height: int, focal: float) -> torch.Tensor:
+def ray_directions_camera(
+    width: int, height: int, focal: float, offset: tuple[float, float] = (0.5, 0.5)
+) -> torch.Tensor:
     """Unnormalized camera-space directions through pixel centers, row-major.  [H*W, 3]
 
     Example: a 2×2 image with focal 1 gives (-0.5, 0.5, -1), (0.5, 0.5, -1),
-    (-0.5, -0.5, -1), (0.5, -0.5, -1).
+    (-0.5, -0.5, -1), (0.5, -0.5, -1).  ``offset`` (x right, y down, in pixels from the
+    pixel's top-left corner) moves the sample inside each pixel, for supersampled datasets.
     """
     j, i = torch.meshgrid(
         torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
     )
-    x = (i + 0.5 - 0.5 * width) / focal
-    y = -(j + 0.5 - 0.5 * height) / focal
+    x = (i + offset[0] - 0.5 * width) / focal
+    y = -(j + offset[1] - 0.5 * height) / focal
     return torch.stack([x, y, -torch.ones_like(x)], dim=-1).reshape(-1, 3)
+
+
+def subpixel_offsets(n: int) -> list[tuple[float, float]]:
+    """An n×n grid of sample positions per pixel (cell centers), center first when n is odd."""
+    grid = [((i + 0.5) / n, (j + 0.5) / n) for j in range(n) for i in range(n)]
+    return sorted(grid, key=lambda o: (o != (0.5, 0.5),))
 
 
 def rays_from_camera(camera: Camera, device: torch.device | str = "cpu") -> Rays:

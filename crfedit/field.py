@@ -77,19 +77,20 @@ def linear_with_codes(layer: nn.Linear, per_point: Tensor, per_code: Tensor | No
 
     The code columns of the weight act on each code row once ([K, out]) and are then gathered.
     ``idx`` picks a row per point: [M] int64, or a one-hot [M, K] float selector (a matmul,
-    whose backward is fast and accumulates in a fixed order), or None for a single code row.
+    whose backward is fast and accumulates in a fixed order), or None for a single code row,
+    which then enters as the layer's bias (one fused multiply-add, no per-point gather).
     """
     if per_code is None:
         return layer(per_point)
     n = per_point.shape[-1]
     code_part = F.linear(per_code, layer.weight[:, n:], layer.bias)  # [K, out]
     if idx is None:
-        code_part = code_part.expand(per_point.shape[0], -1)
-    elif idx.is_floating_point():
-        code_part = idx @ code_part
-    else:
-        code_part = torch.index_select(code_part, 0, idx)
-    return F.linear(per_point, layer.weight[:, :n]) + code_part
+        if code_part.shape[0] != 1:
+            raise ValueError("idx=None needs a single code row")
+        return F.linear(per_point, layer.weight[:, :n], code_part[0])
+    if idx.is_floating_point():
+        return torch.addmm(idx @ code_part, per_point, layer.weight[:, :n].T)
+    return torch.addmm(torch.index_select(code_part, 0, idx), per_point, layer.weight[:, :n].T)
 
 
 def code_selector(idx: Tensor, n_codes: int, dtype: torch.dtype = torch.float32) -> Tensor:
@@ -117,6 +118,7 @@ class FieldNet(nn.Module):
         w, e = cfg.width, cfg.code_embed
         self.arch = cfg.arch
         self.density_act = cfg.density_act
+        self.density_scale = cfg.density_scale
         self.F_share = SharedBranch(cfg)
         enc = self.F_share.encoded_dim
         self.uses_shape_code = cfg.arch != "nerf"
@@ -160,7 +162,8 @@ class FieldNet(nn.Module):
 
     def sigma(self, raw: Tensor) -> Tensor:
         """Density σ ≥ 0 from the raw F_dens output (see :func:`density_activation`)."""
-        return density_activation(raw, self.density_act)
+        sigma = density_activation(raw, self.density_act)
+        return sigma if self.density_scale == 1.0 else sigma * self.density_scale
 
     def radiance(self, features: Tensor, directions: Tensor, color_codes: Tensor | None, idx: Tensor | None = None) -> Tensor:
         """F_rad: RGB in [0, 1] from bottleneck features [M, 8], unit directions [M, 3], colour codes."""

@@ -93,12 +93,20 @@ def grid_samples(
 
 
 def evaluate(
-    net: FieldNet, field: ConditionalRadianceField, samples: PackedSamples, rays: Rays, instance: Tensor,
+    net: FieldNet, field: ConditionalRadianceField, samples: PackedSamples, rays: Rays, instance: Tensor | int,
     noise: float = 0.0, generator: torch.Generator | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """σ [M] and rgb [M, 3] of ``net`` at the packed samples."""
+    """σ [M] and rgb [M, 3] of ``net`` at the packed samples.
+
+    ``instance``: [N] long per ray, or an int when every ray shows the same instance (a
+    rendered view): its code rows then enter as biases, with no per-point selection.
+    """
     shape_codes, color_codes = field.code_tables()
-    idx = code_selector(instance[samples.ray], field.n_instances)
+    if isinstance(instance, int):
+        pick = lambda t: None if t is None else t[instance : instance + 1]
+        shape_codes, color_codes, idx = pick(shape_codes), pick(color_codes), None
+    else:
+        idx = code_selector(instance[samples.ray], field.n_instances)
     raw, feat = net.density_and_features(field.normalize(samples.points), shape_codes, idx)
     if noise > 0:
         raw = raw + noise * torch.randn(raw.shape, generator=generator).to(raw.device)
@@ -131,9 +139,10 @@ def render_rays(
     deterministic.  ``early_stop`` (grid sampler) drops rays whose transmittance is below it.
     """
     n = rays.origins.shape[0]
+    single = int(instance) if not isinstance(instance, Tensor) else None
     instance = instance_tensor(instance, n, rays.origins.device)
     if field.cfg.sampler == "hierarchical":
-        return _render_hierarchical(field, rays, instance, generator, background, density_noise)
+        return _render_hierarchical(field, rays, instance, generator, background, density_noise, single)
     t_near, t_far, hit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
     jitter = None if generator is None else torch.rand(n, generator=generator).to(rays.origins.device)
     s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell)
@@ -152,7 +161,7 @@ def render_rays(
             field, sub, instance[alive], first, segment, None if jitter is None else jitter[alive], t_near[alive], t_far[alive]
         )
         if samples.ray.numel():
-            sig, col = evaluate(field, field, samples, sub, instance[alive], density_noise, generator)
+            sig, col = evaluate(field, field, samples, sub, instance[alive] if single is None else single, density_noise, generator)
             comp = composite_packed(samples, sig, col, 0.0)
             t_prev = trans[alive]
             rgb = rgb.index_add(0, alive, t_prev[:, None] * comp.rgb)
@@ -166,7 +175,7 @@ def render_rays(
     return RenderOutput(rgb, depth, opacity, n_samples)
 
 
-def _render_hierarchical(field, rays, instance, generator, background, density_noise) -> RenderOutput:
+def _render_hierarchical(field, rays, instance, generator, background, density_noise, single=None) -> RenderOutput:
     cfg = field.cfg
     t_near, t_far, hit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
     n = rays.origins.shape[0]
@@ -176,7 +185,7 @@ def _render_hierarchical(field, rays, instance, generator, background, density_n
         pts = rays.origins[:, None] + t[..., None] * rays.directions[:, None]
         ray_i, col = hit[:, None].expand_as(t).nonzero(as_tuple=True)
         samples = PackedSamples(ray_i, col, starts[ray_i, col], ends[ray_i, col], pts[ray_i, col], n, t.shape[1])
-        sig, col_rgb = evaluate(net, field, samples, rays, instance, density_noise, generator)
+        sig, col_rgb = evaluate(net, field, samples, rays, instance if single is None else single, density_noise, generator)
         return composite_packed(samples, sig, col_rgb, background), samples.ray.numel()
 
     t_c = stratified_samples(t_near, t_far, cfg.n_coarse, generator)

@@ -22,7 +22,7 @@ from crfedit.data import load_category
 from crfedit.data.synth import SynthConfig, dilate, erode, write_synth_category
 from crfedit.delta import apply_edit_files, read_delta
 from crfedit.edit import CODES, TRAINED, EditOptions, add, edit_color, remove, swap_codes, trained_prefixes, transfer
-from crfedit.edit.cache import edit_passes, radiance_from_inputs, radiance_inputs
+from crfedit.edit.cache import ViewCache, edit_passes, radiance_from_inputs, radiance_inputs
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.losses import density_cross_entropy, density_entropy, log_density_drift, visible_log_density
 from crfedit.edit.scribble import parse_color, strokes_mask
@@ -186,6 +186,25 @@ def test_color_edit_moves_the_part_toward_the_target(trained):
     meta = result.meta
     assert meta["kind"] == "color" and meta["instance"] == model.names[k] and float(meta["seconds"]) > 0
     assert json.loads(meta["hyperparameters"])["stage"] == "radiance"
+
+
+def test_view_cache_rerenders_a_color_edit_like_the_renderer(trained):
+    """After a colour edit the cached view (F_rad alone on cached samples) equals a fresh render:
+    to float rounding at prune 0, within the summed pruned weight at the default."""
+    _, model, category = trained
+    k = 1
+    _, view, fg, keep, _ = scribbles(category, k, "back")
+    camera = held_out(category, k)[0].camera
+    exact, pruned = ViewCache(model.field, camera, k, prune=0.0), ViewCache(model.field, camera, k, prune=0.02)
+    before = render(model, k, camera).rgb
+    assert torch.allclose(exact.render(model.field), before, atol=2e-5)
+    edited = edit_color(model, k, view.camera, fg, "blue", keep, EditOptions(steps=30)).model
+    after = render(edited, k, camera).rgb
+    assert float((after - before).abs().max()) > 0.05  # the edit changed the view
+    assert torch.allclose(exact.render(edited.field_for(k)), after, atol=2e-5)
+    # a pruned sample keeps its old colour: the error is at most the ray's pruned weight
+    assert float((pruned.render(edited.field_for(k)) - after).abs().max()) < 0.05
+    assert pruned.n_cached < exact.n_cached
 
 
 def test_removal_lowers_opacity_in_a_held_out_view(trained):

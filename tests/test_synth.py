@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 from crfedit.cameras import Camera, focal_from_angle, look_at
 from crfedit.cli import app
 from crfedit.data import dataset_info, load_category, load_twins, read_mask
+from crfedit.data.format import box_filter
 from crfedit.data.synth import (
     LIGHT,
     Chair,
@@ -55,6 +56,34 @@ def test_box_head_on_exact_depth_and_shading():
     # a corner ray misses: background
     assert frame.depth[0, 0] == np.inf and frame.parts[0, 0] == 0 and frame.rgba[0, 0, 3] == 0
     np.testing.assert_array_equal(frame.rgba[0, 0, :3], 1.0)
+
+
+def test_antialiased_alpha_is_pixel_coverage():
+    """aa×aa supersamples, box-filtered: a box seen head on covers (2·f·0.19/1.81)² pixels, to
+    within the 3×3 grid's quantization (≤ 1/6 px per edge pixel, so ≤ perimeter/6 in all)."""
+    chair = one_part(box((0, 0, 0), (0.19, 0.19, 0.19), 1))
+    cam = Camera(look_at((0, -2, 0)), focal_from_angle(0.6911, 64), 64, 64)
+    sharp, smooth = render_chair(chair, cam, aa=1), render_chair(chair, cam, aa=3)
+    side = 2 * cam.focal * 0.19 / 1.81
+    alpha = smooth.rgba[..., 3]
+    assert abs(alpha.sum() - side**2) <= 4 * side / 6
+    assert set(np.unique(np.round(alpha * 9, 4))) <= set(range(10))  # multiples of 1/9
+    assert ((alpha > 0) & (alpha < 1)).sum() > 0
+    np.testing.assert_array_equal(sharp.rgba[..., 3] > 0, sharp.parts > 0)
+    # depth and parts come from the center ray, whatever the supersampling
+    np.testing.assert_array_equal(smooth.depth, sharp.depth)
+    np.testing.assert_array_equal(smooth.parts, sharp.parts)
+    # an edge pixel composited on white is the coverage-weighted mix of face colour and white
+    j, i = np.argwhere((alpha > 0) & (alpha < 1))[0]
+    face = sharp.rgba[32, 32, :3]
+    np.testing.assert_allclose(smooth.rgba[j, i, :3] * alpha[j, i] + 1 - alpha[j, i], face * alpha[j, i] + 1 - alpha[j, i], atol=1e-6)
+
+
+def test_box_filter_closed_form():
+    rgb = np.array([[[0.2, 0.4, 0.6], [0.0, 0.0, 0.0]], [[1.0, 1.0, 1.0], [0.5, 0.5, 0.5]]])  # [S=2, N=2, 3]
+    hit = np.array([[True, False], [False, False]])
+    rgba = box_filter(rgb, hit)
+    np.testing.assert_allclose(rgba, [[0.2, 0.4, 0.6, 0.5], [1.0, 1.0, 1.0, 0.0]])
 
 
 @pytest.mark.parametrize(
@@ -108,6 +137,14 @@ def synth(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def synth_aliased(tmp_path_factory):
+    """One ray per pixel center: every pixel's colour belongs to the part its center hits."""
+    root = tmp_path_factory.mktemp("synth1") / "chairs"
+    write_synth_category(root, SynthConfig(instances=2, views=6, res=32, seed=3, aa=1))
+    return root
+
+
 def test_synth_is_deterministic(synth, tmp_path):
     write_synth_category(tmp_path / "again", SynthConfig(instances=2, views=6, res=32, seed=3))
     assert _files(synth) == _files(tmp_path / "again")
@@ -122,14 +159,16 @@ def test_synth_layout_and_info(synth):
     view = cat.instances[0].splits["train"][0]
     assert view.rgb.shape == (32, 32, 3) and view.parts.dtype == np.uint8
     assert math.isclose(view.camera.camera_angle_x, 0.6911) and math.isclose(np.linalg.norm(view.camera.center), 2.0)
-    np.testing.assert_array_equal(view.alpha > 0, view.parts > 0)
+    assert (view.alpha[view.parts > 0] > 0).all()  # the center ray is one of the 3×3 samples
+    assert ((view.alpha > 0) & (view.alpha < 1)).any()  # antialiased edges
     np.testing.assert_array_equal(np.isfinite(view.depth), view.parts > 0)
     info = dataset_info(cat)
     assert info["bbox"]["source"] == "depth" and info["twins"] == 4
     assert all(-0.5 - 1e-4 <= x <= 0.5 + 1e-4 for x in info["bbox"]["min"] + info["bbox"]["max"])
 
 
-def test_twins(synth):
+def test_twins(synth_aliased):
+    synth = synth_aliased
     cat = load_category(synth, with_parts=True)
     twins = load_twins(synth)
     assert sorted((s.source, s.kind) for s, _ in twins) == [(n, k) for n in cat.names for k in ("color", "remove")]

@@ -65,6 +65,9 @@ class DeviceChoice(str, enum.Enum):
 
 DeviceOpt = Annotated[DeviceChoice, typer.Option("--device", help="Where to compute: auto picks cuda when available.")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed; the same seed gives the same result.")]
+AaOpt = Annotated[
+    int, typer.Option("--aa", help="Antialiasing: aa×aa rays per pixel, box-filtered (1 = one ray per pixel center, aliased).")
+]
 
 
 def command_line() -> str:

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import SeedOpt, dataset_app, user_errors
+from .common import AaOpt, SeedOpt, dataset_app, user_errors
 
 
 def _rate_column():
@@ -33,13 +33,14 @@ def synth(
     res: Annotated[int, typer.Option("--res", help="Image width and height in pixels.")] = 64,
     seed: SeedOpt = 0,
     twins: Annotated[bool, typer.Option("--twins/--no-twins", help="Also write ground-truth color/removal twins.")] = True,
+    aa: AaOpt = 3,
 ) -> None:
     """Render procedural chairs with depth, part maps and edit twins."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from ..data.synth import SynthConfig, check_synth_args, synth_steps, write_synth_category
 
-    config = SynthConfig(instances=instances, views=views, res=res, seed=seed, twins=twins)
+    config = SynthConfig(instances=instances, views=views, res=res, seed=seed, twins=twins, aa=aa)
     check_synth_args(out, config)
     columns = (TextColumn("{task.description:<18}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
     with Progress(*columns) as bar:

@@ -49,6 +49,19 @@ class Frame:
     parts: np.ndarray | None  # [H, W] uint8, 0 = background
 
 
+def box_filter(rgb: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """Average supersamples into straight-alpha pixels.  rgb [S, N, 3], hit [S, N] → rgba [N, 4]
+
+    alpha = fraction of samples that hit; rgb = mean colour of the hits (white where none hit),
+    so compositing on white, ``rgb·α + (1−α)``, equals the box-filtered image on white.
+    """
+    n_hit = hit.sum(axis=0)
+    alpha = n_hit / hit.shape[0]
+    total = (rgb * hit[..., None]).sum(axis=0)
+    color = np.where(n_hit[:, None] > 0, total / np.maximum(n_hit, 1)[:, None], 1.0)
+    return np.concatenate([color, alpha[:, None]], axis=1)
+
+
 @dataclass(frozen=True)
 class TwinSpec:
     """A ground-truth twin of a source instance: what an edit of it should produce."""

@@ -35,10 +35,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..cameras import Camera
+from ..cameras import Camera, subpixel_offsets
 from ..errors import CrfError, DataError
 from ..io import atomic_write_text, read_json, write_png
-from .format import Frame, TwinSpec, write_instances_txt, write_parts, write_split, write_twins_json
+from .format import Frame, TwinSpec, box_filter, write_instances_txt, write_parts, write_split, write_twins_json
 from .synth import (
     PALETTE,
     SynthConfig,
@@ -331,22 +331,34 @@ def facing_normals(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return np.where(away, -normals, normals)
 
 
-def render_view(scene: RayScene, camera: Camera, albedo: np.ndarray) -> Frame:
+def render_view(scene: RayScene, camera: Camera, albedo: np.ndarray, aa: int = 1) -> Frame:
     """Ray-cast one view: rgba (white, alpha 0 on background), ray depth (+inf) and part ids.
 
     ``albedo: [P + 1, 3]`` rgb per part id (:func:`albedo_table`); shading is synth's
-    ``albedo · (0.35 + 0.65 · max(0, n·L))`` with the normal facing the camera.
+    ``albedo · (0.35 + 0.65 · max(0, n·L))`` with the normal facing the camera.  ``aa`` > 1
+    supersamples aa×aa rays per pixel and box-filters them (alpha = coverage); depth and part
+    ids come from the pixel-center ray.
     """
-    origins, directions = camera_rays(camera)
-    face, t = scene.first_hits(np.ascontiguousarray(origins), directions)
-    hit = face >= 0
-    part = np.zeros(len(face), dtype=np.uint8)
-    part[hit] = scene.mesh.face_part[face[hit]]
-    rgb = np.ones((len(face), 3))
-    rgb[hit] = shade(facing_normals(scene.face_normals[face[hit]], directions[hit]), albedo[part[hit]])
+    offsets = subpixel_offsets(aa)
+    if offsets[0] != (0.5, 0.5):
+        offsets = [(0.5, 0.5)] + offsets
+    colors, hits = [], []
+    for i, offset in enumerate(offsets):
+        origins, directions = camera_rays(camera, offset)
+        face, t = scene.first_hits(np.ascontiguousarray(origins), directions)
+        hit = face >= 0
+        part = np.zeros(len(face), dtype=np.uint8)
+        part[hit] = scene.mesh.face_part[face[hit]]
+        rgb = np.ones((len(face), 3))
+        rgb[hit] = shade(facing_normals(scene.face_normals[face[hit]], directions[hit]), albedo[part[hit]])
+        if i == 0:
+            center_t, center_part = t, part
+        if aa == 1 or i > 0 or aa % 2 == 1:
+            colors.append(rgb)
+            hits.append(hit)
     shape = (camera.height, camera.width)
-    rgba = np.concatenate([rgb, hit[:, None].astype(np.float64)], axis=1).reshape(*shape, 4)
-    return Frame(camera, rgba.astype(np.float32), t.reshape(shape).astype(np.float32), part.reshape(shape))
+    rgba = box_filter(np.stack(colors), np.stack(hits)).reshape(*shape, 4)
+    return Frame(camera, rgba.astype(np.float32), center_t.reshape(shape).astype(np.float32), center_part.reshape(shape))
 
 
 # ----------------------------------------------------------------------------- parts for twins
@@ -417,6 +429,8 @@ class MeshDatasetConfig:
     """The file's up axis: ``z``, or ``y`` (most OBJ and every glTF file)."""
     twins: bool = True
     """Also write ground-truth color and removal twins of up to 4 meshes."""
+    aa: int = 3
+    """Supersamples per pixel side (aa×aa rays, box-filtered); 1 = one ray per pixel center."""
 
 
 @dataclass(frozen=True)
@@ -460,7 +474,7 @@ def _check(out: Path, paths: list[Path], config: MeshDatasetConfig) -> None:
         raise CrfError(f"--palette {config.palette}: expected random or mtl")
     if config.up not in ("y", "z"):
         raise CrfError(f"--up {config.up}: expected y or z")
-    synth_like = SynthConfig(instances=len(paths), views=config.views, res=config.res, seed=config.seed, twins=config.twins)
+    synth_like = SynthConfig(instances=len(paths), views=config.views, res=config.res, seed=config.seed, twins=config.twins, aa=config.aa)
     check_synth_args(out, synth_like)
 
 
@@ -475,9 +489,11 @@ class _Instance:
     room: dict[int, tuple[int, int]]  # part id → scribble_view(train frames, id)
 
 
-def _write_instance(folder: Path, mesh: PartMesh, colors: list[str], cams: dict[str, list[Camera]]) -> dict[str, list[Frame]]:
+def _write_instance(
+    folder: Path, mesh: PartMesh, colors: list[str], cams: dict[str, list[Camera]], aa: int = 1
+) -> dict[str, list[Frame]]:
     scene, albedo = RayScene(mesh), albedo_table(mesh, colors)
-    frames = {split: [render_view(scene, cam, albedo) for cam in cams_] for split, cams_ in cams.items()}
+    frames = {split: [render_view(scene, cam, albedo, aa) for cam in cams_] for split, cams_ in cams.items()}
     for split, fs in frames.items():
         write_split(folder, split, fs)
     present = set(np.unique(mesh.face_part).tolist())
@@ -521,7 +537,7 @@ def _write_twin(
     else:
         color = None
         twin_mesh, twin_colors = inst.mesh.without_part(part_id), inst.colors
-    _write_instance(out / folder, twin_mesh, twin_colors, {"test": inst.cams["test"]})
+    _write_instance(out / folder, twin_mesh, twin_colors, {"test": inst.cams["test"]}, config.aa)
     view = inst.room[part_id][0]
     source_view = render_view(RayScene(inst.mesh), inst.cams["train"][view], albedo_table(inst.mesh, inst.colors))
     rng = np.random.default_rng([config.seed, index, 2 if kind == "color" else 3])
@@ -579,7 +595,7 @@ def write_mesh_category(
     for index, (name, mesh) in enumerate(zip(names, meshes)):
         colors = part_colors(mesh, config.palette, np.random.default_rng([config.seed, index, 0]))
         cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
-        frames = _write_instance(out / name, mesh, colors, cams)
+        frames = _write_instance(out / name, mesh, colors, cams, config.aa)
         room = {p.id: scribble_view(frames["train"], p.id) for p in mesh.parts}
         instances.append(_Instance(name, mesh, colors, cams, room))
         if progress:

@@ -20,10 +20,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..cameras import Camera, focal_from_angle, look_at, ray_directions_camera, spherical_eye
+from ..cameras import Camera, focal_from_angle, look_at, ray_directions_camera, spherical_eye, subpixel_offsets
 from ..errors import CrfError
 from ..io import check_folder_target, write_png
-from .format import Frame, TwinSpec, write_instances_txt, write_parts, write_split, write_twins_json
+from .format import Frame, TwinSpec, box_filter, write_instances_txt, write_parts, write_split, write_twins_json
 
 LIGHT = np.array([0.4, -0.3, 0.85]) / np.linalg.norm([0.4, -0.3, 0.85])
 AMBIENT, DIFFUSE = 0.35, 0.65
@@ -200,9 +200,10 @@ def cast_rays(prims: list[Primitive], origins: np.ndarray, directions: np.ndarra
     return Hits(t, part, normal)
 
 
-def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """float64 origins and unit directions of every pixel center, row-major (as rays_from_camera)."""
-    d = ray_directions_camera(camera.width, camera.height, camera.focal).numpy() @ camera.c2w[:3, :3].T
+def camera_rays(camera: Camera, offset: tuple[float, float] = (0.5, 0.5)) -> tuple[np.ndarray, np.ndarray]:
+    """float64 origins and unit directions of every pixel center (or ``offset`` inside each
+    pixel), row-major (as rays_from_camera)."""
+    d = ray_directions_camera(camera.width, camera.height, camera.focal, offset).numpy() @ camera.c2w[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return np.broadcast_to(camera.c2w[:3, 3], d.shape), d
 
@@ -423,20 +424,34 @@ def normalized(chair: Chair) -> Chair:
     return Chair(prims, chair.parts)
 
 
-def render_chair(chair: Chair, camera: Camera, chunk: int = 1 << 15) -> Frame:
-    """Exact render: rgba (white background), ray-distance depth (inf = miss), part ids."""
-    origins, dirs = camera_rays(camera)
+def render_chair(chair: Chair, camera: Camera, aa: int = 1, chunk: int = 1 << 15) -> Frame:
+    """Exact render: rgba (white background), ray-distance depth (inf = miss), part ids.
+
+    ``aa`` > 1 supersamples each pixel on an aa×aa grid and box-filters (alpha = coverage), as a
+    real camera or Blender does; depth and part ids always come from the pixel-center ray.
+    """
     albedo = chair.albedo_table()
-    n = len(dirs)
-    t, part, rgb = np.full(n, np.inf), np.zeros(n, np.int64), np.ones((n, 3))
-    for s in range(0, n, chunk):
-        hits = cast_rays(list(chair.primitives), origins[s : s + chunk], dirs[s : s + chunk])
-        hit = hits.part > 0
-        t[s : s + chunk], part[s : s + chunk] = hits.t, hits.part
-        rgb[s : s + chunk][hit] = shade(hits.normal[hit], albedo[hits.part[hit]])
+    offsets = subpixel_offsets(aa)
+    if offsets[0] != (0.5, 0.5):
+        offsets = [(0.5, 0.5)] + offsets
+    colors, hits_all = [], []
+    for i, offset in enumerate(offsets):
+        origins, dirs = camera_rays(camera, offset)
+        n = len(dirs)
+        t, part, rgb = np.full(n, np.inf), np.zeros(n, np.int64), np.ones((n, 3))
+        for s in range(0, n, chunk):
+            hits = cast_rays(list(chair.primitives), origins[s : s + chunk], dirs[s : s + chunk])
+            hit = hits.part > 0
+            t[s : s + chunk], part[s : s + chunk] = hits.t, hits.part
+            rgb[s : s + chunk][hit] = shade(hits.normal[hit], albedo[hits.part[hit]])
+        if i == 0:
+            center_t, center_part = t, part
+        if aa == 1 or i > 0 or aa % 2 == 1:
+            colors.append(rgb)
+            hits_all.append(part > 0)
     shape = (camera.height, camera.width)
-    rgba = np.concatenate([rgb, (part > 0)[:, None].astype(np.float64)], axis=-1).reshape(*shape, 4)
-    return Frame(camera, rgba.astype(np.float32), t.reshape(shape).astype(np.float32), part.reshape(shape).astype(np.uint8))
+    rgba = box_filter(np.stack(colors), np.stack(hits_all)).reshape(*shape, 4)
+    return Frame(camera, rgba.astype(np.float32), center_t.reshape(shape).astype(np.float32), center_part.reshape(shape).astype(np.uint8))
 
 
 # ----------------------------------------------------------------------------- views
@@ -559,6 +574,8 @@ class SynthConfig:
     """Image width and height in pixels."""
     seed: int = 0
     """Same seed → byte-identical files."""
+    aa: int = 3
+    """Supersamples per pixel side (aa×aa rays, box-filtered); 1 = one ray per pixel center."""
     twins: bool = True
     """Also write ground-truth color and removal twins of up to 4 chairs."""
 
@@ -593,14 +610,16 @@ def check_synth_args(out: Path, config: SynthConfig) -> None:
         raise CrfError(f"--views {config.views}: twins need a test split, i.e. at least 3 views (or --no-twins)")
     if not 8 <= config.res <= 4096:
         raise CrfError(f"--res {config.res}: must be between 8 and 4096")
+    if not 1 <= config.aa <= 8:
+        raise CrfError(f"--aa {config.aa}: must be between 1 and 8")
     out = Path(out)
     check_folder_target(out)
     if out.is_dir() and any(out.iterdir()) and not (out / "instances.txt").is_file():
         raise CrfError(f"{out}: folder is not empty and not a dataset; pick a new folder")
 
 
-def _write_instance(folder: Path, chair: Chair, cams: dict[str, list[Camera]]) -> dict[str, list[Frame]]:
-    frames = {split: [render_chair(chair, cam) for cam in cams_] for split, cams_ in cams.items()}
+def _write_instance(folder: Path, chair: Chair, cams: dict[str, list[Camera]], aa: int = 1) -> dict[str, list[Frame]]:
+    frames = {split: [render_chair(chair, cam, aa) for cam in cams_] for split, cams_ in cams.items()}
     for split, fs in frames.items():
         write_split(folder, split, fs)
     write_parts(folder, [{"id": p.id, "name": p.name, "color": p.color} for p in chair.parts])
@@ -615,14 +634,14 @@ def _best_view(frames: list[Frame], part_id: int) -> tuple[int, int]:
 
 def _write_twin(
     out: Path, source: str, kind: str, chair: Chair, part: Part, color: str | None, frames: dict[str, list[Frame]],
-    rng: np.random.Generator,
+    rng: np.random.Generator, aa: int = 1,
 ) -> TwinSpec:
     """Render the edited ``chair`` at the source's test poses; scribble ``part`` in its best train view."""
     view, _ = _best_view(frames["train"], part.id)
     name = f"{source}_{kind}"
     folder = Path("twins") / name
     twin = chair.recolored(part.name, color) if kind == "color" else chair.without(part.name)
-    _write_instance(out / folder, twin, {"test": [f.camera for f in frames["test"]]})
+    _write_instance(out / folder, twin, {"test": [f.camera for f in frames["test"]]}, aa)
     fg, keep = scribbles(rng, frames["train"][view].parts, part.id)
     write_png(out / folder / "scribble.png", fg.astype(np.uint8) * 255)
     write_png(out / folder / "keep.png", keep.astype(np.uint8) * 255)
@@ -631,17 +650,17 @@ def _write_twin(
 
 
 def _twins_of(
-    out: Path, name: str, chair: Chair, frames: dict[str, list[Frame]], order: int, seed: list[int]
+    out: Path, name: str, chair: Chair, frames: dict[str, list[Frame]], order: int, seed: list[int], aa: int = 1
 ) -> list[TwinSpec]:
     """A color twin (seat or back, alternating with ``order``) and a removal twin (arms, else stretchers/slats)."""
     wanted = RECOLORABLE_PARTS[order % 2], RECOLORABLE_PARTS[1 - order % 2]
     first, second = (chair.part(n) for n in wanted)
     recolor = first if _best_view(frames["train"], first.id)[1] >= 25 else second  # 25 px: room for strokes
     target = contrasting_color([p.color for p in chair.parts])
-    specs = [_write_twin(out, name, "color", chair, recolor, target, frames, np.random.default_rng([*seed, 2]))]
+    specs = [_write_twin(out, name, "color", chair, recolor, target, frames, np.random.default_rng([*seed, 2]), aa)]
     removable = next((chair.part(n) for n in REMOVABLE_PARTS if chair.part(n)), None)
     if removable is not None:
-        specs.append(_write_twin(out, name, "remove", chair, removable, None, frames, np.random.default_rng([*seed, 3])))
+        specs.append(_write_twin(out, name, "remove", chair, removable, None, frames, np.random.default_rng([*seed, 3]), aa))
     return specs
 
 
@@ -662,12 +681,12 @@ def write_synth_category(
         # twin sources get arms, so their removal twin removes a part that covers pixels
         chair = make_chair(np.random.default_rng([config.seed, index, 0]), arms=True if index in sources else None)
         cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
-        frames = _write_instance(out / name, chair, cams)
+        frames = _write_instance(out / name, chair, cams, config.aa)
         names.append(name)
         if progress:
             progress(name)
         if index in sources:
-            twins += _twins_of(out, name, chair, frames, sources.index(index), [config.seed, index])
+            twins += _twins_of(out, name, chair, frames, sources.index(index), [config.seed, index], config.aa)
             if progress:
                 progress(f"{name} twins")
     write_instances_txt(out, names)

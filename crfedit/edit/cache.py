@@ -27,7 +27,7 @@ from typing import NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from ..cameras import Rays
+from ..cameras import Camera, Rays, rays_from_camera
 from ..field import ConditionalRadianceField, FieldNet, FuseInputs, positional_encoding, run_mlp
 from ..renderer import PackedSamples, composite_packed, evaluate, grid_samples
 from ..rendering import (
@@ -151,6 +151,7 @@ class EditPass:
         instance: int,
         stage: str,
         background: float = 1.0,
+        prune: float = PRUNE_WEIGHT,
     ):
         if stage not in STAGES:
             raise ValueError(f"stage {stage!r}: expected one of {STAGES}")
@@ -175,7 +176,7 @@ class EditPass:
                 raw, feat = self.net.density_from_fuse_inputs(self.inputs)
                 weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, dense(self.net.sigma(raw)))
                 w = weights[samples.ray, samples.step]
-                keep = w > PRUNE_WEIGHT
+                keep = w > prune
                 per_point = radiance_inputs(self.net, feat, dirs)
                 _, color_code = field.codes(instance)
                 dropped = (w * ~keep)[:, None] * radiance_from_inputs(self.net, per_point, color_code)
@@ -224,3 +225,33 @@ def edit_passes(
     if not density_changes:
         passes = passes[-1:]
     return [EditPass(field, name, rays, samples, instance, stage) for name, samples in passes]
+
+
+class ViewCache:
+    """One view of one instance rendered once, with everything upstream of F_rad kept.
+
+    A colour edit changes only F_rad and the colour code, so the compositing weights and the
+    bottleneck features of every sample stay valid: :meth:`render` re-renders the view after
+    such an edit by running F_rad alone on the cached samples (an interactive recolouring
+    preview).  Samples whose weight is at most ``prune`` keep their starting colour (a
+    constant); the error this leaves is at most their summed weight, ≤ 1e-3 per ray at the
+    default.  Memory: ~25 floats per kept sample (a 128² view keeps ~10⁵).
+    """
+
+    @torch.no_grad()
+    def __init__(self, field: ConditionalRadianceField, camera: Camera, instance: int, prune: float = 1e-5):
+        rays = rays_from_camera(camera, field.aabb.device)
+        name, samples = edit_samples(field, rays, instance)[-1]
+        self.instance, self.net_name, self.shape = instance, name, (camera.height, camera.width)
+        self.cached = EditPass(field, name, rays, samples, instance, "radiance", prune=prune)
+        self.n_cached = self.cached.n_cached
+
+    @torch.no_grad()
+    def render(self, field: ConditionalRadianceField) -> Tensor:
+        """The view [H, W, 3] with ``field``'s F_rad and colour code (its density must be the
+        one the cache was built with: a colour edit's, not a shape edit's)."""
+        net = field if self.net_name == "fine" else field.coarse
+        _, color_code = field.codes(self.instance)
+        c = self.cached
+        rgb = c.constant.index_add(0, c.ray, c.w[:, None] * radiance_from_inputs(net, c.per_point, color_code))
+        return rgb.view(*self.shape, 3)
