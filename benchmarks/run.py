@@ -1,6 +1,6 @@
 """Run crfedit's speed-against-error benchmark and update the docs.
 
-    python benchmarks/run.py                  # the full sweep: 40 minutes to an hour on 2 CPU cores
+    python benchmarks/run.py                  # the full sweep: about 25 minutes on 2 CPU cores
     python benchmarks/run.py --minutes 2      # shorter training curves
     python benchmarks/run.py --tiny           # seconds: a smoke test of the pipeline
 

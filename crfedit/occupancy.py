@@ -21,18 +21,28 @@ from .cameras import Camera
 
 
 def cell_index(xn: Tensor, res: int) -> tuple[Tensor, Tensor]:
-    """Normalized points [M, 3] → (integer cell coordinates [M, 3], inside-the-box mask [M])."""
-    inside = (xn >= -1.0).all(dim=-1) & (xn <= 1.0).all(dim=-1)
+    """Normalized points [..., 3] → (integer cell coordinates [..., 3], inside-the-box mask [...])."""
+    inside = (xn.abs() <= 1.0).all(dim=-1)
     ijk = ((xn + 1.0) * (0.5 * res)).floor().long().clamp(0, res - 1)
     return ijk, inside
 
 
 def lookup(grids: Tensor, instance: Tensor, xn: Tensor) -> Tensor:
-    """Occupancy of normalized points ``xn`` [M, 3] in ``grids[instance]``; outside the box → False."""
+    """Occupancy of normalized points ``xn`` [..., 3] in ``grids[instance]`` (``instance``
+    broadcasts against ``xn[..., 0]``); outside the box → False."""
     res = grids.shape[-1]
     ijk, inside = cell_index(xn, res)
-    flat = ((instance * res + ijk[:, 0]) * res + ijk[:, 1]) * res + ijk[:, 2]
+    flat = ((instance * res + ijk[..., 0]) * res + ijk[..., 1]) * res + ijk[..., 2]
     return grids.reshape(-1)[flat] & inside
+
+
+def lookup_in_box(grids: Tensor, instance: Tensor, xn: Tensor) -> Tensor:
+    """:func:`lookup` for points known to lie in the box up to rounding (a march between the
+    ray's box entry and exit): coordinates are clamped onto the grid instead of tested."""
+    res = grids.shape[-1]
+    ijk = ((xn + 1.0) * (0.5 * res)).clamp_(0, res - 1).long()  # ≥ 0, so truncation is floor
+    flat = ((instance * res + ijk[..., 0]) * res + ijk[..., 1]) * res + ijk[..., 2]
+    return grids.reshape(-1)[flat]
 
 
 def cell_centers(res: int, device: torch.device | str = "cpu") -> Tensor:

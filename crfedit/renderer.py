@@ -83,12 +83,16 @@ def grid_samples(
         count = max(1, math.ceil(span / s) - first)
     j = torch.arange(first, first + count, device=t_near.device, dtype=t_near.dtype)
     starts = t_near[:, None] + j * s  # [N, S]
-    ray_i, col = (starts < t_far[:, None]).nonzero(as_tuple=True)
+    t_mid = starts + (0.5 if jitter is None else jitter[:, None]) * s
+    # Occupancy of every step at once, in the box's normalized coordinates (x ↦ 2(x−lo)/(hi−lo) − 1
+    # is affine, so a ray stays a ray); only the kept samples get world positions.
+    lo, hi = field.aabb[:3], field.aabb[3:]
+    scale = 2.0 / (hi - lo)
+    xn = ((rays.origins - lo) * scale - 1.0)[:, None, :] + t_mid[..., None] * (rays.directions * scale)[:, None, :]
+    keep = occupancy.lookup_in_box(field.occupancy, instance[:, None], xn) & (t_mid <= t_far[:, None])
+    ray_i, col = keep.nonzero(as_tuple=True)
     t0 = starts[ray_i, col]
-    frac = 0.5 if jitter is None else jitter[ray_i]
-    p = rays.origins[ray_i] + (t0 + frac * s)[:, None] * rays.directions[ray_i]
-    keep = occupancy.lookup(field.occupancy, instance[ray_i], field.normalize(p))
-    ray_i, col, p, t0 = ray_i[keep], col[keep], p[keep], t0[keep]
+    p = rays.origins[ray_i] + t_mid[ray_i, col, None] * rays.directions[ray_i]
     return PackedSamples(ray_i, col, t0, torch.minimum(t0 + s, t_far[ray_i]), p, n, count)
 
 

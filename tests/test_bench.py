@@ -68,7 +68,8 @@ def test_tiny_bench_writes_a_csv_with_a_header_and_rows_of_every_group(tiny_run)
     seconds = [float(r["seconds"]) for r in train]
     assert seconds == sorted(seconds) and seconds[0] > 0
     assert {r["value"] for r in body if r["group"] == "render"} == {"1", "2"}
-    assert {r["curve"] for r in body if r["group"] == "edit"} == {"color, 64 rays", "remove, 64 rays"}
+    assert {r["curve"] for r in body if r["group"] == "edit"} == {
+        "color, 64 rays", "remove, 64 rays", "color, 64 rays, no cache", "remove, 64 rays, no cache"}
     for r in body:
         assert math.isfinite(float(r["psnr"])) and -1 <= float(r["ssim"]) <= 1 and int(r["views"]) >= 1
 

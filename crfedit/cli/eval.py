@@ -326,7 +326,7 @@ def bench_cmd(
     minutes: Annotated[Optional[float], typer.Option("--minutes", help="Training time per curve (default 5).")] = None,
     steps: Annotated[Optional[int], typer.Option("--steps", help="Step cap per training curve.")] = None,
     checkpoints: Annotated[Optional[int], typer.Option("--checkpoints", help="Points scored along each training run (default 6).")] = None,
-    train_spc: Annotated[Optional[str], typer.Option("--train-samples-per-cell", help="Extra fast-preset training curves at these steps_per_cell (default 1,4; none: leave out).")] = None,
+    train_spc: Annotated[Optional[str], typer.Option("--train-samples-per-cell", help="Extra fast-preset training curves at these steps_per_cell (default 2; none: leave out).")] = None,
     render_spc: Annotated[Optional[str], typer.Option("--samples-per-cell", help="steps_per_cell values to render at (default 0.5,1,2,4,8; none: leave out).")] = None,
     edit_steps: Annotated[Optional[str], typer.Option("--edit-steps", help="Edit steps to sweep (default 10,30,100,300; none: no edit curves).")] = None,
     edit_rays: Annotated[Optional[str], typer.Option("--edit-rays", help="Edit rays to sweep, one curve each (default 256,1024,4096).")] = None,

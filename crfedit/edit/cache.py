@@ -216,11 +216,13 @@ class EditPass:
 
 
 def edit_passes(
-    field: ConditionalRadianceField, rays: Rays, instance: int, trained: Sequence[str], density_changes: bool
+    field: ConditionalRadianceField, rays: Rays, instance: int, trained: Sequence[str], density_changes: bool,
+    cache: bool = True,
 ) -> list[EditPass]:
     """The cached passes an edit optimizes: only the final network's for colour edits (the
-    coarse one only places samples), every network's when density changes."""
-    stage = cache_stage(trained, density_changes)
+    coarse one only places samples), every network's when density changes.  ``cache=False``
+    caches nothing (stage ``points``: the whole field runs at every step)."""
+    stage = cache_stage(trained, density_changes) if cache else "points"
     passes = edit_samples(field, rays, instance)
     if not density_changes:
         passes = passes[-1:]
@@ -234,12 +236,13 @@ class ViewCache:
     bottleneck features of every sample stay valid: :meth:`render` re-renders the view after
     such an edit by running F_rad alone on the cached samples (an interactive recolouring
     preview).  Samples whose weight is at most ``prune`` keep their starting colour (a
-    constant); the error this leaves is at most their summed weight, ≤ 1e-3 per ray at the
-    default.  Memory: ~25 floats per kept sample (a 128² view keeps ~10⁵).
+    constant); the error this leaves is at most a ray's summed pruned weight times the colour
+    change (measured: < 1e-3 at the default, docs/benchmarks.md).  Memory: ~25 floats per kept
+    sample (a 128² view keeps ~5·10⁴).
     """
 
     @torch.no_grad()
-    def __init__(self, field: ConditionalRadianceField, camera: Camera, instance: int, prune: float = 1e-5):
+    def __init__(self, field: ConditionalRadianceField, camera: Camera, instance: int, prune: float = PRUNE_WEIGHT):
         rays = rays_from_camera(camera, field.aabb.device)
         name, samples = edit_samples(field, rays, instance)[-1]
         self.instance, self.net_name, self.shape = instance, name, (camera.height, camera.width)

@@ -46,7 +46,7 @@ def edit_color(
     fg, bg = pick_pixels(scribble, keep, options.rays, generator)
     edit = InstanceEdit(model, k, "color", options.strategy)
     rays = select_rays(camera, torch.cat([fg, bg]), model.device)
-    (render,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False)
+    (render,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=options.cache)
     with torch.no_grad():
         target = render.forward().rgb.clone()
     target[: fg.numel()] = torch.tensor(rgb, dtype=target.dtype, device=target.device)

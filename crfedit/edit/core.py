@@ -53,6 +53,9 @@ class EditOptions:
     lambda_match: float = 0.1
     """add --method density: weight of the cross-entropy to the donor's density distribution
     (at 1 its gradient, which never saturates, overrides the colour terms and smears the object)."""
+    cache: bool = True
+    """Compute what the trained parameters cannot change once (:mod:`.cache`); off, every step
+    runs the whole field on the edit's samples (the same result, slower: a benchmark knob)."""
 
     def validated(self) -> "EditOptions":
         checks = [

@@ -137,7 +137,7 @@ def remove(
     edit = InstanceEdit(model, k, "shape", options.strategy)
     candidates = edit.field.occupancy[k].clone()
     rays = select_rays(camera, torch.cat([fg, bg]), model.device)
-    passes = edit_passes(edit.field, rays, k, list(edit.params), density_changes=True)
+    passes = edit_passes(edit.field, rays, k, list(edit.params), density_changes=True, cache=options.cache)
     targets = []
     with torch.no_grad():
         for p in passes:
@@ -288,7 +288,7 @@ def add(
         edit.field.occupancy[k] = open_donor_cells(donor_field, j, donor_all, select_rays(camera, all_dst, device), original)
     candidates = edit.field.occupancy[k].clone()
     rays = select_rays(camera, pixels, device)
-    passes = edit_passes(edit.field, rays, k, list(edit.params), density_changes=True)
+    passes = edit_passes(edit.field, rays, k, list(edit.params), density_changes=True, cache=options.cache)
     seen, sigmas0, donor_sigmas = [], [], []
     with torch.no_grad():
         for p in passes:
