@@ -22,6 +22,7 @@ from .cameras import Camera, Rays, rays_from_camera
 from .field import ConditionalRadianceField, FieldNet, code_selector
 from .rendering import (
     composite_from_density,
+    composite_packed_samples,
     importance_sample,
     intervals_from_points,
     ray_aabb_intersect,
@@ -166,7 +167,7 @@ def render_rays(
         )
         if samples.ray.numel():
             sig, col = evaluate(field, field, samples, sub, instance[alive] if single is None else single, density_noise, generator)
-            comp = composite_packed(samples, sig, col, 0.0)
+            comp = composite_packed_samples(samples.ray, samples.t_starts, samples.t_ends, sig, col, len(alive), 0.0)
             t_prev = trans[alive]
             rgb = rgb.index_add(0, alive, t_prev[:, None] * comp.rgb)
             depth = depth.index_add(0, alive, t_prev * comp.depth)

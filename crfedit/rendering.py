@@ -79,6 +79,48 @@ def composite_from_density(
     return Composite(rgb, depth, opacity, weights)
 
 
+TAU_CAP = 1e3
+"""Optical depth past which a sample is opaque to float64: exp(-1e3) = 0.  Capping σδ there in
+the *transmittance* sums (not in αᵢ) changes no result and bounds the packed running sum."""
+
+
+def exclusive_cumsum_packed(x: Tensor, ray: Tensor, n_rays: int) -> Tensor:
+    """Per-ray exclusive cumulative sum of packed values ``x`` [M] whose ``ray`` [M] is sorted
+    (each ray's samples contiguous, in order): [0, x₀, x₀+x₁, …] within every ray.
+
+    One running sum over all M values, minus each ray's value at its first sample.  It runs in
+    float64 on values capped at :data:`TAU_CAP`, so the subtraction loses < M·1e3·2⁻⁵² ≈ 1e-8.
+    """
+    x64 = x.double().clamp(max=TAU_CAP)
+    before = torch.cumsum(x64, 0) - x64  # global exclusive sum
+    counts = torch.bincount(ray, minlength=n_rays)
+    first = torch.cumsum(counts, 0) - counts  # index of each ray's first sample
+    return (before - before[first[ray]]).to(x.dtype)
+
+
+def composite_packed_samples(
+    ray: Tensor,  # [M] long, sorted
+    t_starts: Tensor,  # [M]
+    t_ends: Tensor,  # [M]
+    sigmas: Tensor,  # [M]
+    rgbs: Tensor,  # [M, 3]
+    n_rays: int,
+    background: Tensor | float = 1.0,
+) -> Composite:
+    """:func:`composite_from_density` on packed samples (only the evaluated ones, grouped by
+    ray), as nerfacc does: no dense [rays, steps] layout.  ``weights`` is packed [M]; rays with
+    no samples get the background.
+    """
+    tau = optical_depth_from_density(t_starts, t_ends, sigmas)
+    weights = torch.exp(-exclusive_cumsum_packed(tau, ray, n_rays)) * -torch.expm1(-tau)
+    zeros = weights.new_zeros(n_rays)
+    opacity = zeros.index_add(0, ray, weights)
+    rgb = weights.new_zeros(n_rays, 3).index_add(0, ray, weights[:, None] * rgbs)
+    rgb = rgb + (1.0 - opacity)[:, None] * background
+    depth = zeros.index_add(0, ray, weights * 0.5 * (t_starts + t_ends))
+    return Composite(rgb, depth, opacity, weights)
+
+
 def ray_aabb_intersect(origins: Tensor, directions: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Slab test against ``aabb = [xmin, ymin, zmin, xmax, ymax, zmax]``.
 

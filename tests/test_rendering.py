@@ -25,6 +25,9 @@ from crfedit.renderer import (
 from crfedit.rendering import (
     accumulate_along_rays,
     composite_from_density,
+    composite_packed_samples,
+    exclusive_cumsum,
+    exclusive_cumsum_packed,
     importance_sample,
     intervals_from_points,
     optical_depth_from_density,
@@ -374,6 +377,62 @@ def test_composite_packed_equals_dense_compositing():
     torch.testing.assert_close(comp.rgb, torch.tensor([[0.75, 0.5, 0.25], [0.25, 0.25, 1.0]]))
     torch.testing.assert_close(comp.opacity, torch.tensor([0.75, 0.75]))
     torch.testing.assert_close(comp.depth, torch.tensor([0.5 * 0.5 + 0.25 * 1.5, 0.75 * 3.5]))
+
+
+def ragged(seed: int = 0, n_rays: int = 6, dtype=torch.float32):
+    """A packed batch: rays with 0…7 samples (ray 2 has none), σ spanning 0 … 1e6."""
+    g = torch.Generator().manual_seed(seed)
+    counts = torch.tensor([3, 7, 0, 1, 5, 4])[:n_rays]
+    ray = torch.repeat_interleave(torch.arange(n_rays), counts)
+    m = int(counts.sum())
+    t_starts = torch.rand(m, generator=g, dtype=dtype) * 0.1 + torch.cat([torch.arange(int(c), dtype=dtype) * 0.2 for c in counts])
+    t_ends = t_starts + 0.15
+    sigmas = torch.rand(m, generator=g, dtype=dtype) * 5.0
+    sigmas[4], sigmas[9] = 1e6, 0.0
+    rgbs = torch.rand(m, 3, generator=g, dtype=dtype)
+    return ray, counts, t_starts, t_ends, sigmas, rgbs
+
+
+def dense_of(counts, *values):
+    """Packed → [rays, max count] (zeros after each ray's samples)."""
+    n, width = len(counts), max(1, int(counts.max()))
+    col = torch.cat([torch.arange(int(c)) for c in counts])
+    ray = torch.repeat_interleave(torch.arange(n), counts)
+    return [torch.zeros((n, width, *v.shape[1:]), dtype=v.dtype).index_put((ray, col), v) for v in values]
+
+
+def test_exclusive_cumsum_packed_is_per_ray():
+    ray, counts, *_ = ragged()
+    x = torch.rand(len(ray), dtype=torch.float64) * 3
+    got = exclusive_cumsum_packed(x, ray, len(counts))
+    (dense,) = dense_of(counts, x)
+    col = torch.cat([torch.arange(int(c)) for c in counts])
+    torch.testing.assert_close(got, exclusive_cumsum(dense)[ray, col], rtol=0, atol=1e-12)
+    # a huge optical depth in an early ray leaves later rays' sums intact
+    x[0] = 1e30
+    torch.testing.assert_close(exclusive_cumsum_packed(x, ray, len(counts))[counts[0]:], got[counts[0]:], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("background", [1.0, 0.0])
+def test_composite_packed_samples_equals_dense(background):
+    ray, counts, t0, t1, sig, rgb = ragged()
+    comp = composite_packed_samples(ray, t0, t1, sig, rgb, len(counts), background)
+    d0, d1, ds, dr = dense_of(counts, t0, t1, sig, rgb)
+    d1 = torch.where(ds > 0, d1, d0)  # padding: zero-length intervals
+    ref = composite_from_density(d0, d1, ds, dr, background)
+    torch.testing.assert_close(comp.rgb, ref.rgb, rtol=0, atol=1e-6)
+    torch.testing.assert_close(comp.opacity, ref.opacity, rtol=0, atol=1e-6)
+    torch.testing.assert_close(comp.depth, ref.depth, rtol=0, atol=1e-5)
+    assert comp.opacity[2] == 0 and torch.equal(comp.rgb[2], torch.full((3,), background))  # the empty ray
+    assert torch.isfinite(comp.weights).all()
+
+
+def test_composite_packed_samples_gradcheck():
+    ray, counts, t0, t1, sig, rgb = ragged(dtype=torch.float64)
+    sig = (sig.clamp(max=5.0) + 0.1).requires_grad_()
+    rgb = rgb.requires_grad_()
+    f = lambda s, c: composite_packed_samples(ray, t0, t1, s, c, len(counts), 1.0)[:3]
+    assert torch.autograd.gradcheck(f, (sig, rgb))
 
 
 def test_early_termination_matches_full_march():
