@@ -914,3 +914,32 @@ def test_error_lines_do_not_carry_terminal_control_characters(env: Env, tmp_path
     result = invoke(render(env, tmp_path, "--edit", hostile)[0])
     assert_user_error(result, "made for model")
     assert "\x1b" not in result.stderr and "\x07" not in result.stderr
+
+
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["train", "x", "--out", "m.safetensors", "--steps", "abc"], "Invalid value for '--steps'"),
+        (["tran"], "No such command 'tran'"),
+        (["dataset", "info", ".", "--bogus"], "No such option: --bogus"),
+        (["render"], "Missing argument"),
+    ],
+)
+def test_usage_errors_from_the_real_entry_point_are_one_line(args, says, tmp_path):
+    """What Typer cannot parse is one line on stderr and exit 2, like every other bad input."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "crfedit", *args], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and says in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr and proc.stdout == ""
+
+
+def test_version_prints_and_exits_zero():
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "crfedit", "--version"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.startswith("crfedit ") and "torch" in proc.stdout

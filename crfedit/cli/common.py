@@ -22,6 +22,29 @@ app = typer.Typer(
 dataset_app = typer.Typer(help="Make and inspect category datasets.", no_args_is_help=True)
 edits_app = typer.Typer(help="Inspect, check and bake edit files.", no_args_is_help=True)
 eval_app = typer.Typer(help="Evaluate reconstruction and edits against ground truth.", no_args_is_help=True)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        import torch
+
+        try:
+            ours = version("crfedit")
+        except PackageNotFoundError:  # run from a source tree without installing
+            ours = "unknown (not installed)"
+        typer.echo(f"crfedit {ours} (torch {torch.__version__})")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    show_version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")] = False,
+) -> None:
+    """Train, render and edit conditional radiance fields of object categories."""
+
+
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(edits_app, name="edits")
 app.add_typer(eval_app, name="eval")
