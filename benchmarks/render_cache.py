@@ -65,13 +65,13 @@ def measure(model_path: Path, data: Path, res: int, threads: list[int], repeats:
         torch.set_num_threads(n)
         for i, cam in enumerate(cameras):
             with torch.no_grad():
-                scratch = median_ms(lambda: render_camera(model.field_for(k), cam, k), repeats)
+                scratch = median_ms(lambda cam=cam: render_camera(model.field_for(k), cam, k), repeats)
                 uncached_out = render_camera(edited.field_for(k), cam, k)
-                uncached = median_ms(lambda: render_camera(edited.field_for(k), cam, k), repeats)
+                uncached = median_ms(lambda cam=cam: render_camera(edited.field_for(k), cam, k), repeats)
                 t0 = time.perf_counter()
                 cache = ViewCache(model.field_for(k), cam, k)
                 build = 1000.0 * (time.perf_counter() - t0)
-                cached = median_ms(lambda: cache.render(edited.field_for(k)), repeats)
+                cached = median_ms(lambda cache=cache: cache.render(edited.field_for(k)), repeats)
                 diff = float((cache.render(edited.field_for(k)) - uncached_out.rgb).abs().max())
             rows.append({
                 "threads": n, "view": i, "scratch_ms": scratch, "uncached_ms": uncached, "build_ms": build,
@@ -93,12 +93,12 @@ def markdown(rows: list[dict], meta: dict, machine: dict) -> str:
         f"{machine['revision']}. Colour twin `{meta['twin']}` edited with the default options; its "
         f"{len({r['view'] for r in rows})} test poses rendered at {res}×{res}; medians of {meta['repeats']} renders.",
         "",
-        f"| torch threads | from scratch (unedited) | after the edit, uncached | after the edit, cached | cache build (once per view) | max abs difference | samples per ray |",
+        "| torch threads | from scratch (unedited) | after the edit, uncached | after the edit, cached | cache build (once per view) | max abs difference | samples per ray |",
         "|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for n in sorted({r["threads"] for r in rows}):
         rs = [r for r in rows if r["threads"] == n]
-        med = lambda key: statistics.median(r[key] for r in rs)
+        med = lambda key, rs=rs: statistics.median(r[key] for r in rs)
         lines.append(
             f"| {n} | {med('scratch_ms'):.1f} ms | {med('uncached_ms'):.1f} ms | **{med('cached_ms'):.2f} ms** | "
             f"{med('build_ms'):.0f} ms | {max(r['max_diff'] for r in rs):.1e} | {med('samples_per_ray'):.2f} |"

@@ -25,9 +25,11 @@ def resolve_device(name: str = "auto") -> torch.device:
 def configure_threads() -> int:
     """Set torch's CPU threads: ``CRFEDIT_THREADS`` if set, else 1.
 
-    crfedit's networks are narrow (64 wide): on a 2-core laptop a second OpenMP thread mostly
-    spin-waits, and when anything else runs it made renders 13× slower (4.9 s against 0.37 s
-    per 128² view, measured).  Set ``CRFEDIT_THREADS`` to use more cores for big batches.
+    crfedit's networks are narrow (64 wide).  On an idle 2-core machine two threads are faster
+    (training 30 against 38 ms per step, a 128² render about 1.5×), but when anything else
+    runs a second OpenMP thread spin-waits and made renders 13× slower (4.9 s against 0.37 s,
+    measured).  One thread is the safe default; ``CRFEDIT_THREADS=2`` (or more) on an idle
+    machine.  Results depend on the thread count in the last float bits.
     """
     import os
 

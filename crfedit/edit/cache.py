@@ -237,8 +237,8 @@ class ViewCache:
     such an edit by running F_rad alone on the cached samples (an interactive recolouring
     preview).  Samples whose weight is at most ``prune`` keep their starting colour (a
     constant); the error this leaves is at most a ray's summed pruned weight times the colour
-    change (measured: < 1e-3 at the default, docs/benchmarks.md).  Memory: ~25 floats per kept
-    sample (a 128² view keeps ~5·10⁴).
+    change (measured: ≤ 1.6e-3 at the default, under one 8-bit level; docs/benchmarks.md).
+    Memory: ~25 floats per kept sample (a 128² view keeps ~5·10⁴).
     """
 
     @torch.no_grad()
