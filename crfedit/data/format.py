@@ -22,11 +22,12 @@ import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
 
-from ..cameras import Camera, focal_from_angle, rays_from_camera
+from ..cameras import Camera, focal_from_angle, rays_from_camera, subpixel_offsets
 from ..errors import CrfError, DataError
 from ..io import atomic_write_text, read_exr, read_image, read_json, write_exr, write_json, write_png
 
@@ -60,6 +61,33 @@ def box_filter(rgb: np.ndarray, hit: np.ndarray) -> np.ndarray:
     total = (rgb * hit[..., None]).sum(axis=0)
     color = np.where(n_hit[:, None] > 0, total / np.maximum(n_hit, 1)[:, None], 1.0)
     return np.concatenate([color, alpha[:, None]], axis=1)
+
+
+def supersampled_frame(
+    camera: Camera, aa: int, cast: Callable[[tuple[float, float]], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+) -> Frame:
+    """Render ``camera`` with aa×aa rays per pixel.
+
+    ``cast(offset)`` ray-casts the rays through ``offset`` (pixels from each pixel's top-left
+    corner) of every pixel and returns (distance [N], part id [N], shaded rgb [N, 3], hit [N]).
+    Colour and alpha are :func:`box_filter`\ ed over the aa×aa casts; depth and part ids come
+    from the pixel-center cast (one of them when aa is odd, an extra one when it is even).
+    """
+    offsets = subpixel_offsets(aa)
+    center_is_a_sample = offsets[0] == (0.5, 0.5)
+    if not center_is_a_sample:
+        offsets = [(0.5, 0.5), *offsets]
+    colors, hits = [], []
+    for i, offset in enumerate(offsets):
+        t, part, rgb, hit = cast(offset)
+        if i == 0:
+            depth, parts = t, part
+        if i > 0 or center_is_a_sample:
+            colors.append(rgb)
+            hits.append(hit)
+    shape = (camera.height, camera.width)
+    rgba = box_filter(np.stack(colors), np.stack(hits)).reshape(*shape, 4)
+    return Frame(camera, rgba.astype(np.float32), depth.reshape(shape).astype(np.float32), parts.reshape(shape).astype(np.uint8))
 
 
 @dataclass(frozen=True)

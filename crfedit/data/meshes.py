@@ -35,10 +35,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..cameras import Camera, subpixel_offsets
+from ..cameras import Camera
 from ..errors import CrfError, DataError
 from ..io import atomic_write_text, read_json, write_png
-from .format import Frame, TwinSpec, box_filter, write_instances_txt, write_parts, write_split, write_twins_json
+from .format import Frame, TwinSpec, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 from .synth import (
     PALETTE,
     SynthConfig,
@@ -339,11 +339,8 @@ def render_view(scene: RayScene, camera: Camera, albedo: np.ndarray, aa: int = 1
     supersamples aa×aa rays per pixel and box-filters them (alpha = coverage); depth and part
     ids come from the pixel-center ray.
     """
-    offsets = subpixel_offsets(aa)
-    if offsets[0] != (0.5, 0.5):
-        offsets = [(0.5, 0.5)] + offsets
-    colors, hits = [], []
-    for i, offset in enumerate(offsets):
+
+    def cast(offset: tuple[float, float]):
         origins, directions = camera_rays(camera, offset)
         face, t = scene.first_hits(np.ascontiguousarray(origins), directions)
         hit = face >= 0
@@ -351,14 +348,9 @@ def render_view(scene: RayScene, camera: Camera, albedo: np.ndarray, aa: int = 1
         part[hit] = scene.mesh.face_part[face[hit]]
         rgb = np.ones((len(face), 3))
         rgb[hit] = shade(facing_normals(scene.face_normals[face[hit]], directions[hit]), albedo[part[hit]])
-        if i == 0:
-            center_t, center_part = t, part
-        if aa == 1 or i > 0 or aa % 2 == 1:
-            colors.append(rgb)
-            hits.append(hit)
-    shape = (camera.height, camera.width)
-    rgba = box_filter(np.stack(colors), np.stack(hits)).reshape(*shape, 4)
-    return Frame(camera, rgba.astype(np.float32), center_t.reshape(shape).astype(np.float32), center_part.reshape(shape))
+        return t, part, rgb, hit
+
+    return supersampled_frame(camera, aa, cast)
 
 
 # ----------------------------------------------------------------------------- parts for twins

@@ -20,10 +20,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..cameras import Camera, focal_from_angle, look_at, ray_directions_camera, spherical_eye, subpixel_offsets
+from ..cameras import Camera, focal_from_angle, look_at, ray_directions_camera, spherical_eye
 from ..errors import CrfError
 from ..io import check_folder_target, write_png
-from .format import Frame, TwinSpec, box_filter, write_instances_txt, write_parts, write_split, write_twins_json
+from .format import Frame, TwinSpec, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 
 LIGHT = np.array([0.4, -0.3, 0.85]) / np.linalg.norm([0.4, -0.3, 0.85])
 AMBIENT, DIFFUSE = 0.35, 0.65
@@ -428,14 +428,11 @@ def render_chair(chair: Chair, camera: Camera, aa: int = 1, chunk: int = 1 << 15
     """Exact render: rgba (white background), ray-distance depth (inf = miss), part ids.
 
     ``aa`` > 1 supersamples each pixel on an aa×aa grid and box-filters (alpha = coverage), as a
-    real camera or Blender does; depth and part ids always come from the pixel-center ray.
+    real camera or Blender does; depth and part ids come from the pixel-center ray.
     """
     albedo = chair.albedo_table()
-    offsets = subpixel_offsets(aa)
-    if offsets[0] != (0.5, 0.5):
-        offsets = [(0.5, 0.5)] + offsets
-    colors, hits_all = [], []
-    for i, offset in enumerate(offsets):
+
+    def cast(offset: tuple[float, float]):
         origins, dirs = camera_rays(camera, offset)
         n = len(dirs)
         t, part, rgb = np.full(n, np.inf), np.zeros(n, np.int64), np.ones((n, 3))
@@ -444,14 +441,9 @@ def render_chair(chair: Chair, camera: Camera, aa: int = 1, chunk: int = 1 << 15
             hit = hits.part > 0
             t[s : s + chunk], part[s : s + chunk] = hits.t, hits.part
             rgb[s : s + chunk][hit] = shade(hits.normal[hit], albedo[hits.part[hit]])
-        if i == 0:
-            center_t, center_part = t, part
-        if aa == 1 or i > 0 or aa % 2 == 1:
-            colors.append(rgb)
-            hits_all.append(part > 0)
-    shape = (camera.height, camera.width)
-    rgba = box_filter(np.stack(colors), np.stack(hits_all)).reshape(*shape, 4)
-    return Frame(camera, rgba.astype(np.float32), center_t.reshape(shape).astype(np.float32), center_part.reshape(shape).astype(np.uint8))
+        return t, part, rgb, part > 0
+
+    return supersampled_frame(camera, aa, cast)
 
 
 # ----------------------------------------------------------------------------- views
