@@ -70,7 +70,7 @@ def supersampled_frame(
 
     ``cast(offset)`` ray-casts the rays through ``offset`` (pixels from each pixel's top-left
     corner) of every pixel and returns (distance [N], part id [N], shaded rgb [N, 3], hit [N]).
-    Colour and alpha are :func:`box_filter`\ ed over the aa×aa casts; depth and part ids come
+    Colour and alpha are box-filtered (:func:`box_filter`) over the aa×aa casts; depth and part ids come
     from the pixel-center cast (one of them when aa is odd, an extra one when it is even).
     """
     offsets = subpixel_offsets(aa)
