@@ -30,10 +30,8 @@ def cell_index(xn: Tensor, res: int) -> tuple[Tensor, Tensor]:
 def lookup(grids: Tensor, instance: Tensor, xn: Tensor) -> Tensor:
     """Occupancy of normalized points ``xn`` [..., 3] in ``grids[instance]`` (``instance``
     broadcasts against ``xn[..., 0]``); outside the box → False."""
-    res = grids.shape[-1]
-    ijk, inside = cell_index(xn, res)
-    flat = ((instance * res + ijk[..., 0]) * res + ijk[..., 1]) * res + ijk[..., 2]
-    return grids.reshape(-1)[flat] & inside
+    ijk, inside = cell_index(xn, grids.shape[-1])
+    return _at_cells(grids, instance, ijk) & inside
 
 
 def lookup_in_box(grids: Tensor, instance: Tensor, xn: Tensor) -> Tensor:
@@ -41,6 +39,12 @@ def lookup_in_box(grids: Tensor, instance: Tensor, xn: Tensor) -> Tensor:
     ray's box entry and exit): coordinates are clamped onto the grid instead of tested."""
     res = grids.shape[-1]
     ijk = ((xn + 1.0) * (0.5 * res)).clamp_(0, res - 1).long()  # ≥ 0, so truncation is floor
+    return _at_cells(grids, instance, ijk)
+
+
+def _at_cells(grids: Tensor, instance: Tensor, ijk: Tensor) -> Tensor:
+    """``grids[instance, i, j, k]`` for cell coordinates ``ijk`` [..., 3] on the grid."""
+    res = grids.shape[-1]
     flat = ((instance * res + ijk[..., 0]) * res + ijk[..., 1]) * res + ijk[..., 2]
     return grids.reshape(-1)[flat]
 

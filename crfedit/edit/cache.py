@@ -188,6 +188,11 @@ class EditPass:
                 self.inputs = self.encoded_dirs = None
             self.n_cached = int(self.ray.numel()) if stage == "radiance" else int(samples.ray.numel())
 
+    def radiance_rgb(self, net: FieldNet, color_code: Tensor | None) -> Tensor:
+        """Radiance stage: each ray's colour [N, 3] with ``net``'s F_rad on the cached samples."""
+        rgb_s = radiance_from_inputs(net, self.per_point, color_code)
+        return self.constant.index_add(0, self.ray, self.w[:, None] * rgb_s)
+
     def densities(self) -> tuple[Tensor, Tensor]:
         """(σ [M], bottleneck features [M, 8]) at the current parameters (not the radiance stage)."""
         shape_code, _ = self.field.codes(self.instance)
@@ -205,9 +210,7 @@ class EditPass:
         """Render the edit's rays with the field's current parameters."""
         _, color_code = self.field.codes(self.instance)
         if self.stage == "radiance":
-            rgb_s = radiance_from_inputs(self.net, self.per_point, color_code)
-            rgb = self.constant.index_add(0, self.ray, self.w[:, None] * rgb_s)
-            return PassOutput(rgb, self.opacity, None, None, None)
+            return PassOutput(self.radiance_rgb(self.net, color_code), self.opacity, None, None, None)
         sigma, feat = self.densities()
         rgb_s = radiance_from_inputs(self.net, torch.cat([feat, self.encoded_dirs], dim=-1), color_code)
         sigmas, rgbs = self.dense(sigma), self.dense(rgb_s)
@@ -255,6 +258,4 @@ class ViewCache:
         one the cache was built with: a colour edit's, not a shape edit's)."""
         net = field if self.net_name == "fine" else field.coarse
         _, color_code = field.codes(self.instance)
-        c = self.cached
-        rgb = c.constant.index_add(0, c.ray, c.w[:, None] * radiance_from_inputs(net, c.per_point, color_code))
-        return rgb.view(*self.shape, 3)
+        return self.cached.radiance_rgb(net, color_code).view(*self.shape, 3)
