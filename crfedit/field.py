@@ -7,9 +7,11 @@
 
 Parameter names start with the module names (``F_rad.``, ``F_fuse.`` …): edits select what they
 train, and deltas what they store, by these prefixes.  σ depends on position and shape code
-only; colour adds the view direction and the colour code.  The stages are separate methods so
-that an edit can cache the inputs of the stage it trains (``fuse_inputs`` for shape edits,
-``density_and_features`` for colour edits).
+only; colour adds the view direction and the colour code.  Callers ask the field for
+``density(x, instance)``, ``features(x, instance)``, ``radiance(features, dirs, instance)`` or
+``forward(x, dirs, instance)``; the stages below them are separate methods of :class:`FieldNet`
+so that an edit can cache the inputs of the stage it trains (``fuse_inputs`` for shape edits,
+the bottleneck features for colour edits).
 """
 
 from __future__ import annotations
@@ -106,16 +108,59 @@ def run_mlp(seq: nn.Sequential, per_point: Tensor, per_code: Tensor | None = Non
     return h
 
 
-class FieldNet(nn.Module):
-    """One network of the field (the fine one; the paper preset adds a coarse twin).
+class InstanceBranch(nn.Module):
+    """F_inst: the instance-specific branch, an MLP on the encoded position and the embedded
+    shape code.  Its output is added to F_share's; the embedded code also skips into F_fuse."""
 
-    Codes are passed as tables ``[K, code_dim]`` with ``idx`` [M] choosing a row per point
-    (None: a single row for all points).
+    def __init__(self, cfg: Config, encoded_dim: int):
+        super().__init__()
+        self.code = CodeEmbed(cfg.code_dim, cfg.code_embed)
+        self.mlp = mlp(encoded_dim + cfg.code_embed, cfg.width, cfg.inst_layers)
+
+    def forward(self, encoded: Tensor, shape_codes: Tensor, idx: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(hidden [M, W], embedded shape codes [K, E]) from the encoded position [M, E_x]."""
+        s = self.code(shape_codes)
+        return run_mlp(self.mlp, encoded, s, idx), s
+
+
+class RadianceBranch(nn.Module):
+    """F_rad: RGB in [0, 1] from the bottleneck features, the encoded view direction and the
+    embedded colour code (none in the ``nerf`` ablation).
+
+    Its per-point input (:meth:`inputs`) is separate from the network (:meth:`forward`): a
+    colour edit builds the input once and runs only the network at every step.
     """
 
     def __init__(self, cfg: Config):
         super().__init__()
-        w, e = cfg.width, cfg.code_embed
+        e = cfg.code_embed if cfg.arch != "nerf" else 0
+        self.pe_d = cfg.pe_d
+        self.code = CodeEmbed(cfg.code_dim, e) if cfg.arch != "nerf" else nn.Identity()
+        self.mlp = mlp(cfg.bottleneck + 3 * (1 + 2 * cfg.pe_d) + e, cfg.rad_width, cfg.rad_layers)
+        self.out = nn.Linear(cfg.rad_width, 3)
+
+    def inputs(self, features: Tensor, directions: Tensor) -> Tensor:
+        """[bottleneck features, encoded direction].  [M, 8], [M, 3] → [M, 8 + D]"""
+        return torch.cat([features, positional_encoding(directions, self.pe_d)], dim=-1)
+
+    def forward(self, per_point: Tensor, color_codes: Tensor | None, idx: Tensor | None = None) -> Tensor:
+        """RGB [M, 3] from :meth:`inputs` and colour code rows [K, D] (``idx`` as in
+        :func:`linear_with_codes`)."""
+        code = self.code(color_codes) if color_codes is not None else None
+        return torch.sigmoid(self.out(run_mlp(self.mlp, per_point, code, idx)))
+
+
+class FieldNet(nn.Module):
+    """One network of the field (the fine one; the paper preset adds a coarse twin).
+
+    Codes are passed as tables ``[K, code_dim]`` with ``idx`` choosing a row per point (see
+    :func:`linear_with_codes`; None: a single row for all points).  Callers that think in
+    instances use :class:`ConditionalRadianceField`'s ``density``/``features``/``radiance``.
+    """
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        w = cfg.width
         self.arch = cfg.arch
         self.density_act = cfg.density_act
         self.density_scale = cfg.density_scale
@@ -124,19 +169,12 @@ class FieldNet(nn.Module):
         self.uses_shape_code = cfg.arch != "nerf"
         self.uses_color_code = cfg.arch in ("ours", "separate")
         if self.uses_shape_code:
-            self.F_inst = nn.ModuleDict({"code": CodeEmbed(cfg.code_dim, e), "mlp": mlp(enc + e, w, cfg.inst_layers)})
-        skip = 3 * (1 + 2 * cfg.pe_x) + (e if self.uses_shape_code else 0)
+            self.F_inst = InstanceBranch(cfg, enc)
+        skip = 3 * (1 + 2 * cfg.pe_x) + (cfg.code_embed if self.uses_shape_code else 0)
         self.F_fuse = mlp(w + skip, w, cfg.fuse_layers)
         self.F_dens = nn.Linear(w, 1)
         self.bottleneck = nn.Linear(w, cfg.bottleneck)
-        d_enc = 3 * (1 + 2 * cfg.pe_d)
-        self.pe_d = cfg.pe_d
-        rad_in = cfg.bottleneck + d_enc + (e if cfg.arch != "nerf" else 0)
-        self.F_rad = nn.ModuleDict({
-            "code": CodeEmbed(cfg.code_dim, e) if cfg.arch != "nerf" else nn.Identity(),
-            "mlp": mlp(rad_in, cfg.rad_width, cfg.rad_layers),
-            "out": nn.Linear(cfg.rad_width, 3),
-        })
+        self.F_rad = RadianceBranch(cfg)
         with torch.no_grad():  # start slightly transparent
             self.F_dens.bias.fill_(-1.0)
 
@@ -147,8 +185,8 @@ class FieldNet(nn.Module):
         h = self.F_share.mlp(enc) if self.F_share.mlp is not None else 0.0
         s = None
         if self.uses_shape_code:
-            s = self.F_inst["code"](shape_codes)
-            h = h + run_mlp(self.F_inst["mlp"], enc, s, idx)
+            h_inst, s = self.F_inst(enc, shape_codes, idx)
+            h = h + h_inst
         return FuseInputs(h, pe, s, idx)
 
     def density_from_fuse_inputs(self, inputs: "FuseInputs") -> tuple[Tensor, Tensor]:
@@ -165,12 +203,11 @@ class FieldNet(nn.Module):
         sigma = density_activation(raw, self.density_act)
         return sigma if self.density_scale == 1.0 else sigma * self.density_scale
 
-    def radiance(self, features: Tensor, directions: Tensor, color_codes: Tensor | None, idx: Tensor | None = None) -> Tensor:
+    def radiance_from_codes(
+        self, features: Tensor, directions: Tensor, color_codes: Tensor | None, idx: Tensor | None = None
+    ) -> Tensor:
         """F_rad: RGB in [0, 1] from bottleneck features [M, 8], unit directions [M, 3], colour codes."""
-        per_point = torch.cat([features, positional_encoding(directions, self.pe_d)], dim=-1)
-        code = self.F_rad["code"](color_codes) if color_codes is not None else None
-        h = run_mlp(self.F_rad["mlp"], per_point, code, idx)
-        return torch.sigmoid(self.F_rad["out"](h))
+        return self.F_rad(self.F_rad.inputs(features, directions), color_codes, idx)
 
 
 class FuseInputs(NamedTuple):
@@ -242,3 +279,47 @@ class ConditionalRadianceField(FieldNet):
         """The code rows [1, D] of one instance."""
         s, c = self.code_tables()
         return (None if s is None else s[instance : instance + 1]), (None if c is None else c[instance : instance + 1])
+
+    def select(self, instance: int | Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+        """(shape codes, colour codes, idx) for :class:`FieldNet`'s table-level methods.
+
+        ``instance`` is an int (every point shows that instance: its code rows [1, D], which
+        enter as biases, and idx None) or a [M] int64 tensor of one instance per point (the
+        full tables and a one-hot selector, see :func:`linear_with_codes`).
+        """
+        if isinstance(instance, int):
+            return (*self.codes(instance), None)
+        return (*self.code_tables(), code_selector(instance, self.n_instances))
+
+    def density(self, x: Tensor, instance: int | Tensor, net: FieldNet | None = None) -> Tensor:
+        """σ ≥ 0 [M] at normalized points ``x`` [M, 3] in [-1, 1]³ (see :meth:`normalize`).
+
+        ``instance`` as in :meth:`select`; ``net`` is the network to run: this one (default)
+        or the paper preset's ``coarse`` twin.  Also for :meth:`features`, :meth:`radiance`
+        and :meth:`forward`.
+        """
+        net = self if net is None else net
+        s, _, idx = self.select(instance)
+        return net.sigma(net.density_and_features(x, s, idx)[0])
+
+    def features(self, x: Tensor, instance: int | Tensor, net: FieldNet | None = None) -> Tensor:
+        """The bottleneck features [M, 8] at ``x`` [M, 3]: all that F_rad sees of the position,
+        so a colour edit caches them."""
+        net = self if net is None else net
+        s, _, idx = self.select(instance)
+        return net.density_and_features(x, s, idx)[1]
+
+    def radiance(self, features: Tensor, directions: Tensor, instance: int | Tensor, net: FieldNet | None = None) -> Tensor:
+        """RGB [M, 3] in [0, 1] from :meth:`features` [M, 8] and unit view directions [M, 3]."""
+        net = self if net is None else net
+        _, c, idx = self.select(instance)
+        return net.radiance_from_codes(features, directions, c, idx)
+
+    def forward(
+        self, x: Tensor, directions: Tensor, instance: int | Tensor, net: FieldNet | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """(σ [M], RGB [M, 3]) at ``x`` [M, 3] seen along ``directions`` [M, 3]."""
+        net = self if net is None else net
+        s, c, idx = self.select(instance)
+        raw, feat = net.density_and_features(x, s, idx)
+        return net.sigma(raw), net.radiance_from_codes(feat, directions, c, idx)

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from . import occupancy
 from .cameras import Camera, Rays, rays_from_camera
-from .field import ConditionalRadianceField, FieldNet, code_selector
+from .field import ConditionalRadianceField, FieldNet
 from .rendering import (
     composite_from_density,
     composite_packed_samples,
@@ -106,16 +106,11 @@ def evaluate(
     ``instance``: [N] long per ray, or an int when every ray shows the same instance (a
     rendered view): its code rows then enter as biases, with no per-point selection.
     """
-    shape_codes, color_codes = field.code_tables()
-    if isinstance(instance, int):
-        pick = lambda t: None if t is None else t[instance : instance + 1]
-        shape_codes, color_codes, idx = pick(shape_codes), pick(color_codes), None
-    else:
-        idx = code_selector(instance[samples.ray], field.n_instances)
+    shape_codes, color_codes, idx = field.select(instance if isinstance(instance, int) else instance[samples.ray])
     raw, feat = net.density_and_features(field.normalize(samples.points), shape_codes, idx)
     if noise > 0:
         raw = raw + noise * torch.randn(raw.shape, generator=generator).to(raw.device)
-    rgb = net.radiance(feat, rays.directions[samples.ray], color_codes, idx)
+    rgb = net.radiance_from_codes(feat, rays.directions[samples.ray], color_codes, idx)
     return net.sigma(raw), rgb
 
 

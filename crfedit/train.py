@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from .cameras import Rays
 from .config import Config
 from .data.format import Category, TrainingRays, training_rays
 from .errors import CrfError, NonFiniteError
-from .field import ConditionalRadianceField, code_selector
+from .field import ConditionalRadianceField
 from .model import CategoryModel, ViewTable, load_model, save_model
 from .renderer import render_rays
 
@@ -148,13 +149,10 @@ def view_dependence_penalty(field, rays: Rays, inst: torch.Tensor, depth: torch.
     if hit.numel() == 0:
         return depth.sum() * 0.0
     x = rays.origins[hit] + rays.directions[hit] * (depth[hit] / opacity[hit]).detach()[:, None]
-    s, c = field.code_tables()
-    _, feat = field.density_and_features(field.normalize(x), s, code_selector(inst[hit], field.n_instances))
+    feat = field.features(field.normalize(x), inst[hit])
     dirs = torch.nn.functional.normalize(torch.randn(hit.numel(), n_dirs, 3, generator=generator).to(x.device), dim=-1)
-    rgb = field.radiance(
-        feat.repeat_interleave(n_dirs, 0), dirs.reshape(-1, 3), c,
-        code_selector(inst[hit].repeat_interleave(n_dirs, 0), field.n_instances)
-    ).view(hit.numel(), n_dirs, 3)
+    rgb = field.radiance(feat.repeat_interleave(n_dirs, 0), dirs.reshape(-1, 3), inst[hit].repeat_interleave(n_dirs, 0))
+    rgb = rgb.view(hit.numel(), n_dirs, 3)
     return rgb.var(dim=1).mean()
 
 
@@ -163,12 +161,7 @@ def refresh_occupancy(field, hulls, ema, instances, generator) -> None:
     s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell)
     with torch.no_grad():
         for k in instances:
-            shape_code, _ = field.codes(k)
-
-            def density(xn, k=k, shape_code=shape_code):
-                raw, _ = field.density_and_features(xn, shape_code)
-                return field.sigma(raw)
-
+            density = functools.partial(field.density, instance=k)
             grid = occupancy.update_from_density(
                 ema[k], hulls[k].reshape(-1), density, s, field.cfg.occ_threshold, generator=generator
             )

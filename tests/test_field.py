@@ -123,18 +123,18 @@ def test_shape_code_reaches_rgb_only_through_the_bottleneck():
     x, d, idx = points()
     s, c = field.code_tables()
     raw, feat = field.density_and_features(x, s, idx)
-    rgb = field.radiance(feat, d, c, idx)
+    rgb = field.radiance_from_codes(feat, d, c, idx)
     s2 = s.flip(0).detach() * 2.0
     raw2, feat2 = field.density_and_features(x, s2, idx)
-    assert not torch.allclose(raw2, raw) and not torch.allclose(field.radiance(feat2, d, c, idx), rgb)
+    assert not torch.allclose(raw2, raw) and not torch.allclose(field.radiance_from_codes(feat2, d, c, idx), rgb)
     # freeze the bottleneck's output: the shape code then has no way left into rgb
     handle = field.bottleneck.register_forward_hook(lambda mod, inp, out: feat)
     try:
         _, frozen = field.density_and_features(x, s2, idx)
-        assert torch.equal(field.radiance(frozen, d, c, idx), rgb)
+        assert torch.equal(field.radiance_from_codes(frozen, d, c, idx), rgb)
     finally:
         handle.remove()
-    assert field.F_rad["mlp"][0].in_features == 8 + 3 * (1 + 2 * field.cfg.pe_d) + field.cfg.code_embed
+    assert field.F_rad.mlp[0].in_features == 8 + 3 * (1 + 2 * field.cfg.pe_d) + field.cfg.code_embed
 
 
 def test_color_code_selects_each_instance_rgb():
@@ -143,13 +143,13 @@ def test_color_code_selects_each_instance_rgb():
     zero = torch.zeros(len(x), dtype=torch.long)
     s, c = field.code_tables()
     _, feat = field.density_and_features(x, s, zero)
-    rgb = field.radiance(feat, d, c, zero)
+    rgb = field.radiance_from_codes(feat, d, c, zero)
     swapped = c.detach().clone()
     swapped[0] = c[2]  # instance 0 takes instance 2's colour code: its rgb becomes instance 2's
-    torch.testing.assert_close(field.radiance(feat, d, swapped, zero), field.radiance(feat, d, c, zero + 2))
-    assert not torch.allclose(field.radiance(feat, d, swapped, zero), rgb)
+    torch.testing.assert_close(field.radiance_from_codes(feat, d, swapped, zero), field.radiance_from_codes(feat, d, c, zero + 2))
+    assert not torch.allclose(field.radiance_from_codes(feat, d, swapped, zero), rgb)
     # a single code row (idx None) is the same as that row selected for every point
-    torch.testing.assert_close(field.radiance(feat, d, c[:1], None), rgb, rtol=0, atol=1e-6)
+    torch.testing.assert_close(field.radiance_from_codes(feat, d, c[:1], None), rgb, rtol=0, atol=1e-6)
 
 
 def test_linear_with_codes_equals_the_concatenated_layer():
@@ -205,7 +205,7 @@ def test_every_ablation_builds_and_renders(arch):
     x, d, idx = points()
     s, c = field.code_tables()
     raw, feat = field.density_and_features(x, s, idx)
-    rgb = field.radiance(feat, d, c, idx)
+    rgb = field.radiance_from_codes(feat, d, c, idx)
     assert raw.shape == (40,) and feat.shape == (40, 8) and rgb.shape == (40, 3)
     assert raw.isfinite().all() and ((rgb >= 0) & (rgb <= 1)).all()
     rays = Rays(torch.tensor([[0.0, -2.0, 0.1], [2.0, 0.0, 0.0]]), torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]))
@@ -221,9 +221,9 @@ def test_nerf_ablation_ignores_codes():
     x, d, idx = points()
     assert field.code_tables() == (None, None)
     raw, feat = field.density_and_features(x, None, idx)
-    rgb = field.radiance(feat, d, None, idx)
+    rgb = field.radiance_from_codes(feat, d, None, idx)
     raw0, feat0 = field.density_and_features(x, None, torch.zeros_like(idx))
-    assert torch.equal(raw, raw0) and torch.equal(field.radiance(feat0, d, None, None), rgb)
+    assert torch.equal(raw, raw0) and torch.equal(field.radiance_from_codes(feat0, d, None, None), rgb)
 
 
 def test_single_ablation_uses_the_shape_code_for_color():
@@ -232,11 +232,11 @@ def test_single_ablation_uses_the_shape_code_for_color():
     assert c is s is field.shape_codes
     x, d, idx = points()
     raw, feat = field.density_and_features(x, s, idx)
-    rgb = field.radiance(feat, d, c, idx)
+    rgb = field.radiance_from_codes(feat, d, c, idx)
     with torch.no_grad():
         field.color_codes.mul_(5.0)  # unused by this variant
     s2, c2 = field.code_tables()
-    assert torch.equal(field.radiance(*field.density_and_features(x, s2, idx)[1:], d, c2, idx), rgb)
+    assert torch.equal(field.radiance_from_codes(*field.density_and_features(x, s2, idx)[1:], d, c2, idx), rgb)
 
 
 def test_separate_ablation_has_no_shared_branch():
@@ -297,3 +297,70 @@ def test_single_instance_path_equals_per_point_selection():
         torch.testing.assert_close(a.rgb, b.rgb, atol=1e-6, rtol=0)
         torch.testing.assert_close(a.opacity, b.opacity, atol=1e-6, rtol=0)
     assert float(render_rays(field, rays, 0).opacity.detach().max()) > 0.01  # the rays do cross the field
+
+
+# --- the instance-level interface and old model files ---------------------------------------
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_density_features_radiance_forward_equal_the_stages(arch):
+    """``density``/``features``/``radiance``/``forward`` take an instance (an int, or one per
+    point) and give bit for bit what the table-level stages give with that instance's codes."""
+    field = make_field(tiny(arch, sampler="hierarchical", n_coarse=4, n_fine=4))
+    x, d, idx = points()
+    s, c = field.code_tables()
+    for net in (field, field.coarse):
+        raw, feat = net.density_and_features(x, s, idx)
+        sigma, rgb = net.sigma(raw), net.radiance_from_codes(feat, d, c, idx)
+        torch.testing.assert_close(field.density(x, idx, net), sigma, rtol=0, atol=1e-6)
+        torch.testing.assert_close(field.features(x, idx, net), feat, rtol=0, atol=1e-6)
+        torch.testing.assert_close(field.radiance(feat, d, idx, net), rgb, rtol=0, atol=1e-6)
+        for k in range(field.n_instances):
+            rows = idx == k
+            sigma_k, rgb_k = field(x[rows], d[rows], k, net)
+            torch.testing.assert_close(sigma_k, sigma[rows], rtol=0, atol=1e-5)
+            torch.testing.assert_close(rgb_k, rgb[rows], rtol=0, atol=1e-6)
+            assert torch.equal(field.density(x[rows], k, net), sigma_k)
+    # forward is the renderer's evaluation at the same points
+    world = (x + 1) / 2 * (field.aabb[3:] - field.aabb[:3]) + field.aabb[:3]
+    sig_r, rgb_r = evaluate(field, field, packed(world, idx), Rays(torch.zeros_like(x), d), idx)
+    sig_f, rgb_f = field(field.normalize(world), d, idx)
+    assert torch.equal(sig_f, sig_r) and torch.equal(rgb_f, rgb_r)
+
+
+def test_f_inst_and_f_rad_are_named_parts():
+    field = make_field(tiny())
+    assert [n for n, _ in field.F_inst.named_children()] == ["code", "mlp"]
+    assert [n for n, _ in field.F_rad.named_children()] == ["code", "mlp", "out"]
+    assert field.F_rad.mlp[0].in_features == 8 + 3 * (1 + 2 * field.cfg.pe_d) + field.cfg.code_embed
+
+
+OLD_FORMAT_KEYS = [
+    "F_dens.bias", "F_dens.weight", "F_fuse.0.bias", "F_fuse.0.weight", "F_inst.code.linear.bias",
+    "F_inst.code.linear.weight", "F_inst.mlp.0.bias", "F_inst.mlp.0.weight", "F_rad.code.linear.bias",
+    "F_rad.code.linear.weight", "F_rad.mlp.0.bias", "F_rad.mlp.0.weight", "F_rad.out.bias", "F_rad.out.weight",
+    "F_share.mlp.0.bias", "F_share.mlp.0.weight", "aabb", "bottleneck.bias", "bottleneck.weight",
+]
+
+
+def test_old_format_model_file_loads_and_renders_bit_identically():
+    """tests/data/old_format_model.safetensors was written by the code before F_inst/F_rad became
+    named classes (ModuleDicts then), with its render of instance 1: both still hold exactly."""
+    from pathlib import Path
+
+    from crfedit.cameras import Camera
+    from crfedit.model import load_model
+    from crfedit.renderer import render_camera
+    from crfedit.safefile import read_safetensors
+
+    data = Path(__file__).parent / "data"
+    model, _ = load_model(data / "old_format_model.safetensors")
+    names = sorted(model.field.state_dict())
+    expected = OLD_FORMAT_KEYS + [f"coarse.{k}" for k in OLD_FORMAT_KEYS if k != "aabb"]
+    assert names == sorted(expected + ["color_codes", "occupancy", "shape_codes"])
+    stored, _ = read_safetensors(data / "old_format_render.safetensors")
+    camera = Camera(stored["c2w"].numpy(), 8.0, 6, 6)
+    with torch.no_grad():
+        rgb = render_camera(model.field, camera, 1).rgb
+    assert torch.equal(rgb, stored["rgb"])
+    assert float(stored["rgb"].std()) > 0.01  # the view does show the field

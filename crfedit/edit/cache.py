@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera, Rays, rays_from_camera
-from ..field import ConditionalRadianceField, FieldNet, FuseInputs, positional_encoding, run_mlp
+from ..field import ConditionalRadianceField, FieldNet, FuseInputs, positional_encoding
 from ..renderer import PackedSamples, composite_packed, evaluate, grid_samples
 from ..rendering import (
     composite_from_density,
@@ -60,22 +60,6 @@ def cache_stage(trained: Sequence[str], density_changes: bool) -> str:
     if all(n.startswith(fuse) for n in trained):
         return "fuse"
     return "points"
-
-
-def radiance_inputs(net: FieldNet, features: Tensor, directions: Tensor) -> Tensor:
-    """The per-point input of F_rad, [bottleneck features, encoded direction].  [M, 8 + D]
-
-    Constant during a colour edit, so it is built once (:meth:`FieldNet.radiance` builds it
-    at every call).
-    """
-    return torch.cat([features, positional_encoding(directions, net.pe_d)], dim=-1)
-
-
-def radiance_from_inputs(net: FieldNet, per_point: Tensor, color_codes: Tensor | None) -> Tensor:
-    """F_rad from :func:`radiance_inputs`: equals ``net.radiance(features, directions, color_codes)``
-    for a single code row (tests/test_edits.py checks it)."""
-    code = net.F_rad["code"](color_codes) if color_codes is not None else None
-    return torch.sigmoid(net.F_rad["out"](run_mlp(net.F_rad["mlp"], per_point, code)))
 
 
 class PassOutput(NamedTuple):
@@ -160,7 +144,7 @@ class EditPass:
         self.samples = samples
         self.n_rays = samples.n_rays
         dirs = rays.directions[samples.ray]  # [M, 3]
-        self.encoded_dirs = positional_encoding(dirs, self.net.pe_d)  # [M, D]: constant, encoded once
+        self.encoded_dirs = positional_encoding(dirs, self.net.F_rad.pe_d)  # [M, D]: constant, encoded once
         dense = lambda v: torch.zeros(samples.n_rays, samples.n_steps, dtype=v.dtype, device=v.device).index_put(
             (samples.ray, samples.step), v
         )
@@ -177,9 +161,9 @@ class EditPass:
                 weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, dense(self.net.sigma(raw)))
                 w = weights[samples.ray, samples.step]
                 keep = w > prune
-                per_point = radiance_inputs(self.net, feat, dirs)
+                per_point = self.net.F_rad.inputs(feat, dirs)  # constant during a colour edit: built once
                 _, color_code = field.codes(instance)
-                dropped = (w * ~keep)[:, None] * radiance_from_inputs(self.net, per_point, color_code)
+                dropped = (w * ~keep)[:, None] * self.net.F_rad(per_point, color_code)
                 self.opacity = weights.sum(dim=-1)  # [N]
                 # Σ of the dropped samples' w·c, plus the background: the constant part of each ray's colour.
                 self.constant = torch.zeros(samples.n_rays, 3, device=w.device).index_add(0, samples.ray, dropped)
@@ -190,7 +174,7 @@ class EditPass:
 
     def radiance_rgb(self, net: FieldNet, color_code: Tensor | None) -> Tensor:
         """Radiance stage: each ray's colour [N, 3] with ``net``'s F_rad on the cached samples."""
-        rgb_s = radiance_from_inputs(net, self.per_point, color_code)
+        rgb_s = net.F_rad(self.per_point, color_code)
         return self.constant.index_add(0, self.ray, self.w[:, None] * rgb_s)
 
     def densities(self) -> tuple[Tensor, Tensor]:
@@ -212,7 +196,7 @@ class EditPass:
         if self.stage == "radiance":
             return PassOutput(self.radiance_rgb(self.net, color_code), self.opacity, None, None, None)
         sigma, feat = self.densities()
-        rgb_s = radiance_from_inputs(self.net, torch.cat([feat, self.encoded_dirs], dim=-1), color_code)
+        rgb_s = self.net.F_rad(torch.cat([feat, self.encoded_dirs], dim=-1), color_code)
         sigmas, rgbs = self.dense(sigma), self.dense(rgb_s)
         comp = composite_from_density(self.t_starts, self.t_ends, sigmas, rgbs, self.background)
         return PassOutput(comp.rgb, comp.opacity, sigmas, comp.weights, rgbs)

@@ -33,6 +33,7 @@ only where no density is left nearby.
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import NamedTuple
 
@@ -77,11 +78,7 @@ def rethreshold(field: ConditionalRadianceField, instance: int, candidates: Tens
     one cell and kept within ``candidates``."""
     cfg = field.cfg
     res = candidates.shape[-1]
-    shape_code, _ = field.codes(instance)
-
-    def density(xn: Tensor) -> Tensor:
-        return field.sigma(field.density_and_features(xn, shape_code)[0])
-
+    density = functools.partial(field.density, instance=instance)
     ema = torch.zeros(res**3, device=candidates.device)
     step = occupancy.step_size(field.aabb, res, cfg.steps_per_cell)
     grid = candidates.reshape(-1)
@@ -216,9 +213,7 @@ def donor_densities(
     t = ((s.points[sel] - target_rays.origins[ray]) * target_rays.directions[ray]).sum(dim=-1)
     pts = donor_rays.origins[ray] + t[:, None] * donor_rays.directions[ray]
     xn = donor.normalize(pts)
-    shape_code, _ = donor.codes(donor_instance)
-    net = donor if target.net is target.field else donor.coarse
-    sigma = net.sigma(net.density_and_features(xn, shape_code)[0])
+    sigma = donor.density(xn, donor_instance, donor if target.net is target.field else donor.coarse)
     if donor.cfg.sampler == "grid":
         inst = torch.full_like(ray, donor_instance)
         sigma = torch.where(occupancy.lookup(donor.occupancy, inst, xn), sigma, torch.zeros_like(sigma))
