@@ -38,12 +38,13 @@ from torch import Tensor
 from .errors import ModelFileError, NonFiniteError
 from .field import ConditionalRadianceField
 from .model import CategoryModel
+from .names import COLOR_CODES, SHAPE_CODES
 from .safefile import fingerprint, read_header, read_safetensors, write_safetensors
 
 FORMAT = "crfedit-edit"
 VERSION = "1"
 KINDS = ("color", "remove", "add", "transfer", "fit-real")
-CODE_ROWS = {"shape_code": "shape_codes", "color_code": "color_codes"}
+CODE_ROWS = {"shape_code": SHAPE_CODES, "color_code": COLOR_CODES}
 """Delta tensor name → the code table (state-dict name) whose row k it changes."""
 GRID = "occupancy"
 GRID_KINDS = ("remove", "add", "transfer", "fit-real")

@@ -35,6 +35,7 @@ from .evaluate import render_views, score_model
 from .field import ConditionalRadianceField
 from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
+from .names import CODE_TABLES
 from .train import train
 
 SSIM_NOTE = "SSIM: 11×11 Gaussian window, σ=1.5, on RGB"
@@ -363,7 +364,7 @@ def network_parameters(cfg: Config) -> int:
     field = ConditionalRadianceField(cfg, 1)
     return sum(
         p.numel() for name, p in field.named_parameters()
-        if name not in ("shape_codes", "color_codes") and not name.endswith(".grid")
+        if name not in CODE_TABLES and not name.endswith(".grid")
     )
 
 

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .config import Config
+from .names import CODE_TABLES, COLOR_CODES, MODULES, SHAPE_CODES  # noqa: F401  (re-exported)
 
 
 def positional_encoding(x: Tensor, n_freqs: int) -> Tensor:

@@ -14,18 +14,12 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
+from ..names import ADD_METHODS, STRATEGIES
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
 
 
-class Strategy(str, enum.Enum):
-    hybrid = "hybrid"
-    codes = "codes"
-    all = "all"
-
-
-class AddMethod(str, enum.Enum):
-    composite = "composite"
-    density = "density"
+Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
+AddMethod = enum.Enum("AddMethod", {m: m for m in ADD_METHODS}, type=str)
 
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors).")]

@@ -12,20 +12,16 @@ from typing import Annotated, Optional
 import typer
 
 from ..io import check_folder_target
+from ..config import ARCHS, PRESETS
 from ..errors import CrfError
+from ..names import CODE_TABLES, MODULES
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, user_errors
 
 
-class PresetChoice(str, enum.Enum):
-    fast = "fast"
-    paper = "paper"
+PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
 
 
-class ArchChoice(str, enum.Enum):
-    ours = "ours"
-    separate = "separate"
-    single = "single"
-    nerf = "nerf"
+ArchChoice = enum.Enum("ArchChoice", {a: a for a in ARCHS}, type=str)
 
 
 # ----------------------------------------------------------------------------- progress
@@ -207,7 +203,7 @@ def train_cmd(
 # ----------------------------------------------------------------------------- info
 
 
-MODULE_ORDER = ("F_share", "F_inst", "F_fuse", "F_dens", "bottleneck", "F_rad", "shape_codes", "color_codes")
+MODULE_ORDER = (*MODULES, *CODE_TABLES)
 
 
 def model_info(path: Path) -> dict:

@@ -29,6 +29,8 @@ from torch import Tensor
 
 from ..cameras import Camera, Rays, rays_from_camera
 from ..field import ConditionalRadianceField, FieldNet, FuseInputs, positional_encoding
+from ..names import COLOR_CODES, MODULES
+from .params import TRAINED
 from ..renderer import PackedSamples, composite_packed, evaluate, grid_samples
 from ..rendering import (
     composite_from_density,
@@ -44,8 +46,8 @@ PRUNE_WEIGHT = 1e-3
 """Radiance stage: samples whose compositing weight is below this leave the trained sum; their
 colour at the starting weights stays in as a constant, so the starting render is unchanged."""
 
-_RADIANCE = ("F_rad.", "color_codes")
-_DOWNSTREAM_OF_FUSE = ("F_fuse.", "F_dens.", "bottleneck.", "F_rad.")
+_DOWNSTREAM_OF_FUSE = tuple(m + "." for m in MODULES[MODULES.index("F_fuse") :])
+"""What runs on the cached :class:`FuseInputs`: F_fuse and every module after it."""
 
 
 def cache_stage(trained: Sequence[str], density_changes: bool) -> str:
@@ -54,9 +56,9 @@ def cache_stage(trained: Sequence[str], density_changes: bool) -> str:
     ``density_changes`` is False for colour edits: with F_rad and the colour code trained the
     compositing weights are constants.
     """
-    if not density_changes and all(n.startswith(_RADIANCE) for n in trained):
+    if not density_changes and all(n.startswith(TRAINED["color"]) for n in trained):
         return "radiance"
-    fuse = (*_DOWNSTREAM_OF_FUSE, *("coarse." + p for p in _DOWNSTREAM_OF_FUSE), "color_codes")
+    fuse = (*_DOWNSTREAM_OF_FUSE, *("coarse." + p for p in _DOWNSTREAM_OF_FUSE), COLOR_CODES)
     if all(n.startswith(fuse) for n in trained):
         return "fuse"
     return "points"

@@ -25,6 +25,7 @@ from ..cameras import Camera, Rays, rays_from_camera
 from ..delta import Delta, apply_deltas, make_delta, save_delta
 from ..errors import CrfError, NonFiniteError
 from ..model import CategoryModel
+from ..names import CODE_TABLES
 from .losses import weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
 
@@ -107,7 +108,7 @@ class InstanceEdit:
         if not self.params:
             raise CrfError(f"--strategy {strategy}: this model has no parameters to train for a {group} edit")
         self.start = {n: p.detach().clone() for n, p in self.params.items()}
-        self.rows = {n: instance for n in self.params if n in ("shape_codes", "color_codes")}
+        self.rows = {n: instance for n in self.params if n in CODE_TABLES}
 
     def penalty(self) -> Tensor:
         return weight_penalty(self.params, self.start, self.rows)

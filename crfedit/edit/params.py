@@ -10,21 +10,19 @@ from __future__ import annotations
 
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
+from ..names import CODE_TABLES, COLOR_CODES, SHAPE_CODES, STRATEGIES
 
 TRAINED: dict[str, tuple[str, ...]] = {
-    "color": ("F_rad.", "color_codes"),
+    "color": ("F_rad.", COLOR_CODES),
     "shape": ("F_fuse.", "F_dens.", "coarse.F_fuse.", "coarse.F_dens."),
 }
 """The paper's hybrid update per edit group: a colour edit trains the radiance network and the
 instance's colour code; a shape edit trains the fusion and density layers (of both networks of
 the paper preset)."""
 
-CODES: dict[str, str] = {"color": "color_codes", "shape": "shape_codes"}
+CODES: dict[str, str] = {"color": COLOR_CODES, "shape": SHAPE_CODES}
 """The code table the ``codes`` strategy trains (row k only) per edit group."""
 
-STRATEGIES = ("hybrid", "codes", "all")
-"""hybrid: :data:`TRAINED`; codes: the instance's code row only; all: every network weight and
-the instance's code rows."""
 
 GROUP = {"color": "color", "remove": "shape", "add": "shape"}
 """Edit kind → the group of :data:`TRAINED` it uses."""
@@ -33,8 +31,7 @@ GROUP = {"color": "color", "remove": "shape", "add": "shape"}
 def used_code_tables(field: ConditionalRadianceField) -> list[str]:
     """Names of the code tables the field's architecture actually reads."""
     s, c = field.code_tables()
-    return [name for name, table in (("shape_codes", field.shape_codes), ("color_codes", field.color_codes))
-            if table is s or table is c]
+    return [name for name in CODE_TABLES if getattr(field, name) is s or getattr(field, name) is c]
 
 
 def trained_prefixes(field: ConditionalRadianceField, group: str, strategy: str) -> tuple[str, ...]:
@@ -58,7 +55,7 @@ def trained_prefixes(field: ConditionalRadianceField, group: str, strategy: str)
     if strategy == "all":
         tops = []
         for n in names:
-            if n in ("shape_codes", "color_codes"):
+            if n in CODE_TABLES:
                 continue
             top = n.split(".")[0] + "."
             if top not in tops:
@@ -66,7 +63,7 @@ def trained_prefixes(field: ConditionalRadianceField, group: str, strategy: str)
         return (*tops, *codes)
     out = []
     for prefix in TRAINED[group]:
-        if prefix in ("shape_codes", "color_codes"):
+        if prefix in CODE_TABLES:
             if prefix in codes:
                 out.append(prefix)
         elif any(n.startswith(prefix) for n in names):

@@ -45,6 +45,7 @@ from .. import occupancy
 from ..cameras import Camera, Rays
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
+from ..names import ADD_METHODS, COLOR_CODES
 from ..model import CategoryModel
 from ..renderer import grid_samples, render_camera
 from ..rendering import composite_from_density
@@ -55,7 +56,6 @@ from .params import used_code_tables
 from .scribble import check_masks, pick_pixels
 from .transfer import swap_codes
 
-ADD_METHODS = ("composite", "density")
 MODE_ALPHA = 0.01
 """A sample belongs to a density mode while its opacity 1 − exp(−σδ) exceeds this."""
 OCC_PROBES = 4
@@ -248,7 +248,7 @@ def add(
         raise CrfError(f"copy mask is {copy_mask.shape[1]}x{copy_mask.shape[0]} but the donor view is {w}x{h}")
     if not copy_mask.any():
         raise CrfError("the copy mask is empty: no pixel is set")
-    recolored = k != j and "color_codes" in used_code_tables(model.field)
+    recolored = k != j and COLOR_CODES in used_code_tables(model.field)
     donor_field = (swap_codes(model, j, color_from=k) if recolored else model).field_for(j)
     donor_out = render_camera(donor_field, donor_camera, j)
     target_out = render_camera(model.field_for(k), camera, k)

@@ -19,6 +19,7 @@ import time
 from ..delta import GRID, Delta, apply_one, apply_deltas, instance_state, make_delta
 from ..errors import CrfError
 from ..model import CategoryModel
+from ..names import COLOR_CODES, SHAPE_CODES
 from .core import EditResult
 from .params import used_code_tables
 
@@ -36,7 +37,7 @@ def _swapped(
     replaced = dict(model.overrides.get(k, {}))
     modules: list[str] = []
     hyper: dict = {}
-    for which, source, table in (("shape", shape_from, "shape_codes"), ("color", color_from, "color_codes")):
+    for which, source, table in (("shape", shape_from, SHAPE_CODES), ("color", color_from, COLOR_CODES)):
         if source is None:
             continue
         if table not in used:

@@ -1,0 +1,17 @@
+"""Names that the library and the CLI share, importable without torch (the CLI builds its
+choices from them and imports torch only when a command runs)."""
+
+from __future__ import annotations
+
+MODULES = ("F_share", "F_inst", "F_fuse", "F_dens", "bottleneck", "F_rad")
+"""The paper's modules of one network in data-flow order (each is a state-dict prefix)."""
+SHAPE_CODES = "shape_codes"
+COLOR_CODES = "color_codes"
+CODE_TABLES = (SHAPE_CODES, COLOR_CODES)
+"""State-dict names of the per-instance code tables [K, code_dim]."""
+
+STRATEGIES = ("hybrid", "codes", "all")
+"""What an edit trains.  hybrid: ``edit.params.TRAINED``; codes: the instance's code row only;
+all: every network weight and the instance's code rows."""
+ADD_METHODS = ("composite", "density")
+"""How ``add`` supervises the pasted part: its rendered image, or the donor's density."""
