@@ -19,13 +19,14 @@ from crfedit.cameras import Rays, rays_from_camera
 from crfedit.cli import app
 from crfedit.config import PRESETS, make_config
 from crfedit.data import load_category
-from crfedit.data.synth import SynthConfig, dilate, erode, write_synth_category
+from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.delta import apply_edit_files, read_delta
 from crfedit.edit import CODES, TRAINED, EditOptions, add, edit_color, remove, swap_codes, trained_prefixes, transfer
 from crfedit.edit.cache import ViewCache, edit_passes
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.losses import density_cross_entropy, density_entropy, log_density_drift, visible_log_density
-from crfedit.edit.scribble import parse_color, strokes_mask
+from crfedit.edit.scribble import parse_color, strokes_json_mask
+from crfedit.masks import dilate, erode
 from crfedit.edit.shape import first_mode, parse_offset
 from crfedit.errors import CrfError, NonFiniteError
 from crfedit.field import ConditionalRadianceField
@@ -355,13 +356,13 @@ def test_parse_color():
 
 
 def test_strokes_rasterize_at_the_view_resolution():
-    mask = strokes_mask({"strokes": [[[2, 3], [8, 3]]], "radius": 1}, 12, 10, "s.json")
+    mask = strokes_json_mask({"strokes": [[[2, 3], [8, 3]]], "radius": 1}, 12, 10, "s.json")
     assert mask.shape == (10, 12) and mask[3, 2:9].all() and mask[2, 5] and mask[4, 5] and not mask[6, 5]
-    dot = strokes_mask([[[5, 5]]], 48, 48, "s.json")  # a bare list; radius max(1, 48/48)
+    dot = strokes_json_mask([[[5, 5]]], 48, 48, "s.json")  # a bare list; radius max(1, 48/48)
     assert dot[5, 5] and dot[4, 5] and not dot[3, 5] and int(dot.sum()) == 5
     for bad in ({"strokes": []}, [[["a", 1]]], {"strokes": [[[1, 2]]], "radius": -1}, [[[1, 2, 3]]]):
         with pytest.raises(CrfError, match="s.json"):
-            strokes_mask(bad, 12, 10, "s.json")
+            strokes_json_mask(bad, 12, 10, "s.json")
 
 
 # ----------------------------------------------------------------------------- commands

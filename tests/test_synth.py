@@ -14,6 +14,7 @@ from crfedit.cameras import Camera, focal_from_angle, look_at
 from crfedit.cli import app
 from crfedit.data import dataset_info, load_category, load_twins, read_mask
 from crfedit.data.format import box_filter
+from crfedit.masks import dilate
 from crfedit.data.synth import (
     LIGHT,
     Chair,
@@ -22,7 +23,6 @@ from crfedit.data.synth import (
     box,
     camera_rays,
     cylinder,
-    dilate,
     make_chair,
     primitive_bounds,
     render_chair,

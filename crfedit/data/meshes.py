@@ -38,6 +38,7 @@ import numpy as np
 from ..cameras import Camera
 from ..errors import CrfError, DataError
 from ..io import atomic_write_text, read_json, write_png
+from ..masks import erode
 from .format import Frame, TwinSpec, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 from .synth import (
     PALETTE,
@@ -46,7 +47,6 @@ from .synth import (
     camera_rays,
     check_synth_args,
     contrasting_color,
-    erode,
     hex_to_rgb,
     rgb_to_hex,
     sample_cameras,

@@ -23,6 +23,7 @@ import numpy as np
 from ..cameras import Camera, focal_from_angle, look_at, ray_directions_camera, spherical_eye
 from ..errors import CrfError
 from ..io import check_folder_target, write_png
+from ..masks import dilate, erode, strokes_mask
 from .format import Frame, TwinSpec, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 
 LIGHT = np.array([0.4, -0.3, 0.85]) / np.linalg.norm([0.4, -0.3, 0.85])
@@ -474,50 +475,6 @@ def sample_cameras(rng: np.random.Generator, views: int, res: int) -> dict[str, 
 # ----------------------------------------------------------------------------- scribbles
 
 
-def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
-    """Binary dilation by a (2r+1)² square; outside the image counts as off."""
-    if radius <= 0:
-        return mask.copy()
-    h, w = mask.shape
-    padded = np.pad(mask, radius)
-    out = np.zeros_like(mask)
-    for dy in range(2 * radius + 1):
-        for dx in range(2 * radius + 1):
-            out |= padded[dy : dy + h, dx : dx + w]
-    return out
-
-
-def erode(mask: np.ndarray, radius: int) -> np.ndarray:
-    """Binary erosion by a (2r+1)² square; outside the image counts as off."""
-    if radius <= 0:
-        return mask.copy()
-    h, w = mask.shape
-    padded = np.pad(mask, radius)
-    out = np.ones_like(mask)
-    for dy in range(2 * radius + 1):
-        for dx in range(2 * radius + 1):
-            out &= padded[dy : dy + h, dx : dx + w]
-    return out
-
-
-def stroke_mask(shape: tuple[int, int], points: np.ndarray, radius: float) -> np.ndarray:
-    """Pixels whose centers lie within ``radius`` of the polyline through ``points`` ([K, 2] x, y,
-    pixel units with (0, 0) the center of the top-left pixel).  A single point draws a dot.
-
-    Shared by the generator's twin scribbles and the edit commands' ``--scribble-json`` strokes.
-    """
-    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
-    pix = np.stack([xx, yy], -1).astype(np.float64)  # [H, W, 2] pixel index coordinates
-    points = np.asarray(points, dtype=np.float64)
-    segments = list(zip(points[:-1], points[1:])) or [(points[0], points[0])]
-    mask = np.zeros(shape, bool)
-    for a, b in segments:
-        ab = b - a
-        s = np.clip(((pix - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
-        mask |= np.linalg.norm(pix - (a + s[..., None] * ab), axis=-1) <= radius
-    return mask
-
-
 def random_strokes(rng: np.random.Generator, region: np.ndarray, count: int, step: float, radius: float) -> np.ndarray:
     """``count`` thick polylines wandering through ``region``, clipped to it."""
     ys, xs = np.nonzero(region)
@@ -525,6 +482,7 @@ def random_strokes(rng: np.random.Generator, region: np.ndarray, count: int, ste
     if len(xs) == 0:
         return out
     candidates = np.stack([xs, ys], -1).astype(float)
+    strokes = []
     for _ in range(count):
         pts = [candidates[rng.integers(len(candidates))]]
         for _ in range(int(rng.integers(1, 4))):
@@ -533,8 +491,8 @@ def random_strokes(rng: np.random.Generator, region: np.ndarray, count: int, ste
             if len(near) == 0:
                 break
             pts.append(candidates[near[rng.integers(len(near))]])
-        out |= stroke_mask(region.shape, np.stack(pts), radius)
-    return out & region
+        strokes.append(np.stack(pts))
+    return strokes_mask(region.shape, strokes, radius) & region
 
 
 def scribbles(rng: np.random.Generator, parts: np.ndarray, part_id: int) -> tuple[np.ndarray, np.ndarray]:

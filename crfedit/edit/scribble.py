@@ -14,9 +14,9 @@ import torch
 from torch import Tensor
 
 from ..data.format import read_mask
-from ..data.synth import stroke_mask
 from ..errors import CrfError
 from ..io import read_json
+from ..masks import strokes_mask
 
 CSS_COLORS = {
     "black": "#000000", "silver": "#c0c0c0", "gray": "#808080", "grey": "#808080", "white": "#ffffff",
@@ -47,7 +47,7 @@ def default_radius(width: int) -> float:
     return max(1.0, width / 48)
 
 
-def strokes_mask(data, width: int, height: int, where: str) -> np.ndarray:
+def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
     """Rasterize strokes JSON at (width, height): ``{"strokes": [[[x, y], …], …], "radius": r}``
     or a bare list of strokes ``[[[x, y], …], …]``; the radius defaults to max(1, width/48) px."""
     radius = default_radius(width)
@@ -61,7 +61,7 @@ def strokes_mask(data, width: int, height: int, where: str) -> np.ndarray:
             radius = float(r)
     if not isinstance(strokes, list) or not strokes:
         raise CrfError(f"{where}: expected {{\"strokes\": [[[x, y], ...], ...], \"radius\": r}} or a list of strokes")
-    mask = np.zeros((height, width), bool)
+    polylines = []
     for i, stroke in enumerate(strokes):
         ok = isinstance(stroke, list) and len(stroke) > 0 and all(
             isinstance(p, list) and len(p) == 2 and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)
@@ -70,8 +70,8 @@ def strokes_mask(data, width: int, height: int, where: str) -> np.ndarray:
         pts = np.asarray(stroke, dtype=np.float64) if ok else None
         if pts is None or not np.isfinite(pts).all():
             raise CrfError(f"{where}: stroke {i} is not a list of [x, y] pixel positions")
-        mask |= stroke_mask((height, width), pts, radius)
-    return mask
+        polylines.append(pts)
+    return strokes_mask((height, width), polylines, radius)
 
 
 def load_mask(png: Path | None, strokes: Path | None, width: int, height: int, what: str) -> np.ndarray | None:
@@ -85,7 +85,7 @@ def load_mask(png: Path | None, strokes: Path | None, width: int, height: int, w
                 f"{png}: {what} mask is {mask.shape[1]}x{mask.shape[0]} but the view is {width}x{height} (draw it on a render of that view)"
             )
     if strokes is not None:
-        drawn = strokes_mask(read_json(Path(strokes)), width, height, str(strokes))
+        drawn = strokes_json_mask(read_json(Path(strokes)), width, height, str(strokes))
         mask = drawn if mask is None else mask | drawn
     return mask
 

@@ -1,0 +1,56 @@
+"""Binary raster masks (numpy [H, W] bool): square dilation and erosion, thick polylines.
+
+Low in the data flow so that both the synthetic generator (data/) and the scribbles of the edits
+(edit/) use them.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary dilation by a (2r+1)² square; outside the image counts as off."""
+    if radius <= 0:
+        return mask.copy()
+    h, w = mask.shape
+    padded = np.pad(mask, radius)
+    out = np.zeros_like(mask)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            out |= padded[dy : dy + h, dx : dx + w]
+    return out
+
+
+def erode(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary erosion by a (2r+1)² square; outside the image counts as off."""
+    if radius <= 0:
+        return mask.copy()
+    h, w = mask.shape
+    padded = np.pad(mask, radius)
+    out = np.ones_like(mask)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            out &= padded[dy : dy + h, dx : dx + w]
+    return out
+
+
+def strokes_mask(shape: tuple[int, int], strokes: Sequence[np.ndarray], radius: float) -> np.ndarray:
+    """Pixels whose centers lie within ``radius`` of any of the polylines ``strokes`` (each
+    [K, 2] x, y, pixel units with (0, 0) the center of the top-left pixel).  A single point
+    draws a dot.
+
+    Shared by the generator's twin scribbles and the edit commands' ``--scribble-json`` strokes.
+    """
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
+    pix = np.stack([xx, yy], -1).astype(np.float64)  # [H, W, 2] pixel index coordinates
+    mask = np.zeros(shape, bool)
+    for points in strokes:
+        points = np.asarray(points, dtype=np.float64)
+        for a, b in list(zip(points[:-1], points[1:])) or [(points[0], points[0])]:
+            ab = b - a
+            s = np.clip(((pix - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+            mask |= np.linalg.norm(pix - (a + s[..., None] * ab), axis=-1) <= radius
+    return mask
