@@ -25,8 +25,9 @@ from . import occupancy
 from .cameras import Rays
 from .config import Config
 from .data.format import Category, TrainingRays, training_rays
-from .errors import CrfError, NonFiniteError
+from .errors import CrfError
 from .field import ConditionalRadianceField
+from .optim import adam_step
 from .model import CategoryModel, ViewTable, load_model, save_model
 from .renderer import render_rays
 
@@ -252,11 +253,7 @@ def train(
             loss = loss + torch.mean((out_r.coarse_rgb - target) ** 2)
         if cfg.view_reg > 0:
             loss = loss + cfg.view_reg * view_dependence_penalty(field, rays, inst, out_r.depth, out_r.opacity, generator)
-        if not torch.isfinite(loss):
-            raise NonFiniteError(f"training diverged at step {step} (loss is {float(loss.detach())}); {out} keeps its last checkpoint")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        loss_value = adam_step(opt, loss, "training", step, f"{out} keeps its last checkpoint")
         step += 1
         if hulls is not None and step >= cfg.occ_warmup and step % cfg.occ_every == 0:
             per_update = max(1, math.ceil(len(category.instances) / 4))
@@ -264,7 +261,6 @@ def train(
             next_instance = (next_instance + per_update) % len(category.instances)
             refresh_occupancy(field, hulls, ema, ks, generator)
         elapsed = time.perf_counter() - t_start
-        loss_value = float(loss.detach())
         psnr_value = -10.0 * math.log10(max(float(mse), 1e-10))
         if on_step is not None:
             on_step(step, loss_value, psnr_value, cfg.rays * step / max(elapsed, 1e-9))

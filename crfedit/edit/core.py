@@ -23,9 +23,10 @@ from torch import Tensor
 
 from ..cameras import Camera, Rays, rays_from_camera
 from ..delta import Delta, apply_deltas, make_delta, save_delta
-from ..errors import CrfError, NonFiniteError
+from ..errors import CrfError
 from ..model import CategoryModel
 from ..names import CODE_TABLES
+from ..optim import run_adam
 from .losses import weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
 
@@ -132,20 +133,7 @@ class InstanceEdit:
 def optimize(params: Sequence[Tensor], loss_fn: Callable[[], Tensor], steps: int, lr: float, what: str) -> float:
     """``steps`` Adam steps on ``loss_fn``; returns the last loss.  A NaN/inf loss or parameter
     raises :class:`NonFiniteError` (nothing is written)."""
-    opt = torch.optim.Adam(list(params), lr=lr, fused=True)
-    value = float("nan")
-    for step in range(steps):
-        loss = loss_fn()
-        value = float(loss.detach())
-        if not np.isfinite(value):
-            raise NonFiniteError(f"{what} diverged at step {step} (loss is {value}); nothing was written")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-    for p in params:
-        if not bool(torch.isfinite(p).all()):
-            raise NonFiniteError(f"{what} produced NaN or inf weights; nothing was written")
-    return value
+    return run_adam(torch.optim.Adam(list(params), lr=lr, fused=True), loss_fn, steps, what)
 
 
 def finish(

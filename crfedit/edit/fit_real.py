@@ -38,7 +38,7 @@ from .. import occupancy
 from ..cameras import Camera, Rays, rays_from_camera
 from ..data.format import resize_area
 from ..delta import Delta, apply_deltas, grow, make_delta
-from ..errors import CrfError, NonFiniteError
+from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..io import read_image
 from ..metrics import mse_to_psnr
@@ -296,23 +296,14 @@ def _run_stage(
     stage: str, fitter: _Fitter, groups: list[dict], steps: int, penalty: Callable[[], Tensor] | None, on_step: StepCallback | None
 ) -> None:
     """``steps`` Adam steps on the photometric loss (+ ``penalty()``); NaN/inf stops with nothing written."""
-    params = [p for g in groups for p in g["params"]]
-    opt = torch.optim.Adam(groups)
-    for step in range(steps):
-        loss, photometric = fitter.loss()
-        if penalty is not None:
-            loss = loss + penalty()
-        value = float(loss.detach())
-        if not math.isfinite(value):
-            raise NonFiniteError(f"fit-real diverged in the {stage} stage at step {step} (loss is {value}); nothing was written")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if on_step is not None:
-            on_step(stage, step + 1, steps, photometric, mse_to_psnr(photometric))
-    for p in params:
-        if not bool(torch.isfinite(p).all()):
-            raise NonFiniteError(f"fit-real produced NaN or inf in the {stage} stage; nothing was written")
+    photometric = [float("nan")]
+
+    def loss_fn() -> Tensor:
+        loss, photometric[0] = fitter.loss()
+        return loss if penalty is None else loss + penalty()
+
+    report = None if on_step is None else (lambda step, _: on_step(stage, step, steps, photometric[0], mse_to_psnr(photometric[0])))
+    run_adam(torch.optim.Adam(groups), loss_fn, steps, f"fit-real's {stage} stage", report)
 
 
 # ----------------------------------------------------------------------------- fitting
