@@ -9,6 +9,8 @@
 * ``tiny_chairs``: a 2-chair × 6-view 16×16 synthetic category, written once per session.
 * ``tiny_model``: a model of it trained for 30 steps (fast preset, 256 rays, a checkpoint every
   10 steps, seed 0).
+* ``trained_category``: trains a model of a synthetic category once per session and argument set
+  (the edit and fit-real tests), returning (model file, model, category).
 
 Tests must not modify the session fixtures' files (tests/test_hostile_inputs.py hashes them).
 """
@@ -50,3 +52,33 @@ def tiny_model(tiny_chairs) -> Path:
     cfg = make_config("fast", overrides=dict(steps=30, rays=256, checkpoint_every=10))
     train(load_category(tiny_chairs), cfg, path, torch.device("cpu"), seed=0)
     return path
+
+
+@pytest.fixture(scope="session")
+def trained_category(tmp_path_factory):
+    """``trained_category(name, synth, overrides, n_train=None, with_parts=False)`` →
+    (model file, model, category): ``synth`` written and the fast preset with ``overrides``
+    trained on its first ``n_train`` instances (all by default), seed 0; once per argument set."""
+    from crfedit.config import make_config
+    from crfedit.data import load_category
+    from crfedit.data.format import Category
+    from crfedit.data.synth import write_synth_category
+    from crfedit.model import load_model
+    from crfedit.train import train
+
+    made: dict = {}
+
+    def make(name: str, synth, overrides: dict, n_train: int | None = None, with_parts: bool = False):
+        key = (name, synth, tuple(sorted(overrides.items())), n_train, with_parts)
+        if key not in made:
+            folder = tmp_path_factory.mktemp(name)
+            write_synth_category(folder / "chairs", synth)
+            category = load_category(folder / "chairs", with_parts=with_parts)
+            trained_on = Category(category.root, category.instances[:n_train], category.fingerprint)
+            path = folder / "model.safetensors"
+            _, result = train(trained_on, make_config("fast", overrides=overrides), path, torch.device("cpu"), seed=0)
+            model, _ = load_model(path)
+            made[key] = (path, model, category, result)
+        return made[key]
+
+    return make

@@ -27,14 +27,6 @@ from crfedit.cli import app
 from crfedit.errors import CrfError
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def invoke(*args):
     return CliRunner().invoke(app, [str(a) for a in args])
 

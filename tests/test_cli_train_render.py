@@ -12,7 +12,6 @@ from typer.testing import CliRunner
 
 import crfedit.train
 from crfedit.cli import app
-from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.evaluate import render_views
 from crfedit.io import read_exr, read_image
 from crfedit.model import load_model
@@ -36,15 +35,13 @@ def assert_user_error(result, *fragments: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("cli") / "chairs"
-    write_synth_category(root, SynthConfig(instances=2, views=6, res=16, twins=False))
-    return root
+def data(tiny_chairs) -> Path:
+    return tiny_chairs
 
 
 @pytest.fixture(scope="module")
-def model_path(data) -> Path:
-    out = data.parent / "model.safetensors"
+def model_path(data, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("cli") / "model.safetensors"
     result = invoke("train", data, "--out", out, "--steps", 30, *TINY)
     assert result.exit_code == 0, result.output
     assert "held-out val (2 views): PSNR" in result.stdout

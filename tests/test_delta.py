@@ -42,15 +42,6 @@ from crfedit.renderer import render_camera
 RES = 12
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny tensors: one thread is faster, and much faster on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def camera(azimuth: float = 0.3) -> Camera:
     eye = np.array([2.0 * np.cos(azimuth), 2.0 * np.sin(azimuth), 0.6])
     return Camera(look_at(eye), 14.0, RES, RES)

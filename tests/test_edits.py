@@ -17,9 +17,8 @@ from typer.testing import CliRunner
 
 from crfedit.cameras import Rays, rays_from_camera
 from crfedit.cli import app
-from crfedit.config import PRESETS, make_config
-from crfedit.data import load_category
-from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.config import PRESETS
+from crfedit.data.synth import SynthConfig
 from crfedit.delta import apply_edit_files, read_delta
 from crfedit.edit import CODES, TRAINED, EditOptions, add, edit_color, remove, swap_codes, trained_prefixes, transfer
 from crfedit.edit.cache import ViewCache, edit_passes
@@ -32,34 +31,19 @@ from crfedit.errors import CrfError, NonFiniteError
 from crfedit.field import ConditionalRadianceField
 from crfedit.model import CategoryModel, load_model
 from crfedit.renderer import render_camera, render_rays
-from crfedit.train import train
 
 RES = 32
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small tensors: one thread is faster, and far faster on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory):
+def trained(trained_category):
     """(model file, model, category with part maps): ~250 steps, about 15 s on one core."""
-    folder = tmp_path_factory.mktemp("edits")
-    write_synth_category(folder / "chairs", SynthConfig(instances=3, views=10, res=RES, seed=0, twins=False))
-    category = load_category(folder / "chairs", with_parts=True)
-    cfg = make_config("fast", overrides=dict(
-        steps=250, rays=512, lr=1e-2, lr_codes=1e-2, grid_res=16, occ_res=32, width=32, rad_width=32,
-        occ_warmup=100, occ_every=8, checkpoint_every=10**9,
-    ))
-    path = folder / "model.safetensors"
-    _, result = train(category, cfg, path, torch.device("cpu"), seed=0)
+    path, model, category, result = trained_category(
+        "edits", SynthConfig(instances=3, views=10, res=RES, seed=0, twins=False), dict(
+            steps=250, rays=512, lr=1e-2, lr_codes=1e-2, grid_res=16, occ_res=32, width=32, rad_width=32,
+            occ_warmup=100, occ_every=8, checkpoint_every=10**9,
+        ), with_parts=True)
     assert result.train_psnr > 12, f"the fixture's training failed (PSNR {result.train_psnr:.1f}); the edit tests need a model"
-    model, _ = load_model(path)
     return path, model, category
 
 

@@ -45,15 +45,6 @@ from crfedit.train import train
 TINY = dict(steps=40, rays=256, occ_res=16, grid_res=16, checkpoint_every=10**9)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small tensors: one thread is faster, and far faster on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(autouse=True)
 def no_lpips(monkeypatch):
     monkeypatch.delenv("CRFEDIT_LPIPS_WEIGHTS", raising=False)

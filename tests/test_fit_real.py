@@ -19,8 +19,7 @@ from crfedit import occupancy
 from crfedit.cameras import Camera, look_at, spherical_eye
 from crfedit.cli import app
 from crfedit.config import make_config
-from crfedit.data.format import Category, load_category
-from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.data.synth import SynthConfig
 from crfedit.delta import apply_edit_files, read_delta
 from crfedit.edit.fit_real import (
     JOINT,
@@ -38,34 +37,18 @@ from crfedit.field import ConditionalRadianceField
 from crfedit.metrics import psnr
 from crfedit.model import CategoryModel, load_model
 from crfedit.renderer import render_camera
-from crfedit.train import train
 
 RES = 24
 HELD_OUT = 3
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny tensors: one thread is faster, and much faster on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    """(model file, model, held-out chair's data): 3 chairs trained for 150 steps, a few seconds."""
-    folder = tmp_path_factory.mktemp("fit_real")
-    write_synth_category(folder / "chairs", SynthConfig(instances=4, views=8, res=RES, seed=0, twins=False))
-    category = load_category(folder / "chairs")
-    trained_on = Category(category.root, category.instances[:HELD_OUT], category.fingerprint)
-    cfg = make_config("fast", overrides=dict(
-        steps=300, rays=256, lr=2e-2, lr_codes=2e-2, grid_res=16, occ_res=16, occ_warmup=50, checkpoint_every=10**9,
-    ))
-    path = folder / "model.safetensors"
-    train(trained_on, cfg, path, torch.device("cpu"), seed=0)
-    model, _ = load_model(path)
+def setup(trained_category):
+    """(model file, model, held-out chair's data): 3 of 4 chairs trained for 300 steps, a few seconds."""
+    path, model, category, _ = trained_category(
+        "fit_real", SynthConfig(instances=4, views=8, res=RES, seed=0, twins=False), dict(
+            steps=300, rays=256, lr=2e-2, lr_codes=2e-2, grid_res=16, occ_res=16, occ_warmup=50, checkpoint_every=10**9,
+        ), n_train=HELD_OUT)
     return path, model, category.instances[HELD_OUT]
 
 

@@ -40,15 +40,6 @@ from crfedit.rendering import (
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """The renderer tests run many tiny matmuls; on 2 shared cores OpenMP's second thread only
-    spin-waits (30× slower here), so this module runs single-threaded and restores the count."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 BOX = torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
 
 

@@ -27,15 +27,6 @@ from crfedit.rendering import (
 )
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Many tiny matmuls: on 2 shared cores the second OpenMP thread only spin-waits."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 # --- compositing cases (float32, the dtype rendering uses) ----------------------------------
 
 Case = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]  # t0, t1, σ, rgb, bg
@@ -211,7 +202,7 @@ def as_case(drawn, dtype) -> Case:
 @given(rays_st(max_delta_exp=0.0))
 def test_property_weights_partition_and_rgb_is_a_convex_mix(drawn):
     # float64, σδ ≤ 1e8: opacity ∈ [0, 1], w ≥ 0, Σw ≤ 1, rgb between the sample colours and bg.
-    # (The cumsum(τ) - τ cancellation leaves up to ulp(1e8) ≈ 1.5e-8 here; float32 is the xfail above.)
+    # (The cumsum(τ) - τ cancellation leaves up to ulp(1e8) ≈ 1.5e-8 here.)
     case = as_case(drawn, torch.float64)
     comp, g_sig, g_rgb, g_bg = composite_with_grads(case)
     assert finite(comp.rgb, comp.depth, comp.opacity, g_sig, g_rgb, g_bg)

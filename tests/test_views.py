@@ -11,7 +11,7 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from crfedit.cameras import Camera, focal_from_angle, look_at, spherical_eye
+from crfedit.cameras import focal_from_angle, look_at, rays_from_camera, spherical_eye
 from crfedit.config import make_config
 from crfedit.errors import CrfError
 from crfedit.field import ConditionalRadianceField
@@ -205,5 +205,15 @@ def test_orbit_without_stored_views_of_the_instance_uses_any_instance():
         resolve_views("orbit:5", CategoryModel(ConditionalRadianceField(cfg, 2), ["a", "b"]), 0)
 
 
-def test_camera_is_a_camera(model):
-    assert all(isinstance(cam, Camera) for _, cam in resolve_views("orbit:2", model, 0))
+def test_orbit_cameras_are_rigid_upright_and_look_at_the_origin(model):
+    """Each orbit pose is a rotation (orthonormal, det +1) plus the eye; the camera looks along
+    −z (OpenGL axes) straight at the origin, its image up is world-up, and its rays start at the eye."""
+    for _, cam in resolve_views("orbit:5@20", model, 0):
+        rot, eye = cam.c2w[:3, :3], cam.c2w[:3, 3]
+        np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_array_equal(cam.c2w[3], [0.0, 0.0, 0.0, 1.0])
+        np.testing.assert_allclose(-rot[:, 2], -eye / np.linalg.norm(eye), atol=1e-12)
+        assert rot[2, 0] == pytest.approx(0.0, abs=1e-12) and rot[2, 1] > 0  # no roll, upright
+        rays = rays_from_camera(cam)
+        np.testing.assert_allclose(rays.origins.numpy(), np.broadcast_to(eye, (cam.width * cam.height, 3)), atol=1e-6)

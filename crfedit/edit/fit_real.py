@@ -43,6 +43,7 @@ from ..field import ConditionalRadianceField
 from ..io import read_image
 from ..metrics import mse_to_psnr
 from ..model import CategoryModel
+from ..optim import run_adam
 from ..renderer import render_camera, render_rays
 from .core import EditResult, camera_meta
 from .losses import mse, weight_penalty
