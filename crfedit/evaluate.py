@@ -6,7 +6,6 @@ from typing import Sequence
 
 import numpy as np
 import torch
-from torch import Tensor
 
 from .cameras import Camera
 from .data.format import Category
@@ -84,15 +83,3 @@ def score_model(
         "lpips_note": note,
         "instances": per_instance,
     }
-
-
-def ray_distance(output: RenderOutput, min_opacity: float = 1e-3) -> Tensor:
-    """Distance along the unit ray to the surface: ``depth / opacity`` where the ray is at
-    least ``min_opacity`` opaque, ``+inf`` elsewhere (background).  Same shape as ``depth``.
-
-    ``depth`` is the unnormalized expectation Σ wᵢtᵢ; dividing by the opacity Σ wᵢ gives the
-    weighted mean distance of the samples that were hit.  Example: weights (0.2, 0.6) at
-    t = (1, 2) → depth 1.4, opacity 0.8 → distance 1.75.
-    """
-    hit = output.opacity > min_opacity
-    return torch.where(hit, output.depth / output.opacity.clamp_min(min_opacity), torch.full_like(output.depth, float("inf")))

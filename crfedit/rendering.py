@@ -1,8 +1,14 @@
-"""Volume-rendering math as small pure functions over tensors.
+"""Compositing: volume-rendering math as small pure functions over tensors.
 
-Samples along a ray are intervals ``[t_starts, t_ends)`` with densities ``sigmas``.  Everything
-is batched over leading dimensions ``[..., N]`` (N samples per ray, sorted by t); a sample with
-σ = 0 contributes nothing, which is how skipped (empty) space and padding are represented.
+Samples along a ray are intervals ``[t_starts, t_ends)`` with densities ``sigmas``; where they
+lie is chosen by :mod:`crfedit.sampling`, the field is run on them by :mod:`crfedit.renderer`.
+Two layouts, named in the functions that take them:
+
+* **dense** — batched over leading dimensions ``[..., N]`` (N samples per ray, sorted by t); a
+  sample with σ = 0 contributes nothing, which is how skipped (empty) space and padding are
+  represented (:func:`composite_dense`);
+* **packed** — [M] samples grouped by ray, only the evaluated ones (:func:`composite_packed`).
+
 Transmittance is computed from an exclusive cumulative sum of σδ — never as a product of many
 (1 - α) — so it stays accurate and finite for σ from 0 to 1e8 and δ from 0 to 1e10.
 """
@@ -13,6 +19,8 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
+
+from .sampling import PackedSamples, dense_from_packed
 
 
 class Composite(NamedTuple):
@@ -60,14 +68,14 @@ def accumulate_along_rays(weights: Tensor, values: Tensor | None = None) -> Tens
     return (weights.unsqueeze(-1) * values).sum(dim=-2)
 
 
-def composite_from_density(
+def composite_dense(
     t_starts: Tensor,  # [..., N]
     t_ends: Tensor,  # [..., N]
     sigmas: Tensor,  # [..., N]
     rgbs: Tensor,  # [..., N, 3]
     background: Tensor | float = 1.0,  # [3] or scalar
 ) -> Composite:
-    """Colour = Σ wᵢ cᵢ + (1 - Σ wᵢ)·background; depth uses interval midpoints.
+    """Colour = Σ wᵢ cᵢ + (1 - Σ wᵢ)·background over the dense layout; depth uses interval midpoints.
 
     Closed form: a constant σ over total length L gives opacity 1 - exp(-σL) for any number
     of samples.
@@ -98,7 +106,7 @@ def exclusive_cumsum_packed(x: Tensor, ray: Tensor, n_rays: int) -> Tensor:
     return (before - before[first[ray]]).to(x.dtype)
 
 
-def composite_packed_samples(
+def composite_packed(
     ray: Tensor,  # [M] long, sorted
     t_starts: Tensor,  # [M]
     t_ends: Tensor,  # [M]
@@ -107,7 +115,7 @@ def composite_packed_samples(
     n_rays: int,
     background: Tensor | float = 1.0,
 ) -> Composite:
-    """:func:`composite_from_density` on packed samples (only the evaluated ones, grouped by
+    """:func:`composite_dense` on packed samples (only the evaluated ones, grouped by
     ray), as nerfacc does: no dense [rays, steps] layout.  ``weights`` is packed [M]; rays with
     no samples get the background.
     """
@@ -121,67 +129,14 @@ def composite_packed_samples(
     return Composite(rgb, depth, opacity, weights)
 
 
-def ray_aabb_intersect(origins: Tensor, directions: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Slab test against ``aabb = [xmin, ymin, zmin, xmax, ymax, zmax]``.
+def composite_packed_as_dense(
+    samples: PackedSamples, sigmas: Tensor, rgbs: Tensor, background: Tensor | float = 1.0  # sigmas [M], rgbs [M, 3]
+) -> Composite:
+    """:func:`composite_dense` of packed samples scattered into their dense [n_rays, n_steps]
+    layout (σ = 0 and δ = 0 where nothing was sampled); ``weights`` is dense [n_rays, n_steps].
 
-    Returns (t_near, t_far, hit), each [N]; t_near ≥ 0 (a ray starting inside begins at 0);
-    rays that miss get t_near = t_far = 0 and hit = False.  Axis-parallel rays are handled
-    without NaN by treating 1/0 as ±1e12.
+    Equals :func:`composite_packed` up to rounding; the hierarchical sampler and the edit
+    passes composite this way (their columns are the sample order along each ray).
     """
-    safe = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
-    inv = 1.0 / safe
-    t0 = (aabb[:3] - origins) * inv
-    t1 = (aabb[3:] - origins) * inv
-    t_near = torch.minimum(t0, t1).amax(dim=-1).clamp_min(0.0)
-    t_far = torch.maximum(t0, t1).amin(dim=-1)
-    hit = t_far > t_near
-    zero = torch.zeros_like(t_near)
-    return torch.where(hit, t_near, zero), torch.where(hit, t_far, zero), hit
-
-
-def stratified_samples(t_near: Tensor, t_far: Tensor, n: int, generator: torch.Generator | None = None) -> Tensor:
-    """One distance in each of ``n`` equal bins over [t_near, t_far] per ray.  [N, n]
-
-    Uniformly jittered inside its bin when a generator is given (training), else at the bin
-    center (rendering is deterministic).
-    """
-    u = (torch.arange(n, device=t_near.device, dtype=t_near.dtype) + 0.5) / n
-    u = u.expand(t_near.shape[0], n)
-    if generator is not None:
-        jitter = torch.rand(u.shape, generator=generator, dtype=u.dtype).to(u.device)
-        u = u + (jitter - 0.5) / n
-    return t_near[:, None] + (t_far - t_near)[:, None] * u
-
-
-def importance_sample(edges: Tensor, weights: Tensor, n: int, generator: torch.Generator | None = None) -> Tensor:
-    """Draw ``n`` distances per ray from the piecewise-constant pdf ∝ ``weights`` on ``edges``.
-
-    ``edges`` [N, M+1], ``weights`` [N, M] → sorted samples [N, n] (inverse-CDF; deterministic
-    evenly spaced quantiles when no generator is given).  A ray whose weights are all zero
-    samples uniformly.
-    """
-    w = weights.detach() + 1e-5
-    pdf = w / w.sum(dim=-1, keepdim=True)
-    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, dim=-1)], dim=-1).clamp(max=1.0)
-    if generator is None:
-        u = torch.linspace(0.0, 1.0, n + 2, device=edges.device, dtype=edges.dtype)[1:-1].expand(edges.shape[0], n)
-    else:
-        u = torch.rand((edges.shape[0], n), generator=generator, dtype=edges.dtype).to(edges.device)
-    u = u.contiguous()
-    idx = torch.searchsorted(cdf, u, right=True).clamp(1, cdf.shape[-1] - 1)
-    c0, c1 = cdf.gather(-1, idx - 1), cdf.gather(-1, idx)
-    e0, e1 = edges.gather(-1, idx - 1), edges.gather(-1, idx)
-    frac = ((u - c0) / (c1 - c0).clamp_min(1e-12)).clamp(0.0, 1.0)
-    return torch.sort(e0 + frac * (e1 - e0), dim=-1).values
-
-
-def intervals_from_points(t: Tensor, t_near: Tensor, t_far: Tensor) -> tuple[Tensor, Tensor]:
-    """Contiguous intervals around sorted distances ``t`` [N, n] that tile [t_near, t_far].
-
-    Interval i spans the midpoints to its neighbours; the first starts at ``t_near`` and the
-    last ends at ``t_far`` (both [N]), so the intervals meet end to end (Σδ = t_far - t_near up to rounding).
-    """
-    mids = 0.5 * (t[:, 1:] + t[:, :-1])
-    starts = torch.cat([torch.minimum(t_near[:, None], t[:, :1]), mids], dim=-1)
-    ends = torch.cat([mids, torch.maximum(t_far[:, None], t[:, -1:])], dim=-1)
-    return starts, ends
+    dense = lambda v: dense_from_packed(samples, v)
+    return composite_dense(dense(samples.t_starts), dense(samples.t_ends), dense(sigmas), dense(rgbs), background)

@@ -21,7 +21,8 @@ from crfedit.field import (
     positional_encoding,
     run_mlp,
 )
-from crfedit.renderer import PackedSamples, evaluate, render_rays
+from crfedit.renderer import field_at_samples, render_rays
+from crfedit.sampling import PackedSamples
 
 PAPER_MODULES = {"F_share", "F_inst", "F_fuse", "F_dens", "bottleneck", "F_rad"}
 
@@ -108,12 +109,12 @@ def test_sigma_ignores_view_direction_and_color_code():
     field = make_field(tiny())
     x, d, idx = points()
     world = (x + 1) / 2 * (field.aabb[3:] - field.aabb[:3]) + field.aabb[:3]
-    sig, rgb = evaluate(field, field, packed(world, idx), Rays(torch.zeros_like(x), d), idx)
+    sig, rgb = field_at_samples(field, field, packed(world, idx), Rays(torch.zeros_like(x), d), idx)
     other_d = torch.roll(d, 1, dims=0)
-    sig_d, rgb_d = evaluate(field, field, packed(world, idx), Rays(torch.zeros_like(x), other_d), idx)
+    sig_d, rgb_d = field_at_samples(field, field, packed(world, idx), Rays(torch.zeros_like(x), other_d), idx)
     with torch.no_grad():
         field.color_codes.mul_(-3.0)
-    sig_c, rgb_c = evaluate(field, field, packed(world, idx), Rays(torch.zeros_like(x), d), idx)
+    sig_c, rgb_c = field_at_samples(field, field, packed(world, idx), Rays(torch.zeros_like(x), d), idx)
     assert torch.equal(sig_d, sig) and torch.equal(sig_c, sig)
     assert not torch.allclose(rgb_d, rgb) and not torch.allclose(rgb_c, rgb)
 
@@ -323,7 +324,7 @@ def test_density_features_radiance_forward_equal_the_stages(arch):
             assert torch.equal(field.density(x[rows], k, net), sigma_k)
     # forward is the renderer's evaluation at the same points
     world = (x + 1) / 2 * (field.aabb[3:] - field.aabb[:3]) + field.aabb[:3]
-    sig_r, rgb_r = evaluate(field, field, packed(world, idx), Rays(torch.zeros_like(x), d), idx)
+    sig_r, rgb_r = field_at_samples(field, field, packed(world, idx), Rays(torch.zeros_like(x), d), idx)
     sig_f, rgb_f = field(field.normalize(world), d, idx)
     assert torch.equal(sig_f, sig_r) and torch.equal(rgb_f, rgb_r)
 

@@ -19,7 +19,7 @@ from crfedit.occupancy import (
     step_size,
     update_from_density,
 )
-from crfedit.rendering import ray_aabb_intersect
+from crfedit.sampling import ray_aabb_intersect
 
 AABB = torch.tensor([-0.6, -0.6, -0.6, 0.6, 0.6, 0.6])
 

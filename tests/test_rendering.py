@@ -15,26 +15,27 @@ import torch
 from crfedit.cameras import Camera, Rays, look_at, rays_from_camera
 from crfedit.config import PRESETS, Config
 from crfedit.field import ConditionalRadianceField
-from crfedit.renderer import (
-    PackedSamples,
-    composite_packed,
-    grid_samples,
-    render_camera,
-    render_rays,
-)
+from crfedit.renderer import render_camera, render_rays
 from crfedit.rendering import (
     accumulate_along_rays,
-    composite_from_density,
-    composite_packed_samples,
+    composite_dense,
+    composite_packed,
+    composite_packed_as_dense,
     exclusive_cumsum,
     exclusive_cumsum_packed,
+    optical_depth_from_density,
+    render_weight_from_density,
+    transmittance_from_density,
+)
+from crfedit.sampling import (
+    PackedSamples,
+    dense_from_packed,
+    fine_samples_from_coarse,
+    grid_samples,
     importance_sample,
     intervals_from_points,
-    optical_depth_from_density,
     ray_aabb_intersect,
-    render_weight_from_density,
     stratified_samples,
-    transmittance_from_density,
 )
 
 F64 = torch.float64
@@ -63,11 +64,11 @@ def test_constant_density_opacity_is_one_minus_exp_sigma_length(n, uneven):
         edges = torch.linspace(0.0, 1.0, n + 1, dtype=F64)
     edges = near + (far - near) * edges
     t0, t1 = edges[None, :-1], edges[None, 1:]
-    comp = composite_from_density(t0, t1, torch.full((1, n), sigma, dtype=F64), torch.zeros(1, n, 3, dtype=F64), 0.0)
+    comp = composite_dense(t0, t1, torch.full((1, n), sigma, dtype=F64), torch.zeros(1, n, 3, dtype=F64), 0.0)
     expected = 1.0 - math.exp(-sigma * (far - near))
     assert comp.opacity.item() == pytest.approx(expected, abs=1e-12)
     # the same in float32, the dtype rendering uses
-    comp32 = composite_from_density(t0.float(), t1.float(), torch.full((1, n), sigma), torch.zeros(1, n, 3), 0.0)
+    comp32 = composite_dense(t0.float(), t1.float(), torch.full((1, n), sigma), torch.zeros(1, n, 3), 0.0)
     assert comp32.opacity.item() == pytest.approx(expected, abs=1e-6)
 
 
@@ -100,7 +101,7 @@ def test_composite_hand_numbers_with_background():
     sigmas = torch.full((1, 2), math.log(2.0), dtype=F64)
     rgbs = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]], dtype=F64)
     bg = torch.tensor([0.2, 0.4, 0.6], dtype=F64)
-    comp = composite_from_density(t0, t1, sigmas, rgbs, bg)
+    comp = composite_dense(t0, t1, sigmas, rgbs, bg)
     # Σ wᵢcᵢ + (1 - acc)·bg = [0.5, 0.25, 0] + 0.25·[0.2, 0.4, 0.6]
     torch.testing.assert_close(comp.rgb, torch.tensor([[0.55, 0.35, 0.15]], dtype=F64), rtol=0, atol=1e-15)
     torch.testing.assert_close(comp.opacity, torch.tensor([0.75], dtype=F64), rtol=0, atol=1e-15)
@@ -108,7 +109,7 @@ def test_composite_hand_numbers_with_background():
     torch.testing.assert_close(comp.depth, torch.tensor([0.625], dtype=F64), rtol=0, atol=1e-15)
     torch.testing.assert_close(comp.weights, torch.tensor([[0.5, 0.25]], dtype=F64), rtol=0, atol=1e-15)
     # a scalar background is the same as a grey one
-    grey = composite_from_density(t0, t1, sigmas, rgbs, 0.5)
+    grey = composite_dense(t0, t1, sigmas, rgbs, 0.5)
     torch.testing.assert_close(grey.rgb, torch.tensor([[0.625, 0.375, 0.125]], dtype=F64), rtol=0, atol=1e-15)
 
 
@@ -125,7 +126,7 @@ def test_opaque_slab_depth_is_its_entry_distance():
     t0, t1 = edges[None, :-1], edges[None, 1:]
     mid = 0.5 * (t0 + t1)
     sigmas = torch.where((mid > entry) & (mid < exit_), 1e4, 0.0).to(F64)
-    comp = composite_from_density(t0, t1, sigmas, torch.ones(1, 300, 3, dtype=F64), 0.0)
+    comp = composite_dense(t0, t1, sigmas, torch.ones(1, 300, 3, dtype=F64), 0.0)
     assert comp.opacity.item() == pytest.approx(1.0, abs=1e-12)
     # all the weight sits on the first slab interval [1.30, 1.31]: its midpoint
     assert (comp.depth / comp.opacity).item() == pytest.approx(entry + step / 2, abs=1e-9)
@@ -135,7 +136,7 @@ def test_gradient_at_zero_density_is_the_interval_length():
     # opacity = 1 - exp(-Σσδ) → ∂opacity/∂σⱼ = δⱼ at σ = 0: the empty start of training must get gradient
     t0, t1 = intervals([0.0, 0.5, 2.0, 2.25])
     sigmas = torch.zeros(1, 3, dtype=F64, requires_grad=True)
-    composite_from_density(t0, t1, sigmas, torch.zeros(1, 3, 3, dtype=F64)).opacity.sum().backward()
+    composite_dense(t0, t1, sigmas, torch.zeros(1, 3, 3, dtype=F64)).opacity.sum().backward()
     torch.testing.assert_close(sigmas.grad, torch.tensor([[0.5, 1.5, 0.25]], dtype=F64), rtol=0, atol=1e-15)
 
 
@@ -147,7 +148,7 @@ def test_gradcheck_render_weight_from_density():
     assert torch.autograd.gradcheck(lambda s: render_weight_from_density(t0, t1, s), (sigmas,))
 
 
-def test_gradcheck_composite_from_density():
+def test_gradcheck_composite_dense():
     g = torch.Generator().manual_seed(1)
     t0, t1 = intervals([0.0, 0.3, 0.5, 1.1, 1.2, 2.0])
     t0, t1 = t0.expand(2, -1), t1.expand(2, -1)
@@ -156,7 +157,7 @@ def test_gradcheck_composite_from_density():
     bg = torch.tensor([0.1, 0.5, 0.9], dtype=F64, requires_grad=True)
 
     def fn(s, c, b):
-        comp = composite_from_density(t0, t1, s, c, b)
+        comp = composite_dense(t0, t1, s, c, b)
         return comp.rgb, comp.depth, comp.opacity
 
     assert torch.autograd.gradcheck(fn, (sigmas, rgbs, bg))
@@ -272,6 +273,23 @@ def test_importance_sample_with_generator_is_reproducible_and_in_range():
     assert torch.equal(a, b) and (a >= 0).all() and (a <= 1).all() and (a[:, 1:] >= a[:, :-1]).all()
 
 
+def test_fine_samples_from_coarse_keep_the_coarse_ones_and_follow_the_weights():
+    t_c = torch.tensor([[0.5, 1.5, 2.5, 3.5]])  # bins [0,1), [1,2), [2,3), [3,4] between midpoints
+    near, far = torch.tensor([0.0]), torch.tensor([4.0])
+    t = fine_samples_from_coarse(t_c, near, far, torch.tensor([[0.0, 0.0, 1.0, 0.0]]), 8)
+    assert t.shape == (1, 12) and torch.equal(t, t.sort(dim=-1).values)
+    fine = t[~torch.isin(t, t_c)]
+    assert len(fine) == 8 and ((fine >= 2.0) & (fine <= 3.0)).all()  # all in the only weighted bin
+    assert torch.equal(t[torch.isin(t, t_c)], t_c[0])  # every coarse sample stays
+
+
+def test_dense_from_packed_places_values_at_their_columns():
+    samples = PackedSamples(torch.tensor([0, 1, 1]), torch.tensor([2, 0, 1]), *torch.zeros(2, 3), torch.zeros(3, 3), 2, 3)
+    got = dense_from_packed(samples, torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]))
+    want = torch.tensor([[[0.0, 0.0], [0.0, 0.0], [1.0, 2.0]], [[3.0, 4.0], [5.0, 6.0], [0.0, 0.0]]])
+    assert torch.equal(got, want)
+
+
 def test_intervals_from_points_tile_near_to_far():
     g = torch.Generator().manual_seed(4)
     near, far = torch.tensor([0.5, 1.0, 2.0]), torch.tensor([1.5, 4.0, 2.5])
@@ -355,7 +373,7 @@ def test_grid_samples_only_in_occupied_cells_and_tile_the_march():
     assert grid_samples(field, rays, torch.tensor([1])).ray.numel() == 0  # instance 1 is empty
 
 
-def test_composite_packed_equals_dense_compositing():
+def test_composite_packed_as_dense_hand_case():
     t0 = torch.tensor([0.0, 1.0, 3.0])
     samples = PackedSamples(
         ray=torch.tensor([0, 0, 1]), step=torch.tensor([0, 2, 1]), t_starts=t0, t_ends=t0 + 1.0,
@@ -363,7 +381,7 @@ def test_composite_packed_equals_dense_compositing():
     )
     sig = torch.tensor([math.log(2.0), math.log(2.0), math.log(4.0)])
     rgb = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    comp = composite_packed(samples, sig, rgb, 1.0)
+    comp = composite_packed_as_dense(samples, sig, rgb, 1.0)
     # ray 0: w = [0.5, 0, 0.25]; ray 1: w = [0, 0.75, 0]
     torch.testing.assert_close(comp.rgb, torch.tensor([[0.75, 0.5, 0.25], [0.25, 0.25, 1.0]]))
     torch.testing.assert_close(comp.opacity, torch.tensor([0.75, 0.75]))
@@ -405,12 +423,12 @@ def test_exclusive_cumsum_packed_is_per_ray():
 
 
 @pytest.mark.parametrize("background", [1.0, 0.0])
-def test_composite_packed_samples_equals_dense(background):
+def test_composite_packed_equals_dense(background):
     ray, counts, t0, t1, sig, rgb = ragged()
-    comp = composite_packed_samples(ray, t0, t1, sig, rgb, len(counts), background)
+    comp = composite_packed(ray, t0, t1, sig, rgb, len(counts), background)
     d0, d1, ds, dr = dense_of(counts, t0, t1, sig, rgb)
     d1 = torch.where(ds > 0, d1, d0)  # padding: zero-length intervals
-    ref = composite_from_density(d0, d1, ds, dr, background)
+    ref = composite_dense(d0, d1, ds, dr, background)
     torch.testing.assert_close(comp.rgb, ref.rgb, rtol=0, atol=1e-6)
     torch.testing.assert_close(comp.opacity, ref.opacity, rtol=0, atol=1e-6)
     torch.testing.assert_close(comp.depth, ref.depth, rtol=0, atol=1e-5)
@@ -418,11 +436,11 @@ def test_composite_packed_samples_equals_dense(background):
     assert torch.isfinite(comp.weights).all()
 
 
-def test_composite_packed_samples_gradcheck():
+def test_composite_packed_gradcheck():
     ray, counts, t0, t1, sig, rgb = ragged(dtype=torch.float64)
     sig = (sig.clamp(max=5.0) + 0.1).requires_grad_()
     rgb = rgb.requires_grad_()
-    f = lambda s, c: composite_packed_samples(ray, t0, t1, s, c, len(counts), 1.0)[:3]
+    f = lambda s, c: composite_packed(ray, t0, t1, s, c, len(counts), 1.0)[:3]
     assert torch.autograd.gradcheck(f, (sig, rgb))
 
 

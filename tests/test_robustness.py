@@ -19,12 +19,8 @@ from crfedit.cameras import Rays
 from crfedit.config import PRESETS, Config
 from crfedit.field import ConditionalRadianceField
 from crfedit.renderer import render_rays
-from crfedit.rendering import (
-    composite_from_density,
-    intervals_from_points,
-    ray_aabb_intersect,
-    stratified_samples,
-)
+from crfedit.rendering import composite_dense
+from crfedit.sampling import intervals_from_points, ray_aabb_intersect, stratified_samples
 
 
 # --- compositing cases (float32, the dtype rendering uses) ----------------------------------
@@ -122,7 +118,7 @@ def composite_with_grads(case: Case) -> tuple:
     """Composite, back-propagate rgb.sum() + opacity.sum(); returns (comp, ∂σ, ∂rgb, ∂bg)."""
     t0, t1, sig, rgb, bg = case
     sig, rgb, bg = (v.clone().requires_grad_() for v in (sig, rgb, bg))
-    comp = composite_from_density(t0, t1, sig, rgb, bg)
+    comp = composite_dense(t0, t1, sig, rgb, bg)
     (comp.rgb.sum() + comp.opacity.sum()).backward()
     return comp, sig.grad, rgb.grad, bg.grad
 

@@ -42,9 +42,8 @@ def render_to_folder(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from ..evaluate import ray_distance
     from ..io import write_exr, write_json, write_png
-    from ..renderer import render_camera
+    from ..renderer import ray_distance, render_camera
     from ..video import video_path, write_video
     from ..views import resolve_views
 

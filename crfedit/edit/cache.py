@@ -31,13 +31,16 @@ from ..cameras import Camera, Rays, rays_from_camera
 from ..field import ConditionalRadianceField, FieldNet, FuseInputs, positional_encoding
 from ..names import COLOR_CODES, MODULES
 from .params import TRAINED
-from ..renderer import PackedSamples, composite_packed, evaluate, grid_samples
-from ..rendering import (
-    composite_from_density,
-    importance_sample,
-    intervals_from_points,
+from ..renderer import field_at_samples
+from ..rendering import composite_dense, composite_packed_as_dense, render_weight_from_density
+from ..sampling import (
+    PackedSamples,
+    compact,
+    dense_from_packed,
+    fine_samples_from_coarse,
+    grid_samples,
+    packed_samples_from_t,
     ray_aabb_intersect,
-    render_weight_from_density,
     stratified_samples,
 )
 
@@ -72,28 +75,6 @@ class PassOutput(NamedTuple):
     rgbs: Tensor | None  # [N, S, 3] compacted sample colours (None in the radiance stage)
 
 
-def compact(samples: PackedSamples) -> PackedSamples:
-    """The same samples sorted by (ray, t) with ``step`` = rank within the ray and
-    ``n_steps`` = the most samples any ray has."""
-    if samples.ray.numel() == 0:
-        return samples._replace(n_steps=1)
-    order = torch.argsort(samples.ray * samples.n_steps + samples.step, stable=True)
-    ray = samples.ray[order]
-    counts = torch.bincount(ray, minlength=samples.n_rays)
-    first = torch.cumsum(counts, 0) - counts
-    rank = torch.arange(ray.numel(), device=ray.device) - first[ray]
-    return PackedSamples(
-        ray, rank, samples.t_starts[order], samples.t_ends[order], samples.points[order], samples.n_rays, int(counts.max())
-    )
-
-
-def _packed_from_t(rays: Rays, t: Tensor, t_near: Tensor, t_far: Tensor, hit: Tensor) -> PackedSamples:
-    starts, ends = intervals_from_points(t, t_near, t_far)
-    pts = rays.origins[:, None] + t[..., None] * rays.directions[:, None]
-    ray_i, col = hit[:, None].expand_as(t).nonzero(as_tuple=True)
-    return PackedSamples(ray_i, col, starts[ray_i, col], ends[ray_i, col], pts[ray_i, col], t.shape[0], t.shape[1])
-
-
 @torch.no_grad()
 def edit_samples(field: ConditionalRadianceField, rays: Rays, instance: int) -> list[tuple[str, PackedSamples]]:
     """The renderer's deterministic samples of ``rays`` for one instance, per network.
@@ -110,15 +91,13 @@ def edit_samples(field: ConditionalRadianceField, rays: Rays, instance: int) -> 
         return [("fine", compact(grid_samples(field, rays, inst)))]
     t_near, t_far, hit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
     t_c = stratified_samples(t_near, t_far, cfg.n_coarse)
-    coarse = _packed_from_t(rays, t_c, t_near, t_far, hit)
+    coarse = packed_samples_from_t(rays, t_c, t_near, t_far, hit)
     if cfg.n_fine == 0:
         return [("coarse", coarse)]
-    sig, rgb = evaluate(field.coarse, field, coarse, rays, inst)
-    weights = composite_packed(coarse, sig, rgb, 1.0).weights
-    edges = torch.cat([t_near[:, None], 0.5 * (t_c[:, 1:] + t_c[:, :-1]), t_far[:, None]], dim=-1)
-    t_f = importance_sample(edges, weights, cfg.n_fine)
-    t_all = torch.sort(torch.cat([t_c, t_f], dim=-1), dim=-1).values
-    return [("coarse", coarse), ("fine", _packed_from_t(rays, t_all, t_near, t_far, hit))]
+    sig, rgb = field_at_samples(field.coarse, field, coarse, rays, inst)
+    weights = composite_packed_as_dense(coarse, sig, rgb, 1.0).weights
+    t_all = fine_samples_from_coarse(t_c, t_near, t_far, weights, cfg.n_fine)
+    return [("coarse", coarse), ("fine", packed_samples_from_t(rays, t_all, t_near, t_far, hit))]
 
 
 class EditPass:
@@ -147,10 +126,7 @@ class EditPass:
         self.n_rays = samples.n_rays
         dirs = rays.directions[samples.ray]  # [M, 3]
         self.encoded_dirs = positional_encoding(dirs, self.net.F_rad.pe_d)  # [M, D]: constant, encoded once
-        dense = lambda v: torch.zeros(samples.n_rays, samples.n_steps, dtype=v.dtype, device=v.device).index_put(
-            (samples.ray, samples.step), v
-        )
-        self.t_starts, self.t_ends = dense(samples.t_starts), dense(samples.t_ends)  # [N, S]
+        self.t_starts, self.t_ends = self.dense(samples.t_starts), self.dense(samples.t_ends)  # [N, S]
         self.xn = field.normalize(samples.points)  # [M, 3]
         with torch.no_grad():
             shape_code, _ = field.codes(instance)
@@ -160,7 +136,7 @@ class EditPass:
                 self.inputs = FuseInputs(*(t.detach() if t is not None else None for t in self.net.fuse_inputs(self.xn, shape_code)))
             if stage == "radiance":
                 raw, feat = self.net.density_from_fuse_inputs(self.inputs)
-                weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, dense(self.net.sigma(raw)))
+                weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, self.dense(self.net.sigma(raw)))
                 w = weights[samples.ray, samples.step]
                 keep = w > prune
                 per_point = self.net.F_rad.inputs(feat, dirs)  # constant during a colour edit: built once
@@ -188,9 +164,7 @@ class EditPass:
 
     def dense(self, values: Tensor) -> Tensor:
         """Packed per-sample values [M, ...] → compacted layout [N, S, ...] (zeros elsewhere)."""
-        s = self.samples
-        out = torch.zeros((s.n_rays, s.n_steps, *values.shape[1:]), dtype=values.dtype, device=values.device)
-        return out.index_put((s.ray, s.step), values)
+        return dense_from_packed(self.samples, values)
 
     def forward(self) -> PassOutput:
         """Render the edit's rays with the field's current parameters."""
@@ -200,7 +174,7 @@ class EditPass:
         sigma, feat = self.densities()
         rgb_s = self.net.F_rad(torch.cat([feat, self.encoded_dirs], dim=-1), color_code)
         sigmas, rgbs = self.dense(sigma), self.dense(rgb_s)
-        comp = composite_from_density(self.t_starts, self.t_ends, sigmas, rgbs, self.background)
+        comp = composite_dense(self.t_starts, self.t_ends, sigmas, rgbs, self.background)
         return PassOutput(comp.rgb, comp.opacity, sigmas, comp.weights, rgbs)
 
 

@@ -47,8 +47,9 @@ from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..names import ADD_METHODS, COLOR_CODES
 from ..model import CategoryModel
-from ..renderer import grid_samples, render_camera
-from ..rendering import composite_from_density
+from ..renderer import render_camera
+from ..rendering import composite_dense
+from ..sampling import grid_samples
 from .cache import EditPass, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
 from .losses import density_cross_entropy, density_entropy, log_density_drift, mse, visible_log_density
@@ -143,7 +144,7 @@ def remove(
             push = out.sigmas[:n_fg] > 0
             if occluded:
                 push = first_mode(p.t_starts[:n_fg], p.t_ends[:n_fg], out.sigmas[:n_fg])
-                behind = composite_from_density(
+                behind = composite_dense(
                     p.t_starts[:n_fg], p.t_ends[:n_fg], out.sigmas[:n_fg] * ~push, out.rgbs[:n_fg], p.background
                 )
                 rgb[:n_fg], alpha[:n_fg], seen[:n_fg] = behind.rgb, behind.opacity, behind.weights
@@ -291,7 +292,7 @@ def add(
             # what the kept rays saw before the cells were opened (the surfaces to hold)
             inside = occupancy.lookup(original[None], torch.zeros_like(p.samples.ray), p.xn) if edit.field.cfg.sampler == "grid" else None
             before = out.sigmas if inside is None else out.sigmas * p.dense(inside.to(out.sigmas.dtype))
-            w0 = composite_from_density(p.t_starts, p.t_ends, before, out.rgbs, p.background).weights
+            w0 = composite_dense(p.t_starts, p.t_ends, before, out.rgbs, p.background).weights
             w0[:n_fg] = 0.0
             seen.append(w0)
             sigmas0.append(out.sigmas)
