@@ -147,13 +147,17 @@ class EditPass:
                 self.constant = torch.zeros(samples.n_rays, 3, device=w.device).index_add(0, samples.ray, dropped)
                 self.constant += (1.0 - self.opacity)[:, None] * background
                 self.w, self.ray, self.per_point = w[keep], samples.ray[keep], per_point[keep]
+                self.xn_kept = self.xn[keep]  # [m, 3] where each kept sample lies (a selection's lookup)
                 self.inputs = self.encoded_dirs = None
             self.n_cached = int(self.ray.numel()) if stage == "radiance" else int(samples.ray.numel())
 
+    def sample_rgb(self, net: FieldNet, color_code: Tensor | None) -> Tensor:
+        """Radiance stage: ``net``'s F_rad colour [m, 3] of each kept sample."""
+        return net.F_rad(self.per_point, color_code)
+
     def radiance_rgb(self, net: FieldNet, color_code: Tensor | None) -> Tensor:
         """Radiance stage: each ray's colour [N, 3] with ``net``'s F_rad on the cached samples."""
-        rgb_s = net.F_rad(self.per_point, color_code)
-        return self.constant.index_add(0, self.ray, self.w[:, None] * rgb_s)
+        return self.constant.index_add(0, self.ray, self.w[:, None] * self.sample_rgb(net, color_code))
 
     def densities(self) -> tuple[Tensor, Tensor]:
         """(σ [M], bottleneck features [M, 8]) at the current parameters (not the radiance stage)."""

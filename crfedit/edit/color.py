@@ -21,10 +21,16 @@ import torch
 
 from ..cameras import Camera
 from ..model import CategoryModel
+from ..errors import CrfError
+from ..names import EDIT_METHODS
+from ..renderer import render_camera
 from .cache import edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
 from .losses import mse
 from .scribble import check_masks, parse_color, pick_pixels
+from .selection import ScribbleView, Selection, select
+from .supervised import recolor_selected
+
 
 
 def edit_color(
@@ -35,13 +41,24 @@ def edit_color(
     color: str | tuple[float, float, float],
     keep: np.ndarray | None = None,  # [H, W] bool
     options: EditOptions = EditOptions(),
+    method: str = "selection",
+    selection: Selection | None = None,
 ) -> EditResult:
-    """Recolour the scribbled part of ``instance`` as seen from ``camera``."""
+    """Recolour the scribbled part of ``instance`` as seen from ``camera``.
+
+    ``method="selection"`` (default): the part is the 3-D ``selection`` (computed from the
+    scribbles when None) and ``color`` is the colour it should *appear* under the scribble
+    (:mod:`.supervised`); ``"paper"``: the paper's loss on this view's rays.
+    """
     started = time.perf_counter()
     options = options.validated()
     k = model.instance_index(instance)
     rgb = parse_color(color) if isinstance(color, str) else tuple(float(c) for c in color)
     keep = check_masks(scribble, keep, camera.width, camera.height)
+    if method not in EDIT_METHODS:
+        raise CrfError(f"--method {method}: expected one of {', '.join(EDIT_METHODS)}")
+    if method == "selection":
+        return _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator)
     edit = InstanceEdit(model, k, "color", options.strategy)
@@ -62,3 +79,14 @@ def edit_color(
         "cached_samples": render.n_cached, "stage": render.stage, "camera": camera_meta(camera),
     }
     return finish(edit, "color", hyper, final, started)
+
+
+def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection) -> EditResult:
+    """The selection-supervised recolour: the scribbled pixels' rendered colours fix the ratio."""
+    view = render_camera(model.field_for(k), camera, k)
+    on = torch.from_numpy(scribble) & (view.opacity.cpu() >= 0.5)
+    if not bool(on.any()):
+        raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
+    if selection is None:
+        selection = select(model, k, [ScribbleView(camera, scribble, keep)])
+    return recolor_selected(model, k, selection, [camera], view.rgb.cpu()[on], rgb, options)

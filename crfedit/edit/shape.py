@@ -55,6 +55,8 @@ from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, op
 from .losses import density_cross_entropy, density_entropy, log_density_drift, mse, visible_log_density
 from .params import used_code_tables
 from .scribble import check_masks, pick_pixels
+from .selection import ScribbleView, Selection, select
+from .supervised import remove_selected
 from .transfer import swap_codes
 
 MODE_ALPHA = 0.01
@@ -123,12 +125,23 @@ def remove(
     keep: np.ndarray | None = None,  # [H, W] bool
     occluded: bool = False,
     options: EditOptions = EditOptions(),
+    method: str = "selection",
+    selection: Selection | None = None,
 ) -> EditResult:
-    """Remove the scribbled part of ``instance`` as seen from ``camera``."""
+    """Remove the scribbled part of ``instance`` as seen from ``camera``: the 3-D ``selection``
+    (computed from the scribbles when None) with ``method="selection"``, or the paper's losses."""
     started = time.perf_counter()
     options = options.validated()
     k = model.instance_index(instance)
     keep = check_masks(scribble, keep, camera.width, camera.height)
+    if method not in EDIT_METHODS:
+        raise CrfError(f"--method {method}: expected one of {', '.join(EDIT_METHODS)}")
+    if method == "selection":
+        if occluded:
+            raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
+        if selection is None:
+            selection = select(model, k, [ScribbleView(camera, scribble, keep)])
+        return remove_selected(model, k, selection, [camera], options)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator, also_random=True)
     n_fg = fg.numel()

@@ -1,0 +1,319 @@
+"""Scribbles lifted to an explicit 3-D part selection over an instance's occupancy grid.
+
+The paper's edits constrain only the scribbled view's rays; nothing says where the part is in
+3-D, so density drops wherever features resemble the scribble.  Here the scribbles first become
+a selection S (one soft value per occupancy cell), which the edits then supervise with
+(:mod:`.supervised`) and which a user can preview before any weight moves.
+
+1. **Lift.**  Each scribbled pixel on the object becomes a surface point at the rendered
+   expected depth (a *positive*); each keep-stroke pixel on the object a *negative*.
+2. **Describe.**  Every point — the lifted ones and the centre of every occupied cell — is
+   described by the field's own per-point features (:func:`point_features`): the 8-d
+   bottleneck, the predicted colour and the position, each group standardized.
+3. **Classify.**  A cell's selection value is p = d₋ / (d₊ + d₋) with d₊, d₋ its feature
+   distances to the nearest positive and negative (a soft nearest-neighbour rule: with the
+   position among the features it follows parts of equal colour apart in space, which a linear
+   classifier cannot).
+4. **Negatives without keep strokes.**  The view's other surface points are candidates, but
+   the unscribbled rest of the scribbled part must not become a negative: candidates nearer
+   (in feature space) to a positive than ``part_radius`` times the positives' own spread are
+   dropped first (:func:`implied_negatives`; docs/editing.md has the measurements).
+5. **Refine.**  Values are averaged over each cell's occupied 3×3×3 neighbourhood (a
+   bilateral-style smoothing that respects the grid's empty space), and only selected cells
+   connected (26-neighbourhood, through selected cells) to a cell holding a positive are kept.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .. import occupancy
+from ..cameras import Camera, rays_from_camera
+from ..errors import CrfError
+from ..field import ConditionalRadianceField
+from ..model import CategoryModel
+from ..renderer import render_camera
+from ..safefile import read_safetensors, write_safetensors
+
+FORMAT = "crfedit-selection"
+VERSION = "1"
+FEATURES = ("bottleneck", "color", "position")
+"""Per-point feature groups :func:`point_features` can build."""
+WIDTHS = {"color": 3, "position": 9}
+"""Feature widths per group (the bottleneck's is the model's)."""
+
+
+@dataclass(frozen=True)
+class ScribbleView:
+    """One view's scribbles: the part to edit (``scribble``) and what must not change (``keep``)."""
+
+    camera: Camera
+    scribble: np.ndarray  # [H, W] bool
+    keep: np.ndarray | None = None  # [H, W] bool
+
+
+@dataclass(frozen=True)
+class SelectOptions:
+    """How scribbles become a selection."""
+
+    features: tuple[str, ...] = FEATURES
+    """Feature groups describing a point (see :data:`FEATURES`)."""
+    position_weight: float = 1.0
+    """Scale of the standardized position group against the others."""
+    self_training: int = 3
+    """Rounds that drop from the negatives the view points the classifier calls positive."""
+    keep_weight: float = 3.0
+    """Weight of a keep-stroke point against one of the view's other surface points."""
+    smooth: bool = True
+    """Average values over each cell's occupied 3×3×3 neighbourhood."""
+    connected: bool = True
+    """Keep only selected cells connected to a scribbled cell."""
+    threshold: float = 0.5
+    """A cell is selected when its value is at least this."""
+    min_opacity: float = 0.5
+    """A pixel counts as on the object when its rendered opacity is at least this."""
+
+
+@dataclass
+class Selection:
+    """A soft per-cell selection of one instance: ``values`` [R, R, R] in [0, 1]."""
+
+    values: Tensor
+    instance: int
+    instance_name: str
+    model_fingerprint: str
+    meta: dict
+    threshold: float = 0.5
+
+    @property
+    def mask(self) -> Tensor:
+        """Selected cells [R, R, R] bool."""
+        return self.values >= self.threshold
+
+    def at(self, xn: Tensor) -> Tensor:
+        """Whether normalized points [..., 3] lie in a selected cell (outside the box: False)."""
+        inst = torch.zeros(xn.shape[:-1], dtype=torch.long, device=xn.device)
+        return occupancy.lookup(self.mask[None].to(xn.device), inst, xn)
+
+    def check_for(self, model: CategoryModel, instance: int) -> None:
+        """A one-line error unless this selection was made for ``model``'s ``instance``."""
+        if self.model_fingerprint != model.fingerprint():
+            raise CrfError(f"the selection was made for another model (fingerprint {self.model_fingerprint[:12]}…, this model {model.fingerprint()[:12]}…)")
+        if self.instance_name != model.names[instance]:
+            raise CrfError(f"the selection is of instance {self.instance_name!r}, not {model.names[instance]!r}")
+        if tuple(self.values.shape) != (model.cfg.occ_res,) * 3:
+            raise CrfError(f"the selection grid is {self.values.shape[0]}³ but the model's occupancy grid is {model.cfg.occ_res}³")
+        if not bool(self.mask.any()):
+            raise CrfError("the selection is empty: no cell is selected")
+
+
+# ----------------------------------------------------------------------------- lifting
+
+
+@torch.no_grad()
+def surface_points(field: ConditionalRadianceField, camera: Camera, instance: int, min_opacity: float = 0.5):
+    """(world points [H·W, 3], on-object mask [H·W]) at each pixel's expected surface depth."""
+    out = render_camera(field, camera, instance)
+    rays = rays_from_camera(camera, field.aabb.device)
+    opacity = out.opacity.reshape(-1)
+    t = out.depth.reshape(-1) / opacity.clamp_min(1e-6)
+    return rays.origins + t[:, None] * rays.directions, opacity >= min_opacity
+
+
+@torch.no_grad()
+def point_features(field: ConditionalRadianceField, instance: int, points: Tensor, view_from: Tensor, groups: Sequence[str]) -> Tensor:
+    """The field's own description of world ``points`` [M, 3]: the chosen :data:`FEATURES`
+    groups concatenated, unstandardized.  Colour is F_rad's output looking from ``view_from`` [3];
+    position is the normalized point and its second-order terms (so that a linear classifier
+    can select e.g. both arms but not the seat between them)."""
+    xn = field.normalize(points)
+    feat = field.features(xn, instance)
+    out = []
+    for group in groups:
+        if group == "bottleneck":
+            out.append(feat)
+        elif group == "color":
+            dirs = F.normalize(points - view_from, dim=-1)
+            out.append(field.radiance(feat, dirs, instance))
+        elif group == "position":
+            x, y, z = xn.unbind(-1)
+            out.append(torch.stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], dim=-1))
+        else:
+            raise CrfError(f"selection feature {group!r}: expected one of {', '.join(FEATURES)}")
+    return torch.cat(out, dim=-1)
+
+
+def _standardizer(all_feats: Tensor, widths: Sequence[int], weights: Sequence[float]):
+    """Per-dimension z-scores, each group scaled by weight/√(its width) so groups weigh alike."""
+    mean, std = all_feats.mean(dim=0), all_feats.std(dim=0).clamp_min(1e-6)
+    scale = torch.cat([torch.full((w,), g / w**0.5) for w, g in zip(widths, weights)]).to(all_feats)
+    return lambda f: (f - mean) / std * scale
+
+
+def fit_logistic(pos: Tensor, neg: Tensor, neg_weight: Tensor, l2: float = 1e-2):
+    """A class-balanced logistic regression pos [P, F] vs neg [N, F] (negatives weighted by
+    ``neg_weight`` [N]) fitted by L-BFGS; returns x ↦ P(positive) for rows of x."""
+    x = torch.cat([pos, neg])
+    y = torch.cat([torch.ones(len(pos)), torch.zeros(len(neg))]).to(x)
+    wt = torch.cat([torch.full((len(pos),), 0.5 / len(pos)).to(x), 0.5 * neg_weight / neg_weight.sum()])
+    w = torch.zeros(x.shape[1], dtype=x.dtype, requires_grad=True)
+    b = torch.zeros(1, dtype=x.dtype, requires_grad=True)
+    opt = torch.optim.LBFGS([w, b], max_iter=100, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = (wt * F.binary_cross_entropy_with_logits(x @ w + b, y, reduction="none")).sum() + l2 * (w**2).sum()
+        loss.backward()
+        return loss
+
+    with torch.enable_grad():
+        opt.step(closure)
+    w, b = w.detach(), b.detach()
+    return lambda q: torch.sigmoid(q @ w + b)
+
+
+def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weight: float):
+    """Positives against the keep strokes' points (each weighing ``keep_weight``) and the view's
+    other surface points; each of ``rounds`` self-training rounds drops the other points the last
+    fit calls positive (the unscribbled rest of the part must not stay a negative)."""
+    active = torch.ones(len(others), dtype=torch.bool, device=others.device)
+    clf = None
+    for _ in range(rounds + 1):
+        neg = torch.cat([keep, others[active]])
+        if len(neg) == 0:
+            raise CrfError("the scribble covers all of the object in its view: nothing tells the part from the rest (add --keep strokes)")
+        weight = torch.cat([torch.full((len(keep),), keep_weight), torch.ones(int(active.sum()))]).to(pos)
+        clf = fit_logistic(pos, neg, weight)
+        if len(others):
+            active = clf(others) < 0.5
+    return clf
+
+
+# ----------------------------------------------------------------------------- refinement
+
+
+def smooth_over_occupied(values: Tensor, occupied: Tensor) -> Tensor:
+    """Mean of ``values`` [R, R, R] over each occupied cell's occupied 3×3×3 neighbourhood."""
+    occ = occupied.float()[None, None]
+    num = F.avg_pool3d((values * occupied)[None, None], 3, stride=1, padding=1, count_include_pad=False)
+    den = F.avg_pool3d(occ, 3, stride=1, padding=1, count_include_pad=False)
+    return torch.where(occupied, (num / den.clamp_min(1e-12))[0, 0], torch.zeros_like(values))
+
+
+def connected_to(selected: Tensor, seeds: Tensor) -> Tensor:
+    """Cells of ``selected`` [R, R, R] reachable from ``seeds`` through selected cells (26-neighbourhood)."""
+    reached = seeds & selected
+    while True:
+        grown = occupancy.dilate(reached, 1) & selected
+        if bool((grown == reached).all()):
+            return reached
+        reached = grown
+
+
+# ----------------------------------------------------------------------------- select
+
+
+def _lift(field, k, views: Sequence[ScribbleView], min_opacity: float):
+    """Positive and negative surface points of all views, plus each view's other surface points
+    (candidate negatives when that view has no keep strokes)."""
+    pos, neg, implied = [], [], []
+    for v in views:
+        pts, on = surface_points(field, v.camera, k, min_opacity)
+        fg = torch.from_numpy(v.scribble.reshape(-1)).to(on.device) & on
+        pos.append(pts[fg])
+        scribbled = torch.from_numpy(v.scribble.reshape(-1)).to(on.device)
+        kept = torch.zeros_like(on) if v.keep is None else torch.from_numpy(v.keep.reshape(-1)).to(on.device) & ~scribbled
+        neg.append(pts[kept & on])
+        implied.append(pts[on & ~scribbled & ~kept])
+    cat = lambda xs: torch.cat(xs) if xs else torch.zeros(0, 3, device=field.aabb.device)
+    return cat(pos), cat(neg), cat(implied)
+
+
+@torch.no_grad()
+def select(
+    model: CategoryModel, instance: int | str, views: Sequence[ScribbleView], options: SelectOptions = SelectOptions()
+) -> Selection:
+    """The 3-D selection the scribbles of ``views`` mean (see the module docstring)."""
+    started = time.perf_counter()
+    k = model.instance_index(instance)
+    if not views:
+        raise CrfError("select: give at least one view with a scribble")
+    for i, v in enumerate(views):
+        if not v.scribble.any():
+            raise CrfError(f"the scribble of view {i + 1} is empty: no pixel is set")
+    field = model.field_for(k)
+    pos_pts, neg_pts, cand_pts = _lift(field, k, views, options.min_opacity)
+    if pos_pts.shape[0] == 0:
+        raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
+    occupied = field.occupancy[k]
+    res = occupied.shape[-1]
+    cells = occupied.reshape(-1).nonzero().squeeze(-1)
+    lo, hi = field.aabb[:3], field.aabb[3:]
+    cell_pts = lo + (occupancy.cell_centers(res, occupied.device)[cells] + 1.0) * 0.5 * (hi - lo)
+    eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
+    groups = options.features
+    feats = lambda p: point_features(field, k, p, eye, groups)
+    f_cells = feats(cell_pts)
+    widths = [WIDTHS.get(g, field.cfg.bottleneck) for g in groups]
+    z = _standardizer(f_cells, widths, [options.position_weight if g == "position" else 1.0 for g in groups])
+    clf = classifier(z(feats(pos_pts)), z(feats(neg_pts)), z(feats(cand_pts)), options.self_training, options.keep_weight)
+    values = torch.zeros(res**3, device=occupied.device)
+    values[cells] = clf(z(f_cells))
+    values = values.view(res, res, res)
+    if options.smooth:
+        values = smooth_over_occupied(values, occupied)
+    if options.connected:
+        seeds = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+        ijk, inside = occupancy.cell_index(field.normalize(pos_pts), res)
+        ijk = ijk[inside]
+        seeds.view(res, res, res)[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+        keep = connected_to(values >= options.threshold, occupancy.dilate(seeds.view(res, res, res), 1))
+        values = torch.where(keep | (values < options.threshold), values, values.clamp(max=options.threshold * 0.999))
+    meta = {
+        "positives": int(pos_pts.shape[0]), "keep_points": int(neg_pts.shape[0]), "view_points": int(cand_pts.shape[0]),
+        "views": len(views), "features": list(groups), "occupied_cells": int(cells.numel()),
+        "selected_cells": int((values >= options.threshold).sum()), "seconds": round(time.perf_counter() - started, 4),
+    }
+    return Selection(values.clamp(0, 1), k, model.names[k], model.fingerprint(), meta, options.threshold)
+
+
+# ----------------------------------------------------------------------------- file
+
+
+def save_selection(path: str | Path, sel: Selection) -> None:
+    """Write ``sel`` atomically as safetensors: ``values`` uint8 [R, R, R] (value·255) and string metadata."""
+    q = (sel.values * 255).round().to(torch.uint8).cpu().contiguous()
+    meta = {
+        "format": FORMAT, "version": VERSION, "model_fingerprint": sel.model_fingerprint,
+        "instance": sel.instance_name, "instance_index": str(sel.instance), "threshold": repr(sel.threshold),
+        "info": json.dumps(sel.meta, sort_keys=True),
+    }
+    write_safetensors(Path(path), {"values": q}, meta)
+
+
+def load_selection(path: str | Path) -> Selection:
+    """Read a selection file (safetensors only; nothing in it is executed)."""
+    tensors, meta = read_safetensors(Path(path))
+    if meta.get("format") != FORMAT:
+        raise CrfError(f"{path}: not a crfedit selection file (format {meta.get('format')!r})")
+    if meta.get("version") != VERSION:
+        raise CrfError(f"{path}: selection format version {meta.get('version')!r} is not supported (expected {VERSION})")
+    values = tensors.get("values")
+    if values is None or values.dtype != torch.uint8 or values.dim() != 3 or len(set(values.shape)) != 1:
+        raise CrfError(f"{path}: 'values' must be a uint8 [R, R, R] grid")
+    try:
+        info = json.loads(meta.get("info", "{}"))
+        threshold = float(meta.get("threshold", "0.5"))
+        index = int(meta.get("instance_index", "-1"))
+    except ValueError as e:
+        raise CrfError(f"{path}: corrupt selection metadata ({e})") from None
+    return Selection(values.float() / 255.0, index, meta.get("instance", ""), meta.get("model_fingerprint", ""), info, threshold)
