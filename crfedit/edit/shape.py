@@ -45,7 +45,7 @@ from .. import occupancy
 from ..cameras import Camera, Rays
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
-from ..names import ADD_METHODS, COLOR_CODES
+from ..names import ADD_METHODS, COLOR_CODES, EDIT_METHODS
 from ..model import CategoryModel
 from ..renderer import render_camera
 from ..rendering import composite_dense
