@@ -144,7 +144,7 @@ def test_color_edit_moves_the_part_toward_the_target(trained):
     others = [render(model, j, view.camera).rgb for j in (0, 2)]
     current = torch.from_numpy(view.rgb[fg].mean(0))
     color = max(("red", "lime", "blue"), key=lambda c: float((torch.tensor(parse_color(c)) - current).norm()))
-    result = edit_color(model, k, view.camera, fg, color, keep)
+    result = edit_color(model, k, view.camera, fg, color, keep, method="paper")
     target = torch.tensor(parse_color(color))
     ratios = []
     for hv in held_out(category, k):
@@ -230,7 +230,7 @@ def test_removal_lowers_opacity_in_a_held_out_view(trained):
 def test_occluded_removal_keeps_what_lies_behind(trained):
     _, model, category = trained
     _, view, fg, keep, _ = scribbles(category, 2, "seat")
-    result = remove(model, 2, view.camera, fg, keep, occluded=True, options=EditOptions(steps=10))
+    result = remove(model, 2, view.camera, fg, keep, occluded=True, options=EditOptions(steps=10), method="paper")
     assert json.loads(result.meta["hyperparameters"])["occluded"] is True
     assert "occupancy" in result.tensors
 

@@ -14,12 +14,13 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import ADD_METHODS, STRATEGIES
+from ..names import ADD_METHODS, STRATEGIES, EDIT_METHODS
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
 
 
 Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
 AddMethod = enum.Enum("AddMethod", {m: m for m in ADD_METHODS}, type=str)
+EditMethod = enum.Enum("EditMethod", {m: m for m in EDIT_METHODS}, type=str)
 
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors).")]
@@ -35,6 +36,8 @@ ScribbleOpt = Annotated[Optional[Path], typer.Option("--scribble", help="Mask PN
 ScribbleJsonOpt = Annotated[Optional[Path], typer.Option("--scribble-json", help='Strokes JSON: {"strokes": [[[x, y], ...], ...], "radius": r} or a list of strokes.')]
 KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (default: a random sample of the rest of the view).")]
 KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (a random sample of the rest of the view is kept as well).")]
+MethodOpt = Annotated[EditMethod, typer.Option("--method", help="selection: lift the scribbles to a 3-D selection and supervise the edit with it in every view; paper: the paper's losses on the scribbled view's rays alone.")]
+SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles).")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
 
 
@@ -79,6 +82,17 @@ def _masks(scribble: Path | None, scribble_json: Path | None, keep: Path | None,
     return fg, bg
 
 
+def _selection(path: Path | None, model, instance: int):
+    """The selection file at ``path`` checked against the model and instance (None: none given)."""
+    if path is None:
+        return None
+    from ..edit.selection import load_selection
+
+    sel = load_selection(path)
+    sel.check_for(model, instance)
+    return sel
+
+
 def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int):
     from ..edit import EditOptions
 
@@ -102,11 +116,13 @@ def edit_color_cmd(
     instance: InstanceOpt,
     view: ViewOpt,
     out: OutOpt,
-    color: Annotated[str, typer.Option("--color", help="Target colour: #rgb, #rrggbb or a name such as red, navy, orange.")],
+    color: Annotated[str, typer.Option("--color", help="Target colour: #rgb, #rrggbb or a name such as red, navy, orange; with --method selection, the colour the part should appear under the scribble.")],
     scribble: ScribbleOpt = None,
     scribble_json: ScribbleJsonOpt = None,
     keep: KeepOpt = None,
     keep_json: KeepJsonOpt = None,
+    method: MethodOpt = EditMethod.selection,
+    selection: SelectionOpt = None,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     steps: StepsOpt = 100,
@@ -127,7 +143,8 @@ def edit_color_cmd(
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera)
-    _write(edit_color(m, k, camera, fg, rgb, bg, options), out, label)
+    sel = _selection(selection, m, k)
+    _write(edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel), out, label)
 
 
 @app.command("remove")
@@ -142,6 +159,8 @@ def remove_cmd(
     keep: KeepShapeOpt = None,
     keep_json: KeepJsonOpt = None,
     occluded: Annotated[bool, typer.Option("--occluded", help="Remove only the first surface along each scribbled ray (a part in front of others).")] = False,
+    method: MethodOpt = EditMethod.selection,
+    selection: SelectionOpt = None,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     steps: StepsOpt = 100,
@@ -160,7 +179,8 @@ def remove_cmd(
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera)
-    _write(remove(m, k, camera, fg, bg, occluded, options), out, label)
+    sel = _selection(selection, m, k)
+    _write(remove(m, k, camera, fg, bg, occluded, options, method.value, sel), out, label)
 
 
 @app.command("add")

@@ -157,19 +157,29 @@ def recolor_selected(
     sel = selection.mask.to(device)
     ratio = recolor_ratio(appear, scribbled_rgb)
     rays = supervision_rays(cameras, max(8, options.rays // (len(TURNS) * len(cameras))), generator, device)
-    (p,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=True)
-    net, (_, color_code) = p.net, edit.field.codes(k)
+    (p,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=options.cache)
+    radiance = p.stage == "radiance"
+
+    def current() -> tuple[Tensor, Tensor, Tensor]:
+        """(sample colours [m, 3], their compositing weights [m], pixels [N, 3]) now."""
+        _, code = edit.field.codes(k)
+        if radiance:
+            rgb_s = p.sample_rgb(p.net, code)
+            return rgb_s, p.w, p.constant.index_add(0, p.ray, p.w[:, None] * rgb_s)
+        out, s = p.forward(), p.samples
+        return out.rgbs[s.ray, s.step], out.weights[s.ray, s.step], out.rgb
+
     with torch.no_grad():
-        rgb0 = p.sample_rgb(net, color_code)
-        in_s = occupancy.lookup(sel[None], torch.zeros_like(p.ray), p.xn_kept)
+        rgb0, w0, pixel0 = current()
+        ray, xn = (p.ray, p.xn_kept) if radiance else (p.samples.ray, p.xn)
+        in_s = occupancy.lookup(sel[None], torch.zeros_like(ray), xn)
         target_s = torch.where(in_s[:, None], (rgb0 * ratio).clamp(0, 1), rgb0)
-        target_px = p.constant.index_add(0, p.ray, p.w[:, None] * target_s)
-        w = p.w[:, None] / p.w.sum()
+        # weights are fixed (density does not change), so a pixel is linear in its samples' colours
+        target_px = pixel0.index_add(0, ray, w0[:, None] * (target_s - rgb0))
+        w = w0[:, None] / w0.sum().clamp_min(1e-12)
 
     def loss_fn():
-        _, code = edit.field.codes(k)
-        rgb_s = p.sample_rgb(net, code)
-        pixel = p.constant.index_add(0, p.ray, p.w[:, None] * rgb_s)
+        rgb_s, _, pixel = current()
         return (w * (rgb_s - target_s) ** 2).sum() + mse(pixel, target_px) + options.lambda_reg * edit.penalty()
 
     final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "colour edit")
@@ -177,6 +187,6 @@ def recolor_selected(
         "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
         "rays": int(rays.origins.shape[0]), "seed": options.seed, "lambda_reg": options.lambda_reg,
         "appear": [float(c) for c in appear], "ratio": [round(float(r), 4) for r in ratio],
-        "selected_samples": int(in_s.sum()), "cached_samples": p.n_cached, "cameras": [camera_meta(c) for c in cameras],
+        "selected_samples": int(in_s.sum()), "cached_samples": p.n_cached, "stage": p.stage, "cameras": [camera_meta(c) for c in cameras],
     }
     return finish(edit, "color", hyper, final, started)

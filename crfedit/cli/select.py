@@ -1,0 +1,65 @@
+"""``crfedit select``: scribbles → a 3-D selection file, with a tinted preview."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ..errors import CrfError
+from .common import DeviceChoice, DeviceOpt, app, user_errors
+from .edit import InstanceOpt, ModelArg, PriorOpt, _check_out, _load, _one_view
+
+
+def _mask(path: Path, camera, what: str):
+    """A mask PNG, or strokes JSON when the name ends in .json, at the view's size."""
+    from ..edit.scribble import load_mask
+
+    is_json = path.suffix.lower() == ".json"
+    return load_mask(None if is_json else path, path if is_json else None, camera.width, camera.height, what)
+
+
+@app.command("select")
+@user_errors
+def select_cmd(
+    model: ModelArg,
+    instance: InstanceOpt,
+    view: Annotated[list[str], typer.Option("--view", help="A view the scribbles belong to (repeatable: one --scribble per --view).")],
+    scribble: Annotated[list[Path], typer.Option("--scribble", help="The part, on that view: mask PNG (white on black) or strokes JSON (repeatable).")],
+    out: Annotated[Path, typer.Option("--out", help="Selection file to write (.safetensors).")],
+    keep: Annotated[Optional[list[Path]], typer.Option("--keep", help="What is not the part, per view (repeatable; none, or one per --view).")] = None,
+    edit: PriorOpt = None,
+    preview: Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG previews with the selection tinted.")] = None,
+    views: Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")] = "orbit:8",
+    device: DeviceOpt = DeviceChoice.auto,
+) -> None:
+    """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
+    from ..edit.selection import ScribbleView, preview as tinted, save_selection, select
+    from ..io import write_png
+    from ..views import resolve_views
+
+    if len(scribble) != len(view):
+        raise CrfError(f"give one --scribble per --view ({len(view)} views, {len(scribble)} scribbles)")
+    if keep and len(keep) != len(view):
+        raise CrfError(f"give no --keep or one per --view ({len(view)} views, {len(keep)} keep masks)")
+    _check_out(out, model)
+    m = _load(model, edit, device)
+    k = m.instance_index(instance)
+    scribbles = []
+    for i, spec in enumerate(view):
+        _, camera = _one_view(m, spec, k)
+        bg = _mask(keep[i], camera, "keep") if keep else None
+        scribbles.append(ScribbleView(camera, _mask(scribble[i], camera, "scribble"), bg))
+    sel = select(m, k, scribbles)
+    save_selection(out, sel)
+    info = sel.meta
+    typer.echo(
+        f"wrote {out}: {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
+        f"({info['positives']} scribbled, {info['keep_points']} keep, {info['view_points']} other surface points; {info['seconds']:.2f} s)"
+    )
+    if preview is not None:
+        preview.mkdir(parents=True, exist_ok=True)
+        for i, (label, camera) in enumerate(resolve_views(views, m, k)):
+            write_png(preview / f"{i:04d}.png", tinted(m, sel, camera))
+        typer.echo(f"wrote previews of {views} to {preview}/")

@@ -1,0 +1,196 @@
+"""Scribbles → 3-D selection → edits supervised by it (edit/selection.py, edit/supervised.py)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from crfedit.cli import app
+from crfedit.data.synth import SynthConfig
+from crfedit.edit import EditOptions, edit_color, remove
+from crfedit.edit.selection import (
+    ScribbleView, Selection, load_selection, preview, save_selection, select, smooth_over_occupied, connected_to,
+    surface_points,
+)
+from crfedit.edit.supervised import recolor_ratio
+from crfedit import occupancy
+from crfedit.errors import CrfError
+from crfedit.masks import dilate, erode
+from crfedit.renderer import render_camera
+
+RES = 32
+
+
+@pytest.fixture(scope="module")
+def trained(trained_category):
+    """The same fixture as tests/test_edits.py (trained once per session)."""
+    path, model, category, result = trained_category(
+        "edits", SynthConfig(instances=3, views=10, res=RES, seed=0, twins=False), dict(
+            steps=250, rays=512, lr=1e-2, lr_codes=1e-2, grid_res=16, occ_res=32, width=32, rad_width=32,
+            occ_warmup=100, occ_every=8, checkpoint_every=10**9,
+        ), with_parts=True)
+    return path, model, category
+
+
+def part_view(category, k: int, part: str):
+    """(view, scribble inside the part, keep on the other parts, part id): the train view where it shows most."""
+    inst = category.instances[k]
+    pid = next(p["id"] for p in json.loads((inst.path / "parts.json").read_text()) if p["name"] == part)
+    view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
+    return view, erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1), pid
+
+
+def selection_iou(model, sel: Selection, k: int, views, pid: int) -> float:
+    field = model.field_for(k)
+    inter = union = 0
+    for v in views:
+        pts, on = surface_points(field, v.camera, k)
+        pred = sel.at(field.normalize(pts)) & on
+        gt = torch.from_numpy(v.parts.reshape(-1) == pid) & on
+        inter, union = inter + int((pred & gt).sum()), union + int((pred | gt).sum())
+    return inter / max(union, 1)
+
+
+def test_selection_from_one_view_covers_the_part_in_other_views(trained):
+    """The seat, scribbled on one view, is found on held-out views; the rest of the chair is not."""
+    _, model, category = trained
+    k = 2
+    view, fg, keep, pid = part_view(category, k, "seat")
+    held = category.instances[k].splits["test"] + category.instances[k].splits["val"]
+    sel = select(model, k, [ScribbleView(view.camera, fg, keep)])
+    assert selection_iou(model, sel, k, held, pid) > 0.75
+    # what was never scribbled nor kept: a sparse scribble (every 4th pixel) still selects the part
+    sparse = fg & (np.indices(fg.shape).sum(0) % 4 == 0)
+    assert selection_iou(model, select(model, k, [ScribbleView(view.camera, sparse, None)]), k, held, pid) > 0.5
+
+
+def test_smoothing_and_connectivity_closed_forms():
+    occ = torch.zeros(5, 5, 5, dtype=torch.bool)
+    occ[1:4, 1:4, 1:4] = True
+    values = torch.zeros(5, 5, 5)
+    values[2, 2, 2] = 27.0
+    smooth = smooth_over_occupied(values, occ)
+    assert smooth[2, 2, 2] == pytest.approx(1.0)  # 27 spread over 27 occupied neighbours
+    assert smooth[1, 1, 1] == pytest.approx(27.0 / 8)  # a corner sees 8 occupied cells
+    assert float(smooth[~occ].abs().max()) == 0.0
+    sel = torch.zeros(7, 7, 7, dtype=torch.bool)
+    sel[0:2, 0, 0] = True  # a blob with the seed
+    sel[4:6, 0, 0] = True  # a blob two cells away: not connected
+    seeds = torch.zeros_like(sel)
+    seeds[0, 0, 0] = True
+    reached = connected_to(sel, seeds)
+    assert reached[0:2, 0, 0].all() and not reached[4:6, 0, 0].any()
+
+
+def test_recolor_ratio_keeps_shading():
+    """Lambertian pixels albedo·s: the ratio from the mean appearance maps each pixel to new·s."""
+    old, new = torch.tensor([0.8, 0.4, 0.2]), torch.tensor([0.2, 0.6, 0.9])
+    shade = torch.tensor([0.35, 0.7, 1.0])[:, None]
+    pixels = old * shade
+    appear = (new * shade.mean()).tolist()
+    assert torch.allclose(pixels * recolor_ratio(appear, pixels), new * shade, atol=1e-6)
+    # a near-black part: the mean is floored, so the ratio stays finite
+    assert torch.isfinite(recolor_ratio([1.0, 0.0, 0.0], torch.zeros(4, 3))).all()
+
+
+def test_removal_zeroes_the_selection_and_holds_the_rest(trained):
+    _, model, category = trained
+    k = 2
+    view, fg, keep, pid = part_view(category, k, "seat")
+    sel = select(model, k, [ScribbleView(view.camera, fg, keep)])
+    result = remove(model, k, view.camera, fg, keep, options=EditOptions(steps=60), selection=sel)
+    grid_before, grid_after = model.field.occupancy[k], result.tensors["occupancy"]
+    assert torch.equal(grid_after, grid_before & ~sel.mask)  # the grid drops exactly S's cells
+    field0, field1 = model.field_for(k), result.model.field_for(k)
+    cells = (grid_before & sel.mask).nonzero()
+    xn = (cells.float() + 0.5) / grid_before.shape[-1] * 2 - 1
+    with torch.no_grad():  # the network itself (not only the grid) lost S's density
+        s0, s1 = field0.density(xn, k), field1.density(xn, k)
+    assert float(torch.log1p(s1).mean()) < 0.5 * float(torch.log1p(s0).mean())
+    # rendered held-out views: the part clears; what lies > 3 cells from S changes less than
+    # under the paper's removal from the same scribbles
+    paper = remove(model, k, view.camera, fg, keep, options=EditOptions(steps=60), method="paper").model.field_for(k)
+    near = occupancy.dilate(sel.mask, 3)[None]
+    damage = {"selection": [], "paper": []}
+    for v in category.instances[k].splits["test"]:
+        before = render_camera(field0, v.camera, k)
+        pts, on = surface_points(field0, v.camera, k)
+        far = on & ~occupancy.lookup(near, torch.zeros(on.shape, dtype=torch.long), field0.normalize(pts))
+        part = torch.from_numpy(v.parts.reshape(-1) == pid) & on
+        for name, f in (("selection", field1), ("paper", paper)):
+            after = render_camera(f, v.camera, k)
+            damage[name].append((after.rgb - before.rgb).abs().reshape(-1, 3).mean(dim=-1)[far])
+        if part.sum() >= 10:
+            after = render_camera(field1, v.camera, k)
+            assert float(before.opacity.reshape(-1)[part].mean() - after.opacity.reshape(-1)[part].mean()) > 0.5
+    sel_damage, paper_damage = (float(torch.cat(damage[n]).mean()) for n in ("selection", "paper"))
+    assert sel_damage < 0.1 and sel_damage < paper_damage, (sel_damage, paper_damage)
+    # other instances: the same field, bit for bit
+    assert result.model.field_for(0) is model.field
+    assert json.loads(result.meta["hyperparameters"])["method"] == "selection"
+
+
+def test_selection_recolour_moves_the_part_not_the_rest(trained):
+    _, model, category = trained
+    k = 2
+    view, fg, keep, pid = part_view(category, k, "seat")
+    result = edit_color(model, k, view.camera, fg, (0.9, 0.1, 0.1), keep)
+    held = category.instances[k].splits["test"]
+    moved = kept = 0.0
+    for v in held:
+        before, after = render_camera(model.field_for(k), v.camera, k).rgb, render_camera(result.model.field_for(k), v.camera, k).rgb
+        part, rest = torch.from_numpy(v.parts == pid), torch.from_numpy((v.parts > 0) & (v.parts != pid))
+        moved += float((after[part] - before[part]).abs().mean()) / len(held)
+        kept += float((after[rest] - before[rest]).abs().mean()) / len(held)
+    assert moved > 0.1 and kept < 0.35 * moved, (moved, kept)
+
+
+def test_selection_file_round_trip_and_checks(trained, tmp_path):
+    _, model, category = trained
+    view, fg, keep, _ = part_view(category, 1, "back")
+    sel = select(model, 1, [ScribbleView(view.camera, fg, keep)])
+    save_selection(tmp_path / "s.safetensors", sel)
+    back = load_selection(tmp_path / "s.safetensors")
+    assert torch.equal(back.mask, sel.mask) and back.instance_name == model.names[1]
+    back.check_for(model, 1)
+    with pytest.raises(CrfError, match="is of instance"):
+        back.check_for(model, 0)
+    with pytest.raises(CrfError, match="another model"):
+        Selection(sel.values, 1, model.names[1], "0" * 16, {}).check_for(model, 1)
+    with pytest.raises(CrfError, match="empty"):
+        Selection(torch.zeros_like(sel.values), 1, model.names[1], model.fingerprint(), {}).check_for(model, 1)
+    img = preview(model, sel, view.camera)
+    assert img.shape == (RES, RES, 3) and np.isfinite(img).all()
+
+
+def test_scribble_on_the_background_only_is_refused(trained):
+    _, model, category = trained
+    view, fg, keep, _ = part_view(category, 1, "back")
+    background = view.alpha < 0.01
+    with pytest.raises(CrfError, match="background only"):
+        select(model, 1, [ScribbleView(view.camera, background & erode(background, 2), None)])
+
+
+def test_select_command_and_its_errors(trained, tmp_path):
+    path, model, category = trained
+    view, fg, keep, _ = part_view(category, 1, "back")
+    from PIL import Image
+
+    Image.fromarray((fg * 255).astype(np.uint8)).save(tmp_path / "fg.png")
+    index = category.instances[1].splits["train"].index(view)
+    runner = CliRunner()
+    out = tmp_path / "sel.safetensors"
+    args = ["select", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--scribble", str(tmp_path / "fg.png")]
+    r = runner.invoke(app, [*args, "--out", str(out), "--preview", str(tmp_path / "prev"), "--views", "orbit:2"])
+    assert r.exit_code == 0, r.output
+    assert out.is_file() and sorted(p.name for p in (tmp_path / "prev").iterdir()) == ["0000.png", "0001.png"]
+    r = runner.invoke(app, [*args, "--keep", str(tmp_path / "fg.png"), "--keep", str(tmp_path / "fg.png"), "--out", str(tmp_path / "x.safetensors")])
+    assert r.exit_code == 2 and "one per --view" in r.output and not (tmp_path / "x.safetensors").exists()
+    edit_out = tmp_path / "e.safetensors"
+    r = runner.invoke(app, ["remove", str(path), "--instance", model.names[0], "--view", f"train:{index}",
+                            "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out)])
+    assert r.exit_code == 2 and "is of instance" in r.output and not edit_out.exists()
