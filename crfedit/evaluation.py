@@ -32,6 +32,8 @@ from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
 from .edit.params import GROUP, trained_prefixes
 from .errors import CrfError
 from .evaluate import render_views, score_model
+from .edit.selection import ScribbleView, select
+from .twin_scores import appearance, changed_regions, gap_closed, region_scores, selection_iou
 from .field import ConditionalRadianceField
 from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
@@ -42,6 +44,8 @@ SSIM_NOTE = "SSIM: 11×11 Gaussian window, σ=1.5, on RGB"
 LPIPS_SKIPPED = "LPIPS: skipped (no weights)"
 UNEDITED = "unedited"
 NERF_BASELINE = "nerf (single instance)"
+PAPER_METHOD = "hybrid, --method paper"
+"""The paper's own losses (scribbled view's rays only) with its hybrid update, for comparison."""
 ABLATION_ARCHS = ("nerf", "single", "separate", "ours")
 """Table 1's rows, weakest first."""
 PARAM_TOLERANCE = 0.05
@@ -179,16 +183,23 @@ def load_twin_cases(model: CategoryModel, category: Category) -> list[TwinCase]:
     return twin_cases(model, category, load_twins(category.root, res=model_width(model, "test")))
 
 
-def apply_twin_edit(model: CategoryModel, case: TwinCase, options: EditOptions, instance: int | None = None) -> EditResult:
+def apply_twin_edit(
+    model: CategoryModel, case: TwinCase, options: EditOptions, instance: int | None = None, method: str = "selection",
+    appear: tuple[float, ...] | None = None, selection=None,
+) -> EditResult:
     """Make the twin's edit of ``case`` (colour or removal) from its scribbles; an EditResult.
 
     ``instance`` overrides the edited index (the single-instance baseline edits its index 0).
+    ``method`` is the edits' (selection or paper); a selection-supervised recolour targets the
+    colour the part should *appear* (``appear``, see :func:`~crfedit.twin_scores.appearance`),
+    the paper's the twin's albedo as given.
     """
 
     k = case.instance if instance is None else instance
     if case.spec.kind == "color":
-        return edit_color(model, k, case.camera, case.scribble, case.spec.color, case.keep, options)
-    return remove(model, k, case.camera, case.scribble, case.keep, options=options)
+        color = appear if method == "selection" and appear is not None else case.spec.color
+        return edit_color(model, k, case.camera, case.scribble, color, case.keep, options, method, selection)
+    return remove(model, k, case.camera, case.scribble, case.keep, options=options, method=method, selection=selection)
 
 
 def strategy_problem(model: CategoryModel, kind: str, strategy: str) -> str | None:
@@ -232,10 +243,17 @@ def _finite(x):
 
 
 def _mean(rows: list[dict], key: str) -> float | None:
-    values = [r[key] for r in rows]
+    values = [r.get(key) for r in rows]
     if not values or any(v is None for v in values):
         return None
     return float(np.mean(values))
+
+
+TABLE_KEYS = (
+    "psnr", "ssim", "lpips", "seconds", "psnr_before", "psnr_ceiling", "gap_closed", "psnr_inside", "psnr_outside",
+    "selection_iou",
+)
+"""Per-twin numbers that the edit tables average (a key no run of a method has is None)."""
 
 
 def edit_tables(runs: list[dict], methods: Sequence[str]) -> dict[str, list[dict]]:
@@ -247,10 +265,7 @@ def edit_tables(runs: list[dict], methods: Sequence[str]) -> dict[str, list[dict
         for method in methods:
             sel = [r for r in runs if r["kind"] == kind and r["method"] == method]
             if sel:
-                rows.append({
-                    "method": method, "n": len(sel), "psnr": _mean(sel, "psnr"), "ssim": _mean(sel, "ssim"),
-                    "lpips": _mean(sel, "lpips"), "seconds": _mean(sel, "seconds"),
-                })
+                rows.append({"method": method, "n": len(sel), **{key: _mean(sel, key) for key in TABLE_KEYS}})
         if rows:
             tables[kind] = rows
     return tables
@@ -268,6 +283,7 @@ def evaluate_edits(
     seed: int = 0,
     workdir: str | Path | None = None,
     progress: Progress | None = None,
+    paper: bool = True,
 ) -> dict:
     """The paper's edit protocol on ground-truth twins (Tables 2 and 3).
 
@@ -299,14 +315,20 @@ def evaluate_edits(
     skipped: list[dict] = []
     note = lpips_unavailable_reason(lpips_weights)
 
-    def record(case: TwinCase, method: str, score: dict, seconds: float) -> None:
+    def record(case: TwinCase, method: str, result: CategoryModel, seconds: float, instance: int | None = None, extra=None) -> None:
         nonlocal note
+        k = case.instance if instance is None else instance
+        preds = [o.rgb.clamp(0.0, 1.0).cpu().numpy() for o in render_views(result, k, [v.camera for v in case.views])]
+        score = score_images(preds, [v.rgb for v in case.views], lpips_weights)
         note = score["lpips_note"]
+        ref = context[case.spec.name]
         row = {
             "twin": case.spec.name, "kind": case.spec.kind, "source": case.spec.source, "method": method,
             "n": score["n"], "psnr": _finite(score["psnr"]), "ssim": score["ssim"], "lpips": score["lpips"],
-            "seconds": seconds,
+            "seconds": seconds, **region_scores(preds, case.views, ref["regions"]),
+            "psnr_before": ref.get("psnr_before"), "psnr_ceiling": ref["psnr_ceiling"], **(extra or {}),
         }
+        row["gap_closed"] = gap_closed(row["psnr"], row["psnr_before"], row["psnr_ceiling"])
         runs.append(row)
         psnr = "inf" if row["psnr"] is None else f"{row['psnr']:.2f}"
         say(f"{case.spec.name}: {method:<22} PSNR {psnr} dB  SSIM {row['ssim']:.3f}  {seconds:.2f} s")
@@ -314,8 +336,25 @@ def evaluate_edits(
     warm = next((s for s in strategies if strategy_problem(model, cases[0].spec.kind, s) is None), None)
     if warm is not None:  # the first edit of a process pays one-off costs; keep them out of the timings
         apply_twin_edit(model, cases[0], dataclasses.replace(options, strategy=warm, steps=1))
+    context: dict[str, dict] = {}
     for case in cases:
-        record(case, UNEDITED, score_instance(model, case.instance, case.views, lpips_weights), 0.0)
+        source_dir = category.instance(case.spec.source).path
+        source_views = category.instance(case.spec.source).splits.get("test", [])[: len(case.views)]
+        unedited = [o.rgb.clamp(0.0, 1.0).cpu().numpy() for o in render_views(model, case.instance, [v.camera for v in source_views])]
+        context[case.spec.name] = {
+            "regions": changed_regions(source_views, case.views),
+            "psnr_ceiling": _finite(score_images(unedited, [v.rgb for v in source_views])["psnr"]),
+        }
+        record(case, UNEDITED, model, 0.0)
+        context[case.spec.name]["psnr_before"] = runs[-1]["psnr"]
+        runs[-1]["psnr_before"] = runs[-1]["psnr"]
+        runs[-1]["gap_closed"] = 0.0
+        appear = None
+        if case.spec.kind == "color":
+            scribbled = category.instance(case.spec.source).view(case.spec.view)
+            appear = appearance(source_dir, scribbled, case.scribble, case.spec.part, case.spec.color)
+        sel = select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep)])
+        iou = {"selection_iou": selection_iou(model, sel, source_dir, source_views, case.spec.part)}
         for strategy in strategies:
             problem = strategy_problem(model, case.spec.kind, strategy)
             if problem is not None:
@@ -323,8 +362,11 @@ def evaluate_edits(
                 if entry not in skipped:
                     skipped.append(entry)
                 continue
-            result = apply_twin_edit(model, case, dataclasses.replace(options, strategy=strategy))
-            record(case, strategy, score_instance(result.model, case.instance, case.views, lpips_weights), result.seconds)
+            result = apply_twin_edit(model, case, dataclasses.replace(options, strategy=strategy), appear=appear, selection=sel)
+            record(case, strategy, result.model, result.seconds, extra=iou)
+        if paper:
+            result = apply_twin_edit(model, case, dataclasses.replace(options, strategy="hybrid"), method="paper")
+            record(case, PAPER_METHOD, result.model, result.seconds)
 
     train_seconds: dict[str, float] = {}
     if nerf is not None:
@@ -341,10 +383,10 @@ def evaluate_edits(
                     baselines[source], train_seconds[source] = train_single_instance_nerf(
                         category, source, model.cfg, nerf, path, device, seed
                     )
-                result = apply_twin_edit(baselines[source], case, dataclasses.replace(options, strategy="all"), instance=0)
-                record(case, NERF_BASELINE, score_instance(result.model, 0, case.views, lpips_weights), result.seconds)
+                result = apply_twin_edit(baselines[source], case, dataclasses.replace(options, strategy="all"), instance=0, method="paper")
+                record(case, NERF_BASELINE, result.model, result.seconds, instance=0)
 
-    methods = [UNEDITED, *strategies, *([NERF_BASELINE] if nerf else [])]
+    methods = [UNEDITED, *strategies, *([PAPER_METHOD] if paper else []), *([NERF_BASELINE] if nerf else [])]
     return {
         "runs": runs,
         "tables": edit_tables(runs, methods),

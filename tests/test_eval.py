@@ -23,6 +23,7 @@ from crfedit.errors import CrfError
 from crfedit.evaluation import (
     ABLATION_ARCHS,
     NERF_BASELINE,
+    PAPER_METHOD,
     PARAM_TOLERANCE,
     SSIM_NOTE,
     UNEDITED,
@@ -150,10 +151,16 @@ def test_edits_with_one_strategy_runs_end_to_end(model_path, data):
     report = json.loads(invoke(*args, "--json").stdout)
     assert set(report["tables"]) == {"color", "remove"}
     for kind, rows in report["tables"].items():
-        assert [r["method"] for r in rows] == [UNEDITED, "hybrid"]
+        assert [r["method"] for r in rows] == [UNEDITED, "hybrid", PAPER_METHOD]
         assert all(r["n"] == 2 and r["psnr"] is not None and r["seconds"] >= 0 for r in rows)
-        assert rows[0]["seconds"] == 0.0
-    assert len(report["runs"]) == 4 * 2  # 4 twins × (unedited, hybrid)
+        assert rows[0]["seconds"] == 0.0 and rows[0]["gap_closed"] == 0.0
+    assert len(report["runs"]) == 4 * 3  # 4 twins × (unedited, hybrid, paper)
+    for run in report["runs"]:  # the honest-evaluation numbers, consistent with each other
+        before = next(r["psnr"] for r in report["runs"] if r["twin"] == run["twin"] and r["method"] == UNEDITED)
+        assert run["psnr_before"] == before and run["psnr_ceiling"] is not None
+        if run["gap_closed"] is not None:
+            assert run["gap_closed"] == pytest.approx((run["psnr"] - before) / (run["psnr_ceiling"] - before))
+        assert run["psnr_outside"] is not None
     assert {r["twin"] for r in report["runs"]} == {"chair_000_color", "chair_000_remove", "chair_001_color", "chair_001_remove"}
 
 
@@ -179,7 +186,7 @@ def test_edit_protocol_with_the_single_instance_nerf_baseline(model_path, data, 
         model, category, cases[:1], ("codes",), EditOptions(steps=2, rays=64), NerfBaseline(steps=3),
         workdir=tmp_path,
     )
-    assert [r["method"] for r in report["tables"]["color"]] == [UNEDITED, "codes", NERF_BASELINE]
+    assert [r["method"] for r in report["tables"]["color"]] == [UNEDITED, "codes", PAPER_METHOD, NERF_BASELINE]
     assert (tmp_path / "nerf_chair_000.safetensors").is_file()
     baseline, _ = load_model(tmp_path / "nerf_chair_000.safetensors")
     assert baseline.cfg.arch == "nerf" and baseline.names == ["chair_000"] and baseline.cfg.steps == 3
@@ -200,7 +207,7 @@ def test_a_strategy_is_skipped_only_for_the_kinds_it_cannot_edit(data):
     model = CategoryModel(ConditionalRadianceField(cfg, 2), ["chair_000", "chair_001"])
     category = load_category(data)
     cases = load_twin_cases(model, category)[:2]
-    report = evaluate_edits(model, category, cases, ("codes",), EditOptions(steps=1, rays=16))
+    report = evaluate_edits(model, category, cases, ("codes",), EditOptions(steps=1, rays=16), paper=False)
     assert [r["method"] for r in report["tables"]["color"]] == [UNEDITED]
     assert [r["method"] for r in report["tables"]["remove"]] == [UNEDITED, "codes"]
     assert [(e["method"], e["kind"]) for e in report["skipped"]] == [("codes", "color")]

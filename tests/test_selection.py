@@ -194,3 +194,18 @@ def test_select_command_and_its_errors(trained, tmp_path):
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[0], "--view", f"train:{index}",
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out)])
     assert r.exit_code == 2 and "is of instance" in r.output and not edit_out.exists()
+
+
+def test_twin_score_closed_forms():
+    from crfedit.twin_scores import gap_closed, masked_psnr
+
+    pred, target = np.full((2, 2, 3), 0.5), np.full((2, 2, 3), 0.5)
+    pred[0, 0] += 0.1  # one wrong pixel: error 0.01 on it alone
+    inside = np.zeros((2, 2), bool)
+    inside[0, 0] = True
+    assert masked_psnr([pred], [target], [inside]) == pytest.approx(20.0)
+    assert masked_psnr([pred], [target], [~inside]) == float("inf")
+    assert masked_psnr([pred], [target], [np.zeros((2, 2), bool)]) is None
+    assert gap_closed(25.0, 20.0, 30.0) == pytest.approx(0.5)
+    assert gap_closed(18.0, 20.0, 30.0) == pytest.approx(-0.2)  # worse than not editing
+    assert gap_closed(25.0, 30.0, 30.0) is None  # no gap to close

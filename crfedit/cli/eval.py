@@ -206,16 +206,22 @@ def edits_cmd(
         return
     with_lpips = any(r["lpips"] is not None for rows in result["tables"].values() for r in rows)
     for kind, rows in result["tables"].items():
-        columns = ["method", "twins", "PSNR (dB)", "SSIM"] + (["LPIPS"] if with_lpips else []) + ["seconds"]
+        columns = ["method", "twins", "PSNR (dB)", "SSIM"] + (["LPIPS"] if with_lpips else []) + [
+            "gap closed", "inside", "outside", "sel. IoU", "seconds"]
         body = [
             [r["method"], str(r["n"]), _num(r["psnr"], ".2f"), _num(r["ssim"], ".4f")]
-            + ([_num(r["lpips"], ".4f")] if with_lpips else []) + [_num(r["seconds"], ".2f")]
+            + ([_num(r["lpips"], ".4f")] if with_lpips else [])
+            + [_num(r["gap_closed"], ".2f"), _num(r["psnr_inside"], ".2f"), _num(r["psnr_outside"], ".2f"),
+               _num(r["selection_iou"], ".2f"), _num(r["seconds"], ".2f")]
             for r in rows
         ]
         _print_table(f"{TABLE_TITLES[kind]}: {model.name} on {data}", columns, body)
     for entry in result["skipped"]:
         typer.echo(f"skipped {entry['method']} for {entry['kind']} twins: {entry['reason']}")
     typer.echo("unedited: the model's renders of the source before editing, scored against the twin (reference)")
+    typer.echo("gap closed: (PSNR − unedited) / (ceiling − unedited), ceiling = the source's reconstruction on the same poses")
+    typer.echo("inside / outside: PSNR (dB) on the pixels where the twin differs from the source / on the rest")
+    typer.echo("sel. IoU: the 3-D selection of the scribbles against the part's pixels of the test views")
     typer.echo("seconds: edit optimization time, mean over twins")
     if result["nerf_train_seconds"]:
         train_s = sum(result["nerf_train_seconds"].values()) / len(result["nerf_train_seconds"])
