@@ -137,7 +137,7 @@ def test_real_edit_roundtrips_through_its_file(tmp_path, model):
     cam = camera()
     scribble = np.zeros((RES, RES), bool)
     scribble[4:8, 4:8] = True
-    result = edit_color(model, 0, cam, scribble, "red", options=EditOptions(steps=3, rays=64))
+    result = edit_color(model, 0, cam, scribble, "red", options=EditOptions(steps=3, rays=64), method="paper")
     result.save(tmp_path / "e.safetensors", command="crfedit edit-color …")
     loaded = apply_edit_files(model, [tmp_path / "e.safetensors"])
     assert torch.equal(render(loaded, 0), render(result.model, 0))
