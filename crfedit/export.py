@@ -67,25 +67,21 @@ def density_lattice(field, instance: int, res: int, chunk: int = 65536) -> np.nd
     grid = occupancy.dilate(field.occupancy[instance], 1)[None]
     keep = occupancy.lookup_in_box(grid, torch.zeros((), dtype=torch.long, device=device), xn).nonzero().squeeze(-1)
     sigma = torch.zeros(xn.shape[0], device=device)
-    shape_code, _ = field.codes(instance)
     with torch.no_grad():
         for i in range(0, keep.numel(), chunk):
             idx = keep[i : i + chunk]
-            raw, _ = field.density_and_features(xn[idx], shape_code)
-            sigma[idx] = field.sigma(raw)
+            sigma[idx] = field.density(xn[idx], instance)
     return sigma.view(res, res, res).cpu().numpy()
 
 
 def vertex_normals(field, instance: int, xn: torch.Tensor, chunk: int = 16384) -> torch.Tensor:
     """Outward unit normals [V, 3] (world frame) at normalized points: −∇σ / |∇σ|."""
-    shape_code, _ = field.codes(instance)
     scale = 2.0 / (field.aabb[3:] - field.aabb[:3])  # d(xn)/dx: gradients in world units
     out = []
     for i in range(0, xn.shape[0], chunk):
         x = xn[i : i + chunk].clone().requires_grad_(True)
         with torch.enable_grad():
-            raw, _ = field.density_and_features(x, shape_code)
-            (grad,) = torch.autograd.grad(field.sigma(raw).sum(), x)
+            (grad,) = torch.autograd.grad(field.density(x, instance).sum(), x)
         out.append(torch.nn.functional.normalize(-grad * scale, dim=-1, eps=1e-12))
     return torch.cat(out) if out else torch.zeros(0, 3)
 

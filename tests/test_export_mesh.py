@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data import load_category
-from crfedit.evaluate import ray_distance
+from crfedit.renderer import ray_distance
 from crfedit.export import extract_mesh, vertex_colors
 from crfedit.model import load_model
 from crfedit.renderer import render_camera
