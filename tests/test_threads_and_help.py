@@ -43,3 +43,12 @@ def test_help_does_not_import_torch():
     code = "import sys; sys.argv = ['crfedit', '--help']\nfrom crfedit.cli import main\ntry:\n    main()\nexcept SystemExit:\n    pass\nprint('torch' in sys.modules)"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[1])
     assert run.stdout.strip().splitlines()[-1] == "False", run.stdout + run.stderr
+
+
+def test_ci_runs_readme_test_command_and_torch_is_uncapped():
+    root = Path(__file__).parents[1]
+    readme = (root / "README.md").read_text()
+    command = next(ln for ln in readme.splitlines() if ln.startswith("python3 -m venv") and "pytest" in ln)
+    assert f'readme_test_command="{command}"' in (root / ".ci" / "run").read_text()
+    assert "-c constraints-cpu.txt" in command and "torch==2.13.0" in (root / "constraints-cpu.txt").read_text()
+    assert '"torch>=2.3",' in (root / "pyproject.toml").read_text()
