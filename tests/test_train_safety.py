@@ -101,3 +101,9 @@ def test_tensorboard_events_when_installed(tiny_chairs, tmp_path):
     out = tmp_path / "m.safetensors"
     r = invoke("train", tiny_chairs, "--out", out, "--log-every", 1, *TINY)
     assert r.exit_code == 0 and list((tmp_path / "m.tb").glob("events.out.tfevents.*")), r.output
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "m.tb"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("train/loss")] == [1, 2, 3]
+    assert {"train/psnr", "train/rays_per_s", "train/lr", "train/seconds"} <= set(events.Tags()["scalars"])
