@@ -57,6 +57,39 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         raise
 
 
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a new hidden folder beside ``path`` to build in; on success it replaces ``path``.
+
+    An existing ``path`` is moved aside first and deleted once the new folder is in place, so
+    an interrupted build (Ctrl-C, a full disk) leaves ``path`` as it was and no partial folder.
+    """
+    import shutil
+
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=parent))
+    except OSError as e:  # name the user's folder, not the hidden one
+        raise OSError(e.errno, e.strerror, str(path)) from None
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp creates 0700; give the folder the usual mode
+    try:
+        yield tmp
+        old = None
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=parent))
+            os.replace(path, old / path.name)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
 def check_folder_target(path: str | os.PathLike, what: str = "") -> None:
     """``path`` is a folder or can be made one: it is not a file and no existing ancestor is.
 

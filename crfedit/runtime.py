@@ -22,24 +22,13 @@ def resolve_device(name: str = "auto") -> torch.device:
     return torch.device(name)
 
 
-def configure_threads() -> int:
-    """Set torch's CPU threads: ``CRFEDIT_THREADS`` if set, else 1.
+def configure_threads(n: int | None = None) -> int:
+    """Set torch's CPU threads to ``n``, by default :func:`crfedit.threads.requested_threads`
+    (``CRFEDIT_THREADS``, else the cores nothing else is using).  Results depend on the thread
+    count in the last float bits."""
+    from .threads import requested_threads
 
-    crfedit's networks are narrow (64 wide).  On an idle 2-core machine two threads are faster
-    (training 30 against 38 ms per step, a 128² render about 1.5×), but when anything else
-    runs a second OpenMP thread spin-waits and made renders 13× slower (4.9 s against 0.37 s,
-    measured).  One thread is the safe default; ``CRFEDIT_THREADS=2`` (or more) on an idle
-    machine.  Results depend on the thread count in the last float bits.
-    """
-    import os
-
-    value = os.environ.get("CRFEDIT_THREADS", "1")
-    try:
-        n = int(value)
-        if n < 1:
-            raise ValueError
-    except ValueError:
-        raise CrfError(f"CRFEDIT_THREADS={value!r}: expected a positive integer") from None
+    n = requested_threads() if n is None else n
     torch.set_num_threads(n)
     return n
 

@@ -183,7 +183,7 @@ def train(
     """Train (or, with ``resume``, continue training) a model of ``category`` and write it to ``out``.
 
     ``on_step(step, loss, psnr, rays_per_s)`` reports progress.  The model file is rewritten
-    atomically every ``checkpoint_every`` steps and at the end.  A non-finite loss stops training
+    atomically every ``checkpoint_every`` steps, at the end and on Ctrl-C.  A non-finite loss stops training
     with :class:`NonFiniteError`, leaving the last checkpoint as it was.
     """
     out = Path(out)
@@ -240,31 +240,35 @@ def train(
     budget = None if minutes is None else 60.0 * minutes
     loss_value, psnr_value = float("nan"), 0.0
     t_start = time.perf_counter() - elapsed
-    while step < cfg.steps and (budget is None or elapsed < budget):
-        progress = None if budget is None else max(step / cfg.steps, elapsed / budget)
-        for g in opt.param_groups:
-            g["lr"] = learning_rate(cfg, g["base_lr"], step, progress)
-        rays, target, inst = sampler(cfg.rays, generator)
-        noise = cfg.density_noise * max(0.0, 1.0 - step / max(1, cfg.occ_warmup))
-        out_r = render_rays(field, rays, inst, generator=generator, density_noise=noise, early_stop=cfg.train_early_stop)
-        loss = torch.mean((out_r.rgb - target) ** 2)
-        mse = loss.detach()
-        if out_r.coarse_rgb is not None:
-            loss = loss + torch.mean((out_r.coarse_rgb - target) ** 2)
-        if cfg.view_reg > 0:
-            loss = loss + cfg.view_reg * view_dependence_penalty(field, rays, inst, out_r.depth, out_r.opacity, generator)
-        loss_value = adam_step(opt, loss, "training", step, f"{out} keeps its last checkpoint")
-        step += 1
-        if hulls is not None and step >= cfg.occ_warmup and step % cfg.occ_every == 0:
-            per_update = max(1, math.ceil(len(category.instances) / 4))
-            ks = [(next_instance + i) % len(category.instances) for i in range(per_update)]
-            next_instance = (next_instance + per_update) % len(category.instances)
-            refresh_occupancy(field, hulls, ema, ks, generator)
-        elapsed = time.perf_counter() - t_start
-        psnr_value = -10.0 * math.log10(max(float(mse), 1e-10))
-        if on_step is not None:
-            on_step(step, loss_value, psnr_value, cfg.rays * step / max(elapsed, 1e-9))
-        if step % cfg.checkpoint_every == 0:
-            checkpoint()
+    try:  # Ctrl-C writes a checkpoint first, so an interrupted run can be resumed
+        while step < cfg.steps and (budget is None or elapsed < budget):
+            progress = None if budget is None else max(step / cfg.steps, elapsed / budget)
+            for g in opt.param_groups:
+                g["lr"] = learning_rate(cfg, g["base_lr"], step, progress)
+            rays, target, inst = sampler(cfg.rays, generator)
+            noise = cfg.density_noise * max(0.0, 1.0 - step / max(1, cfg.occ_warmup))
+            out_r = render_rays(field, rays, inst, generator=generator, density_noise=noise, early_stop=cfg.train_early_stop)
+            loss = torch.mean((out_r.rgb - target) ** 2)
+            mse = loss.detach()
+            if out_r.coarse_rgb is not None:
+                loss = loss + torch.mean((out_r.coarse_rgb - target) ** 2)
+            if cfg.view_reg > 0:
+                loss = loss + cfg.view_reg * view_dependence_penalty(field, rays, inst, out_r.depth, out_r.opacity, generator)
+            loss_value = adam_step(opt, loss, "training", step, f"{out} keeps its last checkpoint")
+            step += 1
+            if hulls is not None and step >= cfg.occ_warmup and step % cfg.occ_every == 0:
+                per_update = max(1, math.ceil(len(category.instances) / 4))
+                ks = [(next_instance + i) % len(category.instances) for i in range(per_update)]
+                next_instance = (next_instance + per_update) % len(category.instances)
+                refresh_occupancy(field, hulls, ema, ks, generator)
+            elapsed = time.perf_counter() - t_start
+            psnr_value = -10.0 * math.log10(max(float(mse), 1e-10))
+            if on_step is not None:
+                on_step(step, loss_value, psnr_value, cfg.rays * step / max(elapsed, 1e-9))
+            if step % cfg.checkpoint_every == 0:
+                checkpoint()
+    except KeyboardInterrupt:
+        checkpoint()
+        raise KeyboardInterrupt(f"checkpoint at step {step} written to {out}; continue with --resume") from None
     checkpoint()
     return model, TrainResult(step, elapsed, loss_value, psnr_value)

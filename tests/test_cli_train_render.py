@@ -6,6 +6,8 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+from crfedit.preview import depth_preview, turbo
 import pytest
 import torch
 from typer.testing import CliRunner
@@ -59,7 +61,7 @@ def test_train_writes_a_loadable_model(model_path, data):
 
 
 def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path, monkeypatch):
-    """Ctrl-C at step 11 leaves the step-10 checkpoint; --resume must then reach exactly the
+    """Ctrl-C at step 11 writes a step-11 checkpoint; --resume must then reach exactly the
     weights, optimizer moments and sampler state of an uninterrupted run.  Occupancy refreshes
     (every 3 steps from step 3) fall on both sides of the interruption."""
     args = ["--steps", 20, "--seed", 5, *TINY, "--set", "checkpoint_every=10", "--set", "occ_warmup=3", "--set", "occ_every=3"]
@@ -78,8 +80,8 @@ def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path, monkeypatch)
 
     monkeypatch.setattr(crfedit.train, "train", interrupted_at_11)
     result = invoke("train", data, "--out", part, *args)
-    assert result.exit_code == 130 and "interrupted" in result.stderr
-    assert load_model(part)[0].meta["step"] == "10"
+    assert result.exit_code == 130 and "interrupted: checkpoint at step 11" in result.stderr
+    assert load_model(part)[0].meta["step"] == "11"
     monkeypatch.setattr(crfedit.train, "train", real_train)
     result = invoke("train", data, "--out", part, *args, "--resume")
     assert result.exit_code == 0, result.output
@@ -104,7 +106,7 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
     assert result.exit_code == 0, result.output
     assert "rendered 3 views of chair_001 at 12x12" in result.stdout and "s per view" in result.stdout
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["0000.png", "0000_depth.exr", "0001.png", "0001_depth.exr", "0002.png", "0002_depth.exr", "views.json"]
+    assert names == [f"{i:04d}{tail}" for i in range(3) for tail in (".png", "_depth.exr", "_depth.png")] + ["views.json"]
 
     model, _ = load_model(model_path)
     cams = [cam for _, cam in resolve_views("orbit:3", model, 1, res=12)]
@@ -122,6 +124,9 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
         assert np.isposinf(z[a <= 1e-3]).all()
         hit = a > 1e-3
         np.testing.assert_allclose(z[hit] * a[hit], ref.depth.numpy()[hit], rtol=1e-5)
+        preview = read_image(out / f"{i:04d}_depth.png")
+        np.testing.assert_array_equal(np.round(preview * 255), np.round(depth_preview(z, a) * 255))
+        assert (preview[a < 0.5] == 1.0).all() and (preview[a >= 0.5] < 1.0).any(axis=-1).all()
     listed = json.loads((out / "views.json").read_text())
     assert [v["view"] for v in listed["views"]] == ["orbit:0", "orbit:1", "orbit:2"] and listed["instance"] == "chair_001"
 
@@ -215,7 +220,8 @@ def test_user_errors_exit_2(data, model_path, tmp_path):
     assert_user_error(invoke("train", data, "--out", out, "--res", -4, *TINY), "--res -4")
     assert_user_error(invoke("train", data, "--out", out, "--minutes", 0, *TINY), "--minutes 0")
     assert_user_error(invoke("train", tmp_path / "no-such-data", "--out", out, *TINY), "no-such-data", "not found")
-    assert_user_error(invoke("train", data, "--out", tmp_path / "missing" / "m.safetensors", *TINY), "does not exist")
+    (tmp_path / "plain").write_text("x")
+    assert_user_error(invoke("train", data, "--out", tmp_path / "plain" / "m.safetensors", *TINY), "is a file, not a folder")
     assert_user_error(invoke("train", data, "--out", tmp_path, *TINY), "is a folder")
     assert_user_error(invoke("train", data, "--out", out, "--set", "bogus=1", *TINY), "--set bogus=1")
     assert not out.exists()
@@ -233,3 +239,12 @@ def test_quickstart_end_to_end(tmp_path):
     (tmp_path / "file").write_text("x")
     assert_user_error(invoke("quickstart", "--out", tmp_path / "file"), "not a folder")
     assert_user_error(invoke("quickstart", "--out", out, "--minutes", -1), "--minutes -1")
+
+
+def test_depth_preview_colours_near_red_far_blue():
+    depth = np.array([[1.0, 2.0, 3.0, np.inf]])
+    opacity = np.array([[1.0, 1.0, 0.9, 0.0]])
+    rgb = depth_preview(depth, opacity)
+    assert np.allclose(rgb[0, 0], turbo(1.0)) and np.allclose(rgb[0, 2], turbo(0.0)) and (rgb[0, 3] == 1).all()
+    assert rgb[0, 0, 0] > 2 * rgb[0, 0, 2] and turbo(0.15)[2] > 2 * turbo(0.15)[0]  # near is red, far is blue
+    assert turbo(0.5)[1] > 0.95 and turbo(0.5)[1] > turbo(0.5)[0] > turbo(0.5)[2]  # green-yellow middle

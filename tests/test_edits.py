@@ -378,7 +378,8 @@ def test_edit_color_command_end_to_end(trained, tmp_path):
                "--keep", keep_png, "--color", "#00f", "--out", out, "--device", "cpu", "--steps", 30)
     assert r.exit_code == 0, r.output
     assert time.perf_counter() - t0 < 60
-    assert r.stdout.startswith(f"wrote {out}: color edit of {model.names[1]}")
+    assert r.stdout.splitlines()[0] == "scribble: white on black, 32 pixels (3.1 % of the view)"
+    assert r.stdout.splitlines()[-1].startswith(f"wrote {out}: color edit of {model.names[1]}")
     d = read_delta(out)
     assert d.meta["view"] == f"train:{i}" and d.meta["command"].startswith("crfedit ")  # sys.argv, here pytest's
     shown = json.loads(invoke("edits", "show", out, "--json").stdout)

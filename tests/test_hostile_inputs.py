@@ -451,7 +451,7 @@ CATALOGUE: list[Case] = [
     Case("scribble/all-white/edit-color", lambda e, t: edit_color(e, t, scribble=mask_png(t, "s.png", np.full((16, 16), 255, np.uint8))),
          ("covers the whole view",)),
     Case("scribble/16-bit/edit-color", lambda e, t: edit_color(e, t, scribble=mask_png(t, "s.png", np.full((16, 16), 65535, np.uint16))),
-         ("s.png", "mask mode I;16 is not supported")),
+         ("covers the whole view",)),  # 16-bit masks are read (as white on black) since issue 18
     Case("scribble/palette-all-white/remove", lambda e, t: remove(e, t, scribble=palette_png(t, 1)), ("covers the whole view",)),
     Case("scribble/palette-all-black/edit-color", lambda e, t: edit_color(e, t, scribble=palette_png(t, 0)), ("scribble is empty",)),
     Case("scribble/not-an-image/edit-color", lambda e, t: edit_color(e, t, scribble=text_file(t).rename(t / "s.png")),
@@ -530,7 +530,7 @@ CATALOGUE: list[Case] = [
     Case("number/max-views-0/eval-recon", lambda e, t: (["eval", "recon", e.model, e.data, "--max-views", "0", *CPU], []), ("--max-views 0",)),
     # --- output paths --------------------------------------------------------------------------------
     Case("out/missing-folder/edit-color", lambda e, t: edit_color(e, t, out=t / "missing" / "e.safetensors"), ("missing", "does not exist")),
-    Case("out/under-a-file/train", lambda e, t: train_cmd(e, t, out=under_a_file(t, "m.safetensors")), ("plain.txt", "does not exist")),
+    Case("out/under-a-file/train", lambda e, t: train_cmd(e, t, out=under_a_file(t, "m.safetensors")), ("plain.txt", "is a file, not a folder")),
     Case("out/under-a-file/render", lambda e, t: render(e, t, out=under_a_file(t, "frames")),
          ("plain.txt", "cannot create the folder")),
     Case("out/under-a-file/transfer", lambda e, t: transfer_cmd(e, t, out=under_a_file(t, "d.safetensors")), ("plain.txt", "does not exist")),

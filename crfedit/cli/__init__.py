@@ -20,10 +20,26 @@ def _register() -> None:
 _register()
 
 
+def _unexpected(e: BaseException) -> str:
+    """One line for an error crfedit did not anticipate: its type, message, the path it names
+    (if any) and the innermost crfedit line that raised it."""
+    import traceback
+
+    frames = [f for f in traceback.extract_tb(e.__traceback__) if "crfedit" in f.filename]
+    where = f" at {frames[-1].filename.rsplit('crfedit', 1)[-1].lstrip('/')}:{frames[-1].lineno}" if frames else ""
+    path = getattr(e, "filename", None)
+    text = " ".join(str(e).split()) or "no message"
+    named = f"{path}: " if path is not None and str(path) not in text else ""
+    return f"unexpected {e.__class__.__name__}: {named}{text}{where} (run with --debug or CRFEDIT_DEBUG=1 for the traceback)"
+
+
 def main() -> None:
     """Run the command line.  Usage errors (an unknown command or option, a value Typer cannot
-    parse) are one line on stderr and exit 2, like every other bad input."""
+    parse) are one line on stderr and exit 2, like every other bad input; an unexpected error is
+    one line and exit 1, its traceback shown with ``--debug`` or ``CRFEDIT_DEBUG=1``."""
     import sys
+
+    import typer
 
     try:  # Typer ≥ 0.2x vendors click; older Typer depends on it
         from typer._click import exceptions as click_errors
@@ -31,10 +47,13 @@ def main() -> None:
         import click.exceptions as click_errors
 
     from ..errors import CrfError
-    from ..runtime import configure_threads
+    from ..threads import requested_threads
+    from .common import Session, debug_requested
 
+    # Typer 0.29 vendors click without its Abort; typer.Abort is what it raises on Ctrl-C.
+    aborts = tuple({typer.Abort, getattr(click_errors, "Abort", typer.Abort)})
     try:
-        configure_threads()
+        Session.threads = requested_threads()
         code = app(standalone_mode=False)
     except CrfError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -49,8 +68,13 @@ def main() -> None:
     except click_errors.ClickException as e:
         print(f"error: {' '.join(e.format_message().split())}", file=sys.stderr)
         raise SystemExit(e.exit_code) from None
-    except click_errors.Abort:
+    except (*aborts, KeyboardInterrupt):
         print("error: aborted", file=sys.stderr)
         raise SystemExit(130) from None
+    except Exception as e:
+        if debug_requested():
+            raise
+        print(f"error: {_unexpected(e)}", file=sys.stderr)
+        raise SystemExit(1) from None
     if isinstance(code, int) and code != 0:
         raise SystemExit(code)

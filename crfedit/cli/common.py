@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import enum
+import errno
 import functools
+import os
 import sys
 from typing import Annotated
 
@@ -11,8 +13,41 @@ import typer
 
 from ..errors import EXIT_USER_ERROR, CrfError
 
+def _readable(param) -> None:
+    """Give a click parameter a readable metavar: its name in capitals (MODEL, EDIT), N for an
+    integer, X for a number; choices stay as they are."""
+    desc = getattr(param, "type_descriptor", None)  # Typer ≥ 0.2x; older Typer: click's param.type
+    annotation = getattr(desc, "annotation", None)
+    kind = "choice" if getattr(desc, "is_choice", False) else getattr(annotation, "__name__", getattr(getattr(param, "type", None), "name", ""))
+    if param.param_type_name == "argument":
+        label = param.name.upper()
+        param.metavar = label
+        usage = label if param.required else f"[{label}]"
+        param._usage_display_name = lambda: usage + ("..." if param.nargs != 1 else "")  # Typer writes {model}
+    elif not (getattr(param, "is_flag", False) or getattr(param, "count", False) or kind == "choice"):
+        param.metavar = {"int": "N", "integer": "N", "float": "X"}.get(kind, param.name.upper().replace("_", "-"))
+
+
+def _readable_tree(command) -> None:
+    for param in command.params:
+        if param.metavar is None:
+            _readable(param)
+    for sub in getattr(command, "commands", {}).values():
+        _readable_tree(sub)
+
+
+class ReadableGroup(typer.core.TyperGroup):
+    """The root command group: on construction, every parameter of every (sub)command without a
+    metavar gets a readable one (Typer 0.29 prints ``{model}`` and ``<list[Path]>``)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        _readable_tree(self)
+
+
 app = typer.Typer(
     name="crfedit",
+    cls=ReadableGroup,
     help="Train, render and edit conditional radiance fields of object categories.",
     no_args_is_help=True,
     add_completion=False,
@@ -22,6 +57,19 @@ app = typer.Typer(
 dataset_app = typer.Typer(help="Make and inspect category datasets.", no_args_is_help=True)
 edits_app = typer.Typer(help="Inspect, check and bake edit files.", no_args_is_help=True)
 eval_app = typer.Typer(help="Evaluate reconstruction and edits against ground truth.", no_args_is_help=True)
+
+
+class Session:
+    """Process-wide CLI settings that :func:`crfedit.cli.main` decides before a command runs."""
+
+    debug = False
+    """Show the traceback of an unexpected error (``--debug`` or ``CRFEDIT_DEBUG=1``)."""
+    threads: int | None = None
+    """torch CPU threads to set when a command starts (None: leave torch as it is)."""
+
+
+def debug_requested() -> bool:
+    return Session.debug or os.environ.get("CRFEDIT_DEBUG", "").strip() not in ("", "0")
 
 
 def _version(value: bool) -> None:
@@ -41,8 +89,10 @@ def _version(value: bool) -> None:
 @app.callback()
 def _root(
     show_version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")] = False,
+    debug: Annotated[bool, typer.Option("--debug", help="Show the full traceback of an unexpected error (also CRFEDIT_DEBUG=1).")] = False,
 ) -> None:
     """Train, render and edit conditional radiance fields of object categories."""
+    Session.debug = Session.debug or debug
 
 
 app.add_typer(dataset_app, name="dataset")
@@ -62,20 +112,48 @@ def fail(message: str) -> "typer.Exit":
     return typer.Exit(EXIT_USER_ERROR)
 
 
+OS_ERROR_HINTS = {
+    errno.ENOSPC: "the disk is full",
+    errno.EDQUOT: "the disk quota is exceeded",
+    errno.EROFS: "read-only file system",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "permission denied",
+}
+
+
+def os_error_message(e: OSError) -> str:
+    """One line for an operating-system error: the path(s) and what went wrong."""
+    what = OS_ERROR_HINTS.get(e.errno) or (e.strerror or e.__class__.__name__).lower()
+    paths = [str(p) for p in (e.filename, e.filename2) if p is not None]
+    return f"{' -> '.join(paths)}: {what}" if paths else what
+
+
 def user_errors(fn):
-    """Decorator for commands: a CrfError (or a broken pipe / Ctrl-C) exits cleanly, no traceback."""
+    """Decorator for commands: a CrfError, an OS error (permission, disk full, read-only file
+    system), a broken pipe or Ctrl-C exits cleanly with one line, no traceback.  Sets torch's
+    threads first when :class:`Session` says so (torch is imported only here, when a command runs)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
+            if Session.threads is not None:
+                from ..runtime import configure_threads
+
+                configure_threads(Session.threads)
             return fn(*args, **kwargs)
         except CrfError as e:
             raise fail(str(e)) from None
-        except KeyboardInterrupt:
-            typer.echo("interrupted", err=True)
+        except KeyboardInterrupt as e:
+            typer.echo(f"interrupted{': ' + str(e) if str(e) else ''}", err=True)
             raise typer.Exit(130) from None
         except MemoryError:
             raise fail("out of memory (try a smaller --res, --rays or --chunk)") from None
+        except BrokenPipeError:
+            raise typer.Exit(1) from None
+        except OSError as e:
+            if debug_requested():
+                raise
+            raise fail(os_error_message(e)) from None
 
     return wrapper
 

@@ -32,13 +32,14 @@ StrategyOpt = Annotated[Strategy, typer.Option("--strategy", help="What to train
 StepsOpt = Annotated[int, typer.Option("--steps", help="Optimization steps.")]
 LrOpt = Annotated[float, typer.Option("--lr", help="Adam learning rate.")]
 RaysOpt = Annotated[int, typer.Option("--rays", help="Most rays rendered per step (scribbled + kept).")]
-ScribbleOpt = Annotated[Optional[Path], typer.Option("--scribble", help="Mask PNG of the part to edit (white on black, the view's size).")]
+ScribbleOpt = Annotated[Optional[Path], typer.Option("--scribble", metavar="PNG", help="The part to edit, at the view's size: white on black, strokes on a transparent PNG, or strokes painted over the view's render.")]
 ScribbleJsonOpt = Annotated[Optional[Path], typer.Option("--scribble-json", help='Strokes JSON: {"strokes": [[[x, y], ...], ...], "radius": r} or a list of strokes.')]
 KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (default: a random sample of the rest of the view).")]
 KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (a random sample of the rest of the view is kept as well).")]
 MethodOpt = Annotated[EditMethod, typer.Option("--method", help="selection: lift the scribbles to a 3-D selection and supervise the edit with it in every view; paper: the paper's losses on the scribbled view's rays alone.")]
 SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles).")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
+ForceOpt = Annotated[bool, typer.Option("--force", help="Accept a scribble that covers more than half the view.")]
 
 
 def _check_out(out: Path, model: Path) -> None:
@@ -74,12 +75,22 @@ def _require_scribble(scribble: Path | None, scribble_json: Path | None, what: s
         raise CrfError(f"give the {what} as --scribble MASK.png or --scribble-json STROKES.json")
 
 
-def _masks(scribble: Path | None, scribble_json: Path | None, keep: Path | None, keep_json: Path | None, camera):
-    from ..edit.scribble import load_mask
+def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camera, force: bool):
+    """(scribble mask, keep mask or None), each image read as drawn (one line says how)."""
+    from ..edit.scribble import check_coverage, load_mask
 
-    fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble")
-    bg = load_mask(keep, keep_json, camera.width, camera.height, "keep")
-    return fg, bg
+    def render():
+        from ..renderer import render_camera
+
+        return render_camera(model.field_for(instance), camera, instance).rgb.cpu().numpy()
+
+    fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble", render)
+    fraction = check_coverage(fg.mask, force)
+    typer.echo(f"scribble: {fg.reading}, {int(fg.mask.sum())} pixels ({100 * fraction:.1f} % of the view)")
+    bg = load_mask(keep, keep_json, camera.width, camera.height, "keep", render)
+    if bg is not None:
+        typer.echo(f"keep: {bg.reading}, {int(bg.mask.sum())} pixels")
+    return fg.mask, None if bg is None else bg.mask
 
 
 def _selection(path: Path | None, model, instance: int):
@@ -123,6 +134,7 @@ def edit_color_cmd(
     keep_json: KeepJsonOpt = None,
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
+    force: ForceOpt = False,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     steps: StepsOpt = 100,
@@ -142,7 +154,7 @@ def edit_color_cmd(
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
-    fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera)
+    fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
     sel = _selection(selection, m, k)
     _write(edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel), out, label)
 
@@ -161,6 +173,7 @@ def remove_cmd(
     occluded: Annotated[bool, typer.Option("--occluded", help="Remove only the first surface along each scribbled ray (a part in front of others).")] = False,
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
+    force: ForceOpt = False,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     steps: StepsOpt = 100,
@@ -178,7 +191,7 @@ def remove_cmd(
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
-    fg, bg = _masks(scribble, scribble_json, keep, keep_json, camera)
+    fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
     sel = _selection(selection, m, k)
     _write(remove(m, k, camera, fg, bg, occluded, options, method.value, sel), out, label)
 
@@ -224,6 +237,7 @@ def add_cmd(
             f"{copy_mask}: copy mask is {mask.shape[1]}x{mask.shape[0]} but the donor view is {donor_camera.width}x{donor_camera.height}"
         )
     bg = load_mask(keep, keep_json, camera.width, camera.height, "keep")
+    bg = None if bg is None else bg.mask
     _write(add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options), out, label)
 
 
@@ -319,14 +333,22 @@ def bake_cmd(
     model: ModelArg,
     edit: Annotated[list[Path], typer.Option("--edit", help="Edit file to fold in (repeatable, in the order they apply).")],
     out: Annotated[Path, typer.Option("--out", help="Model file to write (atomically).")],
+    training_state: Annotated[bool, typer.Option("--training-state", help="Also copy the input's training state (default: the baked model is stripped).")] = False,
 ) -> None:
-    """Fold a stack of edits into a new model file (renders like the model with the stack applied)."""
+    """Fold a stack of edits into a new model file (renders like the model with the stack applied).
+
+    The new model holds no training state (crfedit model strip), unless --training-state.
+    """
     from ..delta import bake
     from ..model import load_model, save_model
 
     if out.exists() and out.resolve() == model.resolve():
         raise CrfError(f"--out {out}: is the input model; write the baked model to a new file")
-    m, _ = load_model(model, "cpu")
+    m, state = load_model(model, "cpu")
     baked = bake(m, edit)
-    save_model(out, baked, extra_meta={"command": command_line()})
-    typer.echo(f"wrote {out}: {len(edit)} edit(s) baked into {model} ({out.stat().st_size / 1024:.1f} KiB)")
+    save_model(out, baked, state if training_state else None, extra_meta={"command": command_line()})
+    kept = "with" if training_state and state else "without"
+    typer.echo(
+        f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB, {kept} training state): the model {model} "
+        f"with {len(edit)} edit(s) baked in; {model} is unchanged"
+    )

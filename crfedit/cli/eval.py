@@ -326,8 +326,8 @@ def _ints(option: str, text: str | None) -> tuple[int, ...] | None:
 def bench_cmd(
     data: Annotated[Optional[Path], typer.Argument(help="Category dataset with twins (default with --tiny: a generated 2-chair one).")] = None,
     tiny: Annotated[bool, typer.Option("--tiny", help="A seconds-long sweep on tiny settings (a smoke test of the pipeline).")] = False,
-    csv_path: Annotated[Path, typer.Option("--csv", help="CSV to write; the plots go beside it as <stem>_<group>.png.")] = Path("docs/benchmarks/bench.csv"),
-    md_path: Annotated[Path, typer.Option("--md", help="Markdown page whose bench section (between the markers) is rewritten.")] = Path("docs/benchmarks.md"),
+    csv_path: Annotated[Path, typer.Option("--csv", metavar="CSV", help="CSV to write; the plots go beside it as <stem>_<group>.png. The repository's page uses --csv docs/benchmarks/bench.csv.")] = Path("runs/bench/bench.csv"),
+    md_path: Annotated[Path, typer.Option("--md", metavar="MARKDOWN", help="Markdown page whose bench section (between the markers) is rewritten. The repository's page: --md docs/benchmarks.md.")] = Path("runs/bench/benchmarks.md"),
     presets: Annotated[Optional[str], typer.Option("--presets", help="Training curves, comma-separated (default fast,paper).")] = None,
     minutes: Annotated[Optional[float], typer.Option("--minutes", help="Training time per curve (default 5).")] = None,
     steps: Annotated[Optional[int], typer.Option("--steps", help="Step cap per training curve.")] = None,

@@ -37,12 +37,14 @@ def render_to_folder(
     video: Path | None = None, chunk: int = 16384, fps: float = 12.0,
 ) -> RenderResult:
     """Render the views ``spec`` names and write ``out/NNNN.png`` (+ ``NNNN_depth.exr`` with float32
-    channels Z = ray distance, +inf where opacity ≤ 1e-3, and A = opacity), ``out/views.json``
+    channels Z = ray distance, +inf where opacity ≤ 1e-3, and A = opacity, and a colour-mapped
+    ``NNNN_depth.png`` preview), ``out/views.json``
     (label and camera of each NNNN) and, with ``video``, an MP4 or GIF of the frames."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from ..io import write_exr, write_json, write_png
+    from ..preview import depth_preview
     from ..renderer import ray_distance, render_camera
     from ..video import video_path, write_video
     from ..views import resolve_views
@@ -70,6 +72,7 @@ def render_to_folder(
             if depth:
                 z = ray_distance(output).cpu().numpy()
                 write_exr(out / f"{i:04d}_depth.exr", {"Z": z, "A": output.opacity.cpu().numpy()})
+                write_png(out / f"{i:04d}_depth.png", depth_preview(z, output.opacity.cpu().numpy()))
             frames.append(rgb)
             records.append({
                 "file": f"{i:04d}.png", "view": label, "width": camera.width, "height": camera.height,
@@ -85,17 +88,17 @@ def render_to_folder(
 @app.command("render")
 @user_errors
 def render_cmd(
-    model: Annotated[Path, typer.Argument(help="Model file (.safetensors).")],
+    model: Annotated[Path, typer.Argument(metavar="MODEL", help="Model file (.safetensors).")],
     instance: Annotated[str, typer.Option("--instance", help="Instance to render: a name or an index.")],
     views: Annotated[str, typer.Option("--views", help="Views: test, test:0-9, train:1,4,7, orbit:36, orbit:36@45, or a camera JSON file.")],
     out: Annotated[Path, typer.Option("--out", help="Folder for NNNN.png (created if missing).")],
     res: Annotated[Optional[int], typer.Option("--res", help="Render at this width (height keeps the aspect ratio).")] = None,
-    depth: Annotated[bool, typer.Option("--depth", help="Also write NNNN_depth.exr: Z = ray distance (+inf on background), A = opacity.")] = False,
+    depth: Annotated[bool, typer.Option("--depth", help="Also write NNNN_depth.exr (Z = ray distance, +inf on background; A = opacity) and a colour-mapped NNNN_depth.png (near red, far blue).")] = False,
     video: Annotated[Optional[Path], typer.Option("--video", help="Also write the frames as a video: MP4 with the [video] extra, else GIF (a .gif name always gives GIF).")] = None,
     fps: Annotated[float, typer.Option("--fps", help="Frames per second of --video.")] = 12.0,
     shape_from: Annotated[Optional[str], typer.Option("--shape-from", help="Render with the shape code of this instance (name or index).")] = None,
     color_from: Annotated[Optional[str], typer.Option("--color-from", help="Render with the color code of this instance (name or index).")] = None,
-    edit: Annotated[Optional[list[Path]], typer.Option("--edit", help="Apply this edit file first (repeatable, applied in order).")] = None,
+    edit: Annotated[Optional[list[Path]], typer.Option("--edit", metavar="EDIT", help="Apply this edit file first (repeatable, applied in order).")] = None,
     chunk: Annotated[int, typer.Option("--chunk", help="Rays rendered at once; lower it to save memory.")] = 16384,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:

@@ -12,12 +12,19 @@ from .common import DeviceChoice, DeviceOpt, app, user_errors
 from .edit import InstanceOpt, ModelArg, PriorOpt, _check_out, _load, _one_view
 
 
-def _mask(path: Path, camera, what: str):
-    """A mask PNG, or strokes JSON when the name ends in .json, at the view's size."""
+def _mask(path: Path, model, instance: int, camera, what: str):
+    """A mask image (read as drawn: one line says how), or strokes JSON when the name ends in
+    .json, at the view's size."""
     from ..edit.scribble import load_mask
+    from ..renderer import render_camera
+
+    def render():
+        return render_camera(model.field_for(instance), camera, instance).rgb.cpu().numpy()
 
     is_json = path.suffix.lower() == ".json"
-    return load_mask(None if is_json else path, path if is_json else None, camera.width, camera.height, what)
+    read = load_mask(None if is_json else path, path if is_json else None, camera.width, camera.height, what, render)
+    typer.echo(f"{what} {path}: {read.reading}, {int(read.mask.sum())} pixels")
+    return read.mask
 
 
 @app.command("select")
@@ -49,8 +56,8 @@ def select_cmd(
     scribbles = []
     for i, spec in enumerate(view):
         _, camera = _one_view(m, spec, k)
-        bg = _mask(keep[i], camera, "keep") if keep else None
-        scribbles.append(ScribbleView(camera, _mask(scribble[i], camera, "scribble"), bg))
+        bg = _mask(keep[i], m, k, camera, "keep") if keep else None
+        scribbles.append(ScribbleView(camera, _mask(scribble[i], m, k, camera, "scribble"), bg))
     sel = select(m, k, scribbles)
     save_selection(out, sel)
     info = sel.meta

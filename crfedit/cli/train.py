@@ -86,13 +86,17 @@ def _clock(seconds: float) -> str:
 # ----------------------------------------------------------------------------- helpers
 
 
-def check_output_file(out: Path, what: str = "--out") -> None:
-    """The folder of ``out`` must exist and ``out`` must not be a folder (checked before work starts)."""
+def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, what: str = "--out") -> None:
+    """``out`` is a file name whose folder is created if missing; an existing model there is
+    only continued (``resume``) or replaced (``overwrite``), never replaced silently."""
     if out.is_dir():
         raise CrfError(f"{what} {out}: is a folder; give a file name such as {out / 'model.safetensors'}")
+    if out.exists() and not (resume or overwrite):
+        raise CrfError(f"{what} {out}: exists; continue its training with --resume, or replace it with --overwrite")
     folder = out.parent
-    if not folder.is_dir():
-        raise CrfError(f"{what} {out}: folder {folder} does not exist")
+    if folder.exists() and not folder.is_dir():
+        raise CrfError(f"{what} {out}: {folder} is a file, not a folder")
+    folder.mkdir(parents=True, exist_ok=True)
 
 
 def stored_training(path: Path):
@@ -120,8 +124,10 @@ def format_score(score: dict) -> str:
     return text + (f", LPIPS {score['lpips']:.3f}" if score["lpips"] is not None else "")
 
 
-def run_training(category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool):
-    """Train on a loaded category with a progress bar; return (model, TrainResult)."""
+def run_training(category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int = 100):
+    """Train on a loaded category with a progress bar and run records (crfedit.runlog); return (model, TrainResult)."""
+    from ..runlog import RunLog, config_block, record_paths
+    from ..threads import requested_threads
     from ..train import train
 
     first_step = 0
@@ -130,11 +136,23 @@ def run_training(category, out: Path, cfg, device, seed: int, minutes: float | N
         if stored_cfg != cfg:
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps)")
         cfg = stored_cfg
-    with TrainProgress(cfg, minutes, first_step) as progress:
-        return train(
-            category, cfg, out, device, seed=seed, minutes=minutes, resume=resume,
-            on_step=progress.on_step, extra_meta={"command": command_line()},
-        )
+    run = {"command": command_line(), "dataset": str(category.root), "dataset_fingerprint": category.fingerprint,
+           "seed": seed, "device": str(device), "threads": requested_threads(), "minutes": minutes, "resumed_at": first_step}
+    paths = record_paths(out)
+    typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}")
+    log = RunLog(out, cfg, log_every, minutes, resume, run)
+    try:
+        with TrainProgress(cfg, minutes, first_step) as progress:
+            def on_step(*args):
+                progress.on_step(*args)
+                log.on_step(*args)
+
+            return train(
+                category, cfg, out, device, seed=seed, minutes=minutes, resume=resume,
+                on_step=on_step, extra_meta={"command": command_line()},
+            )
+    finally:
+        log.close()
 
 
 # ----------------------------------------------------------------------------- train
@@ -143,8 +161,8 @@ def run_training(category, out: Path, cfg, device, seed: int, minutes: float | N
 @app.command("train")
 @user_errors
 def train_cmd(
-    data: Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt) or a NeRF-synthetic scene.")],
-    out: Annotated[Path, typer.Option("--out", help="Model file to write, e.g. model.safetensors (its folder must exist).")],
+    data: Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt), a NeRF-synthetic scene, or nerfstudio transforms.json scene(s).")],
+    out: Annotated[Path, typer.Option("--out", metavar="MODEL", help="Model file to write, e.g. model.safetensors (its folder is created if missing).")],
     preset: Annotated[PresetChoice, typer.Option("--preset", help="fast: minutes on a CPU; paper: the paper's networks and sampling.")] = PresetChoice.fast,
     arch: Annotated[Optional[ArchChoice], typer.Option("--arch", help="Ablation variant (paper Table 1); default ours.")] = None,
     steps: Annotated[Optional[int], typer.Option("--steps", help="Training steps (default: the preset's).")] = None,
@@ -153,8 +171,10 @@ def train_cmd(
     seed: SeedOpt = 0,
     device: DeviceOpt = DeviceChoice.auto,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run stored in --out from its last checkpoint (stored config and resolution).")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out model instead of refusing.")] = False,
     view_reg: Annotated[Optional[float], typer.Option("--view-reg", help="Weight of the view-dependence regularizer (one-view-per-instance data).")] = None,
-    sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override any config field, KEY=VALUE (repeatable), e.g. --set rays=1024.")] = None,
+    sets: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE", help="Override any config field, KEY=VALUE (repeatable), e.g. --set rays=1024.")] = None,
+    log_every: Annotated[int, typer.Option("--log-every", help="Write a row of the CSV log (and TensorBoard, when installed) every N steps.")] = 100,
 ) -> None:
     """Train one model over a category: shared networks plus a shape and a color code per instance.
 
@@ -169,12 +189,14 @@ def train_cmd(
 
     if steps is not None and steps < 1:
         raise CrfError(f"--steps {steps}: must be at least 1")
+    if log_every < 1:
+        raise CrfError(f"--log-every {log_every}: must be at least 1")
     if minutes is not None and not (minutes > 0 and math.isfinite(minutes)):
         raise CrfError(f"--minutes {minutes:g}: must be a positive number")
     if view_reg is not None and not (view_reg >= 0 and math.isfinite(view_reg)):
         raise CrfError(f"--view-reg {view_reg:g}: must be 0 or more")
     res = parse_resolution(res)
-    check_output_file(out)
+    check_output_file(out, resume, overwrite)
     cfg = make_config(
         preset.value, {"arch": arch.value if arch else None, "steps": steps, "view_reg": view_reg}, sets or []
     )
@@ -190,7 +212,7 @@ def train_cmd(
     dev = resolve_device(device)
     category = load_category(data, res=res)
     seed_everything(seed)  # train() draws the initial weights from torch's global generator
-    model, result = run_training(category, out, cfg, dev, seed, minutes, resume)
+    model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every)
     score = score_model(model, category, held_out_split(category), max_views=model.cfg.eval_views)
     typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
     rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)
@@ -209,6 +231,7 @@ MODULE_ORDER = (*MODULES, *CODE_TABLES)
 def model_info(path: Path) -> dict:
     """What ``crfedit info`` prints, as plain JSON types."""
     from ..model import load_model
+    from ..modelfile import size_breakdown
 
     model, state = load_model(path)
     field = model.field
@@ -228,6 +251,7 @@ def model_info(path: Path) -> dict:
     return {
         "path": str(path),
         "file_bytes": path.stat().st_size,
+        "sizes": size_breakdown(path),
         "preset": cfg.preset,
         "arch": cfg.arch,
         "sampler": cfg.sampler,
@@ -290,6 +314,9 @@ def info_cmd(
         step += f" ({meta['train_seconds']:.0f} s of training)"
     rows = [
         ("model", f"{meta['path']} ({_bytes(meta['file_bytes'])})"),
+        ("  size", ", ".join(f"{kind} {_bytes(n)}" for kind, n in meta["sizes"].items() if n)
+         + ("" if meta["resumable"] else " (no training state: stripped or baked)")
+         + (" (crfedit model strip drops the training state)" if meta["sizes"]["training state"] else "")),
         ("preset", f"{meta['preset']}, arch {meta['arch']}, sampler {meta['sampler']}"),
         ("instances", f"{meta['instances']}: {shown}"),
         ("parameters", f"{meta['parameters']:,}"),

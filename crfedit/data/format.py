@@ -483,7 +483,7 @@ def instance_names(root: Path) -> list[str]:
     if not listing.is_file():
         if (root / "transforms_train.json").is_file():
             return [root.resolve().name]
-        raise DataError(f"{listing}: file not found (neither a category folder nor a NeRF-synthetic scene)")
+        raise DataError(f"{listing}: file not found (neither a category folder, a NeRF-synthetic scene nor nerfstudio transforms.json scenes)")
     try:
         lines = listing.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as e:
@@ -526,8 +526,14 @@ def load_category(
     with_depth: bool = False,
     with_parts: bool = False,
 ) -> Category:
-    """Load every instance listed in ``instances.txt`` (or the single scene at ``root``)."""
+    """Load every instance listed in ``instances.txt`` (or the single scene at ``root``, or
+    nerfstudio ``transforms.json`` scenes: :mod:`crfedit.data.nerfstudio`)."""
     root = Path(root)
+    if root.is_dir() and not (root / "instances.txt").is_file() and not (root / "transforms_train.json").is_file():
+        from .nerfstudio import load_nerfstudio_category, scene_folders
+
+        if scene_folders(root):
+            return load_nerfstudio_category(root, res, splits)
     names = instance_names(root)
     instances = [load_instance_dir(_instance_dir(root, n), n, res, splits, with_depth, with_parts) for n in names]
     return Category(root, instances, category_fingerprint(root, names))

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import colorsys
 import math
-import shutil
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -22,7 +21,7 @@ import numpy as np
 
 from ..cameras import Camera, focal_from_angle, look_at, ray_directions_camera, spherical_eye
 from ..errors import CrfError
-from ..io import check_folder_target, write_png
+from ..io import atomic_folder, check_folder_target, write_png
 from ..masks import dilate, erode, strokes_mask
 from .format import Frame, TwinSpec, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 
@@ -617,31 +616,31 @@ def _twins_of(
 def write_synth_category(
     out: Path, config: SynthConfig = SynthConfig(), progress: Callable[[str], None] | None = None
 ) -> SynthResult:
-    """Generate and write the procedural chair category to ``out``; ``progress(label)`` after each step."""
+    """Generate and write the procedural chair category to ``out``; ``progress(label)`` after each step.
+
+    The category is built in a hidden folder beside ``out`` and renamed onto it at the end, so an
+    interrupted run leaves no partial dataset (and a previous one at ``out`` untouched).
+    """
     check_synth_args(out, config)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     sources = twin_sources(config.instances) if config.twins else []
     names, twins = [], []
-    if (out / "twins").is_dir():
-        shutil.rmtree(out / "twins")
-    for index in range(config.instances):
-        name = f"chair_{index:03d}"
-        # twin sources get arms, so their removal twin removes a part that covers pixels
-        chair = make_chair(np.random.default_rng([config.seed, index, 0]), arms=True if index in sources else None)
-        cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
-        frames = _write_instance(out / name, chair, cams, config.aa)
-        names.append(name)
-        if progress:
-            progress(name)
-        if index in sources:
-            twins += _twins_of(out, name, chair, frames, sources.index(index), [config.seed, index], config.aa)
+    with atomic_folder(out) as tmp:
+        for index in range(config.instances):
+            name = f"chair_{index:03d}"
+            # twin sources get arms, so their removal twin removes a part that covers pixels
+            chair = make_chair(np.random.default_rng([config.seed, index, 0]), arms=True if index in sources else None)
+            cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
+            frames = _write_instance(tmp / name, chair, cams, config.aa)
+            names.append(name)
             if progress:
-                progress(f"{name} twins")
-    write_instances_txt(out, names)
-    if twins:
-        write_twins_json(out, twins)
-    elif (out / "twins.json").is_file():
-        (out / "twins.json").unlink()
+                progress(name)
+            if index in sources:
+                twins += _twins_of(tmp, name, chair, frames, sources.index(index), [config.seed, index], config.aa)
+                if progress:
+                    progress(f"{name} twins")
+        write_instances_txt(tmp, names)
+        if twins:
+            write_twins_json(tmp, twins)
     return SynthResult(names, twins, time.perf_counter() - start)

@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..data.format import read_mask
 from ..errors import CrfError
-from ..io import read_json
+from ..io import read_image, read_json
 from ..masks import strokes_mask
 
 CSS_COLORS = {
@@ -74,20 +74,77 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
     return strokes_mask((height, width), polylines, radius)
 
 
-def load_mask(png: Path | None, strokes: Path | None, width: int, height: int, what: str) -> np.ndarray | None:
-    """The union of a mask PNG and a strokes JSON (either may be None) at the view's size; None
-    when neither is given.  A PNG of another size is an error naming both sizes."""
-    mask = None
+GRAY_TOLERANCE = 0.05
+"""A pixel whose channels differ by at most this much is gray (a white-on-black mask)."""
+PAINT_TOLERANCE = 0.1
+"""A painted pixel differs from the render of its view by more than this in some channel."""
+MAX_COVERAGE = 0.5
+"""A scribble over more of the view than this is refused unless forced."""
+
+
+class Scribble(NamedTuple):
+    mask: np.ndarray  # [H, W] bool, True where the user scribbled
+    reading: str  # how the image was read, for the user: "white on black", ...
+
+
+def read_scribble(path: Path, width: int, height: int, what: str, render: Callable[[], np.ndarray] | None = None) -> Scribble:
+    """Read a scribble image the way it was drawn, trying in turn:
+
+    1. some pixels transparent: the opaque pixels (coloured or white strokes on a transparent PNG);
+    2. every pixel gray: white on black (brightness ≥ 0.5);
+    3. ``render()`` (the view's render, float [H, W, 3]) matches at least half the pixels:
+       strokes painted over the render, i.e. the pixels differing from it by more than
+       ``PAINT_TOLERANCE``.
+    Anything else is a :class:`CrfError` naming the three ways.
+    """
+    image = read_image(path)
+    if image.shape[:2] != (height, width):
+        raise CrfError(
+            f"{path}: {what} mask is {image.shape[1]}x{image.shape[0]} but the view is {width}x{height} (draw it on a render of that view)"
+        )
+    rgb = image[..., :3]
+    if image.shape[2] == 4 and (image[..., 3] < 0.5).any():
+        return Scribble(image[..., 3] >= 0.5, "opaque pixels of a transparent PNG")
+    if (rgb.max(axis=-1) - rgb.min(axis=-1) <= GRAY_TOLERANCE).all():
+        return Scribble(rgb.mean(axis=-1) >= 0.5, "white on black")
+    if render is not None:
+        differs = (np.abs(rgb - np.clip(render(), 0.0, 1.0)) > PAINT_TOLERANCE).any(axis=-1)
+        if differs.mean() <= 0.5:
+            return Scribble(differs, "strokes painted over the render of the view (pixels that differ from it)")
+    raise CrfError(
+        f"{path}: cannot tell the {what} strokes from the background: draw white on black, coloured strokes on a "
+        "transparent PNG, or strokes over a render of this very view (crfedit render ... --views VIEW)"
+    )
+
+
+def load_mask(
+    png: Path | None, strokes: Path | None, width: int, height: int, what: str, render: Callable[[], np.ndarray] | None = None
+) -> Scribble | None:
+    """The union of a mask image (read by :func:`read_scribble`) and a strokes JSON (either may be
+    None) at the view's size; None when neither is given."""
+    mask, readings = None, []
     if png is not None:
-        mask = read_mask(Path(png))
-        if mask.shape != (height, width):
-            raise CrfError(
-                f"{png}: {what} mask is {mask.shape[1]}x{mask.shape[0]} but the view is {width}x{height} (draw it on a render of that view)"
-            )
+        mask, reading = read_scribble(Path(png), width, height, what, render)
+        readings.append(reading)
     if strokes is not None:
         drawn = strokes_json_mask(read_json(Path(strokes)), width, height, str(strokes))
         mask = drawn if mask is None else mask | drawn
-    return mask
+        readings.append("strokes JSON")
+    return None if mask is None else Scribble(mask, " + ".join(readings))
+
+
+def check_coverage(scribble: np.ndarray, force: bool = False) -> float:
+    """The scribbled fraction of the view; above ``MAX_COVERAGE`` a :class:`CrfError` unless ``force``
+    (a scribble over most of the view is usually a misread image, e.g. the whole render)."""
+    fraction = float(np.mean(scribble))
+    if fraction == 1.0:
+        raise CrfError("the scribble covers the whole view: nothing is left to keep (scribble only the part to edit)")
+    if fraction > MAX_COVERAGE and not force:
+        raise CrfError(
+            f"the scribble covers {100 * fraction:.1f} % of the view (more than half): scribble only the part to edit, "
+            "or pass --force if that is really meant"
+        )
+    return fraction
 
 
 def check_masks(scribble: np.ndarray, keep: np.ndarray | None, width: int, height: int) -> np.ndarray | None:

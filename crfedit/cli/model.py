@@ -1,0 +1,41 @@
+"""``crfedit model strip``: a shareable copy of a model file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ..errors import CrfError
+from .common import app, user_errors
+
+model_app = typer.Typer(help="Shareable model files.", no_args_is_help=True)
+app.add_typer(model_app, name="model")
+
+
+def _kb(n: int) -> str:
+    return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} KB"
+
+
+@model_app.command("strip")
+@user_errors
+def strip_cmd(
+    model: Annotated[Path, typer.Argument(metavar="MODEL", help="Model file (.safetensors) written by crfedit train.")],
+    out: Annotated[Path, typer.Option("--out", metavar="SMALL", help="Model file to write, without the training state.")],
+) -> None:
+    """Copy a model without its training state (optimizer moments, occupancy statistics).
+
+    The copy renders, edits and bakes exactly like the original; only --resume needs the state.
+    """
+    from ..modelfile import strip_model
+
+    if out.exists() and out.resolve() == model.resolve():
+        raise CrfError(f"--out {out}: is the input model; write the stripped model to a new file")
+    if out.is_dir():
+        raise CrfError(f"--out {out}: is a folder; give a file name such as small.safetensors")
+    before = model.stat().st_size if model.is_file() else 0
+    sizes = strip_model(model, out)
+    after = out.stat().st_size
+    typer.echo(f"wrote {out} ({_kb(after)}) from {model} ({_kb(before)}): training state dropped, "
+               f"weights {_kb(sizes['weights'])}, codes {_kb(sizes['codes'])}, occupancy {_kb(sizes['occupancy'])}")

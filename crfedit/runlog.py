@@ -1,0 +1,77 @@
+"""Run records of a training run, beside the model file ``NAME.safetensors``:
+
+- ``NAME.run.json``: the resolved config and how the run was started (command, dataset,
+  seed, device, threads), written when training starts;
+- ``NAME.log.csv``: step, loss, train PSNR, rays/s, learning rate and elapsed seconds every
+  ``every`` steps (appended to on ``--resume``);
+- ``NAME.tb/``: the same scalars as TensorBoard events, when ``tensorboard`` is installed
+  (``pip install -e '.[tensorboard]'``).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import textwrap
+from pathlib import Path
+
+from .config import Config
+from .io import write_json
+
+COLUMNS = ("step", "loss", "psnr", "rays_per_s", "lr", "seconds")
+
+
+def record_paths(model_path: Path) -> dict[str, Path]:
+    stem = Path(model_path).with_suffix("")
+    return {"run": stem.with_name(stem.name + ".run.json"), "log": stem.with_name(stem.name + ".log.csv"),
+            "tensorboard": stem.with_name(stem.name + ".tb")}
+
+
+def config_block(cfg: Config, width: int = 100) -> str:
+    """The resolved config as one block of ``key=value`` pairs, wrapped at ``width``."""
+    pairs = " ".join(f"{k}={v}" for k, v in json.loads(cfg.to_json()).items())
+    return "\n".join(textwrap.wrap(pairs, width, initial_indent="  ", subsequent_indent="  "))
+
+
+def _tensorboard_writer(folder: Path):
+    """A SummaryWriter, or None when tensorboard is not installed."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(str(folder))
+
+
+class RunLog:
+    """Writes the run records; ``on_step`` has :func:`crfedit.train.train`'s callback signature."""
+
+    def __init__(self, model_path: Path, cfg: Config, every: int, minutes: float | None, resume: bool, run: dict):
+        from .train import learning_rate
+
+        self.paths, self.cfg, self.every = record_paths(model_path), cfg, max(1, every)
+        self.budget = None if minutes is None else 60.0 * minutes
+        self._lr = learning_rate
+        write_json(self.paths["run"], {**run, "config": json.loads(cfg.to_json())})
+        fresh = not (resume and self.paths["log"].is_file())
+        self.file = open(self.paths["log"], "w" if fresh else "a", newline="")
+        self.csv = csv.writer(self.file)
+        if fresh:
+            self.csv.writerow(COLUMNS)
+        self.tb = _tensorboard_writer(self.paths["tensorboard"])
+
+    def on_step(self, step: int, loss: float, psnr: float, rays_per_s: float) -> None:
+        if step % self.every:
+            return
+        seconds = self.cfg.rays * step / rays_per_s if rays_per_s > 0 else 0.0
+        progress = None if self.budget is None else max(step / self.cfg.steps, seconds / self.budget)
+        lr = self._lr(self.cfg, self.cfg.lr, step, progress)
+        self.csv.writerow([step, f"{loss:.6g}", f"{psnr:.4f}", f"{rays_per_s:.1f}", f"{lr:.6g}", f"{seconds:.2f}"])
+        self.file.flush()
+        if self.tb is not None:
+            for name, value in zip(COLUMNS[1:], (loss, psnr, rays_per_s, lr, seconds)):
+                self.tb.add_scalar(f"train/{name}", value, step)
+
+    def close(self) -> None:
+        self.file.close()
+        if self.tb is not None:
+            self.tb.close()

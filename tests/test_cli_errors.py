@@ -1,0 +1,126 @@
+"""The CLI's error paths on the installed Typer: Ctrl-C (typer.Abort), unexpected exceptions
+(one line, exit 1; the traceback with --debug or CRFEDIT_DEBUG=1), OS errors (one line, exit 2),
+and an interrupted ``dataset synth`` leaving no partial folder (issue 18)."""
+
+from __future__ import annotations
+
+import errno
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+import crfedit.data.synth as synth
+from crfedit.cli import app, main
+from crfedit.data.synth import SynthConfig, write_synth_category
+
+SYNTH = ["dataset", "synth", "--instances", "1", "--views", "3", "--res", "8", "--no-twins"]
+
+
+def run_main(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of ``crfedit ARGS`` through :func:`crfedit.cli.main`."""
+    monkeypatch.setattr(sys, "argv", ["crfedit", *args])
+    with pytest.raises(SystemExit) as e:
+        main()
+    out = capsys.readouterr()
+    return e.value.code, out.out, out.err
+
+
+def raiser(exc: BaseException):
+    def fail(*args, **kwargs):
+        raise exc
+
+    return fail
+
+
+def test_typer_abort_is_caught_on_the_installed_typer(monkeypatch, capsys, tmp_path):
+    monkeypatch.setattr(synth, "write_synth_category", raiser(typer.Abort()))
+    code, _, err = run_main(monkeypatch, capsys, *SYNTH[:2], str(tmp_path / "ds"), *SYNTH[2:])
+    assert code == 130 and err == "error: aborted\n", err
+    assert "AttributeError" not in err
+
+
+def test_an_unexpected_error_is_one_line_with_the_path_and_exit_1(monkeypatch, capsys, tmp_path):
+    monkeypatch.delenv("CRFEDIT_DEBUG", raising=False)
+    monkeypatch.setattr(synth, "write_synth_category", raiser(RuntimeError("cannot frobnicate\nthe chair")))
+    code, _, err = run_main(monkeypatch, capsys, *SYNTH[:2], str(tmp_path / "ds"), *SYNTH[2:])
+    assert code == 1 and err.count("\n") == 1, err
+    assert err.startswith("error: unexpected RuntimeError: cannot frobnicate the chair at ") and "--debug" in err
+    assert "test_cli_errors.py" not in err and "Traceback" not in err
+    monkeypatch.setattr(synth, "write_synth_category", raiser(KeyError("x")))
+    _, _, err = run_main(monkeypatch, capsys, *SYNTH[:2], str(tmp_path / "ds"), *SYNTH[2:])
+    assert err.startswith("error: unexpected KeyError: 'x'")
+
+
+@pytest.mark.parametrize("how", ["flag", "env"])
+def test_debug_shows_the_traceback(monkeypatch, capsys, tmp_path, how):
+    monkeypatch.delenv("CRFEDIT_DEBUG", raising=False)
+    monkeypatch.setattr(synth, "write_synth_category", raiser(RuntimeError("boom")))
+    args = [*SYNTH[:2], str(tmp_path / "ds"), *SYNTH[2:]]
+    if how == "env":
+        monkeypatch.setenv("CRFEDIT_DEBUG", "1")
+    else:
+        args.insert(0, "--debug")
+    monkeypatch.setattr(sys, "argv", ["crfedit", *args])
+    monkeypatch.setattr("crfedit.cli.common.Session.debug", False)
+    with pytest.raises(RuntimeError, match="boom"):
+        main()
+
+
+def test_debug_traceback_in_a_real_process():
+    """End to end: an OS error is one line; with --debug, Python's traceback of it."""
+    cmd = [sys.executable, "-m", "crfedit", *SYNTH[:2], "/sys/crfedit-ds", *SYNTH[2:]]
+    run = dict(capture_output=True, text=True, cwd=Path(__file__).parents[1])
+    quiet = subprocess.run(cmd, **run)
+    assert quiet.returncode == 2 and "Traceback" not in quiet.stderr
+    assert quiet.stderr.strip().splitlines()[-1].startswith("error: /sys/crfedit-ds: ")
+    loud = subprocess.run(cmd[:3] + ["--debug"] + cmd[3:], **run)
+    assert loud.returncode == 1 and "Traceback" in loud.stderr and "OSError" in loud.stderr, loud.stderr
+
+
+@pytest.mark.parametrize(
+    "code, words",
+    [(errno.EACCES, "permission denied"), (errno.ENOSPC, "the disk is full"), (errno.EROFS, "read-only file system")],
+)
+def test_os_errors_read_as_user_errors(monkeypatch, tmp_path, code, words):
+    out = tmp_path / "ds"
+    monkeypatch.setattr(synth, "write_synth_category", raiser(OSError(code, "strerror", str(out))))
+    result = CliRunner().invoke(app, [*SYNTH[:2], str(out), *SYNTH[2:]])
+    assert result.exit_code == 2 and result.stderr == f"error: {out}: {words}\n", result.output
+    assert not out.exists()
+
+
+def test_synth_into_an_unwritable_place_names_the_folder(capsys, monkeypatch):
+    """/sys refuses new folders even for root (a chmod'ed folder does not stop root)."""
+    code, _, err = run_main(monkeypatch, capsys, *SYNTH[:2], "/sys/crfedit-ds", *SYNTH[2:])
+    assert code == 2 and err.startswith("error: /sys/crfedit-ds: ") and err.count("\n") == 1, err
+
+
+def test_interrupted_synth_leaves_no_partial_folder(monkeypatch, tmp_path):
+    out = tmp_path / "ds"
+    calls = []
+
+    def progress(label):
+        calls.append(label)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_synth_category(out, SynthConfig(instances=3, views=3, res=8, twins=False), progress)
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_interrupted_resynth_keeps_the_previous_dataset(tmp_path):
+    out = tmp_path / "ds"
+    write_synth_category(out, SynthConfig(instances=2, views=3, res=8, twins=False))
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    with pytest.raises(KeyboardInterrupt):
+        write_synth_category(out, SynthConfig(instances=3, views=3, res=8, seed=1, twins=False), raiser(KeyboardInterrupt()))
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["ds"]
+    result = write_synth_category(out, SynthConfig(instances=3, views=3, res=8, seed=1, twins=False))
+    assert (out / "instances.txt").read_text().split() == result.names == ["chair_000", "chair_001", "chair_002"]
+    assert [p.name for p in tmp_path.iterdir()] == ["ds"] and oct(out.stat().st_mode & 0o777) != "0o700"

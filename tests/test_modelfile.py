@@ -1,0 +1,73 @@
+"""Shareable models (issue 18): ``info``'s size breakdown, ``crfedit model strip`` and ``edits bake``
+writing a model without the training state."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import torch
+import pytest
+from typer.testing import CliRunner
+
+from crfedit.cli import app
+from crfedit.config import make_config
+from crfedit.data import load_category
+from crfedit.io import write_png
+from crfedit.model import load_model
+from crfedit.modelfile import SIZE_KINDS, size_breakdown, strip_model
+from crfedit.renderer import render_camera
+from crfedit.safefile import read_header
+from crfedit.train import train
+
+
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_size_breakdown_adds_up_and_names_the_training_state(tiny_model):
+    sizes = size_breakdown(tiny_model)
+    assert sum(sizes.values()) == tiny_model.stat().st_size and set(sizes) == {*SIZE_KINDS, "header"}
+    header, _ = read_header(tiny_model)
+    train_bytes = sum(e - s for n, i in header.items() if n.startswith("train.") for s, e in [i["data_offsets"]])
+    assert sizes["training state"] == train_bytes > sizes["weights"] > 0  # Adam's two moments per weight, and more
+    info = json.loads(invoke("info", tiny_model, "--json").stdout)
+    assert info["sizes"] == sizes
+    text = invoke("info", tiny_model).stdout
+    assert "training state" in text and "crfedit model strip" in text
+
+
+def test_strip_keeps_renders_and_drops_resume(tiny_model, tiny_chairs, tmp_path):
+    small = tmp_path / "small.safetensors"
+    r = invoke("model", "strip", tiny_model, "--out", small)
+    assert r.exit_code == 0 and "training state dropped" in r.stdout, r.output
+    sizes = size_breakdown(small)
+    assert sizes["training state"] == 0 and small.stat().st_size < tiny_model.stat().st_size - size_breakdown(tiny_model)["training state"] + 16384
+    (a, _), (b, state) = load_model(tiny_model), load_model(small)
+    assert state == {} and a.fingerprint() == b.fingerprint()
+    cam = a.views["test"].cameras(0)[0]
+    assert torch.equal(render_camera(a.field_for(0), cam, 0).rgb, render_camera(b.field_for(0), cam, 0).rgb)
+    cfg = make_config("fast", overrides=dict(steps=31, rays=256, checkpoint_every=10))
+    from crfedit.errors import CrfError
+
+    with pytest.raises(CrfError, match="holds no training state"):
+        train(load_category(tiny_chairs), cfg, small, torch.device("cpu"), resume=True)
+    r = invoke("model", "strip", small, "--out", small)
+    assert r.exit_code == 2 and "is the input model" in r.stderr
+
+
+def test_bake_writes_a_stripped_model_by_default(tiny_model, tmp_path):
+    mask = np.zeros((16, 16), np.uint8)
+    mask[6:10, 6:10] = 255
+    write_png(tmp_path / "s.png", mask)
+    edit = tmp_path / "e.safetensors"
+    r = invoke("edit-color", tiny_model, "--instance", 0, "--view", "train:0", "--scribble", tmp_path / "s.png",
+               "--color", "red", "--steps", 2, "--device", "cpu", "--out", edit)
+    assert r.exit_code == 0, r.output
+    r = invoke("edits", "bake", tiny_model, "--edit", edit, "--out", tmp_path / "b.safetensors")
+    assert r.exit_code == 0 and "without training state" in r.stdout and "is unchanged" in r.stdout, r.output
+    assert size_breakdown(tmp_path / "b.safetensors")["training state"] == 0
+    r = invoke("edits", "bake", tiny_model, "--edit", edit, "--out", tmp_path / "c.safetensors", "--training-state")
+    assert r.exit_code == 0 and size_breakdown(tmp_path / "c.safetensors")["training state"] == size_breakdown(tiny_model)["training state"]

@@ -1,0 +1,130 @@
+"""Scribble images are read the way people draw them (issue 18): white on black, alpha, coloured
+strokes on a transparent PNG, or strokes painted over the render of the view; a scribble over
+more than half the view is refused unless --force."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from crfedit.cli import app
+from crfedit.masks import strokes_mask
+from crfedit.edit.scribble import check_coverage, load_mask, read_scribble
+from crfedit.errors import CrfError
+from crfedit.io import write_png
+from crfedit.model import load_model
+from crfedit.renderer import render_camera
+
+PAINT = np.array([1.0, 0.0, 1.0])  # magenta: far from the chairs' colours and the white background
+
+
+@pytest.fixture(scope="module")
+def view(tiny_model):
+    """(model, camera of train view 0 of instance 0, its render [H, W, 3] as written to PNG, strokes mask)."""
+    model, _ = load_model(tiny_model)
+    camera = model.views["train"].cameras(0)[0]
+    render = render_camera(model.field_for(0), camera, 0).rgb.clamp(0, 1).numpy()
+    render = np.round(render * 255) / 255  # what `crfedit render` writes
+    mask = strokes_mask((camera.height, camera.width), [np.array([[4.0, 5.0], [11.0, 9.0]])], 1.5)
+    assert 0 < mask.sum() < 0.3 * mask.size
+    assert (np.abs(render[mask] - PAINT).max(axis=-1) > 0.2).all()  # the strokes are visible on the render
+    return model, camera, render, mask
+
+
+def read(path: Path, view, with_render: bool = True):
+    _, camera, render, _ = view
+    return read_scribble(path, camera.width, camera.height, "scribble", (lambda: render) if with_render else None)
+
+
+def test_white_on_black(view, tmp_path):
+    mask = view[3]
+    write_png(tmp_path / "m.png", mask.astype(np.uint8) * 255)
+    got = read(tmp_path / "m.png", view, with_render=False)
+    assert got.reading == "white on black" and np.array_equal(got.mask, mask)
+
+
+def test_alpha_mask(view, tmp_path):
+    mask = view[3]
+    rgba = np.zeros(mask.shape + (4,), np.uint8)
+    rgba[..., :3] = 255
+    rgba[..., 3] = mask * 255
+    write_png(tmp_path / "a.png", rgba)
+    got = read(tmp_path / "a.png", view, with_render=False)
+    assert got.reading.startswith("opaque pixels") and np.array_equal(got.mask, mask)
+
+
+def test_coloured_strokes_on_a_transparent_png(view, tmp_path):
+    """Red strokes on transparency were refused as empty (their gray level is below 128)."""
+    mask = view[3]
+    rgba = np.zeros(mask.shape + (4,), np.uint8)
+    rgba[mask] = (255, 0, 0, 255)
+    write_png(tmp_path / "red.png", rgba)
+    got = read(tmp_path / "red.png", view, with_render=False)
+    assert got.reading.startswith("opaque pixels") and np.array_equal(got.mask, mask)
+
+
+def test_strokes_painted_over_the_render(view, tmp_path):
+    """The strokes, not the white background: the old reading counted ~84 % of the pixels."""
+    _, _, render, mask = view
+    painted = render.copy()
+    painted[mask] = PAINT
+    write_png(tmp_path / "p.png", painted)
+    got = read(tmp_path / "p.png", view)
+    assert got.reading.startswith("strokes painted over the render") and np.array_equal(got.mask, mask)
+    with pytest.raises(CrfError, match="cannot tell the scribble strokes from the background"):
+        read(tmp_path / "p.png", view, with_render=False)
+
+
+def test_a_coloured_image_that_is_not_the_render_is_refused(view, tmp_path):
+    noise = np.random.default_rng(0).random(view[2].shape)
+    write_png(tmp_path / "n.png", noise)
+    with pytest.raises(CrfError, match="transparent PNG, or strokes over a render"):
+        read(tmp_path / "n.png", view)
+
+
+def test_mask_image_and_strokes_json_together(view, tmp_path):
+    _, camera, _, mask = view
+    write_png(tmp_path / "m.png", mask.astype(np.uint8) * 255)
+    (tmp_path / "s.json").write_text('{"strokes": [[[1, 14]]], "radius": 1}')
+    got = load_mask(tmp_path / "m.png", tmp_path / "s.json", camera.width, camera.height, "scribble")
+    assert got.reading == "white on black + strokes JSON"
+    dot = strokes_mask(mask.shape, [np.array([[1.0, 14.0]])], 1.0)
+    assert dot[14, 1] and not (dot & mask).any() and np.array_equal(got.mask, mask | dot)
+
+
+def test_coverage_limit():
+    half = np.zeros((4, 4), bool)
+    half[:2] = True
+    assert check_coverage(half) == 0.5
+    more = half.copy()
+    more[2, 0] = True
+    with pytest.raises(CrfError, match=r"covers 56.2 % of the view .* --force"):
+        check_coverage(more)
+    assert check_coverage(more, force=True) == 0.5625
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_edit_color_reports_the_reading_and_refuses_a_large_scribble(view, tiny_model, tmp_path):
+    _, _, render, mask = view
+    painted = render.copy()
+    painted[mask] = PAINT
+    write_png(tmp_path / "p.png", painted)
+    base = ["edit-color", tiny_model, "--instance", 0, "--view", "train:0", "--color", "red", "--steps", 2, "--device", "cpu"]
+    ok = invoke(*base, "--scribble", tmp_path / "p.png", "--out", tmp_path / "e.safetensors")
+    assert ok.exit_code == 0, ok.output
+    line = next(ln for ln in ok.stdout.splitlines() if ln.startswith("scribble: "))
+    assert line.startswith("scribble: strokes painted over the render") and f" {int(mask.sum())} pixels " in line
+    big = np.ones(mask.shape, np.uint8) * 255
+    big[:2] = 0
+    write_png(tmp_path / "big.png", big)
+    refused = invoke(*base, "--scribble", tmp_path / "big.png", "--out", tmp_path / "big.safetensors")
+    assert refused.exit_code == 2 and "more than half" in refused.stderr and "--force" in refused.stderr
+    assert not (tmp_path / "big.safetensors").exists()
+    forced = invoke(*base, "--scribble", tmp_path / "big.png", "--force", "--out", tmp_path / "big.safetensors")
+    assert forced.exit_code == 0 and (tmp_path / "big.safetensors").is_file(), forced.output

@@ -1,0 +1,54 @@
+"""The thread default follows the machine, CRFEDIT_THREADS overrides it, and help text has
+readable metavars and answers without importing torch (issue 18)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from crfedit.cli import app
+from crfedit.errors import CrfError
+from crfedit.threads import default_threads, requested_threads, usable_cores
+
+
+@pytest.mark.parametrize("cores, load, expected", [(2, 0.1, 2), (2, 0.6, 1), (2, 1.4, 1), (2, 7.5, 1), (16, 3.2, 13), (16, 0.0, 16), (1, 0.0, 1)])
+def test_default_threads_are_the_cores_nothing_else_uses(cores, load, expected):
+    assert default_threads(cores, load) == expected
+
+
+def test_crfedit_threads_overrides_and_is_checked(monkeypatch):
+    monkeypatch.setenv("CRFEDIT_THREADS", "3")
+    assert requested_threads() == 3
+    for bad in ("0", "-1", "two"):
+        monkeypatch.setenv("CRFEDIT_THREADS", bad)
+        with pytest.raises(CrfError, match="CRFEDIT_THREADS"):
+            requested_threads()
+    monkeypatch.delenv("CRFEDIT_THREADS")
+    assert 1 <= requested_threads() <= usable_cores()
+
+
+def test_help_has_readable_metavars():
+    text = CliRunner().invoke(app, ["edits", "bake", "--help"], env={"COLUMNS": "200"}).stdout
+    assert "edits bake [OPTIONS] MODEL" in text and "--edit EDIT" in text and "--out OUT" in text
+    assert "{model}" not in text and "<list[Path]>" not in text and "<path>" not in text.split("Options:")[1]
+    text = CliRunner().invoke(app, ["train", "--help"], env={"COLUMNS": "200"}).stdout
+    assert "--steps N" in text and "--set KEY=VALUE" in text and "--preset <fast|paper>" in text
+
+
+def test_help_does_not_import_torch():
+    code = "import sys; sys.argv = ['crfedit', '--help']\nfrom crfedit.cli import main\ntry:\n    main()\nexcept SystemExit:\n    pass\nprint('torch' in sys.modules)"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[1])
+    assert run.stdout.strip().splitlines()[-1] == "False", run.stdout + run.stderr
+
+
+def test_ci_runs_readme_test_command_and_torch_is_uncapped():
+    root = Path(__file__).parents[1]
+    readme = (root / "README.md").read_text()
+    command = next(ln for ln in readme.splitlines() if ln.startswith("python3 -m venv") and "pytest" in ln)
+    assert f'readme_test_command="{command}"' in (root / ".ci" / "run").read_text()
+    assert "-c constraints-cpu.txt" in command and "torch==2.13.0" in (root / "constraints-cpu.txt").read_text()
+    assert '"torch>=2.3",' in (root / "pyproject.toml").read_text()

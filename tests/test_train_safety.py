@@ -1,0 +1,109 @@
+"""Training's output file (issue 18): Ctrl-C writes a checkpoint, an existing model is not
+replaced without --resume or --overwrite, and --out's folder is created like render's."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from crfedit.cli import app
+from crfedit.config import make_config
+from crfedit.data import load_category
+from crfedit.model import load_model
+from crfedit.train import train
+
+TINY = ["--steps", "3", "--set", "rays=64", "--device", "cpu"]
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_ctrl_c_before_the_first_checkpoint_writes_one(tiny_chairs, tmp_path):
+    cfg = make_config("fast", overrides=dict(steps=50, rays=64, checkpoint_every=10**9))
+    out = tmp_path / "m.safetensors"
+
+    def on_step(step, *_):
+        if step == 4:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt, match="checkpoint at step 4"):
+        train(load_category(tiny_chairs), cfg, out, torch.device("cpu"), on_step=on_step)
+    model, state = load_model(out)
+    assert int(state["step"]) == 4 and model.meta["step"] == "4"
+    model, result = train(load_category(tiny_chairs), cfg, out, torch.device("cpu"), resume=True,
+                          on_step=lambda step, *_: None)
+    assert result.steps == 50 and int(load_model(out)[1]["step"]) == 50
+
+
+def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
+    import crfedit.train as train_module
+
+    out = tmp_path / "m.safetensors"
+    original = train_module.train
+
+    def interrupted(*args, on_step=None, **kwargs):
+        def stop(step, *rest):
+            if step == 2:
+                raise KeyboardInterrupt
+        return original(*args, on_step=stop, **kwargs)
+
+    monkeypatch.setattr(train_module, "train", interrupted)
+    r = invoke("train", tiny_chairs, "--out", out, *TINY)
+    assert r.exit_code == 130 and "checkpoint at step 2" in r.stderr and "--resume" in r.stderr, r.output
+    monkeypatch.setattr(train_module, "train", original)
+    r = invoke("train", tiny_chairs, "--out", out, "--resume", *TINY)
+    assert r.exit_code == 0, r.output
+    assert int(load_model(out)[1]["step"]) == 3
+
+
+def test_existing_model_is_not_replaced_silently(tiny_chairs, tmp_path):
+    out = tmp_path / "m.safetensors"
+    out.write_bytes(b"precious")
+    r = invoke("train", tiny_chairs, "--out", out, *TINY)
+    assert r.exit_code == 2 and "--resume" in r.stderr and "--overwrite" in r.stderr, r.output
+    assert out.read_bytes() == b"precious"
+    r = invoke("train", tiny_chairs, "--out", out, "--overwrite", *TINY)
+    assert r.exit_code == 0 and load_model(out)[1]["step"] == 3, r.output
+
+
+def test_train_out_creates_its_folder(tiny_chairs, tmp_path):
+    out = tmp_path / "new" / "deeper" / "m.safetensors"
+    r = invoke("train", tiny_chairs, "--out", out, *TINY)
+    assert r.exit_code == 0 and out.is_file(), r.output
+    (tmp_path / "file").write_text("x")
+    r = invoke("train", tiny_chairs, "--out", tmp_path / "file" / "m.safetensors", *TINY)
+    assert r.exit_code == 2 and "is a file, not a folder" in r.stderr
+
+
+def test_run_records_beside_the_model(tiny_chairs, tmp_path):
+    import csv
+    import json
+
+    out = tmp_path / "m.safetensors"
+    r = invoke("train", tiny_chairs, "--out", out, "--log-every", 2, "--steps", 5, "--set", "rays=64", "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    assert "config (also in" in r.stdout and "rays=64" in r.stdout and "steps=5" in r.stdout
+    run = json.loads((tmp_path / "m.run.json").read_text())
+    assert run["config"] == json.loads(load_model(out)[0].cfg.to_json()) and run["seed"] == 0
+    rows = list(csv.DictReader((tmp_path / "m.log.csv").open()))
+    assert [int(row["step"]) for row in rows] == [2, 4]
+    assert all(float(row["lr"]) > 0 and float(row["rays_per_s"]) > 0 and float(row["loss"]) > 0 for row in rows)
+    assert float(rows[0]["lr"]) > float(rows[1]["lr"])  # the cosine schedule decays
+    r = invoke("train", tiny_chairs, "--out", out, "--resume", "--steps", 8, "--log-every", 2, "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    assert [int(row["step"]) for row in csv.DictReader((tmp_path / "m.log.csv").open())] == [2, 4]  # stored steps=5: done
+
+
+def test_tensorboard_events_when_installed(tiny_chairs, tmp_path):
+    pytest.importorskip("tensorboard", reason="TensorBoard events need the [tensorboard] extra")
+    out = tmp_path / "m.safetensors"
+    r = invoke("train", tiny_chairs, "--out", out, "--log-every", 1, *TINY)
+    assert r.exit_code == 0 and list((tmp_path / "m.tb").glob("events.out.tfevents.*")), r.output
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "m.tb"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("train/loss")] == [1, 2, 3]
+    assert {"train/psnr", "train/rays_per_s", "train/lr", "train/seconds"} <= set(events.Tags()["scalars"])
