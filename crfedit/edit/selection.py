@@ -185,13 +185,14 @@ def fit_logistic(pos: Tensor, neg: Tensor, neg_weight: Tensor, l2: float = 1e-2)
 def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weight: float):
     """Positives against the keep strokes' points (each weighing ``keep_weight``) and the view's
     other surface points; each of ``rounds`` self-training rounds drops the other points the last
-    fit calls positive (the unscribbled rest of the part must not stay a negative)."""
+    fit calls positive (the unscribbled rest of the part must not stay a negative).  With no
+    negative at all (the scribbles cover the whole object) everything is selected."""
     active = torch.ones(len(others), dtype=torch.bool, device=others.device)
     clf = None
     for _ in range(rounds + 1):
         neg = torch.cat([keep, others[active]])
-        if len(neg) == 0:
-            raise CrfError("the scribble covers all of the object in its view: nothing tells the part from the rest (add --keep strokes)")
+        if len(neg) == 0:  # the scribble covers all of the object in every view: it means all of it
+            return lambda q: torch.ones(q.shape[0], dtype=q.dtype, device=q.device)
         weight = torch.cat([torch.full((len(keep),), keep_weight), torch.ones(int(active.sum()))]).to(pos)
         clf = fit_logistic(pos, neg, weight)
         if len(others):
