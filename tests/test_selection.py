@@ -194,6 +194,11 @@ def test_select_command_and_its_errors(trained, tmp_path):
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[0], "--view", f"train:{index}",
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out)])
     assert r.exit_code == 2 and "is of instance" in r.output and not edit_out.exists()
+    r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--steps", "5",
+                            "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out),
+                            "--preview", str(tmp_path / "after"), "--views", "orbit:3"])
+    assert r.exit_code == 0, r.output
+    assert edit_out.is_file() and len(list((tmp_path / "after").glob("*.png"))) == 3
 
 
 def test_twin_score_closed_forms():

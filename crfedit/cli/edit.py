@@ -39,6 +39,8 @@ KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG o
 MethodOpt = Annotated[EditMethod, typer.Option("--method", help="selection: lift the scribbles to a 3-D selection and supervise the edit with it in every view; paper: the paper's losses on the scribbled view's rays alone.")]
 SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles).")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
+PreviewOpt = Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG renders of the edited instance from --views.")]
+PreviewViewsOpt = Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")]
 ForceOpt = Annotated[bool, typer.Option("--force", help="Accept a scribble that covers more than half the view.")]
 
 
@@ -104,6 +106,20 @@ def _selection(path: Path | None, model, instance: int):
     return sel
 
 
+def _preview(model, instance: int, folder: Path | None, spec: str) -> None:
+    """Render the edited instance from the views ``spec`` into ``folder`` (nothing when None)."""
+    if folder is None:
+        return
+    from ..io import write_png
+    from ..renderer import render_camera
+    from ..views import resolve_views
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, (_, camera) in enumerate(resolve_views(spec, model, instance)):
+        write_png(folder / f"{i:04d}.png", render_camera(model.field_for(instance), camera, instance).rgb.cpu().numpy())
+    typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
+
+
 def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int):
     from ..edit import EditOptions
 
@@ -135,6 +151,8 @@ def edit_color_cmd(
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
     force: ForceOpt = False,
+    preview: PreviewOpt = None,
+    views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     steps: StepsOpt = 100,
@@ -156,7 +174,9 @@ def edit_color_cmd(
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
     sel = _selection(selection, m, k)
-    _write(edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel), out, label)
+    result = edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel)
+    _write(result, out, label)
+    _preview(result.model, k, preview, views)
 
 
 @app.command("remove")
@@ -174,6 +194,8 @@ def remove_cmd(
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
     force: ForceOpt = False,
+    preview: PreviewOpt = None,
+    views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     steps: StepsOpt = 100,
@@ -193,7 +215,9 @@ def remove_cmd(
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
     sel = _selection(selection, m, k)
-    _write(remove(m, k, camera, fg, bg, occluded, options, method.value, sel), out, label)
+    result = remove(m, k, camera, fg, bg, occluded, options, method.value, sel)
+    _write(result, out, label)
+    _preview(result.model, k, preview, views)
 
 
 @app.command("add")
