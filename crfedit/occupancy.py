@@ -56,11 +56,19 @@ def cell_centers(res: int, device: torch.device | str = "cpu") -> Tensor:
 
 
 def dilate(grid: Tensor, cells: int = 1) -> Tensor:
-    """Grow occupied regions by ``cells`` in every direction (3-D max filter)."""
+    """Grow occupied regions by ``cells`` in every direction (3-D box max filter, 26-neighbourhood
+    for one cell).  The box is separable: an OR of shifted copies along each axis in turn."""
     if cells <= 0:
         return grid
-    k = 2 * cells + 1
-    return F.max_pool3d(grid[None, None].float(), k, stride=1, padding=cells)[0, 0] > 0
+    out = grid.bool()
+    for axis in range(out.dim() - 3, out.dim()):
+        acc = out.clone()
+        n = out.shape[axis]
+        for s in range(1, min(cells, n - 1) + 1):
+            acc.narrow(axis, s, n - s).logical_or_(out.narrow(axis, 0, n - s))
+            acc.narrow(axis, 0, n - s).logical_or_(out.narrow(axis, s, n - s))
+        out = acc
+    return out
 
 
 def carve_visual_hull(
