@@ -39,7 +39,8 @@ crfedit info "$model"
 crfedit render "$model" --instance chair_000 --views test --depth --out "$work/render/test"
 crfedit render "$model" --instance chair_000 --views orbit:24 --out "$work/render/orbit" --video "$work/render/orbit.gif"
 
-# 4. Recolor the part the first color twin scribbles, on the view it was drawn on.
+# 4. Recolor the part the first color twin scribbles, on the view it was drawn on: first see
+#    what the scribble selects in 3-D (tinted previews), then edit.
 read -r source view scribble < <(python - "$data" <<'PY'
 import sys
 from pathlib import Path
@@ -52,10 +53,13 @@ print(spec.source, spec.view, root / spec.scribble)
 PY
 )
 edit="$work/recolor.safetensors"
-crfedit edit-color "$model" --instance "$source" --view "$view" --scribble "$scribble" --color '#d03030' --out "$edit"
+crfedit select "$model" --instance "$source" --view "$view" --scribble "$scribble" --out "$work/part.sel.safetensors" \
+    --preview "$work/render/selection" --views orbit:8
+crfedit edit-color "$model" --instance "$source" --view "$view" --scribble "$scribble" --color '#d03030' \
+    --selection "$work/part.sel.safetensors" --out "$edit"
 
 # 5. The edited chair from every side, then the edit file itself and a model with it baked in.
 crfedit render "$model" --instance "$source" --edit "$edit" --views orbit:24 --out "$work/render/recolored" --video "$work/render/recolored.gif"
 crfedit edits show "$edit"
 crfedit edits bake "$model" --edit "$edit" --out "$work/chairs-recolored.safetensors"
-echo "done: renders in $work/render (orbit.gif, recolored.gif)"
+echo "done: renders in $work/render (orbit.gif, selection/, recolored.gif)"
