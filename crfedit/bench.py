@@ -46,8 +46,8 @@ from .data.format import Category, load_category
 from .data.synth import SynthConfig, write_synth_category
 from .edit import EditOptions
 from .errors import CrfError
-from .evaluate import render_views, score_model
-from .evaluation import apply_twin_edit, held_out_split, load_twin_cases, score_instance, warm_up_training
+from .ablation import warm_up_training
+from .evaluation import apply_twin_edit, held_out_split, load_twin_cases, render_views, score_instance, score_model
 from .io import atomic_path, atomic_write_text
 from .metrics import score_images
 from .model import CategoryModel, load_model
@@ -204,7 +204,7 @@ def machine_info(device: torch.device | str = "cpu") -> dict[str, str]:
 
 def _score(model: CategoryModel, category: Category, settings: BenchSettings) -> dict:
     instances = range(min(settings.eval_instances, len(model.names)))
-    return score_model(model, category, held_out_split(category), settings.eval_views, instances)
+    return score_model(model, category, held_out_split(category, "test"), settings.eval_views, instances)
 
 
 def probe_steps_per_second(category: Category, cfg: Config, device, seconds: float, folder: Path, seed: int) -> float:
@@ -289,7 +289,7 @@ def render_curve(
     settings: BenchSettings, progress: Progress,
 ) -> list[BenchRow]:
     """Seconds per view and PSNR of held-out views rendered with each sampling variant."""
-    split = held_out_split(category)
+    split = held_out_split(category, "test")
     pairs = [
         (k, view)
         for k in range(min(settings.eval_instances, len(model.names)))

@@ -1,16 +1,16 @@
-"""The paper's evaluation protocols on top of :mod:`crfedit.evaluate`.
+"""Rendering views of a trained model and scoring them: the paper's evaluation protocols.
 
+* :func:`score_model` — the one scoring loop: each instance's views of a split rendered with
+  the dataset's cameras and scored against its images (:func:`score_instance`).
 * :func:`evaluate_recon` — reconstruction of held-out views, per instance and overall.
 * :func:`evaluate_edits` — Tables 2 (colour) and 3 (shape / removal) of Liu et al.: every
   ground-truth twin of the dataset (``twins.json``) is edited from its scribbles with each
   update strategy (and, optionally, the single-instance NeRF baseline), every test view of the
   source instance is rendered with the edit applied and scored against the twin's test views.
-* :func:`run_ablation` — Table 1: the architecture variants (``Config.arch``) trained at an
-  equal number of network parameters (:func:`matched_width`) and an equal time or step budget,
-  scored on held-out views.
 
-Scores are PSNR (dB, averaged per image), SSIM (:data:`SSIM_NOTE`) and LPIPS-AlexNet when a
-weights file is configured (:mod:`crfedit.metrics`).
+Table 1 (the architecture ablation) is :mod:`crfedit.ablation`.  Scores are PSNR (dB,
+averaged per image), SSIM (:data:`SSIM_NOTE`) and LPIPS-AlexNet when a weights file is
+configured (:mod:`crfedit.metrics`).
 """
 
 from __future__ import annotations
@@ -26,19 +26,17 @@ import numpy as np
 import torch
 
 from .cameras import Camera
-from .config import ARCHS, Config, make_config
+from .config import Config
 from .data.format import Category, TwinSpec, View, load_category, load_twins, read_mask
 from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
 from .edit.params import GROUP, trained_prefixes
-from .errors import CrfError
-from .evaluate import render_views, score_model
 from .edit.selection import ScribbleView, select
-from .twin_scores import appearance, changed_regions, gap_closed, region_scores, selection_iou
-from .field import ConditionalRadianceField
+from .errors import CrfError
 from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
-from .names import CODE_TABLES
+from .renderer import RenderOutput, render_camera
 from .train import train
+from .twin_scores import appearance, changed_regions, gap_closed, region_scores, selection_iou
 
 SSIM_NOTE = "SSIM: 11×11 Gaussian window, σ=1.5, on RGB"
 LPIPS_SKIPPED = "LPIPS: skipped (no weights)"
@@ -46,10 +44,8 @@ UNEDITED = "unedited"
 NERF_BASELINE = "nerf (single instance)"
 PAPER_METHOD = "hybrid, --method paper"
 """The paper's own losses (scribbled view's rays only) with its hybrid update, for comparison."""
-ABLATION_ARCHS = ("nerf", "single", "separate", "ours")
-"""Table 1's rows, weakest first."""
-PARAM_TOLERANCE = 0.05
-"""Ablation variants' network parameters lie within ±5 % of ``ours``."""
+DEFAULT_CHUNK = 16384
+HELD_OUT = ("test", "val")
 
 Progress = Callable[[str], None]
 
@@ -79,49 +75,79 @@ def load_category_for(model: CategoryModel, data: str | Path, split: str = "test
     return load_category(Path(data), res=model_width(model, split))
 
 
+def held_out_split(category: Category, prefer: str = "test") -> str:
+    """``prefer`` (``test`` or ``val``) when any instance has views of it, else the other one.
+
+    Training's end-of-run score prefers ``val`` (it keeps ``test`` unseen); the ablation and
+    the benchmarks prefer ``test``.
+    """
+    if prefer not in HELD_OUT:
+        raise CrfError(f"held-out split {prefer!r}: expected test or val")
+    other = HELD_OUT[1 - HELD_OUT.index(prefer)]
+    return prefer if any(prefer in inst.splits for inst in category.instances) else other
+
+
 # ----------------------------------------------------------------------------- reconstruction
 
 
+def render_views(
+    model: CategoryModel, instance: int, cameras: Sequence[Camera], chunk: int = DEFAULT_CHUNK
+) -> list[RenderOutput]:
+    """Render ``cameras`` of ``instance`` (on white), with the instance's baked overrides if any.
+
+    Deterministic: the same model and cameras give bit-identical images.
+    """
+    field = model.field_for(instance)
+    return [render_camera(field, cam, instance, chunk=chunk) for cam in cameras]
+
+
 def score_instance(
-    model: CategoryModel, instance: int, views: Sequence[View], lpips_weights: str | Path | None = None
+    model: CategoryModel, instance: int, views: Sequence[View], lpips_weights: str | Path | None = None,
+    chunk: int = DEFAULT_CHUNK,
 ) -> dict:
     """Render ``instance`` at ``views``' cameras and score against their images (score_images)."""
-    outs = render_views(model, instance, [v.camera for v in views])
+    outs = render_views(model, instance, [v.camera for v in views], chunk)
     preds = [o.rgb.clamp(0.0, 1.0).cpu().numpy() for o in outs]
     return score_images(preds, [v.rgb for v in views], lpips_weights)
 
 
-def evaluate_recon(
+def score_model(
     model: CategoryModel,
     category: Category,
     split: str = "test",
     max_views: int | None = None,
+    instances: Sequence[int] | None = None,
     lpips_weights: str | Path | None = None,
+    chunk: int = DEFAULT_CHUNK,
 ) -> dict:
-    """Held-out reconstruction scores of every model instance that ``category`` holds.
+    """PSNR / SSIM (and LPIPS when weights are configured) of the model's renders of ``split``.
 
-    Each instance's first ``max_views`` views of ``split`` (default: all) are rendered with the
-    dataset's cameras and scored against its images.  Returns::
+    ``instances`` are model indices (default: every model instance that ``category`` holds; a
+    given one that it lacks is an error); each is matched to the dataset's instance of the same
+    name, and its first ``max_views`` views of ``split`` (default: all) are rendered with the
+    dataset's cameras and scored against its images (:func:`score_instance`).  Returns::
 
-        {"split", "n": views scored, "psnr", "ssim", "lpips" (None without weights),
-         "lpips_note", "ssim_note", "dataset_match": bool,
+        {"split": "test", "n": total views, "psnr": mean dB, "ssim": mean, "lpips": mean or None,
+         "lpips_note": why LPIPS was skipped or None,
          "instances": {name: {"n", "psnr", "ssim", "lpips"}}}
 
-    Means are over views (each view counts once, as in :func:`crfedit.evaluate.score_model`).
-    ``lpips_weights`` (or ``$CRFEDIT_LPIPS_WEIGHTS``) enables LPIPS; a configured file that is
-    missing or invalid is an error, never a silent skip.
+    Means are over all scored views (each view counts once, whatever its instance).
     """
-    if split not in ("train", "val", "test"):
-        raise CrfError(f"--split {split}: expected train, val or test")
     if max_views is not None and max_views < 1:
         raise CrfError(f"--max-views {max_views}: must be at least 1")
-    per_instance, note = {}, lpips_unavailable_reason(lpips_weights)
-    for k, name in enumerate(model.names):
-        if name not in category.names:
-            continue
+    if instances is None:
+        indices = [k for k, name in enumerate(model.names) if name in category.names]
+    else:
+        indices = list(instances)
+        missing = [model.names[k] for k in indices if model.names[k] not in category.names]
+        if missing:
+            raise CrfError(f"instance {missing[0]!r} of the model is not in the dataset {category.root}")
+    per_instance, note = {}, None
+    for k in indices:
+        name = model.names[k]
         views = category.instance(name).splits.get(split, [])[:max_views]
         if views:
-            score = score_instance(model, k, views, lpips_weights)
+            score = score_instance(model, k, views, lpips_weights, chunk)
             note = score["lpips_note"]
             per_instance[name] = {key: score[key] for key in ("n", "psnr", "ssim", "lpips")}
     if not per_instance:
@@ -135,9 +161,30 @@ def evaluate_recon(
 
     return {
         "split": split, "n": int(n.sum()), "psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"),
-        "lpips_note": note, "ssim_note": SSIM_NOTE, "dataset_match": fingerprint_warning(model, category) is None,
-        "instances": per_instance,
+        "lpips_note": note, "instances": per_instance,
     }
+
+
+def evaluate_recon(
+    model: CategoryModel,
+    category: Category,
+    split: str = "test",
+    max_views: int | None = None,
+    lpips_weights: str | Path | None = None,
+) -> dict:
+    """Held-out reconstruction scores of every model instance that ``category`` holds.
+
+    :func:`score_model`'s result plus ``"ssim_note"`` and ``"dataset_match"`` (whether
+    ``category`` is the dataset the model was trained on).  ``lpips_weights`` (or
+    ``$CRFEDIT_LPIPS_WEIGHTS``) enables LPIPS; a configured file that is missing or invalid is
+    an error, never a silent skip.
+    """
+    if split not in ("train", "val", "test"):
+        raise CrfError(f"--split {split}: expected train, val or test")
+    score = score_model(model, category, split, max_views, lpips_weights=lpips_weights)
+    instances = score.pop("instances")
+    match = fingerprint_warning(model, category) is None
+    return {**score, "ssim_note": SSIM_NOTE, "dataset_match": match, "instances": instances}
 
 
 # ----------------------------------------------------------------------------- edits (Tables 2, 3)
@@ -395,135 +442,3 @@ def evaluate_edits(
         "ssim_note": SSIM_NOTE,
         "lpips_note": note,
     }
-
-
-# ----------------------------------------------------------------------------- ablation (Table 1)
-
-
-def network_parameters(cfg: Config) -> int:
-    """Trainable parameters of a field built from ``cfg``, without the per-instance codes and the
-    instance-agnostic feature grid (the same size in every arch).  Count of one instance's field."""
-    field = ConditionalRadianceField(cfg, 1)
-    return sum(
-        p.numel() for name, p in field.named_parameters()
-        if name not in CODE_TABLES and not name.endswith(".grid")
-    )
-
-
-def matched_width(cfg: Config, arch: str, target: int | None = None) -> int:
-    """The ``width`` (of F_share, F_inst, F_fuse) that brings ``arch``'s network parameters
-    closest to ``target`` (default: those of ``cfg`` with arch ``ours``).
-
-    The count grows with the width, so a bisection finds the first width at or above the
-    target and the closer of it and its predecessor wins.  Example (fast preset, width 64):
-    ``separate`` and ``single`` drop the F_share MLP and need a wider trunk; ``nerf`` also
-    drops F_inst and the code embeddings.
-    """
-    if arch not in ARCHS:
-        raise CrfError(f"arch {arch!r}: expected one of {', '.join(ARCHS)}")
-    if target is None:
-        target = network_parameters(dataclasses.replace(cfg, arch="ours"))
-
-    def count(width: int) -> int:
-        return network_parameters(dataclasses.replace(cfg, arch=arch, width=width))
-
-    lo, hi = 1, max(2, cfg.width)
-    while count(hi) < target:
-        lo, hi = hi, hi * 2
-        if hi > 1 << 16:
-            raise CrfError(f"arch {arch}: no width reaches {target} parameters")
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if count(mid) < target:
-            lo = mid + 1
-        else:
-            hi = mid
-    if lo > 1 and abs(count(lo - 1) - target) <= abs(count(lo) - target):
-        return lo - 1
-    return lo
-
-
-def ablation_configs(base: Config, archs: Sequence[str] = ABLATION_ARCHS) -> dict[str, Config]:
-    """One config per arch, widths matched to ``base`` as arch ``ours`` (:func:`matched_width`)."""
-    target = network_parameters(dataclasses.replace(base, arch="ours"))
-    out = {}
-    for arch in archs:
-        width = base.width if arch == "ours" else matched_width(base, arch, target)
-        out[arch] = dataclasses.replace(base, arch=arch, width=width).validated()
-    return out
-
-
-def warm_up_training(category: Category, cfg: Config, device, folder: Path) -> None:
-    """Two throwaway training steps: the first training of a process pays one-off costs (kernel
-    and allocator warm-up, seconds on a CPU) that must not come out of a timed budget."""
-
-    path = Path(folder) / "warm-up.safetensors"
-    train(category, dataclasses.replace(cfg, steps=2, checkpoint_every=2), path, device)
-    path.unlink(missing_ok=True)
-
-
-def held_out_split(category: Category) -> str:
-    """``test`` when every instance has test views, else ``val``."""
-    return "test" if all("test" in inst.splits for inst in category.instances) else "val"
-
-
-def run_ablation(
-    category: Category,
-    minutes: float | None = None,
-    steps: int | None = None,
-    seed: int = 0,
-    device: torch.device | str = "cpu",
-    base: Config | None = None,
-    archs: Sequence[str] = ABLATION_ARCHS,
-    split: str | None = None,
-    max_views: int | None = None,
-    workdir: str | Path | None = None,
-    progress: Progress | None = None,
-) -> list[dict]:
-    """Table 1: train each arch at equal network parameters and an equal budget, score held out.
-
-    Every arch gets ``minutes`` of training time and/or ``steps`` steps (at least one is
-    needed; with both, whichever ends first), the same ``seed`` and data.  ``base`` is the
-    config to vary (default: the ``fast`` preset).  Returns one dict per arch::
-
-        {"arch", "width", "params", "params_vs_ours", "steps", "seconds", "split", "n",
-         "psnr", "ssim", "lpips"}
-
-    ``params_vs_ours`` is the ratio of network parameters (codes and feature grid excluded) to
-    ``ours``; :func:`matched_width` keeps it within ``1 ± PARAM_TOLERANCE``.  Model files go to
-    ``workdir`` (kept) or a temporary folder (deleted).
-    """
-
-    if minutes is None and steps is None:
-        raise CrfError("ablation: give a time budget (--minutes) or a step budget (--steps)")
-    if minutes is not None and not (minutes > 0 and math.isfinite(minutes)):
-        raise CrfError(f"--minutes {minutes:g}: must be a positive number")
-    if steps is not None and steps < 1:
-        raise CrfError(f"--steps {steps}: must be at least 1")
-    base = base or make_config("fast")
-    if steps is not None:
-        base = dataclasses.replace(base, steps=steps)
-    elif minutes is not None:
-        base = dataclasses.replace(base, steps=max(base.steps, 10**9))  # the time budget ends every run
-    split = split or held_out_split(category)
-    configs = ablation_configs(base, archs)
-    target = network_parameters(configs["ours"]) if "ours" in configs else network_parameters(dataclasses.replace(base, arch="ours"))
-    say = progress or (lambda _msg: None)
-    rows = []
-    with tempfile.TemporaryDirectory(prefix="crfedit-ablation-") as tmp:
-        folder = Path(workdir) if workdir is not None else Path(tmp)
-        folder.mkdir(parents=True, exist_ok=True)
-        warm_up_training(category, next(iter(configs.values())), device, folder)
-        for arch, cfg in configs.items():
-            params = network_parameters(cfg)
-            budget = f"{minutes:g} min" if minutes is not None else f"{steps} steps"
-            say(f"{arch}: width {cfg.width}, {params:,} network parameters, training for {budget}")
-            model, result = train(category, cfg, folder / f"{arch}.safetensors", device, seed=seed, minutes=minutes)
-            score = score_model(model, category, split, max_views)
-            rows.append({
-                "arch": arch, "width": cfg.width, "params": params, "params_vs_ours": params / target,
-                "steps": result.steps, "seconds": result.seconds, "split": split, "n": score["n"],
-                "psnr": _finite(score["psnr"]), "ssim": score["ssim"], "lpips": score["lpips"],
-            })
-            say(f"{arch}: {result.steps} steps in {result.seconds:.1f} s, PSNR {score['psnr']:.2f} dB, SSIM {score['ssim']:.3f}")
-    return rows

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 import crfedit.train
 from crfedit.cli import app
-from crfedit.evaluate import render_views
+from crfedit.evaluation import render_views
 from crfedit.io import read_exr, read_image
 from crfedit.model import load_model
 from crfedit.video import write_video

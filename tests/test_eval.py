@@ -14,6 +14,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from crfedit.ablation import ABLATION_ARCHS, PARAM_TOLERANCE, ablation_configs, matched_width, network_parameters, run_ablation
 from crfedit.cli import app
 from crfedit.config import ARCHS, make_config
 from crfedit.data.format import load_category
@@ -21,22 +22,18 @@ from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.edit import EditOptions
 from crfedit.errors import CrfError
 from crfedit.evaluation import (
-    ABLATION_ARCHS,
     NERF_BASELINE,
     PAPER_METHOD,
-    PARAM_TOLERANCE,
     SSIM_NOTE,
     UNEDITED,
     NerfBaseline,
-    ablation_configs,
     edit_tables,
     evaluate_edits,
     evaluate_recon,
     fingerprint_warning,
+    held_out_split,
     load_twin_cases,
-    matched_width,
-    network_parameters,
-    run_ablation,
+    score_model,
     strategy_problem,
 )
 from crfedit.field import ConditionalRadianceField
@@ -112,6 +109,35 @@ def test_recon_scores_match_the_library(model_path, data):
     score = evaluate_recon(model, load_category(data), "test")
     cli = json.loads(invoke("eval", "recon", model_path, data, "--json", "--device", "cpu").stdout)
     assert cli["psnr"] == pytest.approx(score["psnr"]) and cli["ssim"] == pytest.approx(score["ssim"])
+
+
+def test_held_out_split_prefers_a_split_any_instance_has():
+    from types import SimpleNamespace as NS
+
+    category = lambda *splits: NS(instances=[NS(splits=dict.fromkeys(s, [])) for s in splits])
+    mixed = category(("train", "val"), ("train", "test"))
+    assert held_out_split(mixed, "val") == "val" and held_out_split(mixed, "test") == "test"
+    assert held_out_split(category(("train", "test")), "val") == "test"  # training's end score without val
+    assert held_out_split(category(("train", "val"), ("train",)), "test") == "val"
+    with pytest.raises(CrfError, match="expected test or val"):
+        held_out_split(mixed, "train")
+
+
+def test_score_model_is_the_loop_behind_evaluate_recon(model_path, data):
+    model, _ = load_model(model_path)
+    category = load_category(data)
+    recon = evaluate_recon(model, category, "test", max_views=2)
+    score = score_model(model, category, "test", max_views=2)
+    assert {k: recon[k] for k in score} == score
+    assert score["n"] == sum(min(2, len(inst.splits["test"])) for inst in category.instances)
+    one = score_model(model, category, "test", max_views=2, instances=[1])
+    assert list(one["instances"]) == ["chair_001"] and one["psnr"] == score["instances"]["chair_001"]["psnr"]
+    lone = dataclasses.replace(model, names=["chair_000", "elsewhere"])
+    assert list(score_model(lone, category, "test", 1)["instances"]) == ["chair_000"]  # default: the ones it holds
+    with pytest.raises(CrfError, match="'elsewhere' of the model is not in the dataset"):
+        score_model(lone, category, "test", 1, instances=[0, 1])
+    with pytest.raises(CrfError, match="none of the model.s instances has dev views"):
+        score_model(model, category, "dev")
 
 
 def test_recon_on_another_dataset_warns_or_fails_with_strict(model_path, data, tmp_path):

@@ -257,7 +257,8 @@ def ablation_cmd(
     """
     from ..config import make_config
     from ..data.format import load_category
-    from ..evaluation import SSIM_NOTE, run_ablation
+    from ..ablation import run_ablation
+    from ..evaluation import SSIM_NOTE
     from ..runtime import resolve_device
     from ..views import parse_resolution
 

@@ -114,11 +114,6 @@ def stored_training(path: Path):
     return cfg, step, sizes if isinstance(sizes, dict) else {}
 
 
-def held_out_split(category) -> str:
-    """``val`` when any instance has validation views, else ``test``."""
-    return "val" if any("val" in inst.splits for inst in category.instances) else "test"
-
-
 def format_score(score: dict) -> str:
     text = f"PSNR {score['psnr']:.2f} dB, SSIM {score['ssim']:.3f}"
     return text + (f", LPIPS {score['lpips']:.3f}" if score["lpips"] is not None else "")
@@ -183,7 +178,7 @@ def train_cmd(
     """
     from ..config import make_config
     from ..data.format import load_category
-    from ..evaluate import score_model
+    from ..evaluation import held_out_split, score_model
     from ..runtime import resolve_device, seed_everything
     from ..views import parse_resolution
 
@@ -213,7 +208,7 @@ def train_cmd(
     category = load_category(data, res=res)
     seed_everything(seed)  # train() draws the initial weights from torch's global generator
     model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every)
-    score = score_model(model, category, held_out_split(category), max_views=model.cfg.eval_views)
+    score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
     typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
     rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)
     typer.echo(
@@ -356,7 +351,7 @@ def quickstart_cmd(
     from ..config import make_config
     from ..data.format import load_category
     from ..data.synth import SynthConfig, check_synth_args, write_synth_category
-    from ..evaluate import score_model
+    from ..evaluation import score_model
     from ..io import write_json
     from ..runtime import resolve_device, seed_everything
     from .render import render_to_folder
