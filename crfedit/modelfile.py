@@ -1,4 +1,5 @@
-"""What a model file holds, by kind, and a copy of it without the training state.
+"""What a model file holds: its recorded training, a summary (``crfedit info``), bytes by kind,
+and a copy of it without the training state.
 
 A model file written by ``crfedit train`` carries, besides the networks, what ``--resume``
 needs: Adam's two moments per parameter, the occupancy EMA and visual hulls.  That state is
@@ -7,9 +8,12 @@ most of the file; a recipient who only renders or edits needs none of it.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
+from .config import Config
+from .names import CODE_TABLES, MODULES
 from .safefile import read_header, read_safetensors, write_safetensors
 
 CODES = ("field.shape_codes", "field.color_codes")
@@ -53,3 +57,74 @@ def strip_model(path: str | os.PathLike, out: str | os.PathLike) -> dict[str, in
     kept = {name: t for name, t in tensors.items() if tensor_kind(name) != "training state"}
     write_safetensors(out, kept, meta)
     return size_breakdown(out)
+
+
+# ----------------------------------------------------------------------------- summaries
+
+
+def stored_training(path: str | os.PathLike) -> tuple[Config, int, dict]:
+    """(config, step, view sizes) recorded in a model file, read from its header only: what
+    ``train --resume`` checks before loading anything."""
+    _, meta = read_header(path)
+    cfg = Config.from_json(meta.get("config", ""))
+    step = int(meta["step"]) if meta.get("step", "").isdigit() else 0
+    try:
+        sizes = json.loads(meta.get("view_sizes", "{}"))
+    except json.JSONDecodeError:
+        sizes = {}
+    return cfg, step, sizes if isinstance(sizes, dict) else {}
+
+
+MODULE_ORDER = (*MODULES, *CODE_TABLES)
+
+
+def model_info(path: str | os.PathLike) -> dict:
+    """What ``crfedit info`` prints, as plain JSON types."""
+    from .model import load_model
+
+    path = Path(path)
+    model, state = load_model(path)
+    field = model.field
+    modules: dict[str, dict[str, int]] = {}
+    for name, p in field.named_parameters():
+        parts = name.split(".")
+        key = ".".join(parts[:2]) if parts[0] == "coarse" else parts[0]
+        entry = modules.setdefault(key, {"params": 0, "bytes": 0})
+        entry["params"] += p.numel()
+        entry["bytes"] += p.numel() * p.element_size()
+    order = {name: i for i, name in enumerate(MODULE_ORDER)}
+    modules = dict(sorted(modules.items(), key=lambda kv: (kv[0].startswith("coarse."), order.get(kv[0].removeprefix("coarse."), len(order)))))
+    buffers = {name: b.numel() * b.element_size() for name, b in field.named_buffers()}
+    fill = field.occupancy.flatten(1).float().mean(dim=1).tolist()
+    cfg = model.cfg
+    meta = model.meta
+    return {
+        "path": str(path),
+        "file_bytes": path.stat().st_size,
+        "sizes": size_breakdown(path),
+        "preset": cfg.preset,
+        "arch": cfg.arch,
+        "sampler": cfg.sampler,
+        "instances": len(model.names),
+        "names": model.names,
+        "parameters": sum(m["params"] for m in modules.values()),
+        "modules": modules,
+        "buffer_bytes": buffers,
+        "occupancy": {
+            "used": cfg.sampler == "grid",
+            "res": cfg.occ_res,
+            "mean_fill": sum(fill) / len(fill),
+            "fill": dict(zip(model.names, fill)),
+        },
+        "scene_box": {"min": field.aabb[:3].tolist(), "max": field.aabb[3:].tolist()},
+        "views": {split: {"count": int(t.focal.numel()), "size": [t.width, t.height]} for split, t in model.views.items()},
+        "baked_instances": [model.names[k] for k in sorted(model.overrides)],
+        "dataset_fingerprint": model.dataset_fingerprint,
+        "fingerprint": model.fingerprint(),
+        "step": int(meta["step"]) if meta.get("step", "").isdigit() else None,
+        "steps": cfg.steps,
+        "train_seconds": float(state["elapsed"]) if "elapsed" in state else None,
+        "resumable": bool(state),
+        "command": meta.get("command"),
+        "config": json.loads(cfg.to_json()),
+    }

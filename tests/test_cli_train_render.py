@@ -14,9 +14,13 @@ from typer.testing import CliRunner
 
 import crfedit.train
 from crfedit.cli import app
-from crfedit.evaluation import render_views
+from crfedit.data.format import load_category
+from crfedit.errors import CrfError
+from crfedit.evaluation import held_out_split, render_views, score_model
 from crfedit.io import read_exr, read_image
 from crfedit.model import load_model
+from crfedit.modelfile import model_info, stored_training
+from crfedit.render_files import render_to_folder
 from crfedit.video import write_video
 from crfedit.views import resolve_views
 
@@ -42,13 +46,34 @@ def data(tiny_chairs) -> Path:
 
 
 @pytest.fixture(scope="module")
-def model_path(data, tmp_path_factory) -> Path:
+def trained(data, tmp_path_factory) -> tuple[Path, str]:
+    """(model file, stdout) of ``crfedit train``."""
     out = tmp_path_factory.mktemp("cli") / "model.safetensors"
     result = invoke("train", data, "--out", out, "--steps", 30, *TINY)
     assert result.exit_code == 0, result.output
     assert "held-out val (2 views): PSNR" in result.stdout
     assert "trained 2 instances for 30 steps" in result.stdout
-    return out
+    return out, result.stdout
+
+
+@pytest.fixture(scope="module")
+def model_path(trained) -> Path:
+    return trained[0]
+
+
+def test_training_end_score_is_score_model_on_val(trained, data):
+    model, _ = load_model(trained[0])
+    category = load_category(data)
+    assert held_out_split(category, "val") == "val"
+    score = score_model(model, category, "val", max_views=model.cfg.eval_views)
+    assert f"held-out val ({score['n']} views): PSNR {score['psnr']:.2f} dB, SSIM {score['ssim']:.3f}\n" in trained[1]
+
+
+def test_stored_training_reads_the_header(model_path):
+    model, _ = load_model(model_path)
+    cfg, step, sizes = stored_training(model_path)
+    assert cfg == model.cfg and step == 30
+    assert sizes == {split: [t.width, t.height] for split, t in model.views.items()} and sizes["train"] == [16, 16]
 
 
 def test_train_writes_a_loadable_model(model_path, data):
@@ -140,6 +165,19 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
             assert (out / name).read_bytes() == (again / name).read_bytes(), name
 
 
+def test_render_to_folder_library(model_path, tmp_path):
+    model, _ = load_model(model_path)
+    out = tmp_path / "frames"
+    result = render_to_folder(model, 0, "orbit:2", out, res=8, video=tmp_path / "turn.gif")
+    assert (result.count, result.width, result.height, result.video) == (2, 8, 8, tmp_path / "turn.gif")
+    refs = render_views(model, 0, [cam for _, cam in resolve_views("orbit:2", model, 0, res=8)])
+    for i, ref in enumerate(refs):
+        np.testing.assert_array_equal(np.round(read_image(out / f"{i:04d}.png") * 255), np.round(ref.rgb.clamp(0, 1).numpy() * 255))
+    assert result.video.stat().st_size > 0
+    with pytest.raises(CrfError, match="exists and is not a folder"):
+        render_to_folder(model, 0, "orbit:2", tmp_path / "turn.gif")
+
+
 def test_render_split_views_at_stored_size_and_gif(model_path, tmp_path):
     out = tmp_path / "r"
     result = invoke("render", model_path, "--instance", 0, "--views", "train:0-2", "--out", out, "--video", tmp_path / "t.gif")
@@ -188,6 +226,7 @@ def test_info_json_and_text(model_path):
     result = invoke("info", model_path, "--json")
     assert result.exit_code == 0, result.output
     info = json.loads(result.stdout)
+    assert info == model_info(model_path)
     model, _ = load_model(model_path)
     assert info["instances"] == 2 and info["names"] == model.names and info["preset"] == "fast" and info["arch"] == "ours"
     assert list(info["modules"]) == ["F_share", "F_inst", "F_fuse", "F_dens", "bottleneck", "F_rad", "shape_codes", "color_codes"]

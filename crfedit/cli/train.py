@@ -14,7 +14,6 @@ import typer
 from ..io import check_folder_target
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
-from ..names import CODE_TABLES, MODULES
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, user_errors
 
 
@@ -99,21 +98,6 @@ def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, 
     folder.mkdir(parents=True, exist_ok=True)
 
 
-def stored_training(path: Path):
-    """(config, step, view sizes) recorded in a model file, read from its header only."""
-    from ..config import Config
-    from ..safefile import read_header
-
-    _, meta = read_header(path)
-    cfg = Config.from_json(meta.get("config", ""))
-    step = int(meta["step"]) if meta.get("step", "").isdigit() else 0
-    try:
-        sizes = json.loads(meta.get("view_sizes", "{}"))
-    except json.JSONDecodeError:
-        sizes = {}
-    return cfg, step, sizes if isinstance(sizes, dict) else {}
-
-
 def format_score(score: dict) -> str:
     text = f"PSNR {score['psnr']:.2f} dB, SSIM {score['ssim']:.3f}"
     return text + (f", LPIPS {score['lpips']:.3f}" if score["lpips"] is not None else "")
@@ -121,6 +105,7 @@ def format_score(score: dict) -> str:
 
 def run_training(category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int = 100):
     """Train on a loaded category with a progress bar and run records (crfedit.runlog); return (model, TrainResult)."""
+    from ..modelfile import stored_training
     from ..runlog import RunLog, config_block, record_paths
     from ..threads import requested_threads
     from ..train import train
@@ -179,6 +164,7 @@ def train_cmd(
     from ..config import make_config
     from ..data.format import load_category
     from ..evaluation import held_out_split, score_model
+    from ..modelfile import stored_training
     from ..runtime import resolve_device, seed_everything
     from ..views import parse_resolution
 
@@ -220,61 +206,6 @@ def train_cmd(
 # ----------------------------------------------------------------------------- info
 
 
-MODULE_ORDER = (*MODULES, *CODE_TABLES)
-
-
-def model_info(path: Path) -> dict:
-    """What ``crfedit info`` prints, as plain JSON types."""
-    from ..model import load_model
-    from ..modelfile import size_breakdown
-
-    model, state = load_model(path)
-    field = model.field
-    modules: dict[str, dict[str, int]] = {}
-    for name, p in field.named_parameters():
-        parts = name.split(".")
-        key = ".".join(parts[:2]) if parts[0] == "coarse" else parts[0]
-        entry = modules.setdefault(key, {"params": 0, "bytes": 0})
-        entry["params"] += p.numel()
-        entry["bytes"] += p.numel() * p.element_size()
-    order = {name: i for i, name in enumerate(MODULE_ORDER)}
-    modules = dict(sorted(modules.items(), key=lambda kv: (kv[0].startswith("coarse."), order.get(kv[0].removeprefix("coarse."), len(order)))))
-    buffers = {name: b.numel() * b.element_size() for name, b in field.named_buffers()}
-    fill = field.occupancy.flatten(1).float().mean(dim=1).tolist()
-    cfg = model.cfg
-    meta = model.meta
-    return {
-        "path": str(path),
-        "file_bytes": path.stat().st_size,
-        "sizes": size_breakdown(path),
-        "preset": cfg.preset,
-        "arch": cfg.arch,
-        "sampler": cfg.sampler,
-        "instances": len(model.names),
-        "names": model.names,
-        "parameters": sum(m["params"] for m in modules.values()),
-        "modules": modules,
-        "buffer_bytes": buffers,
-        "occupancy": {
-            "used": cfg.sampler == "grid",
-            "res": cfg.occ_res,
-            "mean_fill": sum(fill) / len(fill),
-            "fill": dict(zip(model.names, fill)),
-        },
-        "scene_box": {"min": field.aabb[:3].tolist(), "max": field.aabb[3:].tolist()},
-        "views": {split: {"count": int(t.focal.numel()), "size": [t.width, t.height]} for split, t in model.views.items()},
-        "baked_instances": [model.names[k] for k in sorted(model.overrides)],
-        "dataset_fingerprint": model.dataset_fingerprint,
-        "fingerprint": model.fingerprint(),
-        "step": int(meta["step"]) if meta.get("step", "").isdigit() else None,
-        "steps": cfg.steps,
-        "train_seconds": float(state["elapsed"]) if "elapsed" in state else None,
-        "resumable": bool(state),
-        "command": meta.get("command"),
-        "config": json.loads(cfg.to_json()),
-    }
-
-
 def _bytes(n: int) -> str:
     for unit in ("B", "KB", "MB", "GB"):
         if n < 1000 or unit == "GB":
@@ -290,6 +221,8 @@ def info_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
 ) -> None:
     """Summarize a model: preset, instances, parameters and bytes per module, occupancy, fingerprints."""
+    from ..modelfile import model_info
+
     meta = model_info(model)
     if as_json:
         typer.echo(json.dumps(meta, indent=2))
@@ -353,8 +286,8 @@ def quickstart_cmd(
     from ..data.synth import SynthConfig, check_synth_args, write_synth_category
     from ..evaluation import score_model
     from ..io import write_json
+    from ..render_files import render_to_folder
     from ..runtime import resolve_device, seed_everything
-    from .render import render_to_folder
 
     if not (minutes > 0 and math.isfinite(minutes)):
         raise CrfError(f"--minutes {minutes:g}: must be a positive number")

@@ -1,0 +1,81 @@
+"""Views of one instance rendered to a folder: ``NNNN.png`` (+ depth EXR), ``views.json`` and a
+video; what ``crfedit render`` and ``crfedit quickstart`` write."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import CrfError
+from .io import write_exr, write_json, write_png
+from .preview import depth_preview
+from .renderer import ray_distance, render_camera
+from .video import video_path, write_video
+from .views import resolve_views
+
+
+@dataclass
+class RenderResult:
+    count: int
+    width: int
+    height: int
+    seconds: float  # rendering only, file writes excluded
+    video: Path | None
+
+
+def prepare_folder(out: Path) -> None:
+    """``mkdir -p out``; an existing file there is a user error."""
+    if out.exists() and not out.is_dir():
+        raise CrfError(f"--out {out}: exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise CrfError(f"--out {out}: cannot create the folder ({e.strerror or e.__class__.__name__})") from None
+
+
+def render_to_folder(
+    model, instance: int, spec: str, out: Path, res: int | None = None, depth: bool = False,
+    video: Path | None = None, chunk: int = 16384, fps: float = 12.0,
+) -> RenderResult:
+    """Render the views ``spec`` names and write ``out/NNNN.png`` (+ ``NNNN_depth.exr`` with float32
+    channels Z = ray distance, +inf where opacity ≤ 1e-3, and A = opacity, and a colour-mapped
+    ``NNNN_depth.png`` preview), ``out/views.json`` (label and camera of each NNNN) and, with
+    ``video``, an MP4 or GIF of the frames."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    if chunk < 1:
+        raise CrfError(f"--chunk {chunk}: must be at least 1")
+    views = resolve_views(spec, model, instance, res)
+    if video is not None:
+        video_path(video)  # a bad suffix fails before any rendering
+        if video.is_dir() or not video.parent.is_dir():
+            raise CrfError(f"--video {video}: needs a file name in an existing folder")
+    prepare_folder(out)
+    field = model.field_for(instance)
+    frames, records, seconds = [], [], 0.0
+    columns = (TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    console = Console()
+    with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
+        task = bar.add_task("rendering", total=len(views))
+        for i, (label, camera) in enumerate(views):
+            t0 = time.perf_counter()
+            output = render_camera(field, camera, instance, chunk=chunk)
+            seconds += time.perf_counter() - t0
+            rgb = output.rgb.clamp(0.0, 1.0).cpu().numpy()
+            write_png(out / f"{i:04d}.png", rgb)
+            if depth:
+                z = ray_distance(output).cpu().numpy()
+                write_exr(out / f"{i:04d}_depth.exr", {"Z": z, "A": output.opacity.cpu().numpy()})
+                write_png(out / f"{i:04d}_depth.png", depth_preview(z, output.opacity.cpu().numpy()))
+            frames.append(rgb)
+            records.append({
+                "file": f"{i:04d}.png", "view": label, "width": camera.width, "height": camera.height,
+                "camera_angle_x": camera.camera_angle_x, "transform_matrix": camera.c2w.tolist(),
+            })
+            bar.update(task, advance=1, description=label)
+    write_json(out / "views.json", {"instance": model.names[instance], "spec": spec, "views": records})
+    written = write_video(video, frames, fps) if video is not None else None
+    first = views[0][1]
+    return RenderResult(len(views), first.width, first.height, seconds, written)
