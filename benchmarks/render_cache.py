@@ -28,14 +28,15 @@ from pathlib import Path
 
 import torch
 
-from crfedit.bench import machine_info, update_markdown
 from crfedit.data.format import load_category
 from crfedit.edit import EditOptions
 from crfedit.edit.cache import ViewCache
 from crfedit.errors import CrfError
 from crfedit.evaluation import apply_twin_edit, load_twin_cases
+from crfedit.machine import machine_info
 from crfedit.model import load_model
 from crfedit.renderer import render_camera
+from crfedit.report import update_markdown
 
 ROOT = Path(__file__).resolve().parent.parent
 BEGIN, END = "<!-- cache:begin -->", "<!-- cache:end -->"

@@ -11,18 +11,9 @@ import torch
 from PIL import Image
 from typer.testing import CliRunner
 
-from crfedit.bench import (
-    BEGIN,
-    CSV_COLUMNS,
-    END,
-    PLOT_SIZE,
-    BenchSettings,
-    log_ticks,
-    machine_info,
-    nice_ticks,
-    plot_curves,
-    update_markdown,
-)
+from crfedit.bench import BenchSettings
+from crfedit.machine import machine_info
+from crfedit.report import BEGIN, CSV_COLUMNS, END, PLOT_SIZE, log_ticks, nice_ticks, plot_curves, update_markdown
 from crfedit.cli import app
 from crfedit.errors import CrfError
 

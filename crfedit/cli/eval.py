@@ -1,6 +1,7 @@
 """``crfedit eval recon | edits | ablation`` and ``crfedit bench``.
 
-Each command calls :mod:`crfedit.evaluation` or :mod:`crfedit.bench` and prints a table
+Each command calls :mod:`crfedit.evaluation`, :mod:`crfedit.ablation` or :mod:`crfedit.bench`
+(written out by :mod:`crfedit.report`) and prints a table
 (``--json``: JSON only on stdout; progress and warnings go to stderr).
 """
 
@@ -353,7 +354,8 @@ def bench_cmd(
     import dataclasses
     import tempfile
 
-    from ..bench import BenchSettings, run_bench, tiny_category, write_outputs
+    from ..bench import BenchSettings, run_bench, tiny_category
+    from ..report import write_outputs
     from ..data.format import load_category
     from ..runtime import resolve_device
 
