@@ -36,7 +36,7 @@ import torch
 
 from crfedit.cameras import Camera
 from crfedit.data.format import Category, InstanceData, instance_names, load_category, load_instance_dir
-from crfedit.edit.fit_real import JOINT, FitOptions, fit_real, prepare_photo
+from crfedit.fit_real import JOINT, FitOptions, fit_real, prepare_photo
 from crfedit.errors import CrfError
 from crfedit.io import write_json
 from crfedit.metrics import score_images

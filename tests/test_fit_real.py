@@ -21,7 +21,7 @@ from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data.synth import SynthConfig
 from crfedit.delta import apply_edit_files, read_delta
-from crfedit.edit.fit_real import (
+from crfedit.fit_real import (
     JOINT,
     FitOptions,
     center_crop,

@@ -94,7 +94,7 @@ def fit_real_cmd(
     """Fit a new instance to a photo of a real object: its codes first, then codes and a copy of
     the weights; writes a fit-real edit that adds the instance (the model file is untouched)."""
     from ..delta import apply_edit_files
-    from ..edit.fit_real import FitOptions, check_new_name, fit_real, prepare_photo, read_photo
+    from ..fit_real import FitOptions, check_new_name, fit_real, prepare_photo, read_photo
     from ..model import load_model
     from ..runtime import resolve_device
     from ..views import resolve_views

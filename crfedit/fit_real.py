@@ -34,21 +34,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .. import occupancy
-from ..cameras import Camera, Rays, rays_from_camera
-from ..data.format import resize_area
-from ..delta import Delta, apply_deltas, grow, make_delta
-from ..errors import CrfError
-from ..field import ConditionalRadianceField
-from ..io import read_image
-from ..metrics import mse_to_psnr
-from ..model import CategoryModel
-from ..optim import run_adam
-from ..renderer import render_camera, render_rays
-from .core import EditResult, camera_meta
-from .losses import mse, weight_penalty
-from .params import used_code_tables
-from .shape import rethreshold
+from . import occupancy
+from .cameras import Camera, Rays, rays_from_camera
+from .data.format import resize_area
+from .delta import Delta, apply_deltas, grow, make_delta
+from .edit.core import EditResult, camera_meta
+from .edit.losses import mse, weight_penalty
+from .edit.params import used_code_tables
+from .edit.shape import rethreshold
+from .errors import CrfError
+from .field import ConditionalRadianceField
+from .io import read_image
+from .metrics import mse_to_psnr
+from .model import CategoryModel
+from .optim import run_adam
+from .renderer import render_camera, render_rays
 
 JOINT: dict[str, tuple[str, ...]] = {
     "heads": ("F_fuse.", "F_dens.", "F_rad.", "coarse.F_fuse.", "coarse.F_dens.", "coarse.F_rad."),
