@@ -202,11 +202,11 @@ def collective_timeout() -> float:
 
 @contextmanager
 def process_group(ranks: Ranks, device: torch.device, timeout_s: float | None = None) -> Iterator[Ranks]:
-    """Join the job's process group for the duration (gloo on CPU, nccl on CUDA); a single
-    process (world 1, not launched by torchrun) joins nothing."""
+    """Join the job's process group for the duration (gloo on CPU, nccl on CUDA); a world of
+    one joins nothing."""
     import torch.distributed as dist
 
-    if ranks.world == 1 and "MASTER_ADDR" not in os.environ:
+    if ranks.world == 1:
         yield ranks
         return
     backend = "nccl" if device.type == "cuda" else "gloo"
