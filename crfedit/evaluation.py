@@ -28,6 +28,7 @@ import torch
 from .cameras import Camera
 from .config import ARCHS, Config, make_config
 from .data.format import Category, TwinSpec, View, load_category, load_twins, read_mask
+from .distributed import SINGLE, Ranks
 from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
 from .edit.params import GROUP, trained_prefixes
 from .errors import CrfError
@@ -97,6 +98,7 @@ def evaluate_recon(
     split: str = "test",
     max_views: int | None = None,
     lpips_weights: str | Path | None = None,
+    ranks: Ranks = SINGLE,
 ) -> dict:
     """Held-out reconstruction scores of every model instance that ``category`` holds.
 
@@ -109,14 +111,15 @@ def evaluate_recon(
 
     Means are over views (each view counts once, as in :func:`crfedit.evaluate.score_model`).
     ``lpips_weights`` (or ``$CRFEDIT_LPIPS_WEIGHTS``) enables LPIPS; a configured file that is
-    missing or invalid is an error, never a silent skip.
+    missing or invalid is an error, never a silent skip.  Under torchrun (``ranks``) each rank
+    scores every ``world``-th instance and every rank returns the gathered result.
     """
     if split not in ("train", "val", "test"):
         raise CrfError(f"--split {split}: expected train, val or test")
     if max_views is not None and max_views < 1:
         raise CrfError(f"--max-views {max_views}: must be at least 1")
     per_instance, note = {}, lpips_unavailable_reason(lpips_weights)
-    for k, name in enumerate(model.names):
+    for k, name in ranks.shard(list(enumerate(model.names))):
         if name not in category.names:
             continue
         views = category.instance(name).splits.get(split, [])[:max_views]
@@ -124,6 +127,11 @@ def evaluate_recon(
             score = score_instance(model, k, views, lpips_weights)
             note = score["lpips_note"]
             per_instance[name] = {key: score[key] for key in ("n", "psnr", "ssim", "lpips")}
+    if ranks.world > 1:
+        parts = ranks.gather((per_instance, note), "gathering the scores")
+        scored = {name: row for part, _ in parts for name, row in part.items()}
+        per_instance = {name: scored[name] for name in model.names if name in scored}
+        note = next((n for part, n in parts if part), note)
     if not per_instance:
         raise CrfError(f"{category.root}: none of the model's instances has {split} views in this dataset")
     rows = list(per_instance.values())

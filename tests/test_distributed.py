@@ -8,6 +8,8 @@ each rank writing what it saw into files the tests then compare:
 * ``full``: 16 steps of the real per-rank sampler, refreshes every 4 steps, a checkpoint at 8;
 * ``crash``: rank 1 dies at step 12 of 24 (a checkpoint was written at 8); rank 0 must stop
   with a :class:`DistributedError` and leave the step-8 file loadable;
+* ``render``/``recon``: the ``full`` model's 5-view orbit (with a GIF) rendered and its views
+  scored with the work shared out over the two ranks;
 * ``repair``: rank 1's copy of a tensor differs, :meth:`Ranks.same_on_all` restores rank 0's.
 """
 
@@ -24,11 +26,13 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from crfedit.cameras import Rays
+from crfedit.cli.render import render_to_folder
 from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.data.format import training_rays
 from crfedit.distributed import DistributedError, Ranks, process_group, rank_device, rank_seed, ranks_from_env
 from crfedit.errors import CrfError
+from crfedit.evaluation import evaluate_recon
 from crfedit.model import load_model
 from crfedit.renderer import render_camera
 from crfedit.train import TrainBatch, train
@@ -37,6 +41,7 @@ EQ = dict(steps=6, rays=64, occ_warmup=2, occ_every=2, checkpoint_every=100)
 FULL = dict(steps=16, rays=64, occ_warmup=4, occ_every=4, checkpoint_every=8)
 CRASH = dict(steps=24, rays=64, occ_warmup=4, occ_every=4, checkpoint_every=8)
 CPU = torch.device("cpu")
+ORBIT = "orbit:5"
 
 
 class SameRays:
@@ -73,6 +78,10 @@ def _worker(rank: int, port: int, data: str, out: str) -> None:
         _dump(model, out_dir / f"eq.rank{rank}.safetensors")
         model, _ = train(category, make_config("fast", overrides=FULL), out_dir / "full.safetensors", CPU, seed=0, ranks=ranks)
         _dump(model, out_dir / f"full.rank{rank}.safetensors")
+        full, _ = load_model(out_dir / "full.safetensors")
+        render_to_folder(full, 0, ORBIT, out_dir / "render", video=out_dir / "orbit.gif", ranks=ranks)
+        score = evaluate_recon(full, category, "train", ranks=ranks)
+        (out_dir / f"recon.rank{rank}.json").write_text(json.dumps(score))
 
         probe = torch.arange(6.0) + 10 * rank
         same = ranks.same_on_all([probe], "a probe")
@@ -161,6 +170,19 @@ def test_a_dead_rank_stops_the_job_and_the_checkpoint_resumes_in_one_process(two
     resumed, result = train(load_category(tiny_chairs), make_config("fast", overrides=CRASH), path, CPU, seed=0, resume=True)
     assert result.steps == 24 and load_model(path)[0].meta["step"] == "24"
     assert not torch.equal(resumed.field.shape_codes, model.field.shape_codes)
+
+
+def test_sharded_render_and_scores_equal_one_process(two_ranks, tiny_chairs, tmp_path):
+    model, _ = load_model(two_ranks / "full.safetensors")
+    render_to_folder(model, 0, ORBIT, tmp_path / "render", video=tmp_path / "orbit.gif")
+    files = sorted(p.name for p in (tmp_path / "render").iterdir())
+    assert files == sorted(p.name for p in (two_ranks / "render").iterdir())
+    assert len([f for f in files if f.endswith(".png")]) == 5 and "views.json" in files
+    for name in ["../orbit.gif"] + files:
+        assert (tmp_path / "render" / name).read_bytes() == (two_ranks / "render" / name).read_bytes(), name
+    one = json.loads(json.dumps(evaluate_recon(model, load_category(tiny_chairs), "train")))
+    r0, r1 = (json.loads((two_ranks / f"recon.rank{r}.json").read_text()) for r in (0, 1))
+    assert one == r0 == r1 and list(one["instances"]) == ["chair_000", "chair_001"]
 
 
 def test_same_on_all_restores_rank_0s_tensor(two_ranks):
