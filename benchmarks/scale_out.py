@@ -2,14 +2,14 @@
 eight gloo ranks spend communicating.
 
     python benchmarks/scale_out.py                   # every measurement, about 6 minutes
-    python benchmarks/scale_out.py --only threads,procs --seconds 30
+    python benchmarks/scale_out.py --only threads,procs --seconds 30   # re-measure two runs
 
 Runs on the procedural chair category ``runs/scale/chairs`` (8 chairs × 20 views at 64×64,
 generated once), fast preset, rays = 1024 per step in total.  Each measurement is one short
 training run (``--seconds``) or a fixed number of steps, in fresh processes joined by gloo on
 127.0.0.1; results go to ``docs/benchmarks/scale_out.json`` and a markdown table to stdout.
 
-- ``threads``: 1 process × 2 torch threads — rays/s;
+- ``one``, ``threads``: 1 process × 1 and × 2 torch threads — rays/s;
 - ``procs``: 2 processes × 1 thread (``train(ranks=...)``) — rays/s summed over ranks, and the
   time per step spent in the gradient all-reduce (waiting for the slower rank included);
 - ``sync``: 2 processes, the same training step with the gradients averaged by
@@ -161,13 +161,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=ROOT / "runs" / "scale" / "chairs")
     parser.add_argument("--seconds", type=float, default=60.0, help="training time of each run")
     parser.add_argument("--steps", type=int, default=40, help="timed steps per mode of the sync comparison")
-    parser.add_argument("--only", default="threads,procs,sync,eight")
+    parser.add_argument("--only", default="one,threads,procs,sync,eight")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "benchmarks" / "scale_out.json")
     args = parser.parse_args(argv)
     if not (args.data / "instances.txt").is_file():
         write_synth_category(args.data, SynthConfig(instances=8, views=20, res=64, seed=0, twins=False))
-    plan = {"threads": (1, 2), "procs": (2, 1), "sync": (2, 1), "eight": (8, 1)}
-    report = {}
+    plan = {"one": (1, 1), "threads": (1, 2), "procs": (2, 1), "sync": (2, 1), "eight": (8, 1)}
+    report = json.loads(args.json.read_text()) if args.json.is_file() else {}  # --only updates its runs
     with tempfile.TemporaryDirectory() as tmp:
         for task in args.only.split(","):
             world, threads = plan[task]
@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
 def markdown(report: dict) -> str:
     rows = ["| run | ranks × threads | load before | steps | rays/s (all ranks) | ms/step | all-reduce ms/step | bare all-reduce ms |",
             "|---|---|---|---|---|---|---|---|"]
-    for task in ("threads", "procs", "eight"):
+    for task in ("one", "threads", "procs", "eight"):
         if task in report:
             r = report[task]["ranks"][0]
             rows.append(
