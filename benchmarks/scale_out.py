@@ -15,7 +15,9 @@ training run (``--seconds``) or a fixed number of steps, in fresh processes join
 - ``sync``: 2 processes, the same training step with the gradients averaged by
   ``DistributedDataParallel`` and by :meth:`crfedit.distributed.Ranks.average` — ms per step;
 - ``eight``: 8 processes × 1 thread — step time against all-reduce time per step, and the bare
-  all-reduce of the gradient buffer after a barrier.
+  all-reduce of the gradient buffer after a barrier;
+- ``memory1``, ``memory2``: peak resident memory of each rank (1 and 2 ranks) over a 3-step
+  training run; meant for a large category (``--data``), not part of the default set.
 """
 
 from __future__ import annotations
@@ -126,7 +128,15 @@ def _worker(rank: int, world: int, port: int, task: str, data: str, seconds: flo
     category = load_category(Path(data))
     ranks = TimedRanks(rank, world, rank)
     with process_group(ranks, CPU, timeout_s=600), tempfile.TemporaryDirectory() as tmp:
-        if task == "sync":
+        if task.startswith("memory"):
+            import resource
+
+            cfg = make_config("fast", overrides=dict(steps=3, checkpoint_every=100000))
+            t0 = time.perf_counter()
+            train(category, cfg, Path(tmp) / "model.safetensors", CPU, seed=0, ranks=ranks)
+            result = {"seconds": time.perf_counter() - t0, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "instances": len(category.instances), "own_train_rays": len(training_rays(category, "train", ranks.shard(range(len(category.instances)))).rgb)}
+        elif task == "sync":
             order = ("flat", "ddp", "flat", "ddp")  # alternated, so a change of machine load shows
             result = {"order": order, "ms_per_step": [_step_loop(category, ranks, mode, steps) for mode in order]}
         else:
@@ -166,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not (args.data / "instances.txt").is_file():
         write_synth_category(args.data, SynthConfig(instances=8, views=20, res=64, seed=0, twins=False))
-    plan = {"one": (1, 1), "threads": (1, 2), "procs": (2, 1), "sync": (2, 1), "eight": (8, 1)}
+    plan = {"one": (1, 1), "threads": (1, 2), "procs": (2, 1), "sync": (2, 1), "eight": (8, 1), "memory1": (1, 1), "memory2": (2, 1)}
     report = json.loads(args.json.read_text()) if args.json.is_file() else {}  # --only updates its runs
     with tempfile.TemporaryDirectory() as tmp:
         for task in args.only.split(","):
