@@ -66,7 +66,8 @@ class Config:
     """The same during training (grid sampler): samples behind opaque surfaces are skipped."""
     # --- training --------------------------------------------------------------------------
     rays: int = 1024
-    """Rays per training step (more, smaller steps won: 1024 beat 2048 and 4096 at equal time)."""
+    """Rays per training step (more, smaller steps won: 1024 beat 2048 and 4096 at equal time);
+    under torchrun the total over all ranks, split between them."""
     steps: int = 30000
     """Length of the learning-rate schedule; ``train --minutes`` ends it on time instead."""
     lr: float = 1e-2

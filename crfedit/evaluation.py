@@ -28,6 +28,7 @@ import torch
 from .cameras import Camera
 from .config import Config
 from .data.format import Category, TwinSpec, View, load_category, load_twins, read_mask
+from .distributed import SINGLE, Ranks
 from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
 from .edit.params import GROUP, trained_prefixes
 from .edit.selection import ScribbleView, select
@@ -119,6 +120,7 @@ def score_model(
     instances: Sequence[int] | None = None,
     lpips_weights: str | Path | None = None,
     chunk: int = DEFAULT_CHUNK,
+    ranks: Ranks = SINGLE,
 ) -> dict:
     """PSNR / SSIM (and LPIPS when weights are configured) of the model's renders of ``split``.
 
@@ -132,6 +134,8 @@ def score_model(
          "instances": {name: {"n", "psnr", "ssim", "lpips"}}}
 
     Means are over all scored views (each view counts once, whatever its instance).
+    Under torchrun (``ranks``) each rank scores every ``world``-th instance and every rank
+    returns the gathered result.
     """
     if max_views is not None and max_views < 1:
         raise CrfError(f"--max-views {max_views}: must be at least 1")
@@ -143,13 +147,18 @@ def score_model(
         if missing:
             raise CrfError(f"instance {missing[0]!r} of the model is not in the dataset {category.root}")
     per_instance, note = {}, None
-    for k in indices:
+    for k in ranks.shard(indices):
         name = model.names[k]
         views = category.instance(name).splits.get(split, [])[:max_views]
         if views:
             score = score_instance(model, k, views, lpips_weights, chunk)
             note = score["lpips_note"]
             per_instance[name] = {key: score[key] for key in ("n", "psnr", "ssim", "lpips")}
+    if ranks.world > 1:
+        parts = ranks.gather((per_instance, note), "gathering the scores")
+        scored = {name: row for part, _ in parts for name, row in part.items()}
+        per_instance = {name: scored[name] for name in model.names if name in scored}
+        note = next((n for part, n in parts if part), note)
     if not per_instance:
         raise CrfError(f"{category.root}: none of the model's instances has {split} views in this dataset")
     rows = list(per_instance.values())
@@ -171,6 +180,7 @@ def evaluate_recon(
     split: str = "test",
     max_views: int | None = None,
     lpips_weights: str | Path | None = None,
+    ranks: Ranks = SINGLE,
 ) -> dict:
     """Held-out reconstruction scores of every model instance that ``category`` holds.
 
@@ -181,7 +191,7 @@ def evaluate_recon(
     """
     if split not in ("train", "val", "test"):
         raise CrfError(f"--split {split}: expected train, val or test")
-    score = score_model(model, category, split, max_views, lpips_weights=lpips_weights)
+    score = score_model(model, category, split, max_views, lpips_weights=lpips_weights, ranks=ranks)
     instances = score.pop("instances")
     match = fingerprint_warning(model, category) is None
     return {**score, "ssim_note": SSIM_NOTE, "dataset_match": match, "instances": instances}

@@ -13,15 +13,21 @@ from torch import Tensor
 from .errors import NonFiniteError
 
 
-def adam_step(opt: torch.optim.Optimizer, loss: Tensor, what: str, step: int, consequence: str) -> float:
+def adam_step(
+    opt: torch.optim.Optimizer, loss: Tensor, what: str, step: int, consequence: str,
+    before_step: Callable[[], None] | None = None,
+) -> float:
     """One optimizer step on ``loss``; returns its value.  A non-finite loss raises
     :class:`NonFiniteError` (``"{what} diverged at step {step} …; {consequence}"``) before the
-    gradients are computed, so the parameters stay as they were."""
+    gradients are computed, so the parameters stay as they were.  ``before_step`` runs between
+    the backward pass and the step (training averages the gradients over ranks there)."""
     value = float(loss.detach())
     if not math.isfinite(value):
         raise NonFiniteError(f"{what} diverged at step {step} (loss is {value}); {consequence}")
     opt.zero_grad(set_to_none=True)
     loss.backward()
+    if before_step is not None:
+        before_step()
     opt.step()
     return value
 

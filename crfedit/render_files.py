@@ -36,14 +36,23 @@ def prepare_folder(out: Path) -> None:
 
 def render_to_folder(
     model, instance: int, spec: str, out: Path, res: int | None = None, depth: bool = False,
-    video: Path | None = None, chunk: int = 16384, fps: float = 12.0,
+    video: Path | None = None, chunk: int = 16384, fps: float = 12.0, ranks=None,
 ) -> RenderResult:
     """Render the views ``spec`` names and write ``out/NNNN.png`` (+ ``NNNN_depth.exr`` with float32
     channels Z = ray distance, +inf where opacity ≤ 1e-3, and A = opacity, and a colour-mapped
-    ``NNNN_depth.png`` preview), ``out/views.json`` (label and camera of each NNNN) and, with
-    ``video``, an MP4 or GIF of the frames."""
+    ``NNNN_depth.png`` preview), ``out/views.json``
+    (label and camera of each NNNN) and, with ``video``, an MP4 or GIF of the frames.
+
+    Under torchrun (``ranks``) each rank renders and writes every ``world``-th view; rank 0
+    gathers the camera records (and frames) and writes ``views.json`` and the video, so the
+    folder is the same as a single process writes.  ``seconds`` is then the slowest rank's."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from .distributed import SINGLE
+    from .video import to_uint8
+
+    ranks = ranks or SINGLE
 
     if chunk < 1:
         raise CrfError(f"--chunk {chunk}: must be at least 1")
@@ -52,14 +61,16 @@ def render_to_folder(
         video_path(video)  # a bad suffix fails before any rendering
         if video.is_dir() or not video.parent.is_dir():
             raise CrfError(f"--video {video}: needs a file name in an existing folder")
-    prepare_folder(out)
+    if ranks.main:
+        prepare_folder(out)
+    ranks.barrier("waiting for rank 0 to create the output folder")
     field = model.field_for(instance)
-    frames, records, seconds = [], [], 0.0
+    frames, records, seconds = {}, {}, 0.0
     columns = (TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     console = Console()
     with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
         task = bar.add_task("rendering", total=len(views))
-        for i, (label, camera) in enumerate(views):
+        for i, (label, camera) in ranks.shard(list(enumerate(views))):
             t0 = time.perf_counter()
             output = render_camera(field, camera, instance, chunk=chunk)
             seconds += time.perf_counter() - t0
@@ -69,13 +80,21 @@ def render_to_folder(
                 z = ray_distance(output).cpu().numpy()
                 write_exr(out / f"{i:04d}_depth.exr", {"Z": z, "A": output.opacity.cpu().numpy()})
                 write_png(out / f"{i:04d}_depth.png", depth_preview(z, output.opacity.cpu().numpy()))
-            frames.append(rgb)
-            records.append({
+            if video is not None:
+                frames[i] = to_uint8(rgb)
+            records[i] = {
                 "file": f"{i:04d}.png", "view": label, "width": camera.width, "height": camera.height,
                 "camera_angle_x": camera.camera_angle_x, "transform_matrix": camera.c2w.tolist(),
-            })
+            }
             bar.update(task, advance=1, description=label)
-    write_json(out / "views.json", {"instance": model.names[instance], "spec": spec, "views": records})
-    written = write_video(video, frames, fps) if video is not None else None
+    if ranks.world > 1:
+        parts = ranks.gather((records, frames, seconds), "gathering the rendered views")
+        records = {i: r for part in parts for i, r in part[0].items()}
+        frames = {i: f for part in parts for i, f in part[1].items()}
+        seconds = max(part[2] for part in parts)
+    written = None
+    if ranks.main:
+        write_json(out / "views.json", {"instance": model.names[instance], "spec": spec, "views": [records[i] for i in sorted(records)]})
+        written = write_video(video, [frames[i] for i in sorted(frames)], fps) if video is not None else None
     first = views[0][1]
     return RenderResult(len(views), first.width, first.height, seconds, written)

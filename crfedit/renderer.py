@@ -74,11 +74,14 @@ def render_rays(
     background: Tensor | float = 1.0,
     density_noise: float = 0.0,
     early_stop: float | None = None,
+    jitter: Tensor | None = None,  # [N] in [0, 1)
 ) -> RenderOutput:
     """Render a batch of rays of one or several instances (``instance`` int or [N] long).
 
     With a ``generator`` sample positions are jittered (training); without, rendering is
     deterministic.  ``early_stop`` (grid sampler) drops rays whose transmittance is below it.
+    ``jitter`` (grid sampler) gives each ray's sample offset within its marching steps instead
+    of drawing it from ``generator``.
     """
     n = rays.origins.shape[0]
     single = int(instance) if not isinstance(instance, Tensor) else None
@@ -86,7 +89,8 @@ def render_rays(
     if field.cfg.sampler == "hierarchical":
         return _render_hierarchical(field, rays, instance, generator, background, density_noise, single)
     t_near, t_far, hit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
-    jitter = None if generator is None else torch.rand(n, generator=generator).to(rays.origins.device)
+    if jitter is None and generator is not None:
+        jitter = torch.rand(n, generator=generator).to(rays.origins.device)
     s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell)
     total = math.ceil(float((t_far - t_near).max()) / s) if n and bool(hit.any()) else 0
     segment = total if early_stop is None else SEGMENT

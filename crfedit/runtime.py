@@ -11,7 +11,10 @@ from .errors import CrfError
 
 
 def resolve_device(name: str = "auto") -> torch.device:
-    """``auto`` → cuda when available, else cpu; asking for cuda without one is a user error."""
+    """``auto`` → cuda when available, else cpu; asking for cuda without one is a user error.
+    A ``torch.device`` (a rank's, from :func:`crfedit.distributed.rank_device`) passes through."""
+    if isinstance(name, torch.device):
+        return name
     name = getattr(name, "value", name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")

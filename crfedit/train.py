@@ -7,6 +7,11 @@
    weights and codes.
 3. Every ``occ_every`` steps a few instances' grids are refreshed from the density.
 4. Checkpoints hold the optimizer, RNG and grid state, so ``--resume`` continues bit for bit.
+
+Under ``torchrun`` (``ranks``, see :mod:`crfedit.distributed`) each rank samples its share of
+the step's rays from its own instances with its own generator, the gradients are averaged in
+one all-reduce, grid refreshes run identically on every rank from a shared generator (and are
+checked), and rank 0 alone writes the checkpoint, in the single-process format.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -25,6 +30,7 @@ from . import occupancy
 from .cameras import Rays
 from .config import Config
 from .data.format import Category, TrainingRays, training_rays
+from .distributed import SINGLE, Ranks, rank_seed
 from .errors import CrfError
 from .field import ConditionalRadianceField
 from .optim import adam_step
@@ -123,15 +129,30 @@ def restore_optimizer(opt: torch.optim.Adam, tensors: dict[str, torch.Tensor]) -
         opt.state.setdefault(p, {})[key] = value.to(p.device) if key != "step" else value.cpu().clone()
 
 
-class BatchSampler:
-    """Random training rays: ``FG_FRACTION`` of each batch from object pixels, the rest from background."""
+class TrainBatch(NamedTuple):
+    """One step's rays with their pixels, and where each marching step's sample sits."""
 
-    def __init__(self, data: TrainingRays, device: torch.device):
+    rays: Rays
+    rgb: torch.Tensor  # [N, 3] target colour
+    instance: torch.Tensor  # [N] long
+    jitter: torch.Tensor | None  # [N] in [0, 1) (grid sampler); None: the renderer draws its own
+
+
+BatchSource = Callable[[int, torch.Generator], TrainBatch]
+"""``(rays, generator) → batch``: where :func:`train` takes its rays from (:class:`BatchSampler`)."""
+
+
+class BatchSampler:
+    """Random training rays: ``FG_FRACTION`` of each batch from object pixels, the rest from
+    background; with ``jitter`` the sample offsets too (drawn after the rays, from the same generator)."""
+
+    def __init__(self, data: TrainingRays, device: torch.device, jitter: bool = True):
         self.data = TrainingRays(*(t.to(device) for t in (data.origins, data.directions, data.rgb, data.alpha, data.instance)))
         self.fg = (data.alpha > 0).nonzero().squeeze(-1).to(device)
         self.bg = (data.alpha <= 0).nonzero().squeeze(-1).to(device)
+        self.jitter = jitter
 
-    def __call__(self, n: int, generator: torch.Generator) -> tuple[Rays, torch.Tensor, torch.Tensor]:
+    def __call__(self, n: int, generator: torch.Generator) -> TrainBatch:
         n_fg = n if len(self.bg) == 0 else (0 if len(self.fg) == 0 else round(n * FG_FRACTION))
         pick = []
         for pool, m in ((self.fg, n_fg), (self.bg, n - n_fg)):
@@ -139,7 +160,8 @@ class BatchSampler:
                 pick.append(pool[torch.randint(len(pool), (m,), generator=generator).to(pool.device)])
         idx = torch.cat(pick)
         d = self.data
-        return Rays(d.origins[idx], d.directions[idx]), d.rgb[idx], d.instance[idx]
+        jitter = torch.rand(n, generator=generator).to(idx.device) if self.jitter else None
+        return TrainBatch(Rays(d.origins[idx], d.directions[idx]), d.rgb[idx], d.instance[idx], jitter)
 
 
 def view_dependence_penalty(field, rays: Rays, inst: torch.Tensor, depth: torch.Tensor, opacity: torch.Tensor,
@@ -157,8 +179,11 @@ def view_dependence_penalty(field, rays: Rays, inst: torch.Tensor, depth: torch.
     return rgb.var(dim=1).mean()
 
 
-def refresh_occupancy(field, hulls, ema, instances, generator) -> None:
-    """Refresh the grids of ``instances`` from the density (candidates = visual hull)."""
+def refresh_occupancy(field, hulls, ema, instances, generator, ranks: Ranks = SINGLE) -> None:
+    """Refresh the grids of ``instances`` from the density (candidates = visual hull).
+
+    Every rank runs it with the same weights and an identical ``generator``, so the grids agree;
+    a checksum all-reduce proves it (rank 0's grids would overwrite any that differ)."""
     s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell)
     with torch.no_grad():
         for k in instances:
@@ -167,6 +192,10 @@ def refresh_occupancy(field, hulls, ema, instances, generator) -> None:
                 ema[k], hulls[k].reshape(-1), density, s, field.cfg.occ_threshold, generator=generator
             )
             field.occupancy[k] = grid.view_as(field.occupancy[k])
+        if ranks.world > 1:
+            rows = [field.occupancy[instances], ema[instances]]
+            if not ranks.same_on_all(rows, "occupancy grids"):
+                field.occupancy[instances], ema[instances] = rows
 
 
 def train(
@@ -179,14 +208,22 @@ def train(
     resume: bool = False,
     on_step: Callable[[int, float, float, float], None] | None = None,
     extra_meta: dict[str, str] | None = None,
+    ranks: Ranks = SINGLE,
+    batches: BatchSource | None = None,
 ) -> tuple[CategoryModel, TrainResult]:
     """Train (or, with ``resume``, continue training) a model of ``category`` and write it to ``out``.
 
     ``on_step(step, loss, psnr, rays_per_s)`` reports progress.  The model file is rewritten
     atomically every ``checkpoint_every`` steps, at the end and on Ctrl-C.  A non-finite loss stops training
     with :class:`NonFiniteError`, leaving the last checkpoint as it was.
+
+    ``ranks`` places this process in a torchrun job: ``cfg.rays`` is then the rays of a step over
+    all ranks, each rank drawing its share from the instances :meth:`Ranks.shard` gives it.
+    ``batches`` replaces that random sampler (e.g. to feed every world size the same rays).
     """
     out = Path(out)
+    if ranks.world > min(cfg.rays, len(category.instances)):
+        raise CrfError(f"{ranks.world} ranks: at most one rank per instance and per ray ({len(category.instances)} instances, rays={cfg.rays})")
     generator = torch.Generator().manual_seed(seed)
     if resume:
         if not out.is_file():
@@ -219,23 +256,36 @@ def train(
                 model.views[split] = table
         step, elapsed, next_instance = 0, 0.0, 0
         state = {}
+    rank_generator = rank_generator_for(state, seed, ranks, step) or generator
+    ranks.broadcast_(list(field.parameters()), "sharing the initial weights")
     opt = make_optimizer(field, cfg)
     restore_optimizer(opt, state)
-    sampler = BatchSampler(training_rays(category, "train"), device)
+    params = [p for g in opt.param_groups for p in g["params"]]
+    if batches is None:
+        own = training_rays(category, "train", ranks.shard(range(len(category.instances))))
+        batches = BatchSampler(own, device, jitter=cfg.sampler == "grid")
+    n_rays = ranks.share(cfg.rays)
+    weight = n_rays * ranks.world / cfg.rays  # this rank's part of the step's mean loss, times world
     meta = dict(extra_meta or {})
 
     def checkpoint() -> None:
-        train_state = {
-            "step": torch.tensor(step),
-            "elapsed": torch.tensor(elapsed, dtype=torch.float64),
-            "rng": generator.get_state(),
-            "occ_ema": ema,
-            "next_instance": torch.tensor(next_instance),
-            **optimizer_tensors(opt),
-        }
-        if hulls is not None:
-            train_state["hull"] = hulls
-        save_model(out, model, train_state, {**meta, "step": str(step)})
+        rank_states = ranks.gather(rank_generator.get_state().tolist(), "gathering generator states") if ranks.world > 1 else []
+        if ranks.main:
+            train_state = {
+                "step": torch.tensor(step),
+                "elapsed": torch.tensor(elapsed, dtype=torch.float64),
+                "rng": generator.get_state(),
+                "occ_ema": ema,
+                "next_instance": torch.tensor(next_instance),
+                **optimizer_tensors(opt),
+                **{f"rng_rank.{r}": torch.tensor(s, dtype=torch.uint8) for r, s in enumerate(rank_states)},
+            }
+            if rank_states:
+                train_state["world"] = torch.tensor(ranks.world)
+            if hulls is not None:
+                train_state["hull"] = hulls
+            save_model(out, model, train_state, {**meta, "step": str(step)})
+        ranks.barrier("waiting for rank 0 to write the checkpoint")
 
     budget = None if minutes is None else 60.0 * minutes
     loss_value, psnr_value = float("nan"), 0.0
@@ -245,30 +295,54 @@ def train(
             progress = None if budget is None else max(step / cfg.steps, elapsed / budget)
             for g in opt.param_groups:
                 g["lr"] = learning_rate(cfg, g["base_lr"], step, progress)
-            rays, target, inst = sampler(cfg.rays, generator)
+            batch = batches(n_rays, rank_generator)
             noise = cfg.density_noise * max(0.0, 1.0 - step / max(1, cfg.occ_warmup))
-            out_r = render_rays(field, rays, inst, generator=generator, density_noise=noise, early_stop=cfg.train_early_stop)
-            loss = torch.mean((out_r.rgb - target) ** 2)
+            out_r = render_rays(
+                field, batch.rays, batch.instance, generator=rank_generator, density_noise=noise,
+                early_stop=cfg.train_early_stop, jitter=batch.jitter,
+            )
+            loss = torch.mean((out_r.rgb - batch.rgb) ** 2)
             mse = loss.detach()
             if out_r.coarse_rgb is not None:
-                loss = loss + torch.mean((out_r.coarse_rgb - target) ** 2)
+                loss = loss + torch.mean((out_r.coarse_rgb - batch.rgb) ** 2)
             if cfg.view_reg > 0:
-                loss = loss + cfg.view_reg * view_dependence_penalty(field, rays, inst, out_r.depth, out_r.opacity, generator)
-            loss_value = adam_step(opt, loss, "training", step, f"{out} keeps its last checkpoint")
+                loss = loss + cfg.view_reg * view_dependence_penalty(field, batch.rays, batch.instance, out_r.depth, out_r.opacity, rank_generator)
+            shared = []  # the step's mean loss, MSE and clock over ranks, from the gradient all-reduce
+
+            def average_gradients() -> None:
+                shared[:] = ranks.average(params, [float(loss.detach()) * weight, float(mse) * weight, time.perf_counter() - t_start])
+
+            adam_step(opt, loss if weight == 1.0 else loss * weight, "training", step, f"{out} keeps its last checkpoint", average_gradients)
+            loss_value, mse_value, clock = shared
             step += 1
             if hulls is not None and step >= cfg.occ_warmup and step % cfg.occ_every == 0:
                 per_update = max(1, math.ceil(len(category.instances) / 4))
                 ks = [(next_instance + i) % len(category.instances) for i in range(per_update)]
                 next_instance = (next_instance + per_update) % len(category.instances)
-                refresh_occupancy(field, hulls, ema, ks, generator)
-            elapsed = time.perf_counter() - t_start
-            psnr_value = -10.0 * math.log10(max(float(mse), 1e-10))
+                refresh_occupancy(field, hulls, ema, ks, generator, ranks)
+            elapsed = time.perf_counter() - t_start if ranks.world == 1 else clock  # every rank stops at the same step
+            psnr_value = -10.0 * math.log10(max(mse_value, 1e-10))
             if on_step is not None:
                 on_step(step, loss_value, psnr_value, cfg.rays * step / max(elapsed, 1e-9))
             if step % cfg.checkpoint_every == 0:
                 checkpoint()
     except KeyboardInterrupt:
+        if ranks.world > 1:  # the ranks may be interrupted inside different collectives: no joint write
+            raise KeyboardInterrupt(f"{out} keeps its last checkpoint; continue with --resume") from None
         checkpoint()
         raise KeyboardInterrupt(f"checkpoint at step {step} written to {out}; continue with --resume") from None
     checkpoint()
     return model, TrainResult(step, elapsed, loss_value, psnr_value)
+
+
+def rank_generator_for(state: dict[str, torch.Tensor], seed: int, ranks: Ranks, step: int) -> torch.Generator | None:
+    """This rank's own sampling generator (None for a single process, which uses the shared one):
+    its checkpointed state when the run resumes at the same world size, else seeded by
+    ``(seed, rank, step)``."""
+    if ranks.world == 1:
+        return None
+    gen = torch.Generator()
+    key = f"rng_rank.{ranks.rank}"
+    if key in state and int(state.get("world", torch.tensor(0))) == ranks.world:
+        return gen.set_state(state[key].to(torch.uint8))
+    return gen.manual_seed(rank_seed(seed, ranks.rank, step))

@@ -120,13 +120,24 @@ def recon_cmd(
     strict: StrictOpt = False,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
-    """Reconstruction quality of held-out views: PSNR, SSIM (and LPIPS with weights), per instance and mean."""
+    """Reconstruction quality of held-out views: PSNR, SSIM (and LPIPS with weights), per instance and mean.
+
+    Under torchrun the instances are shared out over the ranks; rank 0 prints the gathered table.
+    """
+    from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..evaluation import evaluate_recon
 
     if max_views is not None and max_views < 1:
         raise CrfError(f"--max-views {max_views}: must be at least 1")
+    ranks = ranks_from_env()
+    if ranks is not None:
+        device = rank_device(device, ranks)
+    ranks = ranks or SINGLE
     m, category = _load(model, data, device, strict, split.value)
-    score = evaluate_recon(m, category, split.value, max_views, lpips_weights)
+    with process_group(ranks, m.device):
+        score = evaluate_recon(m, category, split.value, max_views, lpips_weights, ranks)
+    if not ranks.main:
+        return
     if as_json:
         _echo_json({"model": str(model), "data": str(data), **score})
         return

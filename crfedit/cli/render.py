@@ -27,14 +27,22 @@ def render_cmd(
     chunk: Annotated[int, typer.Option("--chunk", help="Rays rendered at once; lower it to save memory.")] = 16384,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
-    """Render views of one instance, optionally with edits applied or codes swapped in."""
+    """Render views of one instance, optionally with edits applied or codes swapped in.
+
+    Under torchrun (torchrun --nproc-per-node N -m crfedit render ...) the views are shared out
+    over the ranks; the output folder is the same as one process writes.
+    """
+    from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..model import load_model
     from ..render_files import render_to_folder
     from ..runtime import resolve_device
     from ..views import parse_resolution
 
     res = parse_resolution(res)
-    m, _ = load_model(model, resolve_device(device))
+    ranks = ranks_from_env()
+    dev = resolve_device(device) if ranks is None else rank_device(device, ranks)
+    ranks = ranks or SINGLE
+    m, _ = load_model(model, dev)
     if edit:  # before the instance lookup: an edit may add the instance (fit-real)
         from ..delta import apply_edit_files
 
@@ -48,7 +56,10 @@ def render_cmd(
             shape_from=None if shape_from is None else m.instance_index(shape_from),
             color_from=None if color_from is None else m.instance_index(color_from),
         )
-    result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps)
+    with process_group(ranks, dev):
+        result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks)
+    if not ranks.main:
+        return
     per_view = result.seconds / max(result.count, 1)
     typer.echo(
         f"rendered {result.count} view{'s' if result.count != 1 else ''} of {m.names[k]} at {result.width}x{result.height} "

@@ -103,19 +103,26 @@ def format_score(score: dict) -> str:
     return text + (f", LPIPS {score['lpips']:.3f}" if score["lpips"] is not None else "")
 
 
-def run_training(category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int = 100):
-    """Train on a loaded category with a progress bar and run records (crfedit.runlog); return (model, TrainResult)."""
+def run_training(
+    category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int = 100, ranks=None,
+):
+    """Train on a loaded category with a progress bar and run records (crfedit.runlog), both on
+    rank 0 only under torchrun; return (model, TrainResult)."""
+    from ..distributed import SINGLE
     from ..modelfile import stored_training
     from ..runlog import RunLog, config_block, record_paths
     from ..threads import requested_threads
     from ..train import train
 
+    ranks = ranks or SINGLE
     first_step = 0
     if resume and out.is_file():
         stored_cfg, first_step, _ = stored_training(out)
-        if stored_cfg != cfg:
+        if stored_cfg != cfg and ranks.main:
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps)")
         cfg = stored_cfg
+    if not ranks.main:
+        return train(category, cfg, out, device, seed=seed, minutes=minutes, resume=resume, ranks=ranks)
     run = {"command": command_line(), "dataset": str(category.root), "dataset_fingerprint": category.fingerprint,
            "seed": seed, "device": str(device), "threads": requested_threads(), "minutes": minutes, "resumed_at": first_step}
     paths = record_paths(out)
@@ -129,7 +136,7 @@ def run_training(category, out: Path, cfg, device, seed: int, minutes: float | N
 
             return train(
                 category, cfg, out, device, seed=seed, minutes=minutes, resume=resume,
-                on_step=on_step, extra_meta={"command": command_line()},
+                on_step=on_step, extra_meta={"command": command_line()}, ranks=ranks,
             )
     finally:
         log.close()
@@ -160,9 +167,16 @@ def train_cmd(
 
     Writes the model (with a checkpoint every checkpoint_every steps), then prints held-out
     PSNR/SSIM on a few validation views per instance (test views when there is no val split).
+
+    Launched by torchrun (torchrun --nproc-per-node N -m crfedit train ...), it trains data
+    parallel: each rank samples from its share of the instances and gradients are averaged
+    (gloo on CPU, nccl on cuda:LOCAL_RANK).  rays (--set rays=R) is the number of rays per step
+    in total, split over the ranks, so a run's settings mean the same at any world size.  Rank 0
+    prints and writes the model, in the single-process format.
     """
     from ..config import make_config
     from ..data.format import load_category
+    from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..evaluation import held_out_split, score_model
     from ..modelfile import stored_training
     from ..runtime import resolve_device, seed_everything
@@ -190,10 +204,15 @@ def train_cmd(
             res = stored_width
         elif stored_width is not None and res != stored_width:
             raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
-    dev = resolve_device(device)
-    category = load_category(data, res=res)
-    seed_everything(seed)  # train() draws the initial weights from torch's global generator
-    model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every)
+    ranks = ranks_from_env()
+    dev = resolve_device(device) if ranks is None else rank_device(device, ranks)
+    ranks = ranks or SINGLE
+    with process_group(ranks, dev):
+        category = load_category(data, res=res)
+        seed_everything(seed)  # train() draws the initial weights from torch's global generator
+        model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks)
+    if not ranks.main:
+        return
     score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
     typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
     rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)

@@ -22,7 +22,7 @@ import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -590,10 +590,12 @@ class TrainingRays:
     instance: torch.Tensor  # [N] int64 instance index
 
 
-def training_rays(category: Category, split: str = "train") -> TrainingRays:
-    """All rays of ``split`` over all instances, in instance, view, row-major pixel order."""
+def training_rays(category: Category, split: str = "train", instances: Sequence[int] | None = None) -> TrainingRays:
+    """All rays of ``split`` over all instances (or those indexed by ``instances``: a rank's
+    share), in instance, view, row-major pixel order."""
     o, d, rgb, alpha, inst = [], [], [], [], []
-    for index, instance in enumerate(category.instances):
+    for index in range(len(category.instances)) if instances is None else instances:
+        instance = category.instances[index]
         for view in instance.splits.get(split, []):
             rays = rays_from_camera(view.camera)
             o.append(rays.origins)

@@ -1,0 +1,223 @@
+"""Data-parallel training over torch.distributed (gloo, CPU): two real processes on 127.0.0.1.
+
+One spawned pair of ranks (:func:`_two_ranks`, run once per module) does every distributed run,
+each rank writing what it saw into files the tests then compare:
+
+* ``eq``: 6 steps fed the same rays as a single process (``train(batches=...)``), with grid
+  refreshes at steps 2, 4 and 6;
+* ``full``: 16 steps of the real per-rank sampler, refreshes every 4 steps, a checkpoint at 8;
+* ``crash``: rank 1 dies at step 12 of 24 (a checkpoint was written at 8); rank 0 must stop
+  with a :class:`DistributedError` and leave the step-8 file loadable;
+* ``render``/``recon``: the ``full`` model's 5-view orbit (with a GIF) rendered and its views
+  scored with the work shared out over the two ranks;
+* ``repair``: rank 1's copy of a tensor differs, :meth:`Ranks.same_on_all` restores rank 0's.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import socket
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from crfedit.cameras import Rays
+from crfedit.cli.render import render_to_folder
+from crfedit.config import make_config
+from crfedit.data import load_category
+from crfedit.data.format import training_rays
+from crfedit.distributed import DistributedError, Ranks, process_group, rank_device, rank_seed, ranks_from_env
+from crfedit.errors import CrfError
+from crfedit.evaluation import evaluate_recon
+from crfedit.model import load_model
+from crfedit.renderer import render_camera
+from crfedit.train import TrainBatch, train
+
+EQ = dict(steps=6, rays=64, occ_warmup=2, occ_every=2, checkpoint_every=100)
+FULL = dict(steps=16, rays=64, occ_warmup=4, occ_every=4, checkpoint_every=8)
+CRASH = dict(steps=24, rays=64, occ_warmup=4, occ_every=4, checkpoint_every=8)
+CPU = torch.device("cpu")
+ORBIT = "orbit:5"
+
+
+class SameRays:
+    """Step s's batch of B rays, identical at every world size: rank r of w takes the r-th of w
+    contiguous blocks (the split :meth:`Ranks.share` sizes), with its sample offsets."""
+
+    def __init__(self, category, ranks: Ranks):
+        self.data, self.ranks, self.step = training_rays(category), ranks, 0
+
+    def __call__(self, n: int, generator: torch.Generator) -> TrainBatch:
+        g = torch.Generator().manual_seed(1000 + self.step)
+        total = n * self.ranks.world  # 64 rays over 1 or 2 ranks: the shares are equal
+        idx = torch.randint(len(self.data.rgb), (total,), generator=g)
+        jitter = torch.rand(total, generator=g)
+        idx, jitter = idx.tensor_split(self.ranks.world)[self.ranks.rank], jitter.tensor_split(self.ranks.world)[self.ranks.rank]
+        self.step += 1
+        d = self.data
+        return TrainBatch(Rays(d.origins[idx], d.directions[idx]), d.rgb[idx], d.instance[idx], jitter)
+
+
+def _dump(model, path: Path) -> None:
+    save_file({k: v.contiguous() for k, v in model.state().items()}, str(path))
+
+
+def _worker(rank: int, port: int, data: str, out: str) -> None:
+    """One rank: the runs the module docstring lists, results as files under ``out``."""
+    torch.set_num_threads(1)
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    out_dir, category = Path(out), load_category(Path(data))
+    ranks = Ranks(rank, 2, rank)
+    with process_group(ranks, CPU, timeout_s=30):
+        cfg = make_config("fast", overrides=EQ)
+        model, _ = train(category, cfg, out_dir / "eq.safetensors", CPU, seed=0, ranks=ranks, batches=SameRays(category, ranks))
+        _dump(model, out_dir / f"eq.rank{rank}.safetensors")
+        model, _ = train(category, make_config("fast", overrides=FULL), out_dir / "full.safetensors", CPU, seed=0, ranks=ranks)
+        _dump(model, out_dir / f"full.rank{rank}.safetensors")
+        full, _ = load_model(out_dir / "full.safetensors")
+        render_to_folder(full, 0, ORBIT, out_dir / "render", video=out_dir / "orbit.gif", ranks=ranks)
+        score = evaluate_recon(full, category, "train", ranks=ranks)
+        (out_dir / f"recon.rank{rank}.json").write_text(json.dumps(score))
+
+        probe = torch.arange(6.0) + 10 * rank
+        same = ranks.same_on_all([probe], "a probe")
+        (out_dir / f"repair.rank{rank}.json").write_text(json.dumps({"same": same, "probe": probe.tolist()}))
+
+        def die(step, *_):
+            if rank == 1 and step == 12:
+                os._exit(3)  # a rank lost without a word, as on a killed node
+
+        try:
+            train(category, make_config("fast", overrides=CRASH), out_dir / "crash.safetensors", CPU, seed=0, ranks=ranks, on_step=die)
+            outcome = "finished"
+        except DistributedError as e:
+            outcome = str(e)
+        (out_dir / f"crash.rank{rank}.txt").write_text(outcome)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def two_ranks(tiny_chairs, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("dist")
+    ctx = multiprocessing.get_context("spawn")
+    port = _free_port()
+    procs = [ctx.Process(target=_worker, args=(r, port, str(tiny_chairs), str(out))) for r in range(2)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout=240)
+    codes = [p.exitcode for p in procs]
+    for p in procs:
+        if p.is_alive():
+            p.kill()
+    assert codes[1] == 3, f"rank 1 should have died with code 3, got {codes}"
+    assert codes[0] == 0, f"rank 0 failed ({codes})"
+    return out
+
+
+def _same(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_ranks_end_bit_identical_with_identical_grids(two_ranks):
+    for run in ("eq", "full"):
+        r0, r1 = (load_file(str(two_ranks / f"{run}.rank{r}.safetensors")) for r in (0, 1))
+        assert _same(r0, r1), run
+        hull = r0["field.occupancy"]
+        assert 0 < int(hull.sum()) < hull.numel()  # refreshed grids, neither empty nor full
+    assert not torch.equal(load_file(str(two_ranks / "eq.rank0.safetensors"))["field.shape_codes"],
+                           load_file(str(two_ranks / "full.rank0.safetensors"))["field.shape_codes"])
+
+
+def test_the_model_file_is_rank_0s_state_and_renders_in_one_process(two_ranks):
+    model, state = load_model(two_ranks / "full.safetensors")
+    assert model.meta["step"] == "16" and int(state["world"]) == 2
+    assert _same({k: v for k, v in model.state().items()}, load_file(str(two_ranks / "full.rank0.safetensors")))
+    camera = model.views["test"].cameras(0)[0]
+    out = render_camera(model.field, camera, 0)
+    assert out.rgb.shape == (camera.height, camera.width, 3) and bool((out.opacity > 0.5).any())
+
+
+def test_two_ranks_with_half_the_rays_each_match_one_process(two_ranks, tiny_chairs, tmp_path):
+    category = load_category(tiny_chairs)
+    model, _ = train(category, make_config("fast", overrides=EQ), tmp_path / "one.safetensors", CPU, seed=0,
+                     batches=SameRays(category, Ranks()))
+    two = load_file(str(two_ranks / "eq.rank0.safetensors"))
+    one = model.state()
+    assert torch.equal(one["field.occupancy"], two["field.occupancy"])
+    worst = max(float((one[k] - two[k]).abs().max()) for k in one if one[k].is_floating_point())
+    assert worst < 1e-4
+    moved = float((one["field.F_dens.weight"] - load_file(str(two_ranks / "full.rank0.safetensors"))["field.F_dens.weight"]).abs().max())
+    assert moved > 100 * worst  # a different run differs by far more than the tolerance
+
+
+def test_a_dead_rank_stops_the_job_and_the_checkpoint_resumes_in_one_process(two_ranks, tiny_chairs, tmp_path):
+    message = (two_ranks / "crash.rank0.txt").read_text()
+    assert message.startswith("rank 0 of 2: averaging gradients failed, another rank stopped"), message
+    path = tmp_path / "crash.safetensors"
+    path.write_bytes((two_ranks / "crash.safetensors").read_bytes())
+    model, state = load_model(path)
+    assert model.meta["step"] == "8" and int(state["step"]) == 8
+    resumed, result = train(load_category(tiny_chairs), make_config("fast", overrides=CRASH), path, CPU, seed=0, resume=True)
+    assert result.steps == 24 and load_model(path)[0].meta["step"] == "24"
+    assert not torch.equal(resumed.field.shape_codes, model.field.shape_codes)
+
+
+def test_sharded_render_and_scores_equal_one_process(two_ranks, tiny_chairs, tmp_path):
+    model, _ = load_model(two_ranks / "full.safetensors")
+    render_to_folder(model, 0, ORBIT, tmp_path / "render", video=tmp_path / "orbit.gif")
+    files = sorted(p.name for p in (tmp_path / "render").iterdir())
+    assert files == sorted(p.name for p in (two_ranks / "render").iterdir())
+    assert len([f for f in files if f.endswith(".png")]) == 5 and "views.json" in files
+    for name in ["../orbit.gif"] + files:
+        assert (tmp_path / "render" / name).read_bytes() == (two_ranks / "render" / name).read_bytes(), name
+    one = json.loads(json.dumps(evaluate_recon(model, load_category(tiny_chairs), "train")))
+    r0, r1 = (json.loads((two_ranks / f"recon.rank{r}.json").read_text()) for r in (0, 1))
+    assert one == r0 == r1 and list(one["instances"]) == ["chair_000", "chair_001"]
+
+
+def test_same_on_all_restores_rank_0s_tensor(two_ranks):
+    r0, r1 = (json.loads((two_ranks / f"repair.rank{r}.json").read_text()) for r in (0, 1))
+    assert r0 == r1 == {"same": False, "probe": [float(i) for i in range(6)]}
+
+
+# ----------------------------------------------------------------------------- no processes
+
+
+def test_ranks_from_env():
+    assert ranks_from_env({}) is None
+    assert ranks_from_env({"RANK": "3", "WORLD_SIZE": "4", "LOCAL_RANK": "1"}) == Ranks(3, 4, 1)
+    for bad in ({"RANK": "4", "WORLD_SIZE": "4"}, {"RANK": "x", "WORLD_SIZE": "2"}):
+        with pytest.raises(CrfError):
+            ranks_from_env(bad)
+
+
+def test_shares_and_shards_cover_everything_once():
+    for world in (1, 2, 3, 8):
+        ranks = [Ranks(r, world, r) for r in range(world)]
+        assert sum(r.share(1001) for r in ranks) == 1001
+        assert max(r.share(1001) for r in ranks) - min(r.share(1001) for r in ranks) <= 1
+        assert sorted(k for r in ranks for k in r.shard(range(10))) == list(range(10))
+    assert len({rank_seed(0, r) for r in range(8)} | {rank_seed(1, 0), rank_seed(0, 0, 1)}) == 10
+    assert rank_seed(5, 1, 2) == rank_seed(5, 1, 2) < 2**63
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="auto picks cuda:LOCAL_RANK there")
+def test_rank_device_without_cuda():
+    assert rank_device("auto", Ranks(1, 2, 1)) == rank_device("cpu", Ranks(1, 2, 1)) == CPU
+    with pytest.raises(CrfError, match="no CUDA device"):
+        rank_device("cuda", Ranks(1, 2, 1))
+
+
+def test_more_ranks_than_instances_is_a_user_error(tiny_chairs, tmp_path):
+    with pytest.raises(CrfError, match="3 ranks: at most one rank per instance"):
+        train(load_category(tiny_chairs), make_config("fast", overrides=EQ), tmp_path / "m.safetensors", CPU, ranks=Ranks(0, 3, 0))
