@@ -26,7 +26,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from crfedit.cameras import Rays
-from crfedit.cli.render import render_to_folder
+from crfedit.render_files import render_to_folder
 from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.data.format import training_rays
