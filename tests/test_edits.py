@@ -36,15 +36,8 @@ RES = 32
 
 
 @pytest.fixture(scope="module")
-def trained(trained_category):
-    """(model file, model, category with part maps): ~250 steps, about 15 s on one core."""
-    path, model, category, result = trained_category(
-        "edits", SynthConfig(instances=3, views=10, res=RES, seed=0, twins=False), dict(
-            steps=250, rays=512, lr=1e-2, lr_codes=1e-2, grid_res=16, occ_res=32, width=32, rad_width=32,
-            occ_warmup=100, occ_every=8, checkpoint_every=10**9,
-        ), with_parts=True)
-    assert result.train_psnr > 12, f"the fixture's training failed (PSNR {result.train_psnr:.1f}); the edit tests need a model"
-    return path, model, category
+def trained(edit_category):
+    return edit_category
 
 
 def part_id(instance, name: str) -> int:

@@ -10,7 +10,6 @@ import torch
 from typer.testing import CliRunner
 
 from crfedit.cli import app
-from crfedit.data.synth import SynthConfig
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
     ScribbleView, Selection, load_selection, preview, save_selection, select, smooth_over_occupied, connected_to,
@@ -26,14 +25,8 @@ RES = 32
 
 
 @pytest.fixture(scope="module")
-def trained(trained_category):
-    """The same fixture as tests/test_edits.py (trained once per session)."""
-    path, model, category, result = trained_category(
-        "edits", SynthConfig(instances=3, views=10, res=RES, seed=0, twins=False), dict(
-            steps=250, rays=512, lr=1e-2, lr_codes=1e-2, grid_res=16, occ_res=32, width=32, rad_width=32,
-            occ_warmup=100, occ_every=8, checkpoint_every=10**9,
-        ), with_parts=True)
-    return path, model, category
+def trained(edit_category):
+    return edit_category
 
 
 def part_view(category, k: int, part: str):
