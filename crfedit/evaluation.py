@@ -341,8 +341,12 @@ def evaluate_edits(
     workdir: str | Path | None = None,
     progress: Progress | None = None,
     paper: bool = True,
+    ranks: Ranks = SINGLE,
 ) -> dict:
     """The paper's edit protocol on ground-truth twins (Tables 2 and 3).
+
+    Under torchrun (``ranks``) each rank edits every ``world``-th twin and every rank returns
+    the gathered result, in the twins' order (the same as one process gives).
 
     For each twin in ``cases``: the unedited model's renders of the source's test views are
     scored against the twin (the reference row ``unedited``); then for each strategy the edit is
@@ -394,7 +398,8 @@ def evaluate_edits(
     if warm is not None:  # the first edit of a process pays one-off costs; keep them out of the timings
         apply_twin_edit(model, cases[0], dataclasses.replace(options, strategy=warm, steps=1))
     context: dict[str, dict] = {}
-    for case in cases:
+    mine = ranks.shard(cases)
+    for case in mine:
         source_dir = category.instance(case.spec.source).path
         source_views = category.instance(case.spec.source).splits.get("test", [])[: len(case.views)]
         unedited = [o.rgb.clamp(0.0, 1.0).cpu().numpy() for o in render_views(model, case.instance, [v.camera for v in source_views])]
@@ -431,7 +436,7 @@ def evaluate_edits(
             folder = Path(workdir) if workdir is not None else Path(tmp)
             folder.mkdir(parents=True, exist_ok=True)
             baselines: dict[str, CategoryModel] = {}
-            for case in cases:
+            for case in mine:
                 source = case.spec.source
                 if source not in baselines:
                     budget = f"{nerf.steps} steps" + (f" or {nerf.minutes:g} min" if nerf.minutes else "")
@@ -443,6 +448,13 @@ def evaluate_edits(
                 result = apply_twin_edit(baselines[source], case, dataclasses.replace(options, strategy="all"), instance=0, method="paper")
                 record(case, NERF_BASELINE, result.model, result.seconds, instance=0)
 
+    if ranks.world > 1:  # every rank edited its share of the twins: gather them in the twins' order
+        parts = ranks.gather((runs, skipped, train_seconds, note), "gathering the edit scores")
+        order = {case.spec.name: i for i, case in enumerate(cases)}
+        runs = sorted((r for part in parts for r in part[0]), key=lambda r: order[r["twin"]])
+        skipped = [e for i, part in enumerate(parts) for e in part[1] if e not in [x for p in parts[:i] for x in p[1]]]
+        train_seconds = {k: v for part in parts for k, v in part[2].items()}
+        note = next((part[3] for part in parts if part[0]), note)
     methods = [UNEDITED, *strategies, *([PAPER_METHOD] if paper else []), *([NERF_BASELINE] if nerf else [])]
     return {
         "runs": runs,

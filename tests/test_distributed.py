@@ -30,9 +30,12 @@ from crfedit.render_files import render_to_folder
 from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.data.format import training_rays
+from crfedit.distributed import SINGLE as SINGLE_RANK
 from crfedit.distributed import DistributedError, Ranks, process_group, rank_device, rank_seed, ranks_from_env
 from crfedit.errors import CrfError
-from crfedit.evaluation import evaluate_recon
+from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.edit import EditOptions
+from crfedit.evaluation import evaluate_edits, evaluate_recon, load_twin_cases
 from crfedit.model import load_model
 from crfedit.renderer import render_camera
 from crfedit.train import TrainBatch, train
@@ -66,6 +69,15 @@ def _dump(model, path: Path) -> None:
     save_file({k: v.contiguous() for k, v in model.state().items()}, str(path))
 
 
+def twin_report(model, twins: Path, ranks: Ranks = SINGLE_RANK) -> dict:
+    """``evaluate_edits`` on a tiny twins dataset, timings removed (they differ run to run)."""
+    category = load_category(twins)
+    cases = load_twin_cases(model, category)
+    report = evaluate_edits(model, category, cases, ("hybrid",), EditOptions(steps=2, rays=32), ranks=ranks, paper=False)
+    runs = [{k: v for k, v in r.items() if k != "seconds"} for r in report["runs"]]
+    return {"runs": runs, "skipped": report["skipped"]}
+
+
 def _worker(rank: int, port: int, data: str, out: str) -> None:
     """One rank: the runs the module docstring lists, results as files under ``out``."""
     torch.set_num_threads(1)
@@ -82,6 +94,8 @@ def _worker(rank: int, port: int, data: str, out: str) -> None:
         render_to_folder(full, 0, ORBIT, out_dir / "render", video=out_dir / "orbit.gif", ranks=ranks)
         score = evaluate_recon(full, category, "train", ranks=ranks)
         (out_dir / f"recon.rank{rank}.json").write_text(json.dumps(score))
+        report = twin_report(full, out_dir / "twins", ranks)
+        (out_dir / f"edits.rank{rank}.json").write_text(json.dumps(report))
 
         probe = torch.arange(6.0) + 10 * rank
         same = ranks.same_on_all([probe], "a probe")
@@ -108,6 +122,7 @@ def _free_port() -> int:
 @pytest.fixture(scope="module")
 def two_ranks(tiny_chairs, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("dist")
+    write_synth_category(out / "twins", SynthConfig(instances=2, views=6, res=16, seed=0, twins=True))
     ctx = multiprocessing.get_context("spawn")
     port = _free_port()
     procs = [ctx.Process(target=_worker, args=(r, port, str(tiny_chairs), str(out))) for r in range(2)]
@@ -221,3 +236,13 @@ def test_rank_device_without_cuda():
 def test_more_ranks_than_instances_is_a_user_error(tiny_chairs, tmp_path):
     with pytest.raises(CrfError, match="3 ranks: at most one rank per instance"):
         train(load_category(tiny_chairs), make_config("fast", overrides=EQ), tmp_path / "m.safetensors", CPU, ranks=Ranks(0, 3, 0))
+
+
+def test_sharded_edit_evaluation_equals_one_process(two_ranks):
+    """``eval edits`` under 2 ranks: every rank returns the same gathered report, equal to one
+    process's (timings aside), twins in the same order."""
+    r0, r1 = (json.loads((two_ranks / f"edits.rank{r}.json").read_text()) for r in (0, 1))
+    assert r0 == r1
+    full, _ = load_model(two_ranks / "full.safetensors")
+    single = json.loads(json.dumps(twin_report(full, two_ranks / "twins")))
+    assert r0 == single and len(r0["runs"]) == 4 * 2  # 4 twins × (unedited, hybrid)

@@ -197,6 +197,7 @@ def edits_cmd(
     Rows: strategies (mean over twins), the unedited model as a reference, and optionally a
     single-instance NeRF fine-tuned with the same edit.
     """
+    from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..edit import EditOptions
     from ..evaluation import NerfBaseline, evaluate_edits, load_twin_cases
     from ..runtime import resolve_device
@@ -207,12 +208,19 @@ def edits_cmd(
         raise CrfError(f"--nerf-steps {nerf_steps}: must be at least 1")
     if nerf_minutes is not None and not (nerf_minutes > 0 and math.isfinite(nerf_minutes)):
         raise CrfError(f"--nerf-minutes {nerf_minutes:g}: must be a positive number")
+    ranks = ranks_from_env()
+    if ranks is not None:
+        device = rank_device(device, ranks)
+    ranks = ranks or SINGLE
     m, category = _load(model, data, device, strict)
     cases = load_twin_cases(m, category)
     nerf = NerfBaseline(nerf_steps, nerf_minutes) if nerf_baseline else None
-    result = evaluate_edits(
-        m, category, cases, chosen, options, nerf, lpips_weights, resolve_device(device), seed, progress=_err,
-    )
+    with process_group(ranks, m.device):
+        result = evaluate_edits(
+            m, category, cases, chosen, options, nerf, lpips_weights, m.device, seed, progress=_err, ranks=ranks,
+        )
+    if not ranks.main:
+        return
     if as_json:
         _echo_json({"model": str(model), "data": str(data), **result})
         return
