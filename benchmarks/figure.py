@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from crfedit.data.format import load_twins
+from crfedit.data.loading import load_twins
 from crfedit.io import read_image, write_png
 
 

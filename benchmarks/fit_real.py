@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from crfedit.cameras import Camera
-from crfedit.data.format import Category, InstanceData, instance_names, load_category, load_instance_dir
+from crfedit.data.loading import Category, InstanceData, instance_names, load_category, load_instance_dir
 from crfedit.fit_real import JOINT, FitOptions, fit_real, prepare_photo
 from crfedit.errors import CrfError
 from crfedit.io import write_json

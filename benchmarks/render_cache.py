@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from crfedit.data.format import load_category
+from crfedit.data.loading import load_category
 from crfedit.edit import EditOptions
 from crfedit.edit.cache import ViewCache
 from crfedit.errors import CrfError

@@ -23,7 +23,7 @@ import torch
 
 from crfedit.bench import BenchSettings, run_bench, tiny_category
 from crfedit.report import write_outputs
-from crfedit.data.format import load_category
+from crfedit.data.loading import load_category
 from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.errors import CrfError
 from crfedit.runtime import resolve_device

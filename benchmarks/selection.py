@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from crfedit.data.format import load_category
+from crfedit.data.loading import load_category
 from crfedit.edit.selection import ScribbleView, SelectOptions, select
 from crfedit.evaluation import load_twin_cases, model_width
 from crfedit.model import load_model

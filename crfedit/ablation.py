@@ -13,7 +13,7 @@ from typing import Sequence
 import torch
 
 from .config import ARCHS, Config, make_config
-from .data.format import Category
+from .data.loading import Category
 from .errors import CrfError
 from .evaluation import Progress, held_out_split, score_model
 from .field import ConditionalRadianceField

@@ -36,7 +36,7 @@ from typing import Callable, Sequence
 import torch
 
 from .config import Config, make_config
-from .data.format import Category, load_category
+from .data.loading import Category, load_category
 from .data.synth import SynthConfig, write_synth_category
 from .edit import EditOptions
 from .errors import CrfError

@@ -27,7 +27,8 @@ import torch
 
 from .cameras import Camera
 from .config import Config
-from .data.format import Category, TwinSpec, View, load_category, load_twins, read_mask
+from .data.format import TwinSpec, read_mask
+from .data.loading import Category, View, load_category, load_twins
 from .distributed import SINGLE, Ranks
 from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
 from .edit.params import GROUP, trained_prefixes
@@ -213,7 +214,7 @@ class TwinCase:
 
 
 def twin_cases(model: CategoryModel, category: Category, twins: Sequence[tuple[TwinSpec, object]]) -> list[TwinCase]:
-    """:func:`~crfedit.data.format.load_twins` output resolved against the model and dataset.
+    """:func:`~crfedit.data.loading.load_twins` output resolved against the model and dataset.
 
     The scribbled view is the source's view ``spec.view`` in ``category`` (so the masks, read at
     that view's width, line up with its camera).

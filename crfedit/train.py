@@ -29,7 +29,7 @@ import torch
 from . import occupancy
 from .cameras import Rays
 from .config import Config
-from .data.format import Category, TrainingRays, training_rays
+from .data.loading import Category, TrainingRays, training_rays
 from .distributed import SINGLE, Ranks, rank_seed
 from .errors import CrfError
 from .field import ConditionalRadianceField

@@ -21,7 +21,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from .data.format import View, resize_nearest
+from .data.format import resize_nearest
+from .data.loading import View
 from .edit.scribble import parse_color
 from .edit.selection import Selection, surface_points
 from .model import CategoryModel

@@ -45,7 +45,7 @@ read -r source view scribble < <(python - "$data" <<'PY'
 import sys
 from pathlib import Path
 
-from crfedit.data.format import read_twin_specs
+from crfedit.data.loading import read_twin_specs
 
 root = Path(sys.argv[1])
 spec = next(t for t in read_twin_specs(root) if t.kind == "color")

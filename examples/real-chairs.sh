@@ -83,7 +83,7 @@ read -r instance view scribble < <(python - "$data" <<'EOF'
 import sys
 from pathlib import Path
 
-from crfedit.data.format import instance_names, read_twin_specs
+from crfedit.data.loading import instance_names, read_twin_specs
 
 root = Path(sys.argv[1])
 spec = next(t for t in read_twin_specs(root) if t.kind == "color")

@@ -61,7 +61,7 @@ def trained_category(tmp_path_factory):
     trained on its first ``n_train`` instances (all by default), seed 0; once per argument set."""
     from crfedit.config import make_config
     from crfedit.data import load_category
-    from crfedit.data.format import Category
+    from crfedit.data.loading import Category
     from crfedit.data.synth import write_synth_category
     from crfedit.model import load_model
     from crfedit.train import train

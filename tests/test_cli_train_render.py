@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 import crfedit.train
 from crfedit.cli import app
-from crfedit.data.format import load_category
+from crfedit.data.loading import load_category
 from crfedit.errors import CrfError
 from crfedit.evaluation import held_out_split, render_views, score_model
 from crfedit.io import read_exr, read_image

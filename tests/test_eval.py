@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from crfedit.ablation import ABLATION_ARCHS, PARAM_TOLERANCE, ablation_configs, matched_width, network_parameters, run_ablation
 from crfedit.cli import app
 from crfedit.config import ARCHS, make_config
-from crfedit.data.format import load_category
+from crfedit.data.loading import load_category
 from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.edit import EditOptions
 from crfedit.errors import CrfError

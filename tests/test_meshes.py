@@ -17,7 +17,7 @@ from typer.testing import CliRunner  # noqa: E402
 
 from crfedit.cameras import Camera, focal_from_angle, look_at  # noqa: E402
 from crfedit.cli import app  # noqa: E402
-from crfedit.data.format import load_category, load_twins, read_twin_specs  # noqa: E402
+from crfedit.data.loading import load_category, load_twins, read_twin_specs  # noqa: E402
 from crfedit.data.meshes import (  # noqa: E402
     MeshDatasetConfig,
     RayScene,

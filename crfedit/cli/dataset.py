@@ -63,7 +63,7 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
 ) -> None:
     """Summarize a dataset: instances, views, size, bbox, fingerprint."""
-    from ..data.format import dataset_info, load_category
+    from ..data.loading import dataset_info, load_category
 
     meta = dataset_info(load_category(data, with_depth=True))
     if as_json:

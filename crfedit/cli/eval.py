@@ -276,7 +276,7 @@ def ablation_cmd(
     PSNR and SSIM are reported.
     """
     from ..config import make_config
-    from ..data.format import load_category
+    from ..data.loading import load_category
     from ..ablation import run_ablation
     from ..evaluation import SSIM_NOTE
     from ..runtime import resolve_device
@@ -375,7 +375,7 @@ def bench_cmd(
 
     from ..bench import BenchSettings, run_bench, tiny_category
     from ..report import write_outputs
-    from ..data.format import load_category
+    from ..data.loading import load_category
     from ..runtime import resolve_device
 
     settings = BenchSettings.tiny() if tiny else BenchSettings()

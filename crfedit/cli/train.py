@@ -175,7 +175,7 @@ def train_cmd(
     prints and writes the model, in the single-process format.
     """
     from ..config import make_config
-    from ..data.format import load_category
+    from ..data.loading import load_category
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..evaluation import held_out_split, score_model
     from ..modelfile import stored_training
@@ -301,7 +301,7 @@ def quickstart_cmd(
     chair 0 and turntable.gif) and score.json (test-split PSNR/SSIM per chair).
     """
     from ..config import make_config
-    from ..data.format import load_category
+    from ..data.loading import load_category
     from ..data.synth import SynthConfig, check_synth_args, write_synth_category
     from ..evaluation import score_model
     from ..io import write_json

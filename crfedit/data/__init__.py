@@ -1,23 +1,17 @@
 """Category datasets: the on-disk format (EditNeRF / NeRF-synthetic per instance) and procedural chairs."""
 
-from .format import (
+from .format import Frame, TwinSpec, read_mask, write_instances_txt, write_parts, write_split, write_twins_json
+from .loading import (
     Category,
-    Frame,
     InstanceData,
     TrainingRays,
-    TwinSpec,
     View,
     dataset_info,
     load_category,
     load_instance_dir,
     load_twins,
     parse_view_spec,
-    read_mask,
     training_rays,
-    write_instances_txt,
-    write_parts,
-    write_split,
-    write_twins_json,
 )
 from .synth import SynthConfig, SynthResult, make_chair, render_chair, write_synth_category
 

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from ..cameras import Camera
-from .format import Category, DataError, InstanceData, View, _matrix, _read_json, _read_rgba, resize_area
+from .format import DataError, _read_json, _read_rgba, resize_area
+from .loading import Category, InstanceData, View, _matrix
 
 TRANSFORMS = "transforms.json"
 INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
