@@ -15,16 +15,12 @@ from crfedit.cli import app
 from crfedit.data import dataset_info, load_category, load_twins, read_mask
 from crfedit.data.format import box_filter
 from crfedit.masks import dilate
+from crfedit.data.raycast import LIGHT, box, camera_rays, cylinder, primitive_bounds
 from crfedit.data.synth import (
-    LIGHT,
     Chair,
     Part,
     SynthConfig,
-    box,
-    camera_rays,
-    cylinder,
     make_chair,
-    primitive_bounds,
     render_chair,
     split_counts,
     write_synth_category,

@@ -40,18 +40,17 @@ from ..errors import CrfError, DataError
 from ..io import atomic_write_text, read_json, write_png
 from ..masks import erode
 from .format import Frame, TwinSpec, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
+from .raycast import camera_rays, shade
 from .synth import (
     PALETTE,
     SynthConfig,
     _jitter,
-    camera_rays,
     check_synth_args,
     contrasting_color,
     hex_to_rgb,
     rgb_to_hex,
     sample_cameras,
     scribbles,
-    shade,
     twin_sources,
 )
 
