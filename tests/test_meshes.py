@@ -18,16 +18,12 @@ from typer.testing import CliRunner  # noqa: E402
 from crfedit.cameras import Camera, focal_from_angle, look_at  # noqa: E402
 from crfedit.cli import app  # noqa: E402
 from crfedit.data.loading import load_category, load_twins, read_twin_specs  # noqa: E402
+from crfedit.data.mesh_io import albedo_table, load_normalized, load_part_mesh, normalize_mesh, part_colors  # noqa: E402
 from crfedit.data.meshes import (  # noqa: E402
     MeshDatasetConfig,
     RayScene,
-    albedo_table,
     facing_normals,
     instance_names_from,
-    load_normalized,
-    load_part_mesh,
-    normalize_mesh,
-    part_colors,
     removable_parts,
     render_view,
     separable_parts,
