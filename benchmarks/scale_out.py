@@ -36,7 +36,7 @@ from pathlib import Path
 import torch
 
 from crfedit.config import make_config
-from crfedit.data.format import load_category, training_rays
+from crfedit.data.loading import load_category, training_rays
 from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.distributed import Ranks, process_group
 from crfedit.field import ConditionalRadianceField

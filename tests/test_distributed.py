@@ -29,7 +29,7 @@ from crfedit.cameras import Rays
 from crfedit.render_files import render_to_folder
 from crfedit.config import make_config
 from crfedit.data import load_category
-from crfedit.data.format import training_rays
+from crfedit.data.loading import training_rays
 from crfedit.distributed import SINGLE as SINGLE_RANK
 from crfedit.distributed import DistributedError, Ranks, process_group, rank_device, rank_seed, ranks_from_env
 from crfedit.errors import CrfError
