@@ -28,7 +28,7 @@ from .cache import edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
 from .losses import mse
 from .scribble import check_masks, parse_color, pick_pixels
-from .selection import ScribbleView, Selection, select
+from .selection import MIN_OPACITY, ScribbleView, Selection, select
 from .supervised import recolor_selected
 
 
@@ -84,9 +84,9 @@ def edit_color(
 def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection) -> EditResult:
     """The selection-supervised recolour: the scribbled pixels' rendered colours fix the ratio."""
     view = render_camera(model.field_for(k), camera, k)
-    on = torch.from_numpy(scribble) & (view.opacity.cpu() >= 0.5)
+    on = torch.from_numpy(scribble) & (view.opacity.cpu() >= MIN_OPACITY)
     if not bool(on.any()):
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
     if selection is None:
-        selection = select(model, k, [ScribbleView(camera, scribble, keep)])
+        selection = select(model, k, [ScribbleView(camera, scribble, keep)], renders=[view])
     return recolor_selected(model, k, selection, [camera], view.rgb.cpu()[on], rgb, options)

@@ -42,11 +42,13 @@ from ..cameras import Camera, rays_from_camera
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..model import CategoryModel
-from ..renderer import render_camera
+from ..renderer import RenderOutput, render_camera
 from ..safefile import read_safetensors, write_safetensors
 
 FORMAT = "crfedit-selection"
 VERSION = "1"
+MIN_OPACITY = 0.5
+"""A pixel shows the object (and has a surface point) where its rendered opacity is at least this."""
 FEATURES = ("bottleneck", "color", "position")
 """Per-point feature groups :func:`point_features` can build."""
 WIDTHS = {"color": 3, "position": 9}
@@ -80,7 +82,7 @@ class SelectOptions:
     """Keep only selected cells connected to a scribbled cell."""
     threshold: float = 0.5
     """A cell is selected when its value is at least this."""
-    min_opacity: float = 0.5
+    min_opacity: float = MIN_OPACITY
     """A pixel counts as on the object when its rendered opacity is at least this."""
 
 
@@ -121,9 +123,13 @@ class Selection:
 
 
 @torch.no_grad()
-def surface_points(field: ConditionalRadianceField, camera: Camera, instance: int, min_opacity: float = 0.5):
-    """(world points [H·W, 3], on-object mask [H·W]) at each pixel's expected surface depth."""
-    out = render_camera(field, camera, instance)
+def surface_points(
+    field: ConditionalRadianceField, camera: Camera, instance: int, min_opacity: float = MIN_OPACITY,
+    out: RenderOutput | None = None,
+) -> tuple[Tensor, Tensor]:
+    """(world points [H·W, 3], on-object mask [H·W]) at each pixel's expected surface depth,
+    from ``out`` (the view's render; rendered here when None)."""
+    out = render_camera(field, camera, instance) if out is None else out
     rays = rays_from_camera(camera, field.aabb.device)
     opacity = out.opacity.reshape(-1)
     t = out.depth.reshape(-1) / opacity.clamp_min(1e-6)
@@ -224,15 +230,14 @@ def connected_to(selected: Tensor, seeds: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------- select
 
 
-def _lift(field, k, views: Sequence[ScribbleView], min_opacity: float):
+def _lift(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: Sequence[RenderOutput] | None):
     """Positive and negative surface points of all views, plus each view's other surface points
-    (candidate negatives when that view has no keep strokes)."""
+    (negatives too, until self-training drops those that look like the part)."""
     pos, neg, implied = [], [], []
-    for v in views:
-        pts, on = surface_points(field, v.camera, k, min_opacity)
-        fg = torch.from_numpy(v.scribble.reshape(-1)).to(on.device) & on
-        pos.append(pts[fg])
+    for i, v in enumerate(views):
+        pts, on = surface_points(field, v.camera, k, min_opacity, None if renders is None else renders[i])
         scribbled = torch.from_numpy(v.scribble.reshape(-1)).to(on.device)
+        pos.append(pts[scribbled & on])
         kept = torch.zeros_like(on) if v.keep is None else torch.from_numpy(v.keep.reshape(-1)).to(on.device) & ~scribbled
         neg.append(pts[kept & on])
         implied.append(pts[on & ~scribbled & ~kept])
@@ -242,9 +247,11 @@ def _lift(field, k, views: Sequence[ScribbleView], min_opacity: float):
 
 @torch.no_grad()
 def select(
-    model: CategoryModel, instance: int | str, views: Sequence[ScribbleView], options: SelectOptions = SelectOptions()
+    model: CategoryModel, instance: int | str, views: Sequence[ScribbleView], options: SelectOptions = SelectOptions(),
+    renders: Sequence[RenderOutput] | None = None,
 ) -> Selection:
-    """The 3-D selection the scribbles of ``views`` mean (see the module docstring)."""
+    """The 3-D selection the scribbles of ``views`` mean (see the module docstring).
+    ``renders`` are the views' renders of the instance when the caller has them already."""
     started = time.perf_counter()
     k = model.instance_index(instance)
     if not views:
@@ -253,7 +260,7 @@ def select(
         if not v.scribble.any():
             raise CrfError(f"the scribble of view {i + 1} is empty: no pixel is set")
     field = model.field_for(k)
-    pos_pts, neg_pts, cand_pts = _lift(field, k, views, options.min_opacity)
+    pos_pts, neg_pts, cand_pts = _lift(field, k, views, options.min_opacity, renders)
     if pos_pts.shape[0] == 0:
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
     occupied = field.occupancy[k]
@@ -333,10 +340,8 @@ def preview(model: CategoryModel, sel: Selection, camera: Camera, strength: floa
     user sees what an edit will change before any weight moves."""
     field = model.field_for(sel.instance)
     out = render_camera(field, camera, sel.instance)
-    rays = rays_from_camera(camera, field.aabb.device)
-    opacity = out.opacity.reshape(-1)
-    pts = rays.origins + (out.depth.reshape(-1) / opacity.clamp_min(1e-6))[:, None] * rays.directions
-    hit = (sel.at(field.normalize(pts)) & (opacity >= 0.5)).reshape(camera.height, camera.width, 1)
+    pts, on = surface_points(field, camera, sel.instance, out=out)
+    hit = (sel.at(field.normalize(pts)) & on).reshape(camera.height, camera.width, 1)
     tint = torch.tensor(TINT, device=out.rgb.device)
     rgb = torch.where(hit, (1 - strength) * out.rgb + strength * tint, out.rgb)
     return rgb.clamp(0, 1).cpu().numpy()

@@ -63,7 +63,7 @@ def supervision_rays(cameras: Sequence[Camera], per_view: int, generator: torch.
     return Rays(torch.cat(origins), torch.cat(dirs))
 
 
-def occupied_points(grid: Tensor, selected: Tensor, field, n_in: int, n_out: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+def occupied_points(grid: Tensor, selected: Tensor, n_in: int, n_out: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
     """(normalized points [n, 3], inside-S flags [n]): up to ``n_in`` random points in selected
     occupied cells and ``n_out`` in the other occupied cells, half of those within two cells of S
     (where damage would show)."""
@@ -95,7 +95,7 @@ def remove_selected(
     device = model.device
     grid = field.occupancy[k].clone()
     sel = selection.mask.to(device) & grid
-    pts, inside = occupied_points(grid, sel, field, options.rays, 2 * options.rays, generator)
+    pts, inside = occupied_points(grid, sel, options.rays, 2 * options.rays, generator)
     shape_code, _ = field.codes(k)
     with torch.no_grad():
         inputs = field.fuse_inputs(pts, shape_code)
