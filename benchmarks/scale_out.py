@@ -38,6 +38,7 @@ import torch
 from crfedit.config import make_config
 from crfedit.data.loading import load_category, training_rays
 from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.evaluation import held_out_split, score_model
 from crfedit.distributed import Ranks, process_group
 from crfedit.field import ConditionalRadianceField
 from crfedit.renderer import render_rays
@@ -62,9 +63,11 @@ class TimedRanks(Ranks):
 
 def _train_run(category, ranks: TimedRanks, seconds: float, work: Path) -> dict:
     cfg = make_config("fast", overrides=dict(steps=100000, checkpoint_every=100000))
-    _, result = train(category, cfg, work / "model.safetensors", CPU, seed=0, minutes=seconds / 60, ranks=ranks)
+    model, result = train(category, cfg, work / "model.safetensors", CPU, seed=0, minutes=seconds / 60, ranks=ranks)
     sync = ranks.sync_seconds[5:]
+    heldout = score_model(model, category, held_out_split(category), ranks=ranks)["psnr"]
     return {
+        "heldout_psnr": heldout,
         "steps": result.steps, "seconds": result.seconds, "rays_per_s": cfg.rays * result.steps / result.seconds,
         "ms_per_step": 1e3 * result.seconds / result.steps,
         "sync_ms_per_step": 1e3 * sum(sync) / len(sync) if sync else 0.0,
@@ -190,15 +193,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def markdown(report: dict) -> str:
-    rows = ["| run | ranks × threads | load before | steps | rays/s (all ranks) | ms/step | all-reduce ms/step | bare all-reduce ms |",
-            "|---|---|---|---|---|---|---|---|"]
+    rows = ["| run | ranks × threads | load before | seconds | steps | rays/s (all ranks) | ms/step | all-reduce ms/step | bare all-reduce ms | held-out PSNR |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for task in ("one", "threads", "procs", "eight"):
         if task in report:
             r = report[task]["ranks"][0]
+            psnr = f"{r['heldout_psnr']:.2f} dB" if "heldout_psnr" in r else "–"
             rows.append(
-                f"| {task} | {report[task]['world']} × {report[task]['threads']} | {r['load_before']:.1f} | {r['steps']} | "
+                f"| {task} | {report[task]['world']} × {report[task]['threads']} | {r['load_before']:.1f} | {r['seconds']:.0f} | {r['steps']} | "
                 f"{r['rays_per_s']:.0f} | {r['ms_per_step']:.1f} | {r['sync_ms_per_step']:.1f} | "
-                f"{r.get('bare_all_reduce_ms', 0.0):.1f} |"
+                f"{r.get('bare_all_reduce_ms', 0.0):.1f} | {psnr} |"
             )
     if "sync" in report:
         s = report["sync"]["ranks"][0]
