@@ -215,7 +215,7 @@ def run(model: Path, data: Path | None, repeats: int, shots: Path | None) -> dic
         for i in range(repeats):
             times["apply-color"].append(apply_edit(page, "color"))
             if i + 1 < repeats:
-                _toggle_last(page, False)
+                toggle_last(page, False)
         if shots:
             page.set_input("#compare", "side")
             page.wait("return !document.getElementById('sidebox').hidden && !S.viewBusy")
@@ -224,7 +224,7 @@ def run(model: Path, data: Path | None, repeats: int, shots: Path | None) -> dic
             page.set_input("#compare", "off")
         for i in range(repeats):
             times["apply-remove"].append(apply_edit(page, "remove"))
-            _toggle_last(page, False)
+            toggle_last(page, False)
         return {"ms": {k: statistics.median(v) for k, v in times.items()}, "runs": times, "repeats": repeats,
                 "size": f"{camera.width}×{camera.height}", "instances": len(session.base.names)}
     finally:
@@ -239,7 +239,7 @@ def _render(session, instance: int, camera) -> np.ndarray:
     return render_camera(session.model.field_for(instance), camera, instance).opacity.cpu().numpy()
 
 
-def _toggle_last(page: Page, on: bool) -> None:
+def toggle_last(page: Page, on: bool) -> None:
     """Turn the newest edit of the stack on or off and wait for the view."""
     n = page.count("view")
     page.js("const boxes = document.querySelectorAll('#stack input.toggle'); const b = boxes[boxes.length - 1];"

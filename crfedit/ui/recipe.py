@@ -292,7 +292,7 @@ class Replay:
             words.append(f"--donor {shlex.quote(self.names[req.donor])}")
             words.append(f"--copy {self._strokes(prefix, 'copy', req.copy)}")
             words.append(f"--offset {req.offset[0]},{req.offset[1]}")
-            if req.donor_view.key != req.view.key or req.donor_view.spec != req.view.spec:
+            if camera_json(req.donor_view.camera) != camera_json(req.view.camera):  # train:0 of the donor is its own camera
                 words.append(f"--donor-view {self._view(prefix, req.donor_view, 'donor-view')}")
             if req.keep is not None:
                 words.append(f"--keep-json {self._strokes(prefix, 'keep', req.keep)}")

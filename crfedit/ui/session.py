@@ -165,13 +165,14 @@ class UiSession:
         model, key = self._snapshot(which)
         k = instance_of(model, instance)
         ref = parse_view(view, model, k)
-        cache_key = (key, k, ref.key, bool(tint))
+        scribbles = self._shown_scribbles(k) if tint else None
+        cache_key = (key, k, ref.key, None if scribbles is None else _canon(scribbles))
         with self._lock:
             hit = self._renders.get(cache_key)
         if hit is not None:
             return hit
-        if tint:
-            image = preview(model, self._shown_selection(model, key, k), ref.camera)
+        if scribbles is not None:
+            image = preview(model, self._selection(model, key, k, scribbles), ref.camera)
         else:
             image = render_camera(self._field(model, key, k), ref.camera, k).rgb
         png = png_bytes(image)
@@ -197,8 +198,7 @@ class UiSession:
     # ------------------------------------------------------------------------- selection
 
     def _selection(self, model: CategoryModel, key, k: int, scribbles: tuple[ScribbleSet, ...]) -> Selection:
-        canon = json.dumps([[s.view.key, s.fg.data, None if s.bg is None else s.bg.data] for s in scribbles], sort_keys=True)
-        cache_key = (key, k, canon)
+        cache_key = (key, k, _canon(scribbles))
         with self._lock:
             hit = self._selections.get(cache_key)
         if hit is None:
@@ -208,12 +208,12 @@ class UiSession:
                 self._selections.put(cache_key, hit)
         return hit
 
-    def _shown_selection(self, model, key, k: int) -> Selection:
+    def _shown_scribbles(self, k: int) -> tuple[ScribbleSet, ...]:
         with self._lock:
             scribbles = self._shown.get(k)
         if scribbles is None:
             raise CrfError("nothing is selected: scribble 'edit here' on the part and press Select")
-        return self._selection(model, key, k, scribbles)
+        return scribbles
 
     def select(self, body) -> dict:
         """Lift the page's scribbles (``{"instance", "views": [{"view", "fg", "bg"}, …]}``) to a
@@ -422,6 +422,11 @@ class UiSession:
                     path = self.workdir.resolve() / self._default_name(i, self.pinned[e.id])
                     replay.add_file(str(path), f"{e.source} sits elsewhere in the stack now: press Save on it in the page to write {path}")
             return replay.script()
+
+
+def _canon(scribbles: tuple[ScribbleSet, ...]) -> str:
+    """The scribbles as one string: the key of the selection they make."""
+    return json.dumps([[s.view.key, s.fg.data, None if s.bg is None else s.bg.data] for s in scribbles], sort_keys=True)
 
 
 def describe(e: Entry, names: list[str]) -> str:
