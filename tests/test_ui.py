@@ -147,7 +147,7 @@ def test_page_and_assets_are_served_with_the_token_and_fetch_nothing_else(ui):
     csp = headers["Content-Security-Policy"]
     assert "default-src 'none'" in csp and "connect-src 'self'" in csp and "frame-ancestors 'none'" in csp
     static = ROOT / "crfedit" / "ui" / "static"
-    for name, kind in (("app.js", "text/javascript"), ("strokes.js", "text/javascript"), ("style.css", "text/css")):
+    for name, kind in (("app.js", "text/javascript"), ("edit.js", "text/javascript"), ("strokes.js", "text/javascript"), ("style.css", "text/css")):
         status, headers, body = ui.call("GET", f"/static/{name}")
         assert status == 200 and headers["Content-Type"].startswith(kind) and body == (static / name).read_bytes()
     for f in static.iterdir():  # offline: no CDN, font or analytics address anywhere in the page

@@ -3,7 +3,7 @@
 "use strict";
 
 const Strokes = (() => {
-  const COLORS = { fg: "rgba(255, 64, 48, 0.55)", bg: "rgba(40, 120, 255, 0.55)", copy: "rgba(250, 190, 0, 0.6)" };
+  const COLORS = { fg: "rgba(230, 0, 170, 0.6)", bg: "rgba(40, 120, 255, 0.55)", copy: "rgba(250, 190, 0, 0.6)" };
 
   // The strokes JSON the server (and --scribble-json) reads: one radius for all when they agree.
   function toJson(list) {
