@@ -4,7 +4,8 @@ the docs' screenshots use).
 
 A user picks a view, draws a stroke over the seat with the mouse, picks a colour and presses
 Apply: the pixels under the stroke move toward the colour, a pixel of another part far away
-does not, and turning the edit off gives back the view bit for bit.
+does not, and turning the edit off gives back the view bit for bit.  A stopped server then
+shows as one sentence in the page.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ def page(edit_category, tmp_path):
     session, _ = open_session(path, category.root, [], tmp_path / "work", "cpu")
     running = run_in_thread(session)
     p = drive.Page(running.url)
-    yield p, session
+    yield p, running
     p.close()
     running.stop()
 
@@ -44,7 +45,7 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     from crfedit.edit.scribble import strokes_json_mask
     from crfedit.renderer import render_camera
 
-    p, session = page
+    p, running = page
     _, model, category = edit_category
     view = category.instance(0).view("train:0")
     opacity = render_camera(model.field_for(0), view.camera, 0).opacity.numpy()
@@ -83,4 +84,8 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     assert np.array_equal(p.pixels(), before)
     drive.toggle_last(p, True)
     assert not np.array_equal(p.pixels(), before)
-    assert p.error() == ""
+    assert p.error() == "" and p.console_errors() == []
+
+    running.stop()  # a lost server is one sentence in the page
+    p.wait("return !document.getElementById('error').hidden", 30)
+    assert p.error().startswith("lost the server")
