@@ -329,6 +329,21 @@ def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str,
         fps.append(d.fingerprint)
 
 
+def rebase(delta: Delta, model: CategoryModel) -> Delta:
+    """``delta`` pinned to ``model``'s place instead of its own: the same tensors (the same
+    change), with ``base``, ``parent`` and ``fingerprint`` recomputed from :func:`stack_of`
+    ``(model)``.  Unchanged (the very same object) when it already fits there.  ``crfedit ui``
+    uses it to toggle and reorder the edits of its stack; the result passes :func:`check_stack`
+    wherever its instance and tensors fit the model."""
+    base, stack = stack_of(model)
+    parent = chain_fingerprint(base, stack)
+    if delta.meta["base"] == base and delta.meta["parent"] == parent:
+        return delta
+    meta = {**delta.meta, "base": base, "parent": parent}
+    meta["fingerprint"] = delta_fingerprint(delta.tensors, meta)
+    return Delta(delta.path, delta.tensors, meta)
+
+
 # ----------------------------------------------------------------------------- applying
 
 

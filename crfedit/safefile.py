@@ -74,10 +74,15 @@ def read_safetensors(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], 
     return tensors, meta
 
 
-def write_safetensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
-    """Atomically write ``tensors`` (moved to CPU, made contiguous) with string metadata."""
+def safetensors_bytes(tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> bytes:
+    """The bytes of a safetensors file of ``tensors`` (moved to CPU, made contiguous) with string metadata."""
     cpu = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
-    atomic_write_bytes(path, st_save(cpu, metadata={k: str(v) for k, v in metadata.items()}))
+    return st_save(cpu, metadata={k: str(v) for k, v in metadata.items()})
+
+
+def write_safetensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
+    """Atomically write :func:`safetensors_bytes` ``(tensors, metadata)`` to ``path``."""
+    atomic_write_bytes(path, safetensors_bytes(tensors, metadata))
 
 
 def check_tensors(path, tensors: dict[str, torch.Tensor], expected: dict[str, tuple[tuple[int, ...], torch.dtype]]) -> None:

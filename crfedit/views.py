@@ -197,10 +197,7 @@ def _file_views(spec: str, model) -> list[tuple[str, Camera]]:
     if "camera_path" in data:
         return _camera_path_views(spec, name, data, model)
     if "transform_matrix" in data:
-        width, height = _size(spec, data, ("width", "height"), model)
-        angle = _number(spec, "camera_angle_x", data.get("camera_angle_x"), 0.0, math.pi)
-        c2w = _matrix(spec, "transform_matrix", data["transform_matrix"])
-        return [(f"{name}:0", Camera(c2w, focal_from_angle(angle, width), width, height))]
+        return [(f"{name}:0", camera_from_json(data, model, spec))]
     if "frames" in data:
         frames = data["frames"]
         if not isinstance(frames, list) or not frames:
@@ -215,6 +212,23 @@ def _file_views(spec: str, model) -> list[tuple[str, Camera]]:
             out.append((f"{name}:{k}", Camera(c2w, focal, width, height)))
         return out
     raise CrfError(f"view spec {spec!r}: expected a camera_path list, a transform_matrix, or a frames list")
+
+
+def camera_json(camera: Camera) -> dict:
+    """A single-camera JSON object for ``camera`` (``transform_matrix``, ``camera_angle_x``,
+    ``width``, ``height``): a camera file any ``--view`` reads back."""
+    angle = 2.0 * math.atan(0.5 * camera.width / camera.focal)
+    return {"transform_matrix": np.asarray(camera.c2w, dtype=np.float64).tolist(), "camera_angle_x": angle,
+            "width": int(camera.width), "height": int(camera.height)}
+
+
+def camera_from_json(data: dict, model, spec: str = "camera") -> Camera:
+    """The camera of a single-camera JSON object, exactly as a ``--view`` camera file reads it:
+    ``camera_from_json(camera_json(c), model)`` is the camera a command gets from that file."""
+    width, height = _size(spec, data, ("width", "height"), model)
+    angle = _number(spec, "camera_angle_x", data.get("camera_angle_x"), 0.0, math.pi)
+    c2w = _matrix(spec, "transform_matrix", data.get("transform_matrix"))
+    return Camera(c2w, focal_from_angle(angle, width), width, height)
 
 
 def _camera_path_views(spec: str, name: str, data: dict, model) -> list[tuple[str, Camera]]:

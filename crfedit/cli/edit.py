@@ -228,7 +228,7 @@ def add_cmd(
     view: ViewOpt,
     out: OutOpt,
     donor: Annotated[str, typer.Option("--donor", help="Instance to copy a part from: a name or an index.")],
-    copy_mask: Annotated[Path, typer.Option("--copy", help="Mask PNG of the part to copy, drawn on the donor view.")],
+    copy_mask: Annotated[Path, typer.Option("--copy", help="The part to copy, drawn on the donor view: a mask PNG (white on black), or strokes JSON when the name ends in .json.")],
     offset: Annotated[str, typer.Option("--offset", help="Where to paste: DX,DY pixels right and down, e.g. 6,0 or -4,2.")],
     donor_view: Annotated[Optional[str], typer.Option("--donor-view", help="The donor view the copy mask belongs to (default: --view).")] = None,
     method: Annotated[AddMethod, typer.Option("--method", help="composite: fit the pasted image; density: match the donor's density along the pasted rays.")] = AddMethod.composite,
@@ -245,8 +245,9 @@ def add_cmd(
     """Add a part copied from another instance (trains F_fuse and F_dens, grows its occupancy grid)."""
     from ..data.format import read_mask
     from ..edit import add
-    from ..edit.scribble import load_mask
+    from ..edit.scribble import load_mask, strokes_json_mask
     from ..edit.shape import parse_offset
+    from ..io import read_json
 
     dxdy = parse_offset(offset)
     options = _options(strategy, steps, lr, rays, seed)
@@ -255,7 +256,10 @@ def add_cmd(
     k, j = m.instance_index(instance), m.instance_index(donor)
     label, camera = _one_view(m, view, k)
     donor_camera = camera if donor_view is None else _one_view(m, donor_view, j, "--donor-view")[1]
-    mask = read_mask(copy_mask)
+    if copy_mask.suffix.lower() == ".json":
+        mask = strokes_json_mask(read_json(copy_mask), donor_camera.width, donor_camera.height, str(copy_mask))
+    else:
+        mask = read_mask(copy_mask)
     if mask.shape != (donor_camera.height, donor_camera.width):
         raise CrfError(
             f"{copy_mask}: copy mask is {mask.shape[1]}x{mask.shape[0]} but the donor view is {donor_camera.width}x{donor_camera.height}"

@@ -71,7 +71,7 @@ def edit_color(
     def loss_fn():
         return mse(render.forward().rgb, target) + options.lambda_reg * edit.penalty()
 
-    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "colour edit")
+    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "colour edit", options.on_step)
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
         "seed": options.seed, "lambda_reg": options.lambda_reg, "color": list(rgb),

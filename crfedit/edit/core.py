@@ -58,6 +58,9 @@ class EditOptions:
     cache: bool = True
     """Compute what the trained parameters cannot change once (:mod:`.cache`); off, every step
     runs the whole field on the edit's samples (the same result, slower: a benchmark knob)."""
+    on_step: Callable[[int, float], None] | None = None
+    """Called after each optimization step with (step, loss), 1-based; an exception it raises
+    ends the edit before anything is returned or written (``crfedit ui``: progress and cancel)."""
 
     def validated(self) -> "EditOptions":
         checks = [
@@ -130,10 +133,13 @@ class InstanceEdit:
         return dataclasses.replace(self.before, overrides={**self.before.overrides, self.instance: replaced})
 
 
-def optimize(params: Sequence[Tensor], loss_fn: Callable[[], Tensor], steps: int, lr: float, what: str) -> float:
+def optimize(
+    params: Sequence[Tensor], loss_fn: Callable[[], Tensor], steps: int, lr: float, what: str,
+    on_step: Callable[[int, float], None] | None = None,
+) -> float:
     """``steps`` Adam steps on ``loss_fn``; returns the last loss.  A NaN/inf loss or parameter
-    raises :class:`NonFiniteError` (nothing is written)."""
-    return run_adam(torch.optim.Adam(list(params), lr=lr, fused=True), loss_fn, steps, what)
+    raises :class:`NonFiniteError` (nothing is written); ``on_step(step, loss)`` after each step."""
+    return run_adam(torch.optim.Adam(list(params), lr=lr, fused=True), loss_fn, steps, what, on_step)
 
 
 def finish(

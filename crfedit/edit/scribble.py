@@ -49,20 +49,23 @@ def default_radius(width: int) -> float:
 
 def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
     """Rasterize strokes JSON at (width, height): ``{"strokes": [[[x, y], …], …], "radius": r}``
-    or a bare list of strokes ``[[[x, y], …], …]``; the radius defaults to max(1, width/48) px."""
+    or a bare list of strokes ``[[[x, y], …], …]``; the radius defaults to max(1, width/48) px.
+    A stroke may carry its own radius as ``{"points": [[x, y], …], "radius": r}`` (the form
+    ``crfedit ui`` writes when strokes were drawn at different sizes)."""
     radius = default_radius(width)
     strokes = data
     if isinstance(data, dict):
         strokes = data.get("strokes")
         if "radius" in data:
-            r = data["radius"]
-            if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0 < r <= max(width, height):
-                raise CrfError(f"{where}: radius must be a number of pixels above 0")
-            radius = float(r)
+            radius = _radius(data["radius"], width, height, where)
     if not isinstance(strokes, list) or not strokes:
         raise CrfError(f"{where}: expected {{\"strokes\": [[[x, y], ...], ...], \"radius\": r}} or a list of strokes")
-    polylines = []
+    mask = np.zeros((height, width), dtype=bool)
     for i, stroke in enumerate(strokes):
+        r = radius
+        if isinstance(stroke, dict):
+            r = _radius(stroke.get("radius", radius), width, height, f"{where}: stroke {i}")
+            stroke = stroke.get("points")
         ok = isinstance(stroke, list) and len(stroke) > 0 and all(
             isinstance(p, list) and len(p) == 2 and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)
             for p in stroke
@@ -70,8 +73,14 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
         pts = np.asarray(stroke, dtype=np.float64) if ok else None
         if pts is None or not np.isfinite(pts).all():
             raise CrfError(f"{where}: stroke {i} is not a list of [x, y] pixel positions")
-        polylines.append(pts)
-    return strokes_mask((height, width), polylines, radius)
+        mask |= strokes_mask((height, width), [pts], r)
+    return mask
+
+
+def _radius(r, width: int, height: int, where: str) -> float:
+    if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0 < r <= max(width, height):
+        raise CrfError(f"{where}: radius must be a number of pixels above 0")
+    return float(r)
 
 
 GRAY_TOLERANCE = 0.05

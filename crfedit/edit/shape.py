@@ -176,7 +176,7 @@ def remove(
             total = total + options.lambda_surface * (lowered.mean() + kept.mean())
         return total
 
-    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "removal")
+    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "removal", options.on_step)
     extra, extra_modules = _occupancy_after(edit, candidates, generator)
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
@@ -325,7 +325,7 @@ def add(
             total = total + options.lambda_surface * log_density_drift(seen[i], out.sigmas, sigmas0[i]).mean()
         return total
 
-    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "add edit")
+    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "add edit", options.on_step)
     extra, extra_modules = _occupancy_after(edit, candidates, generator)
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,

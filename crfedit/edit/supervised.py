@@ -122,7 +122,7 @@ def remove_selected(
             total = total + mse(out.rgb, target.rgb) + mse(out.opacity, target.opacity)
         return total
 
-    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "removal")
+    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "removal", options.on_step)
     extra, modules = {}, ()
     if field.cfg.sampler == "grid":
         table = field.occupancy.detach().clone()
@@ -182,7 +182,7 @@ def recolor_selected(
         rgb_s, _, pixel = current()
         return (w * (rgb_s - target_s) ** 2).sum() + mse(pixel, target_px) + options.lambda_reg * edit.penalty()
 
-    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "colour edit")
+    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "colour edit", options.on_step)
     hyper = {
         "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
         "rays": int(rays.origins.shape[0]), "seed": options.seed, "lambda_reg": options.lambda_reg,

@@ -1,0 +1,465 @@
+"""The state behind one ``crfedit ui`` page: the model, the edit stack, the selection shown and
+caches of rendered views, over the library API (no math here).
+
+The stack is a list of deltas, each on or off.  The model shown is the base model with the
+enabled deltas applied in order, each :func:`~crfedit.delta.rebase`-d onto the ones before it:
+the same tensors (the same change), pinned to its new place, so a saved file of the stack
+passes ``crfedit edits check``.  Turning edits off and on again gives back the very same state.
+
+Thread-safe: the server calls it from worker threads; state changes happen under one lock,
+renders and edits run outside it on a snapshot.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import hashlib
+import io
+import json
+import re
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..data.loading import Category
+from ..delta import Delta, apply_deltas, bake, rebase, read_delta, save_delta
+from ..edit import add, edit_color, remove, transfer
+from ..edit.cache import ViewCache
+from ..edit.selection import ScribbleView, Selection, preview, select
+from ..errors import CrfError
+from ..model import CategoryModel, save_model
+from ..renderer import render_camera
+from ..safefile import safetensors_bytes
+from .recipe import EditRequest, Replay, ScribbleSet, instance_of, parse_scribbles, parse_view
+
+FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,120}\.safetensors")
+THUMB_VIEW = {"azimuth": 45.0, "elevation": 30.0}
+RENDER_CACHE = 512
+"""Rendered views kept (PNG bytes; a 64² view is ~8 KB)."""
+VIEW_CACHES = 4
+"""Views whose features are kept for instant re-rendering after a colour edit."""
+
+
+def png_bytes(rgb) -> bytes:
+    """A float [H, W, 3] image in [0, 1] (tensor or array) as 8-bit PNG bytes."""
+    from PIL import Image
+
+    arr = rgb.detach().cpu().numpy() if isinstance(rgb, torch.Tensor) else np.asarray(rgb)
+    arr = np.clip(np.round(np.nan_to_num(arr.astype(np.float64)) * 255.0), 0, 255).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(arr)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def data_url(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode()
+
+
+@dataclass
+class Entry:
+    """One edit of the stack: its delta as made (or loaded), how it was made, and whether it is on."""
+
+    id: int
+    delta: Delta
+    recipe: EditRequest | None  # None: loaded from a file with --edit
+    seconds: float
+    enabled: bool = True
+    source: str = ""  # the file it was loaded from
+
+
+class _Lru(OrderedDict):
+    def __init__(self, size: int):
+        super().__init__()
+        self.size = size
+
+    def put(self, key, value):
+        self[key] = value
+        self.move_to_end(key)
+        while len(self) > self.size:
+            self.popitem(last=False)
+        return value
+
+
+class UiSession:
+    """A model, its edit stack and the page's caches (see the module docstring)."""
+
+    def __init__(self, model_path: Path, base: CategoryModel, workdir: Path, device_flag: str | None = None,
+                 category: Category | None = None, loaded: list[Delta] = ()):
+        self.model_path, self.base, self.workdir = Path(model_path), base, Path(workdir)
+        self.device_flag, self.category = device_flag, category
+        self._lock = threading.RLock()
+        self.entries = [Entry(i + 1, d, None, float(d.meta.get("seconds", "0") or 0), source=d.path) for i, d in enumerate(loaded)]
+        self._next_id = len(self.entries) + 1
+        self.model, self.pinned = self._rebuild(self.entries)
+        self._renders = _Lru(RENDER_CACHE)
+        self._fields = _Lru(4)
+        self._view_caches = _Lru(VIEW_CACHES)
+        self._selections = _Lru(16)
+        self._shown: dict[int, tuple[ScribbleSet, ...]] = {}
+        self._sizes: dict[str, int] = {}
+
+    # ------------------------------------------------------------------------- state
+
+    @property
+    def state_key(self) -> tuple[str, ...]:
+        return tuple(d.fingerprint for d in self.pinned.values())
+
+    def _rebuild(self, entries: list[Entry]) -> tuple[CategoryModel, dict[int, Delta]]:
+        """(model, pinned deltas by entry id) of the enabled entries applied in order."""
+        model, pinned = self.base, {}
+        for e in entries:
+            if e.enabled:
+                d = rebase(e.delta, model)
+                model = apply_deltas(model, [d])
+                pinned[e.id] = d
+        return model, pinned
+
+    def _snapshot(self, which: str = "current") -> tuple[CategoryModel, tuple[str, ...]]:
+        with self._lock:
+            return (self.base, ()) if which == "base" else (self.model, self.state_key)
+
+    def state_name(self) -> str:
+        key = self.state_key
+        return "base" if not key else hashlib.sha256("|".join(key).encode()).hexdigest()[:12]
+
+    def _field(self, model: CategoryModel, key, k: int):
+        with self._lock:
+            hit = self._fields.get((key, k))
+        if hit is None:
+            hit = model.field_for(k)
+            with self._lock:
+                self._fields.put((key, k), hit)
+        return hit
+
+    def _entry(self, entry_id) -> Entry:
+        e = next((e for e in self.entries if e.id == entry_id), None)
+        if e is None:
+            raise CrfError(f"edit {entry_id!r}: no such edit in the stack")
+        return e
+
+    # ------------------------------------------------------------------------- what the page shows
+
+    def info(self) -> dict:
+        """Instances, view counts per split, image size, the stack and the state's name."""
+        m = self.base
+        splits = {s: [len(t.cameras(k)) for k in range(len(m.names))] for s, t in m.views.items()}
+        photos = sorted({s for inst in self.category.instances for s in inst.splits}) if self.category else []
+        first = next(iter(m.views.values()), None)
+        return {
+            "model": self.model_path.name, "instances": list(m.names), "splits": splits, "photos": photos,
+            "width": first.width if first else None, "height": first.height if first else None,
+            "workdir": str(self.workdir), "stack": self.stack_info(), "state": self.state_name(),
+        }
+
+    def render(self, instance, view, which: str = "current", tint: bool = False) -> bytes:
+        """PNG of ``view`` of ``instance`` in the current (or base) state, the shown selection
+        tinted over it when ``tint``."""
+        if which not in ("current", "base"):
+            raise CrfError("state: expected current or base")
+        model, key = self._snapshot(which)
+        k = instance_of(model, instance)
+        ref = parse_view(view, model, k)
+        scribbles = self._shown_scribbles(k) if tint else None
+        cache_key = (key, k, ref.key, None if scribbles is None else _canon(scribbles))
+        with self._lock:
+            hit = self._renders.get(cache_key)
+        if hit is not None:
+            return hit
+        if scribbles is not None:
+            image = preview(model, self._selection(model, key, k, scribbles), ref.camera)
+        else:
+            image = render_camera(self._field(model, key, k), ref.camera, k).rgb
+        png = png_bytes(image)
+        with self._lock:
+            return self._renders.put(cache_key, png)
+
+    def thumbnail(self, instance) -> bytes:
+        return self.render(instance, THUMB_VIEW)
+
+    def photo(self, instance, split: str, index: int) -> bytes:
+        """PNG of a view of ``--data`` (the dataset's own image)."""
+        if self.category is None:
+            raise CrfError("no dataset: start crfedit ui with --data DATA to see its views")
+        k = instance_of(self.base, instance)
+        name = self.base.names[k]
+        if name not in self.category.names:
+            raise CrfError(f"the dataset has no instance {name!r}")
+        views = self.category.instance(name).splits.get(split)
+        if views is None or not isinstance(index, int) or not 0 <= index < len(views):
+            raise CrfError(f"the dataset has no view {split}:{index} of {name}")
+        return png_bytes(views[index].rgb)
+
+    # ------------------------------------------------------------------------- selection
+
+    def _selection(self, model: CategoryModel, key, k: int, scribbles: tuple[ScribbleSet, ...]) -> Selection:
+        cache_key = (key, k, _canon(scribbles))
+        with self._lock:
+            hit = self._selections.get(cache_key)
+        if hit is None:
+            views = [ScribbleView(s.view.camera, s.fg.mask, None if s.bg is None else s.bg.mask) for s in scribbles]
+            hit = select(model, k, views)
+            with self._lock:
+                self._selections.put(cache_key, hit)
+        return hit
+
+    def _shown_scribbles(self, k: int) -> tuple[ScribbleSet, ...]:
+        with self._lock:
+            scribbles = self._shown.get(k)
+        if scribbles is None:
+            raise CrfError("nothing is selected: scribble 'edit here' on the part and press Select")
+        return scribbles
+
+    def select(self, body) -> dict:
+        """Lift the page's scribbles (``{"instance", "views": [{"view", "fg", "bg"}, …]}``) to a
+        3-D selection, show it from now on, and keep the scribbled views' features for a colour edit."""
+        if not isinstance(body, dict):
+            raise CrfError("expected a JSON object")
+        model, key = self._snapshot()
+        k = instance_of(model, body.get("instance"))
+        scribbles = parse_scribbles(body.get("views"), model, k)
+        sel = self._selection(model, key, k, scribbles)
+        with self._lock:
+            self._shown[k] = scribbles
+        for s in scribbles:
+            self._view_cache(model, key, k, s.view)
+        info = sel.meta
+        return {"instance": k, "selected_cells": info["selected_cells"], "occupied_cells": info["occupied_cells"],
+                "views": len(scribbles), "seconds": info["seconds"]}
+
+    def clear_selection(self, instance) -> None:
+        k = instance_of(self.base, instance)
+        with self._lock:
+            self._shown.pop(k, None)
+
+    def _view_cache(self, model, key, k: int, view) -> ViewCache:
+        cache_key = (key, k, view.key)
+        with self._lock:
+            hit = self._view_caches.get(cache_key)
+        if hit is None:
+            hit = ViewCache(self._field(model, key, k), view.camera, k)
+            with self._lock:
+                self._view_caches.put(cache_key, hit)
+        return hit
+
+    # ------------------------------------------------------------------------- edits
+
+    def run_edit(self, req: EditRequest, on_step: Callable[[int, float], None] | None = None) -> dict:
+        """Make the edit ``req`` on the current state and push it onto the stack; returns the new
+        entry and the edited view (a colour edit's re-rendered from cached features).  On any
+        error the stack is as it was and nothing is written."""
+        model, key = self._snapshot()
+        k = req.instance
+        options = dataclasses.replace(req.options, on_step=on_step)
+        if req.kind == "transfer":
+            result = transfer(model, k, shape_from=req.shape_from, color_from=req.color_from)
+        elif req.kind == "add":
+            result = add(model, k, req.view.camera, req.donor, req.copy.mask, req.offset, req.donor_view.camera,
+                         req.method, None if req.keep is None else req.keep.mask, options)
+        else:
+            drawn = req.drawn
+            fg, bg = drawn.fg.mask, None if drawn.bg is None else drawn.bg.mask
+            sel = self._selection(model, key, k, req.scribbles) if req.method == "selection" else None
+            if req.kind == "color":
+                cache = self._view_cache(model, key, k, req.view)
+                result = edit_color(model, k, req.view.camera, fg, req.color, bg, options, req.method, sel)
+            else:
+                result = remove(model, k, req.view.camera, fg, bg, False, options, req.method, sel)
+        png = None
+        if req.kind == "color":  # F_rad alone on the view's cached samples (within 1.6e-3 of a full render)
+            png = png_bytes(cache.render(result.model.field_for(k)))
+        elif req.view is not None:
+            png = png_bytes(render_camera(result.model.field_for(k), req.view.camera, k).rgb)
+        label = "" if req.view is None else req.view.label
+        delta = Delta("(page)", result.tensors, {**result.meta, "command": "crfedit ui", "view": label})
+        with self._lock:
+            if self.state_key != key:
+                raise CrfError("the stack changed while the edit ran; apply it again")
+            entry = Entry(self._next_id, delta, req, result.seconds)
+            self._next_id += 1
+            self.entries.append(entry)
+            self.model, self.pinned = result.model, {**self.pinned, entry.id: delta}
+            if png is not None and req.kind != "color":
+                self._renders.put((self.state_key, k, req.view.key, False), png)
+        out = {"entry": entry.id, "stack": self.stack_info(), "state": self.state_name()}
+        if png is not None:
+            out["image"] = data_url(png)
+        return out
+
+    # ------------------------------------------------------------------------- the stack
+
+    def stack_info(self) -> list[dict]:
+        with self._lock:
+            rows = []
+            for i, e in enumerate(self.entries):
+                d = self.pinned.get(e.id, e.delta)
+                if d.fingerprint not in self._sizes:
+                    self._sizes[d.fingerprint] = len(safetensors_bytes(d.tensors, d.meta))
+                rows.append({
+                    "id": e.id, "position": i + 1, "kind": d.kind, "instance": d.instance, "bytes": self._sizes[d.fingerprint],
+                    "seconds": round(e.seconds, 3), "enabled": e.enabled, "source": Path(e.source).name if e.source else "page",
+                    "label": describe(e, self.base.names), "fingerprint": d.fingerprint, "name": self._default_name(i, d),
+                    "up": i > 0 and self._commute(self.entries[i - 1], e) is None,
+                    "down": i + 1 < len(self.entries) and self._commute(e, self.entries[i + 1]) is None,
+                })
+            return rows
+
+    def _set(self, entries: list[Entry]) -> dict:
+        """Make ``entries`` the stack (a one-line error, and no change, when it does not apply)."""
+        model, pinned = self._rebuild(entries)
+        self.entries, self.model, self.pinned = entries, model, pinned
+        return {"stack": self.stack_info(), "state": self.state_name()}
+
+    def toggle(self, entry_id, enabled: bool) -> dict:
+        """Turn an edit on or off (off: the model as if it had not been made)."""
+        if not isinstance(enabled, bool):
+            raise CrfError("enabled: expected true or false")
+        with self._lock:
+            entries = [dataclasses.replace(e, enabled=enabled) if e.id == entry_id else e for e in self.entries]
+            self._entry(entry_id)
+            return self._set(entries)
+
+    @staticmethod
+    def _commute(a: Entry, b: Entry) -> str | None:
+        """None when edits ``a`` and ``b`` change disjoint tensors (their order cannot change what
+        renders), else why they must stay in order."""
+        def touched(d: Delta) -> set:
+            return {(d.instance, "*")} if d.kind == "fit-real" else {(d.instance, n) for n in d.tensors}
+
+        ta, tb = touched(a.delta), touched(b.delta)
+        clash = ta & tb or {x for x in ta if x[1] == "*" and x[0] in {y[0] for y in tb}}
+        clash |= {y for y in tb if y[1] == "*" and y[0] in {x[0] for x in ta}}
+        if not clash:
+            return None
+        names = sorted({n for _, n in clash})
+        return (f"edits {a.id} and {b.id} both change {', '.join(names[:3])}{', …' if len(names) > 3 else ''} "
+                f"of {a.delta.instance}, so their order matters and they stay as made")
+
+    def move(self, entry_id, to) -> dict:
+        """Move an edit to position ``to`` (1-based), past edits that change other tensors only."""
+        with self._lock:
+            e = self._entry(entry_id)
+            if isinstance(to, bool) or not isinstance(to, int) or not 1 <= to <= len(self.entries):
+                raise CrfError(f"to: expected a position between 1 and {len(self.entries)}")
+            entries = list(self.entries)
+            i = entries.index(e)
+            while i != to - 1:
+                j = i + (1 if to - 1 > i else -1)
+                a, b = (entries[i], entries[j]) if j > i else (entries[j], entries[i])
+                why = self._commute(a, b)
+                if why is not None:
+                    raise CrfError(why)
+                entries[i], entries[j] = entries[j], entries[i]
+                i = j
+            return self._set(entries)
+
+    def _default_name(self, i: int, d: Delta) -> str:
+        safe = re.sub(r"[^A-Za-z0-9._-]", "_", d.instance)[:60]
+        return f"{i + 1:02d}-{d.kind}-{safe}.safetensors"
+
+    def target(self, name) -> Path:
+        """``workdir/name`` for a plain file name ending in .safetensors; anything else (a path,
+        ``..``, the model file itself) is refused."""
+        if not isinstance(name, str) or not FILE_NAME.fullmatch(name) or ".." in name:
+            raise CrfError("name: expected a plain file name ending in .safetensors (letters, digits, . _ -), written in the work dir")
+        path = self.workdir / name
+        if path.resolve().parent != self.workdir.resolve() or path.resolve() == self.model_path.resolve():
+            raise CrfError(f"name {name}: must name a new file inside the work dir")
+        return path
+
+    def delta_file(self, entry_id) -> tuple[str, bytes]:
+        """(default file name, bytes) of an edit as it applies in the stack now."""
+        with self._lock:
+            e = self._entry(entry_id)
+            d = self.pinned.get(e.id, e.delta)
+            return self._default_name(self.entries.index(e), d), safetensors_bytes(d.tensors, d.meta)
+
+    def save(self, entry_id, name=None) -> Path:
+        """Write an edit into the work dir (atomically) as it applies in the stack now."""
+        with self._lock:
+            e = self._entry(entry_id)
+            d = self.pinned.get(e.id, e.delta)
+            path = self.target(name if name is not None else self._default_name(self.entries.index(e), d))
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        save_delta(path, d.tensors, d.meta)
+        return path
+
+    def bake(self, name=None) -> dict:
+        """Save every enabled edit into the work dir and fold them into a new model file there."""
+        with self._lock:
+            out = self.target(name if name is not None else f"{self.model_path.stem}-baked.safetensors")
+            enabled = [e for e in self.entries if e.enabled]
+            if not enabled:
+                raise CrfError("bake: no edit is on; there is nothing to fold into a model")
+            targets = [self.target(self._default_name(self.entries.index(e), self.pinned[e.id])) for e in enabled]
+            if out in targets:
+                raise CrfError(f"name {out.name}: is the file of an edit; pick another name for the model")
+            files = [(t, self.pinned[e.id]) for t, e in zip(targets, enabled)]
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        for path, d in files:
+            save_delta(path, d.tensors, d.meta)
+        baked = bake(self.base, [p for p, _ in files])
+        save_model(out, baked, None, extra_meta={"command": "crfedit ui (bake)"})
+        return {"model": str(out), "edits": [str(p) for p, _ in files]}
+
+    def shell(self) -> str:
+        """The ``crfedit`` command lines that replay the enabled edits in order."""
+        with self._lock:
+            replay = Replay(str(self.model_path.resolve()), list(self.base.names), self.device_flag)
+            for i, e in enumerate(self.entries):
+                if not e.enabled:
+                    continue
+                if e.recipe is not None:
+                    replay.add_recipe(i + 1, e.recipe)
+                elif self.pinned[e.id].fingerprint == e.delta.fingerprint:
+                    replay.add_file(str(Path(e.source).resolve()))
+                else:
+                    path = self.workdir.resolve() / self._default_name(i, self.pinned[e.id])
+                    replay.add_file(str(path), f"{e.source} sits elsewhere in the stack now: press Save on it in the page to write {path}")
+            return replay.script()
+
+
+def _canon(scribbles: tuple[ScribbleSet, ...]) -> str:
+    """The scribbles as one string: the key of the selection they make."""
+    return json.dumps([[s.view.key, s.fg.data, None if s.bg is None else s.bg.data] for s in scribbles], sort_keys=True)
+
+
+def describe(e: Entry, names: list[str]) -> str:
+    """One line about how an edit was made, for the stack panel."""
+    r = e.recipe
+    if r is None:
+        return f"loaded from {Path(e.source).name}"
+    if r.kind == "color":
+        return f"recolour to {r.color} from {r.view.label}" + (f" (+{len(r.scribbles) - 1} views)" if len(r.scribbles) > 1 else "")
+    if r.kind == "remove":
+        return f"remove, drawn on {r.view.label}" + (f" (+{len(r.scribbles) - 1} views)" if len(r.scribbles) > 1 else "")
+    if r.kind == "add":
+        return f"add from {names[r.donor]}, pasted {r.offset[0]},{r.offset[1]} px away on {r.view.label}"
+    parts = [f"shape of {names[r.shape_from]}" if r.shape_from is not None else "",
+             f"colour of {names[r.color_from]}" if r.color_from is not None else ""]
+    return "transfer: " + " and ".join(p for p in parts if p)
+
+
+def open_session(model_path: Path, data: Path | None, edits: list[Path], workdir: Path, device: str) -> tuple[UiSession, list[str]]:
+    """A session on ``model_path`` with the ``--edit`` files on its stack; (session, warnings)."""
+    from ..data import load_category
+    from ..model import load_model
+    from ..runtime import resolve_device
+
+    base, _ = load_model(model_path, resolve_device(device))
+    loaded = [read_delta(p) for p in edits]
+    apply_deltas(base, loaded)  # every file checked before the page opens
+    warnings, category = [], None
+    if data is not None:
+        category = load_category(Path(data))
+        if not set(category.names) & set(base.names):
+            raise CrfError(f"--data {data}: none of its instances is in the model")
+        if base.dataset_fingerprint and category.fingerprint != base.dataset_fingerprint:
+            warnings.append(f"--data {data}: not the dataset the model was trained on (fingerprint differs); its photos may not match the views")
+    flag = None if device == "auto" else device
+    return UiSession(model_path, base, workdir, flag, category, loaded), warnings

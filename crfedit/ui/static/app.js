@@ -1,0 +1,432 @@
+// crfedit ui: the page.  Plain JavaScript, no network access beyond this server.
+// Each user action that ends in a new image records a User Timing measure ("crfedit:view",
+// "crfedit:select", "crfedit:apply-color", ...), from the click to the image decoded on screen.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const TOKEN = document.querySelector('meta[name="crfedit-token"]').content;
+const S = {
+  client: Math.random().toString(36).slice(2, 12),
+  info: null, state: "base", instance: 0,
+  view: { azimuth: 45, elevation: 30 },
+  marks: new Map(), // "instance|view" -> {fg: [], bg: []}
+  undo: new Map(), // same keys -> snapshots
+  copy: null, // add: {instance, view, strokes: []}
+  paste: null, donorMode: false,
+  tool: "fg", radius: 1.5, tint: false, drag: null,
+  viewSeq: 0, viewBusy: false, viewAgain: false,
+  job: null, ws: null, lost: false,
+};
+
+// ------------------------------------------------------------------------------------ server
+
+async function api(path, body) {
+  const opts = { headers: { "X-Crfedit-Token": TOKEN } };
+  if (body !== undefined) {
+    opts.method = "POST";
+    opts.headers["Content-Type"] = "application/json";
+    opts.body = JSON.stringify(body);
+  }
+  let resp;
+  try {
+    resp = await fetch(path, opts);
+  } catch (e) {
+    throw new Error("lost the server: is crfedit ui still running?");
+  }
+  if (!resp.ok) {
+    let message = `the server answered ${resp.status}`;
+    try { message = (await resp.json()).error || message; } catch (e) { /* not JSON */ }
+    throw new Error(message);
+  }
+  return resp;
+}
+
+const getJson = async (path) => (await api(path)).json();
+const postJson = async (path, body) => (await api(path, body)).json();
+
+async function imageUrl(path) {
+  return URL.createObjectURL(await (await api(path)).blob());
+}
+
+async function setImage(img, url) {
+  const old = img.src;
+  img.src = url;
+  await img.decode();
+  if (old.startsWith("blob:") && old !== url) URL.revokeObjectURL(old);
+}
+
+function measure(name, start) {
+  performance.measure(`crfedit:${name}`, { start, end: performance.now() });
+}
+
+// ------------------------------------------------------------------------------------ status
+
+function showError(message) {
+  $("error-text").textContent = message;
+  $("error").hidden = false;
+}
+
+function clearError() { $("error").hidden = true; }
+
+function status(text) { $("status-text").textContent = text; }
+
+async function attempt(fn) {
+  try {
+    await fn();
+  } catch (e) {
+    showError(e.message.split("\n")[0]);
+  }
+}
+
+// ------------------------------------------------------------------------------------ views
+
+const viewKey = (v) => (typeof v === "string" ? v : `orbit:${v.azimuth}@${v.elevation}`);
+const markKey = (instance = shownInstance(), view = S.view) => `${instance}|${viewKey(view)}`;
+const shownInstance = () => (S.donorMode ? Number($("donor").value) : S.instance);
+
+function viewQuery(view, instance) {
+  const v = typeof view === "string" ? `view=${encodeURIComponent(view)}` : `az=${view.azimuth}&el=${view.elevation}`;
+  return `${v}&instance=${instance}&s=${S.state}`;
+}
+
+function marks(key = markKey()) {
+  if (!S.marks.has(key)) S.marks.set(key, { fg: [], bg: [] });
+  return S.marks.get(key);
+}
+
+// Show the current view; requests while one is in flight collapse into one more.
+async function showView() {
+  if (S.viewBusy) { S.viewAgain = true; return; }
+  S.viewBusy = true;
+  const start = performance.now();
+  try {
+    const tint = S.tint && !S.donorMode ? "&tint=1" : "";
+    await setImage($("view"), await imageUrl(`/api/view?${viewQuery(S.view, shownInstance())}${tint}`));
+    measure("view", start);
+    $("view").dataset.state = S.state;
+    $("view-label").textContent = `${S.info.instances[shownInstance()]} · ${typeof S.view === "string" ? S.view : `orbit ${S.view.azimuth}° / ${S.view.elevation}°`}${S.donorMode ? " (donor)" : ""}`;
+    redraw();
+    await showCompare();
+  } catch (e) {
+    if (S.tint) { S.tint = false; $("tint").checked = false; }
+    showError(e.message);
+  } finally {
+    S.viewBusy = false;
+    if (S.viewAgain) { S.viewAgain = false; showView(); }
+  }
+}
+
+async function showCompare() {
+  const mode = $("compare").value;
+  if (mode !== "off") {
+    const url = await imageUrl(`/api/view?${viewQuery(S.view, shownInstance())}&state=base`);
+    await setImage(mode === "wipe" ? $("before") : $("side-before"), url);
+    wipe();
+  }
+  $("before").hidden = mode !== "wipe";
+  $("wipe").hidden = mode !== "wipe";
+  $("sidebox").hidden = mode !== "side";
+}
+
+function wipe() {
+  $("before").style.clipPath = `inset(0 ${100 - Number($("wipe").value)}% 0 0)`;
+}
+
+async function showTurntable() {
+  const start = performance.now();
+  const el = typeof S.view === "string" ? 30 : S.view.elevation;
+  const tint = S.tint ? "&tint=1" : "";
+  const imgs = [...$("turntable").children];
+  await Promise.all(imgs.map(async (img, i) => {
+    await setImage(img, await imageUrl(`/api/view?${viewQuery({ azimuth: i * 45, elevation: el }, S.instance)}${tint}`));
+  }));
+  measure("turntable", start);
+}
+
+function setView(view) {
+  S.view = view;
+  if (typeof view !== "string") {
+    $("azimuth").value = view.azimuth; $("az-out").textContent = `${view.azimuth}°`;
+    $("elevation").value = view.elevation; $("el-out").textContent = `${view.elevation}°`;
+  }
+  showView();
+}
+
+function orbitFromSliders() {
+  setView({ azimuth: Number($("azimuth").value), elevation: Number($("elevation").value) });
+}
+
+// ------------------------------------------------------------------------------------ canvas
+
+function canvasScale() {
+  const c = $("strokes");
+  return c.width / S.info.width;
+}
+
+function redraw() {
+  const c = $("strokes"), img = $("view");
+  const w = img.clientWidth, dpr = window.devicePixelRatio || 1;
+  if (c.width !== Math.round(w * dpr)) {
+    c.width = Math.round(w * dpr);
+    c.height = Math.round(img.clientHeight * dpr);
+  }
+  const ctx = c.getContext("2d");
+  ctx.clearRect(0, 0, c.width, c.height);
+  const scale = canvasScale();
+  if (S.donorMode) {
+    Strokes.draw(ctx, S.copy ? S.copy.strokes : [], "copy", scale);
+    return;
+  }
+  const m = marks();
+  Strokes.draw(ctx, m.bg, "bg", scale);
+  Strokes.draw(ctx, m.fg, "fg", scale);
+  if ($("edit-kind").value === "add" && S.copy && S.paste) {
+    const c0 = Strokes.centroid(S.copy.strokes);
+    if (c0) Strokes.draw(ctx, S.copy.strokes, "copy", scale, [S.paste[0] - c0[0], S.paste[1] - c0[1]], true);
+    Strokes.marker(ctx, S.paste, scale);
+  }
+}
+
+function pixelAt(event) {
+  const r = $("strokes").getBoundingClientRect();
+  return [(event.clientX - r.left) / r.width * S.info.width - 0.5, (event.clientY - r.top) / r.height * S.info.height - 0.5];
+}
+
+function activeList(kind) {
+  if (S.donorMode) {
+    if (!S.copy || S.copy.instance !== shownInstance() || viewKey(S.copy.view) !== viewKey(S.view)) {
+      S.copy = { instance: shownInstance(), view: S.view, strokes: [] };
+    }
+    return S.copy.strokes;
+  }
+  return marks()[kind];
+}
+
+function snapshot() {
+  const key = S.donorMode ? "copy" : markKey();
+  const state = S.donorMode ? JSON.stringify(S.copy) : JSON.stringify(marks());
+  if (!S.undo.has(key)) S.undo.set(key, []);
+  S.undo.get(key).push(state);
+}
+
+function undo() {
+  const key = S.donorMode ? "copy" : markKey();
+  const stack = S.undo.get(key);
+  if (!stack || !stack.length) return;
+  const state = JSON.parse(stack.pop());
+  if (S.donorMode) S.copy = state; else S.marks.set(key, state);
+  redraw();
+}
+
+function onDown(e) {
+  if (!S.info) return;
+  e.preventDefault();
+  $("strokes").setPointerCapture(e.pointerId);
+  const p = pixelAt(e);
+  if (S.tool === "orbit") {
+    const v = typeof S.view === "string" ? { azimuth: 45, elevation: 30 } : S.view;
+    S.drag = { x: e.clientX, y: e.clientY, view: v };
+  } else if (S.tool === "paste") {
+    S.paste = p;
+    pasteInfo();
+    redraw();
+  } else if (S.tool === "erase") {
+    snapshot();
+    S.drag = { erase: true };
+    erase(p);
+  } else {
+    snapshot();
+    const list = activeList(S.tool);
+    list.push({ points: [p], radius: S.radius });
+    S.drag = { stroke: list[list.length - 1] };
+    redraw();
+  }
+}
+
+function onMove(e) {
+  if (!S.drag) return;
+  const p = pixelAt(e);
+  if (S.drag.stroke) {
+    const pts = S.drag.stroke.points, last = pts[pts.length - 1];
+    if (Math.hypot(p[0] - last[0], p[1] - last[1]) >= 0.35) { pts.push(p); redraw(); }
+  } else if (S.drag.erase) {
+    erase(p);
+  } else if (S.drag.view) {
+    const az = Math.round(((S.drag.view.azimuth - (e.clientX - S.drag.x) * 0.5) % 360 + 360) % 360);
+    const el = Math.round(Math.max(-80, Math.min(80, S.drag.view.elevation + (e.clientY - S.drag.y) * 0.4)));
+    if (az !== S.view.azimuth || el !== S.view.elevation) setView({ azimuth: az, elevation: el });
+  }
+}
+
+function onUp() { S.drag = null; }
+
+function erase(p) {
+  const r = S.radius;
+  if (S.donorMode) {
+    if (S.copy) S.copy.strokes = S.copy.strokes.filter((s) => !Strokes.touches(s, p, r));
+  } else {
+    const m = marks();
+    m.fg = m.fg.filter((s) => !Strokes.touches(s, p, r));
+    m.bg = m.bg.filter((s) => !Strokes.touches(s, p, r));
+  }
+  redraw();
+}
+
+function clearStrokes() {
+  snapshot();
+  if (S.donorMode) S.copy = null; else S.marks.set(markKey(), { fg: [], bg: [] });
+  redraw();
+}
+
+// ------------------------------------------------------------------------------------ set-up
+
+function refreshThumb(k) {
+  const img = $("instances").querySelector(`img[data-k="${k}"]`);
+  if (img) attempt(async () => setImage(img, await imageUrl(`/api/thumb?instance=${k}&s=${S.state}`)));
+}
+
+function refreshInstances() {
+  for (const img of $("instances").querySelectorAll("img")) refreshThumb(Number(img.dataset.k));
+}
+
+function pickInstance(k) {
+  S.instance = k;
+  $("instance-select").value = k;
+  for (const img of $("instances").children) img.classList.toggle("current", Number(img.dataset.k) === k);
+  S.tint = false;
+  $("tint").checked = false;
+  buildSplitViews();
+  showView();
+  attempt(showTurntable);
+}
+
+function buildSplitViews() {
+  const box = $("split-views");
+  box.replaceChildren();
+  for (const [split, counts] of Object.entries(S.info.splits)) {
+    const n = counts[S.instance] || 0;
+    if (!n) continue;
+    const det = document.createElement("details");
+    const sum = document.createElement("summary");
+    sum.textContent = `${split} views (${n})`;
+    det.append(sum);
+    const list = document.createElement("div");
+    list.className = "thumbs small";
+    const photos = S.info.photos.includes(split);
+    for (let i = 0; i < n; i++) {
+      const el = document.createElement(photos ? "img" : "button");
+      if (!photos) el.textContent = i;
+      el.title = `${split}:${i}`;
+      el.addEventListener("click", () => setView(`${split}:${i}`));
+      list.append(el);
+    }
+    det.addEventListener("toggle", () => {
+      if (!det.open || !photos) return;
+      [...list.children].forEach((img, i) => {
+        if (!img.src) attempt(async () => setImage(img, await imageUrl(`/api/photo?instance=${S.instance}&split=${split}&index=${i}`)));
+      });
+    }, { once: false });
+    det.append(list);
+    box.append(det);
+  }
+}
+
+function toggleDonor() {
+  S.donorMode = !S.donorMode;
+  $("draw-donor").textContent = S.donorMode ? "Back to the instance" : "Draw on donor";
+  if (!S.donorMode) { S.tool = "paste"; document.querySelector('input[name="tool"][value="paste"]').checked = true; }
+  pasteInfo();
+  showView();
+}
+
+function connect() {
+  const ws = new WebSocket(`ws://${location.host}/api/ws?token=${encodeURIComponent(TOKEN)}&client=${S.client}`);
+  S.ws = ws;
+  ws.onopen = () => {
+    if (S.lost) { S.lost = false; clearError(); }
+    status("ready");
+  };
+  ws.onmessage = (ev) => attempt(() => onJobMessage(JSON.parse(ev.data)));
+  ws.onclose = () => {
+    if (S.job) { S.job = null; busy(false); }
+    S.lost = true;
+    status("lost the server");
+    showError("lost the server: is crfedit ui still running? (retrying)");
+    setTimeout(connect, 2000);
+  };
+}
+
+async function start() {
+  S.info = await getJson("/api/state");
+  S.state = S.info.state;
+  $("model-name").textContent = S.info.model;
+  const names = S.info.instances;
+  for (const id of ["instance-select", "donor", "shape-from", "color-from"]) {
+    const sel = $(id);
+    if (id === "shape-from" || id === "color-from") sel.append(new Option("—", ""));
+    names.forEach((n, k) => sel.append(new Option(n, k)));
+  }
+  $("donor").value = names.length > 1 ? 1 : 0;
+  names.slice(0, 48).forEach((n, k) => {
+    const img = document.createElement("img");
+    img.dataset.k = k;
+    img.title = n;
+    img.addEventListener("click", () => pickInstance(k));
+    $("instances").append(img);
+  });
+  for (let i = 0; i < 8; i++) {
+    const img = document.createElement("img");
+    img.title = `orbit ${i * 45}°`;
+    img.addEventListener("click", () => setView({ azimuth: i * 45, elevation: typeof S.view === "string" ? 30 : S.view.elevation }));
+    $("turntable").append(img);
+  }
+  S.radius = Math.max(1, S.info.width / 48);
+  $("radius").max = Math.max(8, S.info.width / 8);
+  $("radius").value = S.radius;
+  $("radius-out").textContent = `${S.radius.toFixed(2)} px`;
+  renderStack(S.info.stack);
+  connect();
+  pickInstance(0);
+  refreshInstances();
+}
+
+function wire() {
+  $("azimuth").addEventListener("input", orbitFromSliders);
+  $("elevation").addEventListener("input", orbitFromSliders);
+  $("instance-select").addEventListener("change", () => pickInstance(Number($("instance-select").value)));
+  document.querySelectorAll('input[name="tool"]').forEach((r) => r.addEventListener("change", () => { S.tool = r.value; }));
+  $("radius").addEventListener("input", () => { S.radius = Number($("radius").value); $("radius-out").textContent = `${S.radius.toFixed(2)} px`; });
+  $("undo").addEventListener("click", undo);
+  $("clear").addEventListener("click", clearStrokes);
+  document.addEventListener("keydown", (e) => { if ((e.ctrlKey || e.metaKey) && e.key === "z") { e.preventDefault(); undo(); } });
+  const c = $("strokes");
+  c.addEventListener("pointerdown", onDown);
+  c.addEventListener("pointermove", onMove);
+  c.addEventListener("pointerup", onUp);
+  c.addEventListener("pointercancel", onUp);
+  $("compare").addEventListener("change", () => attempt(showCompare));
+  $("wipe").addEventListener("input", wipe);
+  $("select").addEventListener("click", () => attempt(doSelect));
+  $("clear-selection").addEventListener("click", () => attempt(async () => {
+    await postJson("/api/select/clear", { instance: S.instance });
+    S.tint = false; $("tint").checked = false;
+    $("selection-info").textContent = "";
+    await showView();
+  }));
+  $("tint").addEventListener("change", () => { S.tint = $("tint").checked; showView(); attempt(showTurntable); });
+  $("edit-kind").addEventListener("change", () => {
+    for (const d of document.querySelectorAll(".kind")) d.hidden = d.dataset.kind !== $("edit-kind").value;
+    if (S.donorMode && $("edit-kind").value !== "add") toggleDonor();
+    redraw();
+  });
+  $("draw-donor").addEventListener("click", toggleDonor);
+  $("donor").addEventListener("change", () => { if (S.donorMode) showView(); });
+  $("apply").addEventListener("click", () => attempt(doApply));
+  $("cancel").addEventListener("click", () => attempt(() => postJson("/api/cancel", {})));
+  $("bake").addEventListener("click", () => attempt(bake));
+  $("shell").addEventListener("click", () => attempt(copyShell));
+  $("error-close").addEventListener("click", clearError);
+  window.addEventListener("resize", redraw);
+}
+
+document.addEventListener("DOMContentLoaded", () => { wire(); attempt(start); });

@@ -1,0 +1,178 @@
+// crfedit ui: Select, the edits and the edit stack (loaded after app.js, which holds the state S).
+"use strict";
+
+// ------------------------------------------------------------------------------------ select and edit
+
+function scribbledViews(instance) {
+  const out = [];
+  for (const [key, m] of S.marks) {
+    const [inst, vkey] = [Number(key.split("|")[0]), key.slice(key.indexOf("|") + 1)];
+    if (inst !== instance || !m.fg.length) continue;
+    const view = vkey.startsWith("orbit:") ? parseOrbit(vkey) : vkey;
+    out.push({ view, fg: Strokes.toJson(m.fg), bg: Strokes.toJson(m.bg) });
+  }
+  return out;
+}
+
+function parseOrbit(key) {
+  const [az, el] = key.slice(6).split("@").map(Number);
+  return { azimuth: az, elevation: el };
+}
+
+async function doSelect() {
+  const start = performance.now();
+  status("selecting…");
+  const info = await postJson("/api/select", { instance: S.instance, views: scribbledViews(S.instance) });
+  S.tint = true;
+  $("tint").checked = true;
+  $("selection-info").textContent = `${info.selected_cells} of ${info.occupied_cells} occupied cells selected from ${info.views} view(s) (${info.seconds.toFixed(2)} s)`;
+  await showView();
+  measure("select", start);
+  clearError();
+  status("ready");
+  await showTurntable();
+}
+
+function pasteInfo() {
+  const c0 = S.copy && Strokes.centroid(S.copy.strokes);
+  $("paste-info").textContent = !c0 ? "Scribble the part on the donor first (Draw on donor)."
+    : !S.paste ? "Now click where to paste it (paste tool)."
+      : `pasted ${Math.round(S.paste[0] - c0[0])}, ${Math.round(S.paste[1] - c0[1])} px from where it was drawn`;
+}
+
+function editBody() {
+  const kind = $("edit-kind").value;
+  const body = { client: S.client, kind, instance: S.instance, view: S.view, seed: Number($("seed").value) };
+  const steps = Number($("steps").value);
+  if (steps !== 100) body.steps = steps;
+  if ($("method").value && kind !== "add" && kind !== "transfer") body.method = $("method").value;
+  if (kind === "color" || kind === "remove") {
+    body.views = scribbledViews(S.instance);
+    if (kind === "color") body.color = $("color").value;
+  } else if (kind === "add") {
+    const c0 = S.copy && Strokes.centroid(S.copy.strokes);
+    body.donor = Number($("donor").value);
+    if (c0) {
+      body.donor_view = S.copy.view;
+      body.copy = Strokes.toJson(S.copy.strokes);
+    }
+    if (c0 && S.paste) body.offset = [Math.round(S.paste[0] - c0[0]), Math.round(S.paste[1] - c0[1])];
+    body.bg = Strokes.toJson(marks().bg);
+  } else {
+    const sf = $("shape-from").value, cf = $("color-from").value;
+    body.shape_from = sf === "" ? null : Number(sf);
+    body.color_from = cf === "" ? null : Number(cf);
+  }
+  return body;
+}
+
+async function doApply() {
+  if (S.donorMode) toggleDonor();
+  if (!S.ws || S.ws.readyState !== WebSocket.OPEN) throw new Error("lost the server: is crfedit ui still running?");
+  const body = editBody();
+  const start = performance.now();
+  const reply = await postJson("/api/edit", body);
+  S.job = { id: reply.job, kind: body.kind, start, steps: reply.steps };
+  busy(true);
+  status(`${body.kind}: starting…`);
+}
+
+function busy(on) {
+  $("apply").disabled = on;
+  $("cancel").hidden = !on;
+  $("progress").hidden = !on;
+  if (on) $("progress").value = 0;
+}
+
+async function onJobMessage(msg) {
+  if (!S.job || msg.job !== S.job.id) return;
+  if (msg.type === "progress") {
+    $("progress").value = msg.step / msg.steps;
+    status(`${S.job.kind}: step ${msg.step} of ${msg.steps}`);
+    return;
+  }
+  const job = S.job;
+  S.job = null;
+  busy(false);
+  if (msg.type !== "done") {
+    status("ready");
+    showError(msg.message);
+    return;
+  }
+  clearError();
+  S.state = msg.state;
+  S.tint = false;
+  $("tint").checked = false;
+  if (msg.image && S.instance === shownInstance()) {
+    await setImage($("view"), msg.image);
+    $("view").dataset.state = S.state;
+  }
+  measure(`apply-${job.kind}`, job.start);
+  status(`${job.kind} applied in ${msg.seconds.toFixed(2)} s`);
+  renderStack(msg.stack);
+  await showCompare();
+  await showTurntable();
+  refreshThumb(S.instance);
+}
+
+// ------------------------------------------------------------------------------------ stack
+
+function kb(n) { return n < 1024 ? `${n} B` : `${(n / 1024).toFixed(1)} KB`; }
+
+function renderStack(rows) {
+  const ol = $("stack");
+  ol.replaceChildren();
+  for (const row of rows) {
+    const li = document.createElement("li");
+    li.dataset.id = row.id;
+    const on = document.createElement("input");
+    on.type = "checkbox"; on.checked = row.enabled; on.className = "toggle"; on.title = "on / off";
+    on.addEventListener("change", () => attempt(() => stackOp("/api/stack/toggle", { id: row.id, enabled: on.checked })));
+    const text = document.createElement("span");
+    text.textContent = `${row.kind} · ${row.instance} · ${kb(row.bytes)} · ${row.seconds.toFixed(2)} s — ${row.label}`;
+    const up = button("↑", !row.up, () => stackOp("/api/stack/move", { id: row.id, to: row.position - 1 }));
+    const down = button("↓", !row.down, () => stackOp("/api/stack/move", { id: row.id, to: row.position + 1 }));
+    const save = button("Save", false, async () => {
+      const r = await postJson("/api/stack/save", { id: row.id });
+      $("saved").textContent = `saved ${r.path}`;
+    });
+    const dl = document.createElement("a");
+    dl.textContent = "Download";
+    dl.href = `/api/stack/download?id=${row.id}&token=${encodeURIComponent(TOKEN)}`;
+    dl.download = row.name;
+    li.append(on, text, up, down, save, dl);
+    ol.append(li);
+  }
+}
+
+function button(label, disabled, fn) {
+  const b = document.createElement("button");
+  b.textContent = label;
+  b.disabled = disabled;
+  b.addEventListener("click", () => attempt(fn));
+  return b;
+}
+
+async function stackOp(path, body) {
+  if (S.job) throw new Error("an edit is running: wait for it or press Cancel");
+  const r = await postJson(path, body);
+  S.state = r.state;
+  renderStack(r.stack);
+  clearError();
+  await showView();
+  await showTurntable();
+  refreshInstances();
+}
+
+async function bake() {
+  const r = await postJson("/api/bake", {});
+  $("saved").textContent = `baked ${r.model} (from ${r.edits.length} edit file(s) saved beside it)`;
+}
+
+async function copyShell() {
+  const text = await (await api("/api/shell")).text();
+  const area = $("shell-text");
+  area.value = text;
+  area.hidden = false;
+  try { await navigator.clipboard.writeText(text); status("copied the shell commands"); } catch (e) { area.select(); }
+}

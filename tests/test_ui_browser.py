@@ -1,0 +1,91 @@
+"""``crfedit ui`` end to end in a real headless Chromium (Debian's ``chromium`` and
+``chromium-driver``, driven by Selenium through benchmarks/ui.py, the driver the benchmark and
+the docs' screenshots use).
+
+A user picks a view, draws a stroke over the seat with the mouse, picks a colour and presses
+Apply: the pixels under the stroke move toward the colour, a pixel of another part far away
+does not, and turning the edit off gives back the view bit for bit.  A stopped server then
+shows as one sentence in the page.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("aiohttp", reason="crfedit ui needs the [ui] extra (aiohttp)")
+
+ROOT = Path(__file__).resolve().parent.parent
+_spec = importlib.util.spec_from_file_location("bench_ui", ROOT / "benchmarks" / "ui.py")
+drive = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(drive)
+
+BROWSER, DRIVER, WHY = drive.find_chromium()
+pytestmark = pytest.mark.skipif(BROWSER is None, reason=f"no headless browser for the end-to-end test: {WHY}")
+
+
+@pytest.fixture
+def page(edit_category, tmp_path):
+    from crfedit.ui.server import run_in_thread
+    from crfedit.ui.session import open_session
+
+    path, _, category = edit_category
+    session, _ = open_session(path, category.root, [], tmp_path / "work", "cpu")
+    running = run_in_thread(session)
+    p = drive.Page(running.url)
+    yield p, running
+    p.close()
+    running.stop()
+
+
+def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp_path):
+    from crfedit.edit.scribble import strokes_json_mask
+    from crfedit.renderer import render_camera
+
+    p, running = page
+    _, model, category = edit_category
+    view = category.instance(0).view("train:0")
+    opacity = render_camera(model.field_for(0), view.camera, 0).opacity.numpy()
+    stroke, part = drive.stroke_on_part(view.parts, opacity)
+
+    drive.pick_view(p, "train:0")
+    before = p.pixels()
+    assert before.shape == (32, 32, 3) and p.error() == ""
+
+    p.draw(stroke)
+    drawn = p.js("return Strokes.toJson(marks().fg)")
+    assert len(drawn["strokes"]) == 1 and len(drawn["strokes"][0]) >= 2  # the mouse drew one polyline
+
+    p.set_input("#color", "#2040ff")
+    drive.apply_edit(p, "color")
+    after = p.pixels()
+    assert len(p.driver.find_elements("css selector", "#stack li")) == 1
+
+    under = strokes_json_mask(drawn, 32, 32, "stroke") & (view.parts == part)
+    target = np.array([0x20, 0x40, 0xFF], dtype=float)
+    dist_before = np.abs(before[under] - target).mean()
+    dist_after = np.abs(after[under] - target).mean()
+    assert dist_after < 0.6 * dist_before, (dist_before, dist_after)
+    # far away: the pixel of another part of the chair farthest from the stroke
+    ys, xs = np.nonzero((view.parts > 0) & (view.parts != part) & (opacity > 0.9))
+    sy, sx = np.nonzero(under)
+    far = int(np.argmax(np.min(np.hypot(ys[:, None] - sy[None], xs[:, None] - sx[None]), axis=1)))
+    y, x = ys[far], xs[far]
+    assert np.abs(after[y, x].astype(int) - before[y, x]).max() <= 8, (y, x, before[y, x], after[y, x])
+
+    p.screenshot(tmp_path / "recoloured.png")
+    assert (tmp_path / "recoloured.png").stat().st_size > 10_000
+
+    drive.toggle_last(p, False)
+    assert p.js("return document.getElementById('view').dataset.state") == "base"
+    assert np.array_equal(p.pixels(), before)
+    drive.toggle_last(p, True)
+    assert not np.array_equal(p.pixels(), before)
+    assert p.error() == "" and p.console_errors() == []
+
+    running.stop()  # a lost server is one sentence in the page
+    p.wait("return !document.getElementById('error').hidden", 30)
+    assert p.error().startswith("lost the server")
