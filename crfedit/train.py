@@ -10,11 +10,13 @@
    bit for bit.
 
 A step of the fast preset is device-resident: rays, sample offsets and grid probes are drawn on
-the device from a device generator, the march packs its samples into fixed-capacity buffers
-(:class:`~crfedit.renderer.FixedMarch`), the optimizer is fused Adam, and nothing is read back
-to the host.  The loss, the non-finite guard and the buffer sizes are read every ``read_every``
-steps and before every checkpoint (:class:`~crfedit.optim.StepLog`), so a GPU runs ahead of the
-host between reads, and a diverged run still never overwrites its last good checkpoint.
+the device from a device generator, the optimizer is fused Adam, and on a GPU the march packs
+its samples into fixed-capacity buffers (:class:`~crfedit.renderer.FixedMarch`), so nothing is
+read back to the host.  The loss, the non-finite guard and the buffer sizes are read every
+``read_every`` steps and before every checkpoint (:class:`~crfedit.optim.StepLog`), so a GPU runs
+ahead of the host between reads, and a diverged run still never overwrites its last good
+checkpoint.  On a CPU the march sizes its samples exactly (``nonzero``): a host read costs a CPU
+nothing, while a fixed buffer's padding costs compute (docs/gpu.md has the measurements).
 
 Under ``torchrun`` (``ranks``, see :mod:`crfedit.distributed`) each rank samples its share of
 the step's rays from its own instances with its own generator, the gradients are averaged in
@@ -240,6 +242,7 @@ def train(
     batches: BatchSource | None = None,
     read_every: int = READ_EVERY,
     compile: bool = False,
+    fixed_shapes: bool | None = None,
 ) -> tuple[CategoryModel, TrainResult]:
     """Train (or, with ``resume``, continue training) a model of ``category`` and write it to ``out``.
 
@@ -248,8 +251,11 @@ def train(
     steps between read nothing back from the device.  The model file is rewritten atomically
     every ``checkpoint_every`` steps, at the end and on Ctrl-C, each time after a read-out: a
     non-finite loss (or weight) stops training with :class:`NonFiniteError` naming the step of
-    the first non-finite loss, leaving the last checkpoint as it was.  ``compile`` runs the
-    field's networks through ``torch.compile`` (:class:`~crfedit.renderer.FixedMarch`).
+    the first non-finite loss, leaving the last checkpoint as it was.
+
+    ``fixed_shapes`` marches with fixed-capacity buffers (:class:`~crfedit.renderer.FixedMarch`:
+    no host read inside a step); None chooses them everywhere but on a CPU.  ``compile`` runs
+    the fixed-shape march's networks through ``torch.compile``.
 
     ``ranks`` places this process in a torchrun job: ``cfg.rays`` is then the rays of a step over
     all ranks, each rank drawing its share from the instances :meth:`Ranks.shard` gives it.
@@ -260,6 +266,9 @@ def train(
         raise CrfError(f"{ranks.world} ranks: at most one rank per instance and per ray ({len(category.instances)} instances, rays={cfg.rays})")
     if read_every < 1:
         raise CrfError(f"read_every {read_every}: must be at least 1")
+    fixed_shapes = (device.type != "cpu" or compile) if fixed_shapes is None else fixed_shapes
+    if compile and not fixed_shapes:
+        raise CrfError("--compile compiles the fixed-shape march: it cannot be combined with --march exact")
     generator = torch.Generator(device=device).manual_seed(seed)
     if resume:
         if not out.is_file():
@@ -303,7 +312,7 @@ def train(
     n_rays = ranks.share(cfg.rays)
     weight = n_rays * ranks.world / cfg.rays  # this rank's part of the step's mean loss, times world
     meta = dict(extra_meta or {})
-    march = FixedMarch(field, compile) if cfg.sampler == "grid" else None
+    march = FixedMarch(field, compile) if cfg.sampler == "grid" and fixed_shapes else None
     if march is not None:
         march.load_state(state, device)
     cells = None if hulls is None else [h.reshape(-1).nonzero().squeeze(-1) for h in hulls]  # once: hulls are fixed

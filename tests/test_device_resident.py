@@ -22,6 +22,7 @@ from crfedit.data import load_category
 from crfedit.data.loading import training_rays
 from crfedit.errors import NonFiniteError
 from crfedit.field import ConditionalRadianceField
+from crfedit.model import load_model
 from crfedit.opcount import count_events, profile_training
 from crfedit.optim import run_adam
 from crfedit.renderer import FixedMarch, render_rays
@@ -146,9 +147,11 @@ def test_a_training_step_reads_nothing_back(tiny_chairs):
     aten op on a CPU, so the profiler cannot see it there; on CUDA it is a synchronization.)"""
     category = load_category(tiny_chairs)
     cfg = make_config("fast", overrides=dict(rays=128, occ_res=16, grid_res=16, occ_warmup=4, occ_every=4))
-    quiet = profile_training(category, cfg, torch.device("cpu"), first=8, count=7, read_every=8)
+    quiet = profile_training(category, cfg, torch.device("cpu"), first=8, count=7, read_every=8, fixed_shapes=True)
     assert quiet.host_reads == 0 and quiet.item == 0 and quiet.nonzero == 0, quiet
     assert quiet.top_level_ops > 50  # the profiler did see the steps
+    exact = profile_training(category, cfg, torch.device("cpu"), first=8, count=7, read_every=8, fixed_shapes=False)
+    assert exact.nonzero > 0  # the CPU's default march sizes its samples exactly: reads, free on a CPU
 
 
 def test_the_reference_march_does_read_back():
@@ -204,8 +207,31 @@ def test_nan_between_read_outs_never_reaches_a_checkpoint(tiny_chairs, tmp_path,
 
     cfg = make_config("fast", overrides=dict(steps=30, rays=64, checkpoint_every=5))
     with pytest.raises(NonFiniteError, match="training diverged at step 7 .*keeps its last checkpoint"):
-        train(load_category(tiny_chairs), cfg, out, torch.device("cpu"), on_step=on_step, read_every=16)
+        train(load_category(tiny_chairs), cfg, out, torch.device("cpu"), on_step=on_step, read_every=16, fixed_shapes=True)
     assert calls[0] == 10 and sha(out) == hashes[6] == hashes[9]
+
+
+def test_fixed_shape_resume_is_bit_identical(tiny_chairs, tmp_path):
+    """Ctrl-C at step 11 and --resume reach the uninterrupted run's weights and state exactly:
+    the march's buffer sizes and running counts (resized every 4 steps) are in the checkpoint."""
+    category = load_category(tiny_chairs)
+    cfg = make_config("fast", overrides=dict(steps=20, rays=512, occ_res=16, grid_res=16, occ_warmup=3, occ_every=3,
+                                             checkpoint_every=10**9))
+    run = dict(seed=3, read_every=4, fixed_shapes=True)
+    full, part = tmp_path / "full.safetensors", tmp_path / "part.safetensors"
+    train(category, cfg, full, torch.device("cpu"), **run)
+
+    def stop(step, *_):
+        if step == 11:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(category, cfg, part, torch.device("cpu"), on_step=stop, **run)
+    assert load_model(part)[1]["march.capacity"].min() > 0  # the buffers were sized, not dense
+    train(category, cfg, part, torch.device("cpu"), resume=True, **run)
+    (a, state_a), (b, state_b) = load_model(full), load_model(part)
+    assert all(torch.equal(v, b.state()[k]) for k, v in a.state().items())
+    assert all(torch.equal(v, state_b[k]) for k, v in state_a.items() if k != "elapsed")
 
 
 def test_run_adam_reads_once_and_names_the_first_nan_step():
@@ -240,7 +266,8 @@ def test_compiled_field_equals_eager_forward_gradients_and_training(tiny_chairs,
         torch.testing.assert_close(fused_grads[name], g, rtol=1e-4, atol=1e-5, msg=name)
     category = load_category(tiny_chairs)
     cfg = make_config("fast", overrides=dict(steps=4, rays=64, occ_res=16, grid_res=16))
-    models = [train(category, cfg, tmp_path / f"{c}.safetensors", torch.device("cpu"), compile=c)[0] for c in (False, True)]
+    models = [train(category, cfg, tmp_path / f"{c}.safetensors", torch.device("cpu"), compile=c, fixed_shapes=True)[0]
+              for c in (False, True)]
     for (name, a), b in zip(models[0].field.named_parameters(), models[1].field.parameters()):
         torch.testing.assert_close(b, a, rtol=1e-4, atol=2e-5, msg=name)
 

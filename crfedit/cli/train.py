@@ -23,6 +23,12 @@ PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
 ArchChoice = enum.Enum("ArchChoice", {a: a for a in ARCHS}, type=str)
 
 
+class MarchChoice(str, enum.Enum):
+    auto = "auto"
+    fixed = "fixed"
+    exact = "exact"
+
+
 # ----------------------------------------------------------------------------- progress
 
 
@@ -110,6 +116,7 @@ def format_score(score: dict) -> str:
 def run_training(
     category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int = 100, ranks=None,
     compile: bool = False,
+    march: str = "auto",
 ):
     """Train on a loaded category with a progress bar and run records (crfedit.runlog), both on
     rank 0 only under torchrun; return (model, TrainResult).  Training reads its loss back every
@@ -120,7 +127,8 @@ def run_training(
     from ..threads import requested_threads
     from ..train import READ_EVERY, train
 
-    options = {"read_every": math.gcd(log_every, READ_EVERY), "compile": compile}
+    fixed = {"auto": None, "fixed": True, "exact": False}[march]
+    options = {"read_every": math.gcd(log_every, READ_EVERY), "compile": compile, "fixed_shapes": fixed}
 
     ranks = ranks or SINGLE
     first_step = 0
@@ -170,7 +178,8 @@ def train_cmd(
     view_reg: Annotated[Optional[float], typer.Option("--view-reg", help="Weight of the view-dependence regularizer (one-view-per-instance data).")] = None,
     sets: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE", help="Override any config field, KEY=VALUE (repeatable), e.g. --set rays=1024.")] = None,
     log_every: Annotated[int, typer.Option("--log-every", help="Write a row of the CSV log (and TensorBoard, when installed) every N steps.")] = 100,
-    compile: Annotated[bool, typer.Option("--compile", help="Run the field's networks through torch.compile (needs a C++ compiler; the first steps compile for seconds).")] = False,
+    compile: Annotated[bool, typer.Option("--compile", help="Run the fixed-shape march's networks through torch.compile (needs a C++ compiler; the first steps compile for seconds).")] = False,
+    march: Annotated[MarchChoice, typer.Option("--march", help="fixed: fixed-capacity sample buffers, no host read in a step (auto on a GPU); exact: buffers sized by nonzero (auto on a CPU).")] = MarchChoice.auto,
 ) -> None:
     """Train one model over a category: shared networks plus a shape and a color code per instance.
 
@@ -219,7 +228,7 @@ def train_cmd(
     with process_group(ranks, dev):
         category = load_category(data, res=res)
         seed_everything(seed)  # train() draws the initial weights from torch's global generator
-        model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile)
+        model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value)
     if not ranks.main:
         return
     score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
