@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import shlex
 import statistics
 import sys
@@ -111,6 +112,7 @@ def view_and_edit_times(model, category: Category, device: torch.device, res: in
 
 
 def measure(category: Category, device: torch.device, args) -> dict:
+    load_before = os.getloadavg()[0]
     base = make_config("fast", sets=list(args.set), device_type=device.type)
     costs = host_costs(category, dataclasses.replace(base, rays=args.profile_rays), device, args.compile)
     settings = BenchSettings(minutes=args.minutes, steps=args.steps, checkpoints=args.checkpoints, seed=args.seed)
@@ -126,6 +128,7 @@ def measure(category: Category, device: torch.device, args) -> dict:
     info = machine_info(device)
     info["cuda"] = torch.version.cuda or "none"
     info["command"] = "python " + " ".join(shlex.quote(a) for a in sys.argv)
+    info["load"] = f"{load_before:.2f} at the start, {os.getloadavg()[0]:.2f} at the end (1-minute load average)"
     resolution = category.instances[0].splits["train"][0].camera.width
     data = f"{category.root} ({len(category.instances)} instances, {resolution} px)"
     return {"machine": info, "data": data, "settings": vars(args) | {"md": str(args.md), "json": str(args.json)},
@@ -146,8 +149,9 @@ def section(result: dict) -> str:
                   "CPU: the host-overhead counts of a training step, and the CPU's own curve and times. (A CPU's "
                   "host reads cost nothing; `.tolist()` read-outs are no aten op there, so they do not show.)", ""]
     lines += [
-        f"Measured {m['date']} on {m['device']} (CPU {m['cpu']}, {m['cores']} cores, {m['threads']} torch threads), "
-        f"torch {m['torch']}, CUDA {m['cuda']}, crfedit revision `{m['revision']}`. Data: `{result['data']}`.",
+        f"Measured {m['date']} on {m['device']} (CPU {m['cpu']}, {m['cores']} cores, torch threads: {m['threads']}), "
+        f"torch {m['torch']}, CUDA {m['cuda']}, crfedit revision `{m['revision']}`. Data: `{result['data']}`."
+        + (f" Load: {m['load']}." if "load" in m else ""),
         "", f"Command: `{m['command']}`", "",
         f"### Host cost of a training step ({result['settings']['profile_rays']} rays, torch.profiler)", "",
         "| march | window | aten ops | top-level ops | host reads | `item` | `nonzero` | kernel launches | synchronizations |",
