@@ -178,11 +178,25 @@ def _coerce(name: str, value: str, current):
         raise CrfError(f"--set {name}={value}: expected a {type(current).__name__}") from None
 
 
-def make_config(preset: str = "fast", overrides: dict[str, object] | None = None, sets: list[str] = ()) -> Config:
-    """The named preset with typed ``overrides`` and ``key=value`` strings (``--set``) applied."""
+DEVICE_DEFAULTS: dict[tuple[str, str], dict[str, object]] = {
+    # Provisional: issue 15's one-minute runs on one H100 (before the device-resident step) gave
+    # 27.05 dB held-out at 1024 rays per step, 30.37 dB at 8192 and 30.24 dB at 65536.
+    # benchmarks/gpu.py --rays sweeps it; replace this with what it measures on a GPU.
+    ("fast", "cuda"): {"rays": 8192},
+}
+"""Per-device defaults of a preset, ``(preset, device type) → fields``: a GPU trains best on
+bigger batches than two CPU cores.  Applied over the preset and under explicit overrides; the
+resolved config is stored in the model file, so a model renders the same on any device."""
+
+
+def make_config(
+    preset: str = "fast", overrides: dict[str, object] | None = None, sets: list[str] = (), device_type: str = "cpu"
+) -> Config:
+    """The named preset with its defaults for ``device_type`` (:data:`DEVICE_DEFAULTS`), then
+    typed ``overrides`` and ``key=value`` strings (``--set``) applied."""
     if preset not in PRESETS:
         raise CrfError(f"--preset {preset}: expected one of {', '.join(PRESETS)}")
-    cfg = PRESETS[preset]
+    cfg = dataclasses.replace(PRESETS[preset], **DEVICE_DEFAULTS.get((preset, device_type), {}))
     known = {f.name: getattr(cfg, f.name) for f in fields(cfg)}
     changes = {k: v for k, v in (overrides or {}).items() if v is not None}
     for item in sets:

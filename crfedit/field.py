@@ -97,8 +97,11 @@ def linear_with_codes(layer: nn.Linear, per_point: Tensor, per_code: Tensor | No
 
 
 def code_selector(idx: Tensor, n_codes: int, dtype: torch.dtype = torch.float32) -> Tensor:
-    """One-hot [M, K] selector for :func:`linear_with_codes` (deterministic, fast backward)."""
-    return F.one_hot(idx, n_codes).to(dtype)
+    """One-hot [M, K] selector for :func:`linear_with_codes` (deterministic, fast backward).
+
+    Built by comparison rather than ``F.one_hot``, which reads ``idx``'s range back to the host
+    (a GPU synchronization) to check it."""
+    return (idx[:, None] == torch.arange(n_codes, device=idx.device)).to(dtype)
 
 
 def run_mlp(seq: nn.Sequential, per_point: Tensor, per_code: Tensor | None = None, idx: Tensor | None = None) -> Tensor:

@@ -55,6 +55,13 @@ def cell_centers(res: int, device: torch.device | str = "cpu") -> Tensor:
     return torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1).reshape(-1, 3)
 
 
+def centers_of_cells(idx: Tensor, res: int) -> Tensor:
+    """:func:`cell_centers` of the flat cell indices ``idx`` [C] only (the same float arithmetic,
+    so the same values), without building all R³ centers.  [C, 3]"""
+    ijk = torch.stack([idx // (res * res), idx // res % res, idx % res], dim=-1)
+    return (ijk.to(torch.float32) + 0.5) / res * 2.0 - 1.0
+
+
 def dilate(grid: Tensor, cells: int = 1) -> Tensor:
     """Grow occupied regions by ``cells`` in every direction (3-D box max filter, 26-neighbourhood
     for one cell).  The box is separable: an OR of shifted copies along each axis in turn."""
@@ -131,18 +138,23 @@ def update_from_density(
     threshold: float,
     decay: float = 0.95,
     generator: torch.Generator | None = None,
+    cells: Tensor | None = None,
 ) -> Tensor:
     """One refresh of an instance's grid from its density field (as in Instant-NGP).
 
     ``ema`` [R³] holds a running max-decayed density per cell; ``candidates`` [R³] bool marks
     the cells that may be occupied at all (the visual hull).  Each candidate is probed at a
     random point inside it; ``ema = max(decay·ema, σ)``.  Returns the new grid: candidates
-    whose ``1 - exp(-ema·step)`` exceeds ``threshold``.
+    whose ``1 - exp(-ema·step)`` exceeds ``threshold``.  ``cells`` [C] long, the indices of the
+    candidates, may be given by a caller that refreshes the same candidates often (training):
+    finding them is a ``nonzero``, a host read on a GPU.  The probes are drawn on the
+    generator's device.
     """
     res = round(len(ema) ** (1 / 3))
-    idx = candidates.nonzero().squeeze(-1)
-    centers = cell_centers(res, ema.device)[idx]
-    jitter = torch.rand(centers.shape, generator=generator).to(ema.device) - 0.5
+    idx = candidates.nonzero().squeeze(-1) if cells is None else cells
+    centers = centers_of_cells(idx, res)
+    device = generator.device if generator is not None else None
+    jitter = torch.rand(centers.shape, generator=generator, device=device).to(ema.device) - 0.5
     sigma = density_fn(centers + jitter * (2.0 / res))
     ema.mul_(decay)
     ema[idx] = torch.maximum(ema[idx], sigma.float())

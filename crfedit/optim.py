@@ -1,6 +1,11 @@
-"""The Adam step that training, the edits and fit-real share: a NaN/inf loss stops before it
-can reach any parameter, and a run that produced non-finite weights is refused, so a diverged
-run never overwrites a good model file or writes an edit."""
+"""The Adam step that training, the edits and fit-real share, and the non-finite guard: a run
+that produced a NaN/inf loss or non-finite weights is refused, so a diverged run never
+overwrites a good model file or writes an edit.
+
+The guard costs no host read per step: each step's loss goes into a buffer on the device
+(:class:`StepLog`), read in one transfer every few steps; the first non-finite loss in it
+raises :class:`NonFiniteError` naming its step.  Callers read it before anything is written.
+"""
 
 from __future__ import annotations
 
@@ -13,42 +18,77 @@ from torch import Tensor
 from .errors import NonFiniteError
 
 
-def adam_step(
-    opt: torch.optim.Optimizer, loss: Tensor, what: str, step: int, consequence: str,
-    before_step: Callable[[], None] | None = None,
-) -> float:
-    """One optimizer step on ``loss``; returns its value.  A non-finite loss raises
-    :class:`NonFiniteError` (``"{what} diverged at step {step} …; {consequence}"``) before the
-    gradients are computed, so the parameters stay as they were.  ``before_step`` runs between
-    the backward pass and the step (training averages the gradients over ranks there)."""
-    value = float(loss.detach())
-    if not math.isfinite(value):
-        raise NonFiniteError(f"{what} diverged at step {step} (loss is {value}); {consequence}")
+class StepLog:
+    """Per-step scalars (``columns`` of them, the loss first) kept on the device and read back
+    in one transfer (:meth:`read`): a GPU step then never waits for the host."""
+
+    def __init__(self, columns: int, device: torch.device | str, size: int = 16):
+        self.rows = torch.zeros(max(1, size), columns, device=device)
+        self.steps: list[int] = []
+
+    def record(self, step: int, values: Tensor) -> None:
+        """Store step ``step``'s ``values`` [columns] (a device-to-device copy)."""
+        if len(self.steps) == self.rows.shape[0]:
+            self.rows = torch.cat([self.rows, torch.zeros_like(self.rows)])
+        self.rows[len(self.steps)] = values.detach()
+        self.steps.append(step)
+
+    def read(self) -> list[tuple[int, list[float]]]:
+        """The (step, values) recorded since the last read; one host read (none when empty)."""
+        if not self.steps:
+            return []
+        rows = self.rows[: len(self.steps)].tolist()
+        out, self.steps = list(zip(self.steps, rows)), []
+        return out
+
+
+def check_losses(rows: list[tuple[int, list[float]]], what: str, consequence: str) -> None:
+    """Raise :class:`NonFiniteError` at the first row of :meth:`StepLog.read` whose loss (the
+    first value) is NaN or inf: ``"{what} diverged at step {step} (loss is …); {consequence}"``."""
+    for step, values in rows:
+        if not math.isfinite(values[0]):
+            raise NonFiniteError(f"{what} diverged at step {step} (loss is {values[0]}); {consequence}")
+
+
+def adam_step(opt: torch.optim.Optimizer, loss: Tensor, before_step: Callable[[], None] | None = None) -> None:
+    """One optimizer step on ``loss``, reading nothing back.  ``before_step`` runs between the
+    backward pass and the step (training averages the gradients over ranks there)."""
     opt.zero_grad(set_to_none=True)
     loss.backward()
     if before_step is not None:
         before_step()
     opt.step()
-    return value
 
 
 def check_finite(params: Iterable[Tensor], what: str, consequence: str) -> None:
-    """Raise :class:`NonFiniteError` if any of ``params`` holds NaN or inf."""
-    for p in params:
-        if not bool(torch.isfinite(p).all()):
-            raise NonFiniteError(f"{what} produced NaN or inf weights; {consequence}")
+    """Raise :class:`NonFiniteError` if any of ``params`` holds NaN or inf (one host read)."""
+    flags = [torch.isfinite(p).all() for p in params]
+    if flags and not bool(torch.stack(flags).all()):
+        raise NonFiniteError(f"{what} produced NaN or inf weights; {consequence}")
 
 
 def run_adam(
     opt: torch.optim.Optimizer, loss_fn: Callable[[], Tensor], steps: int, what: str,
     on_step: Callable[[int, float], None] | None = None, consequence: str = "nothing was written",
 ) -> float:
-    """``steps`` steps of ``opt`` on ``loss_fn()``, then a check that every parameter it
-    trains is finite; returns the last loss.  ``on_step(step, loss)`` after each step (1-based)."""
+    """``steps`` steps of ``opt`` on ``loss_fn()``, then a check that every loss and every
+    parameter it trains is finite; returns the last loss.  ``on_step(step, loss)`` after each
+    step (1-based) reads each loss as it comes, and a NaN/inf one stops before its gradient;
+    without it the losses are read once, at the end."""
+    params = [p for g in opt.param_groups for p in g["params"]]
+    log = StepLog(1, params[0].device if params else "cpu", size=steps)
     value = float("nan")
     for step in range(steps):
-        value = adam_step(opt, loss_fn(), what, step, consequence)
+        loss = loss_fn()
+        if on_step is not None:
+            value = float(loss.detach())
+            check_losses([(step, [value])], what, consequence)
+        else:
+            log.record(step, loss.detach().reshape(1))
+        adam_step(opt, loss)
         if on_step is not None:
             on_step(step + 1, value)
-    check_finite((p for g in opt.param_groups for p in g["params"]), what, consequence)
-    return value
+    rows = log.read()
+    check_losses(rows, what, consequence)
+    check_finite(params, what, consequence)
+    return rows[-1][1][0] if rows else value

@@ -8,6 +8,13 @@ segment's packed samples (:func:`~crfedit.rendering.composite_packed`) and stops
 transmittance falls below ``early_stop``.  ``hierarchical`` (paper preset): 64 stratified
 samples on the coarse network, 128 importance samples on the fine one, composited in the dense
 [rays, samples] layout (:func:`~crfedit.rendering.composite_packed_as_dense`).
+
+The grid march has two forms.  The reference packs each segment's samples with ``nonzero`` and
+drops terminated rays by index, reading counts back to the host several times per batch.  The
+device-resident form (``march=`` a :class:`FixedMarch`, used by training) keeps every shape
+fixed: all rays march every segment, terminated ones masked out, and each segment's samples go
+into a buffer of fixed capacity (:func:`~crfedit.sampling.pack_mask`), so a batch reads nothing
+back and a GPU never waits for the host.  Both give the same colours to float rounding.
 """
 
 from __future__ import annotations
@@ -26,6 +33,8 @@ from .sampling import (
     PackedSamples,
     fine_samples_from_coarse,
     grid_samples,
+    march_steps,
+    pack_mask,
     packed_samples_from_t,
     ray_aabb_intersect,
     stratified_samples,
@@ -39,8 +48,9 @@ class RenderOutput:
     rgb: Tensor  # [N, 3]
     depth: Tensor  # [N] expected distance Σ wᵢtᵢ (divide by opacity for the surface distance)
     opacity: Tensor  # [N]
-    n_samples: int  # field evaluations spent
+    n_samples: int | Tensor  # field evaluations spent ([] long tensor from a FixedMarch: not read back)
     coarse_rgb: Tensor | None = None  # [N, 3] hierarchical sampler only
+    complete: Tensor | None = None  # [N] bool (FixedMarch): every sample of the ray had a slot
 
 
 def instance_tensor(instance: Tensor | int, n: int, device: torch.device) -> Tensor:
@@ -49,21 +59,111 @@ def instance_tensor(instance: Tensor | int, n: int, device: torch.device) -> Ten
     return torch.full((n,), int(instance), dtype=torch.long, device=device)
 
 
-def field_at_samples(
-    net: FieldNet, field: ConditionalRadianceField, samples: PackedSamples, rays: Rays, instance: Tensor | int,
-    noise: float = 0.0, generator: torch.Generator | None = None,
+def raw_field_at_samples(
+    net: FieldNet, field: ConditionalRadianceField, points: Tensor, directions: Tensor, instance: Tensor | int
 ) -> tuple[Tensor, Tensor]:
-    """σ [M] and rgb [M, 3] of ``net`` at the packed samples.
+    """Raw density [M] and rgb [M, 3] of ``net`` at world ``points`` [M, 3] seen along
+    ``directions`` [M, 3]: every network layer and nothing else, the part worth compiling
+    (:class:`FixedMarch` with ``compile``).
 
-    ``instance``: [N] long per ray, or an int when every ray shows the same instance (a
+    ``instance``: [M] long per point, or an int when every point shows the same instance (a
     rendered view): its code rows then enter as biases, with no per-point selection.
     """
-    shape_codes, color_codes, idx = field.select(instance if isinstance(instance, int) else instance[samples.ray])
-    raw, feat = net.density_and_features(field.normalize(samples.points), shape_codes, idx)
+    shape_codes, color_codes, idx = field.select(instance)
+    raw, feat = net.density_and_features(field.normalize(points), shape_codes, idx)
+    return raw, net.radiance_from_codes(feat, directions, color_codes, idx)
+
+
+def field_at_samples(
+    net: FieldNet, field: ConditionalRadianceField, samples: PackedSamples, rays: Rays, instance: Tensor | int,
+    noise: float = 0.0, generator: torch.Generator | None = None, raw_field=raw_field_at_samples,
+) -> tuple[Tensor, Tensor]:
+    """σ [M] and rgb [M, 3] of ``net`` at the packed samples (``instance``: [N] long per ray,
+    or an int); ``noise`` is the std of Gaussian noise added to the raw density (training).
+    ``raw_field`` runs the networks (:func:`raw_field_at_samples`, or a compiled copy of it)."""
+    per_point = instance if isinstance(instance, int) else instance[samples.ray]
+    raw, rgb = raw_field(net, field, samples.points, rays.directions[samples.ray], per_point)
     if noise > 0:
-        raw = raw + noise * torch.randn(raw.shape, generator=generator).to(raw.device)
-    rgb = net.radiance_from_codes(feat, rays.directions[samples.ray], color_codes, idx)
+        draw = torch.randn(raw.shape, generator=generator, device=generator.device if generator is not None else None)
+        raw = raw + noise * draw.to(raw.device)
     return net.sigma(raw), rgb
+
+
+class FixedMarch:
+    """The fixed shapes of a device-resident grid march (:func:`render_rays` with ``march=``).
+
+    The march covers the scene box's diagonal (the longest chord of any ray) in two segments:
+    the first :data:`SEGMENT` steps, where most rays end, then the rest (the reference march cuts
+    the rest into :data:`SEGMENT`-step pieces too, which on a trained chair left a third segment
+    with ~2 samples a batch and the full op count of a segment).  Each segment's kept samples go
+    into a buffer of ``capacity`` slots.  A capacity is sized from the first batch that needs it
+    (one host read, once per run; twice its count, as early batches change fast) and afterwards
+    only by :meth:`resize`, which the training loop calls at its read-out steps: ``HEADROOM``
+    above the most samples a batch kept since the last resize, rounded up to ``QUANTUM``.  A
+    segment of at most ``DENSE_SLOTS`` steps over all rays (a small batch) gets a slot for every
+    step instead: it can never overflow, and costs little at that size.  A batch that keeps more drops the rays whose samples did not fit
+    (``RenderOutput.complete``) instead of reading anything back.  ``compile`` runs the
+    networks through ``torch.compile`` (fewer, fused kernels; shapes change only at a resize).
+    """
+
+    HEADROOM = 0.1
+    FIRST_HEADROOM = 1.0
+    QUANTUM = 64
+    DENSE_SLOTS = 8192
+
+    def __init__(self, field: ConditionalRadianceField, compile: bool = False):
+        cfg = field.cfg
+        self.step = occupancy.step_size(field.aabb, cfg.occ_res, cfg.steps_per_cell)  # one read, here
+        diagonal = float(torch.linalg.vector_norm((field.aabb[3:] - field.aabb[:3]).double()))
+        n_steps = math.ceil(diagonal / self.step) + 1
+        self.segments = [(0, min(SEGMENT, n_steps))] + ([(SEGMENT, n_steps - SEGMENT)] if n_steps > SEGMENT else [])
+        self.capacity: list[int | None] = [None] * len(self.segments)
+        self.needed: Tensor | None = None  # [segments] long: the most samples a batch kept since the last resize
+        self.dropped: Tensor | None = None  # [] long: rays left out since the last resize
+        self.raw_field = torch.compile(raw_field_at_samples, dynamic=True) if compile else raw_field_at_samples
+
+    def size_for(self, kept: int, headroom: float | None = None) -> int:
+        """Slots for a segment that kept ``kept`` samples: ``headroom`` (default ``HEADROOM``)
+        more, a multiple of ``QUANTUM``."""
+        more = self.HEADROOM if headroom is None else headroom
+        return max(self.QUANTUM, math.ceil(kept * (1.0 + more) / self.QUANTUM) * self.QUANTUM)
+
+    def observe(self, needed: Tensor, dropped: Tensor) -> None:
+        """Fold one batch's kept samples per segment and its dropped rays into the running
+        counts (device tensors; nothing is read)."""
+        self.needed = needed if self.needed is None else torch.maximum(self.needed, needed)
+        self.dropped = dropped if self.dropped is None else self.dropped + dropped
+
+    def resize(self) -> int:
+        """Size every segment's buffer from the counts since the last resize (one host read);
+        returns the rays dropped since then."""
+        if self.needed is None:
+            return 0
+        *needed, dropped = torch.cat([self.needed, self.dropped[None]]).tolist()
+        self.capacity = [self.size_for(int(k)) for k in needed]
+        self.needed = self.dropped = None
+        return int(dropped)
+
+    def pending_drops(self) -> int:
+        """Rays dropped since the last resize (one host read; nothing changes)."""
+        return 0 if self.dropped is None else int(self.dropped)
+
+    def state(self) -> dict[str, Tensor]:
+        """The capacities and running counts, for a checkpoint (a resumed run sizes its buffers
+        as the uninterrupted run would, which keeps it bit-identical)."""
+        out = {"march.capacity": torch.tensor([-1 if c is None else c for c in self.capacity])}
+        if self.needed is not None:
+            out.update({"march.needed": self.needed, "march.dropped": self.dropped})
+        return out
+
+    def load_state(self, state: dict[str, Tensor], device: torch.device) -> None:
+        """Restore :meth:`state` (a checkpoint without it keeps the fresh state)."""
+        stored = state.get("march.capacity")
+        if stored is None or stored.numel() != len(self.segments):
+            return
+        self.capacity = [None if c < 0 else int(c) for c in stored.tolist()]
+        if "march.needed" in state:
+            self.needed, self.dropped = state["march.needed"].to(device), state["march.dropped"].to(device)
 
 
 def render_rays(
@@ -75,22 +175,26 @@ def render_rays(
     density_noise: float = 0.0,
     early_stop: float | None = None,
     jitter: Tensor | None = None,  # [N] in [0, 1)
+    march: FixedMarch | None = None,
 ) -> RenderOutput:
     """Render a batch of rays of one or several instances (``instance`` int or [N] long).
 
     With a ``generator`` sample positions are jittered (training); without, rendering is
     deterministic.  ``early_stop`` (grid sampler) drops rays whose transmittance is below it.
     ``jitter`` (grid sampler) gives each ray's sample offset within its marching steps instead
-    of drawing it from ``generator``.
+    of drawing it from ``generator``.  ``march`` (grid sampler) marches with fixed shapes and
+    no host read (:class:`FixedMarch`); without it, the reference march.
     """
     n = rays.origins.shape[0]
     single = int(instance) if not isinstance(instance, Tensor) else None
     instance = instance_tensor(instance, n, rays.origins.device)
     if field.cfg.sampler == "hierarchical":
         return _render_hierarchical(field, rays, instance, generator, background, density_noise, single)
-    t_near, t_far, hit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
     if jitter is None and generator is not None:
-        jitter = torch.rand(n, generator=generator).to(rays.origins.device)
+        jitter = torch.rand(n, generator=generator, device=generator.device).to(rays.origins.device)
+    if march is not None:
+        return _render_fixed(field, rays, instance, march, jitter, generator, background, density_noise, early_stop, single)
+    t_near, t_far, hit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
     s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell)
     total = math.ceil(float((t_far - t_near).max()) / s) if n and bool(hit.any()) else 0
     segment = total if early_stop is None else SEGMENT
@@ -119,6 +223,47 @@ def render_rays(
     opacity = 1.0 - trans
     rgb = rgb + trans[:, None] * background
     return RenderOutput(rgb, depth, opacity, n_samples)
+
+
+def _render_fixed(field, rays, instance, march, jitter, generator, background, density_noise, early_stop, single) -> RenderOutput:
+    """:func:`render_rays`' grid march with fixed shapes: every ray marches every segment of
+    ``march`` (terminated rays masked out), each segment's samples packed into its buffer."""
+    n, device = rays.origins.shape[0], rays.origins.device
+    t_near, t_far, alive = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
+    rgb = torch.zeros(n, 3, device=device)
+    depth = torch.zeros(n, device=device)
+    trans = torch.ones(n, device=device)
+    complete = torch.ones(n, dtype=torch.bool, device=device)
+    counts, n_samples = [], 0
+    for k, (first, count) in enumerate(march.segments):
+        starts, t_mid, keep = march_steps(field, rays, instance, first, count, march.step, jitter, t_near, t_far)
+        keep = keep & alive[:, None]
+        if n * count <= march.DENSE_SLOTS:
+            capacity = n * count
+        else:
+            if march.capacity[k] is None:  # the run's first batch sizes this buffer: its one host read
+                march.capacity[k] = march.size_for(int(keep.sum()), march.FIRST_HEADROOM)
+            capacity = march.capacity[k]
+        pack = pack_mask(keep, capacity)
+        t0 = starts[pack.ray, pack.col]
+        t1 = torch.where(pack.valid, torch.minimum(t0 + march.step, t_far[pack.ray]), t0)  # padding: δ = 0
+        points = rays.origins[pack.ray] + t_mid[pack.ray, pack.col, None] * rays.directions[pack.ray]
+        samples = PackedSamples(pack.ray, pack.col, t0, t1, points, n, count)
+        sig, col = field_at_samples(
+            field, field, samples, rays, instance if single is None else single, density_noise, generator, march.raw_field
+        )
+        comp = composite_packed(pack.ray, t0, t1, sig, col, n, 0.0, pack.first)
+        rgb = rgb + trans[:, None] * comp.rgb
+        depth = depth + trans * comp.depth
+        trans = trans * (1.0 - comp.opacity)
+        complete = complete & pack.fits
+        counts.append(pack.count)
+        n_samples = n_samples + pack.valid.sum()
+        if early_stop is not None:
+            alive = alive & (trans > early_stop)
+    march.observe(torch.stack(counts), (~complete).sum())
+    rgb = rgb + trans[:, None] * background
+    return RenderOutput(rgb, depth, 1.0 - trans, n_samples, complete=complete)
 
 
 def _render_hierarchical(field, rays, instance, generator, background, density_noise, single=None) -> RenderOutput:

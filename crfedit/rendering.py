@@ -92,17 +92,21 @@ TAU_CAP = 1e3
 the *transmittance* sums (not in αᵢ) changes no result and bounds the packed running sum."""
 
 
-def exclusive_cumsum_packed(x: Tensor, ray: Tensor, n_rays: int) -> Tensor:
+def exclusive_cumsum_packed(x: Tensor, ray: Tensor, n_rays: int, first: Tensor | None = None) -> Tensor:
     """Per-ray exclusive cumulative sum of packed values ``x`` [M] whose ``ray`` [M] is sorted
     (each ray's samples contiguous, in order): [0, x₀, x₀+x₁, …] within every ray.
 
     One running sum over all M values, minus each ray's value at its first sample.  It runs in
     float64 on values capped at :data:`TAU_CAP`, so the subtraction loses < M·1e3·2⁻⁵² ≈ 1e-8.
+    ``first`` [n_rays] (each ray's first index) is counted from ``ray`` when not given; a caller
+    that knows it (:func:`crfedit.sampling.pack_mask`) saves the ``bincount``, which reads its
+    input's maximum back to the host on a GPU.
     """
     x64 = x.double().clamp(max=TAU_CAP)
     before = torch.cumsum(x64, 0) - x64  # global exclusive sum
-    counts = torch.bincount(ray, minlength=n_rays)
-    first = torch.cumsum(counts, 0) - counts  # index of each ray's first sample
+    if first is None:
+        counts = torch.bincount(ray, minlength=n_rays)
+        first = torch.cumsum(counts, 0) - counts
     return (before - before[first[ray]]).to(x.dtype)
 
 
@@ -114,13 +118,15 @@ def composite_packed(
     rgbs: Tensor,  # [M, 3]
     n_rays: int,
     background: Tensor | float = 1.0,
+    first: Tensor | None = None,  # [n_rays] long: each ray's first sample (see exclusive_cumsum_packed)
 ) -> Composite:
     """:func:`composite_dense` on packed samples (only the evaluated ones, grouped by
     ray), as nerfacc does: no dense [rays, steps] layout.  ``weights`` is packed [M]; rays with
-    no samples get the background.
+    no samples get the background.  Padding rows with zero-length intervals (t_ends = t_starts)
+    composite to nothing, which is how a fixed-capacity buffer's unused slots pass through.
     """
     tau = optical_depth_from_density(t_starts, t_ends, sigmas)
-    weights = torch.exp(-exclusive_cumsum_packed(tau, ray, n_rays)) * -torch.expm1(-tau)
+    weights = torch.exp(-exclusive_cumsum_packed(tau, ray, n_rays, first)) * -torch.expm1(-tau)
     zeros = weights.new_zeros(n_rays)
     opacity = zeros.index_add(0, ray, weights)
     rgb = weights.new_zeros(n_rays, 3).index_add(0, ray, weights[:, None] * rgbs)

@@ -11,7 +11,9 @@ composites (:mod:`crfedit.rendering`).  Two layouts:
 Samplers: the ray–box slab test (:func:`ray_aabb_intersect`), stratified (:func:`stratified_samples`)
 and importance samples (:func:`importance_sample`, :func:`fine_samples_from_coarse`) of the
 paper preset, and the equal-step march through occupied cells of the fast preset
-(:func:`grid_samples`).
+(:func:`march_steps`), packed either by ``nonzero`` (:func:`grid_samples`: exactly the kept
+samples, one host read) or into a buffer of fixed capacity (:func:`pack_mask`: no host read,
+for the device-resident training step).
 """
 
 from __future__ import annotations
@@ -136,6 +138,35 @@ def packed_samples_from_t(rays: Rays, t: Tensor, t_near: Tensor, t_far: Tensor, 
     return PackedSamples(ray_i, col, starts[ray_i, col], ends[ray_i, col], pts[ray_i, col], t.shape[0], t.shape[1])
 
 
+def march_steps(
+    field: ConditionalRadianceField,
+    rays: Rays,
+    instance: Tensor,  # [N] long
+    first: int,
+    count: int,
+    step: float,
+    jitter: Tensor | None,  # [N] in [0, 1); None → sample at step centers
+    t_near: Tensor,  # [N]
+    t_far: Tensor,  # [N]
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Steps ``first … first+count`` of the equal-step march, every ray, dense: (step starts
+    [N, S], sample distances [N, S], keep [N, S] bool = the sample lies in an occupied cell
+    before the ray leaves the box).
+
+    Step j spans [t_near + j·s, t_near + (j+1)·s); its sample sits at fraction ``jitter`` (0.5
+    by default) inside the step.  Occupancy is looked up in the box's normalized coordinates
+    (x ↦ 2(x−lo)/(hi−lo) − 1 is affine, so a ray stays a ray).
+    """
+    j = torch.arange(first, first + count, device=t_near.device, dtype=t_near.dtype)
+    starts = t_near[:, None] + j * step  # [N, S]
+    t_mid = starts + (0.5 if jitter is None else jitter[:, None]) * step
+    lo, hi = field.aabb[:3], field.aabb[3:]
+    scale = 2.0 / (hi - lo)
+    xn = ((rays.origins - lo) * scale - 1.0)[:, None, :] + t_mid[..., None] * (rays.directions * scale)[:, None, :]
+    keep = occupancy.lookup_in_box(field.occupancy, instance[:, None], xn) & (t_mid <= t_far[:, None])
+    return starts, t_mid, keep
+
+
 def grid_samples(
     field: ConditionalRadianceField,
     rays: Rays,
@@ -146,10 +177,9 @@ def grid_samples(
     t_near: Tensor | None = None,
     t_far: Tensor | None = None,
 ) -> PackedSamples:
-    """Steps ``first … first+count`` of the equal-step march, kept where the grid is occupied.
-
-    Step j spans [t_near + j·s, t_near + (j+1)·s) with s = :func:`occupancy.step_size`; its sample
-    sits at fraction ``jitter`` (0.5 by default) inside the step.  ``step`` of the result is j − first.
+    """Steps ``first … first+count`` of the equal-step march (:func:`march_steps`), kept where
+    the grid is occupied, packed by ``nonzero`` (exactly as many rows as kept samples; the
+    device-resident twin is :func:`pack_mask`).  ``step`` of the result is j − first.
     """
     cfg = field.cfg
     s = occupancy.step_size(field.aabb, cfg.occ_res, cfg.steps_per_cell)
@@ -159,19 +189,48 @@ def grid_samples(
     if count is None:
         span = float((t_far - t_near).max()) if n else 0.0
         count = max(1, math.ceil(span / s) - first)
-    j = torch.arange(first, first + count, device=t_near.device, dtype=t_near.dtype)
-    starts = t_near[:, None] + j * s  # [N, S]
-    t_mid = starts + (0.5 if jitter is None else jitter[:, None]) * s
-    # Occupancy of every step at once, in the box's normalized coordinates (x ↦ 2(x−lo)/(hi−lo) − 1
-    # is affine, so a ray stays a ray); only the kept samples get world positions.
-    lo, hi = field.aabb[:3], field.aabb[3:]
-    scale = 2.0 / (hi - lo)
-    xn = ((rays.origins - lo) * scale - 1.0)[:, None, :] + t_mid[..., None] * (rays.directions * scale)[:, None, :]
-    keep = occupancy.lookup_in_box(field.occupancy, instance[:, None], xn) & (t_mid <= t_far[:, None])
+    starts, t_mid, keep = march_steps(field, rays, instance, first, count, s, jitter, t_near, t_far)
     ray_i, col = keep.nonzero(as_tuple=True)
     t0 = starts[ray_i, col]
     p = rays.origins[ray_i] + t_mid[ray_i, col, None] * rays.directions[ray_i]
     return PackedSamples(ray_i, col, t0, torch.minimum(t0 + s, t_far[ray_i]), p, n, count)
+
+
+class PackIndex(NamedTuple):
+    """Where the kept entries of a dense [N, S] mask go in a buffer of fixed ``capacity`` C.
+
+    Slots hold the kept entries in (ray, column) order, so each ray's samples are contiguous;
+    the slots past the last kept entry are padding (``valid`` False, ray N − 1, column 0).
+    """
+
+    ray: Tensor  # [C] long, sorted
+    col: Tensor  # [C] long
+    valid: Tensor  # [C] bool
+    first: Tensor  # [N] long: each ray's first slot (clamped to C − 1)
+    fits: Tensor  # [N] bool: every kept entry of the ray has a slot
+    count: Tensor  # [] long: kept entries, which may exceed C
+
+
+def pack_mask(keep: Tensor, capacity: int) -> PackIndex:
+    """Pack the True entries of ``keep`` [N, S] into ``capacity`` slots without ``nonzero``: no
+    host read, so the shapes are known before the data (a device-resident step).
+
+    Slot j holds the (j+1)-th True entry: the first flat index whose running count reaches j+1
+    (``searchsorted`` over the cumulative sum).  Entries past the capacity get no slot; their
+    rays are marked in ``fits`` so a caller can leave them out.  Example: keep [[T, F, T], [F,
+    T, F]], capacity 4 → ray [0, 0, 1, 1], col [0, 2, 1, 0], valid [T, T, T, F], first [0, 2].
+    """
+    n, s = keep.shape
+    per_ray = keep.sum(dim=1)
+    end = torch.cumsum(per_ray, 0)
+    running = torch.cumsum(keep.reshape(-1), 0)
+    slots = torch.arange(1, capacity + 1, device=keep.device)
+    flat = torch.searchsorted(running, slots).clamp_max(n * s - 1)
+    count = end[-1]
+    valid = slots <= count
+    ray = torch.where(valid, flat // s, n - 1)
+    col = torch.where(valid, flat % s, 0)
+    return PackIndex(ray, col, valid, (end - per_ray).clamp_max(capacity - 1), end <= capacity, count)
 
 
 def compact(samples: PackedSamples) -> PackedSamples:

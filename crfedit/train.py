@@ -6,7 +6,17 @@
    pixels, which carve the hull's margin), takes the MSE to the pixels and one Adam step on
    weights and codes.
 3. Every ``occ_every`` steps a few instances' grids are refreshed from the density.
-4. Checkpoints hold the optimizer, RNG and grid state, so ``--resume`` continues bit for bit.
+4. Checkpoints hold the optimizer, RNG, grid and buffer-size state, so ``--resume`` continues
+   bit for bit.
+
+A step of the fast preset is device-resident: rays, sample offsets and grid probes are drawn on
+the device from a device generator, the optimizer is fused Adam, and on a GPU the march packs
+its samples into fixed-capacity buffers (:class:`~crfedit.renderer.FixedMarch`), so nothing is
+read back to the host.  The loss, the non-finite guard and the buffer sizes are read every
+``read_every`` steps and before every checkpoint (:class:`~crfedit.optim.StepLog`), so a GPU runs
+ahead of the host between reads, and a diverged run still never overwrites its last good
+checkpoint.  On a CPU the march sizes its samples exactly (``nonzero``): a host read costs a CPU
+nothing, while a fixed buffer's padding costs compute (docs/gpu.md has the measurements).
 
 Under ``torchrun`` (``ranks``, see :mod:`crfedit.distributed`) each rank samples its share of
 the step's rays from its own instances with its own generator, the gradients are averaged in
@@ -33,11 +43,13 @@ from .data.loading import Category, TrainingRays, training_rays
 from .distributed import SINGLE, Ranks, rank_seed
 from .errors import CrfError
 from .field import ConditionalRadianceField
-from .optim import adam_step
+from .optim import StepLog, adam_step, check_finite, check_losses
 from .model import CategoryModel, ViewTable, load_model, save_model
-from .renderer import render_rays
+from .renderer import FixedMarch, render_rays
 
 FG_FRACTION = 0.75
+READ_EVERY = 16
+"""Steps between reads of the loss, the non-finite guard and the march's buffer sizes."""
 
 
 @dataclass
@@ -46,6 +58,8 @@ class TrainResult:
     seconds: float
     final_loss: float
     train_psnr: float
+    dropped_rays: int = 0
+    """Rays left out of a step's loss because their samples overflowed a march buffer."""
 
 
 def scene_box(category: Category, res: int = 48, views_per_instance: int = 40) -> torch.Tensor:
@@ -103,7 +117,7 @@ def make_optimizer(field: ConditionalRadianceField, cfg: Config) -> torch.optim.
     ]
     if grid:
         groups.append({"params": grid, "lr": 2 * cfg.lr, "base_lr": 2 * cfg.lr})
-    return torch.optim.Adam(groups, eps=1e-15)
+    return torch.optim.Adam(groups, eps=1e-15, fused=True)  # one kernel per step, and no .item() per parameter
 
 
 def optimizer_tensors(opt: torch.optim.Adam) -> dict[str, torch.Tensor]:
@@ -126,7 +140,8 @@ def restore_optimizer(opt: torch.optim.Adam, tensors: dict[str, torch.Tensor]) -
         p = params[int(i)]
         if key != "step" and value.shape != p.shape:
             raise CrfError(f"checkpoint optimizer state does not match the model ({name})")
-        opt.state.setdefault(p, {})[key] = value.to(p.device) if key != "step" else value.cpu().clone()
+        # fused Adam keeps its step count as a float32 tensor beside the parameter
+        opt.state.setdefault(p, {})[key] = value.to(p.device) if key != "step" else value.to(p.device, torch.float32).clone()
 
 
 class TrainBatch(NamedTuple):
@@ -144,7 +159,8 @@ BatchSource = Callable[[int, torch.Generator], TrainBatch]
 
 class BatchSampler:
     """Random training rays: ``FG_FRACTION`` of each batch from object pixels, the rest from
-    background; with ``jitter`` the sample offsets too (drawn after the rays, from the same generator)."""
+    background; with ``jitter`` the sample offsets too (drawn after the rays, from the same
+    generator).  Draws happen on the generator's device: a GPU generator samples without a copy."""
 
     def __init__(self, data: TrainingRays, device: torch.device, jitter: bool = True):
         self.data = TrainingRays(*(t.to(device) for t in (data.origins, data.directions, data.rgb, data.alpha, data.instance)))
@@ -157,39 +173,53 @@ class BatchSampler:
         pick = []
         for pool, m in ((self.fg, n_fg), (self.bg, n - n_fg)):
             if m:
-                pick.append(pool[torch.randint(len(pool), (m,), generator=generator).to(pool.device)])
+                pick.append(pool[torch.randint(len(pool), (m,), generator=generator, device=generator.device).to(pool.device)])
         idx = torch.cat(pick)
         d = self.data
-        jitter = torch.rand(n, generator=generator).to(idx.device) if self.jitter else None
+        jitter = torch.rand(n, generator=generator, device=generator.device).to(idx.device) if self.jitter else None
         return TrainBatch(Rays(d.origins[idx], d.directions[idx]), d.rgb[idx], d.instance[idx], jitter)
 
 
 def view_dependence_penalty(field, rays: Rays, inst: torch.Tensor, depth: torch.Tensor, opacity: torch.Tensor,
                             generator: torch.Generator, n_points: int = 128, n_dirs: int = 64) -> torch.Tensor:
     """The paper's regularizer for one-view-per-instance data: the variance of radiance at a
-    surface point over ``n_dirs`` random view directions."""
-    hit = (opacity > 0.5).nonzero().squeeze(-1)[:n_points]
-    if hit.numel() == 0:
-        return depth.sum() * 0.0
-    x = rays.origins[hit] + rays.directions[hit] * (depth[hit] / opacity[hit]).detach()[:, None]
-    feat = field.features(field.normalize(x), inst[hit])
-    dirs = torch.nn.functional.normalize(torch.randn(hit.numel(), n_dirs, 3, generator=generator).to(x.device), dim=-1)
-    rgb = field.radiance(feat.repeat_interleave(n_dirs, 0), dirs.reshape(-1, 3), inst[hit].repeat_interleave(n_dirs, 0))
-    rgb = rgb.view(hit.numel(), n_dirs, 3)
-    return rgb.var(dim=1).mean()
+    surface point over ``n_dirs`` random view directions, for the first ``n_points`` rays that
+    are at least half opaque (fixed shapes: the rows past them are masked, not cut)."""
+    hit = opacity > 0.5
+    rows = torch.argsort((~hit).to(torch.int8), stable=True)[:n_points]  # the hit rays first, in order
+    used = hit[rows].to(depth.dtype)
+    x = rays.origins[rows] + rays.directions[rows] * (depth[rows] / opacity[rows].clamp_min(1e-6)).detach()[:, None]
+    feat = field.features(field.normalize(x), inst[rows])
+    draw = torch.randn(len(rows), n_dirs, 3, generator=generator, device=generator.device).to(x.device)
+    dirs = torch.nn.functional.normalize(draw, dim=-1)
+    rgb = field.radiance(feat.repeat_interleave(n_dirs, 0), dirs.reshape(-1, 3), inst[rows].repeat_interleave(n_dirs, 0))
+    per_point = rgb.view(len(rows), n_dirs, 3).var(dim=1).mean(dim=-1)
+    return (per_point * used).sum() / used.sum().clamp_min(1.0)
 
 
-def refresh_occupancy(field, hulls, ema, instances, generator, ranks: Ranks = SINGLE) -> None:
+def batch_mse(rgb: torch.Tensor, target: torch.Tensor, complete: torch.Tensor | None) -> torch.Tensor:
+    """Mean squared error of a ray batch; with ``complete`` [N] bool, over the complete rays only
+    (a ray whose samples overflowed a march buffer was rendered without some of them)."""
+    if complete is None:
+        return torch.mean((rgb - target) ** 2)
+    used = complete.to(rgb.dtype)
+    return (((rgb - target) ** 2).mean(dim=-1) * used).sum() / used.sum().clamp_min(1.0)
+
+
+def refresh_occupancy(field, hulls, ema, instances, generator, ranks: Ranks = SINGLE, cells=None, step=None) -> None:
     """Refresh the grids of ``instances`` from the density (candidates = visual hull).
 
     Every rank runs it with the same weights and an identical ``generator``, so the grids agree;
-    a checksum all-reduce proves it (rank 0's grids would overwrite any that differ)."""
-    s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell)
+    a checksum all-reduce proves it (rank 0's grids would overwrite any that differ).  ``cells``
+    (each hull's cell indices) and ``step`` (the marching step), computed once by a caller that
+    refreshes often, spare the host reads of finding them."""
+    s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell) if step is None else step
     with torch.no_grad():
         for k in instances:
             density = functools.partial(field.density, instance=k)
             grid = occupancy.update_from_density(
-                ema[k], hulls[k].reshape(-1), density, s, field.cfg.occ_threshold, generator=generator
+                ema[k], hulls[k].reshape(-1), density, s, field.cfg.occ_threshold, generator=generator,
+                cells=None if cells is None else cells[k],
             )
             field.occupancy[k] = grid.view_as(field.occupancy[k])
         if ranks.world > 1:
@@ -210,12 +240,22 @@ def train(
     extra_meta: dict[str, str] | None = None,
     ranks: Ranks = SINGLE,
     batches: BatchSource | None = None,
+    read_every: int = READ_EVERY,
+    compile: bool = False,
+    fixed_shapes: bool | None = None,
 ) -> tuple[CategoryModel, TrainResult]:
     """Train (or, with ``resume``, continue training) a model of ``category`` and write it to ``out``.
 
-    ``on_step(step, loss, psnr, rays_per_s)`` reports progress.  The model file is rewritten
-    atomically every ``checkpoint_every`` steps, at the end and on Ctrl-C.  A non-finite loss stops training
-    with :class:`NonFiniteError`, leaving the last checkpoint as it was.
+    ``on_step(step, loss, psnr, rays_per_s)`` reports progress after every step; loss and PSNR
+    are those of the last read-out, every ``read_every`` steps (and at checkpoints), so that the
+    steps between read nothing back from the device.  The model file is rewritten atomically
+    every ``checkpoint_every`` steps, at the end and on Ctrl-C, each time after a read-out: a
+    non-finite loss (or weight) stops training with :class:`NonFiniteError` naming the step of
+    the first non-finite loss, leaving the last checkpoint as it was.
+
+    ``fixed_shapes`` marches with fixed-capacity buffers (:class:`~crfedit.renderer.FixedMarch`:
+    no host read inside a step); None chooses them everywhere but on a CPU.  ``compile`` runs
+    the fixed-shape march's networks through ``torch.compile``.
 
     ``ranks`` places this process in a torchrun job: ``cfg.rays`` is then the rays of a step over
     all ranks, each rank drawing its share from the instances :meth:`Ranks.shard` gives it.
@@ -224,7 +264,12 @@ def train(
     out = Path(out)
     if ranks.world > min(cfg.rays, len(category.instances)):
         raise CrfError(f"{ranks.world} ranks: at most one rank per instance and per ray ({len(category.instances)} instances, rays={cfg.rays})")
-    generator = torch.Generator().manual_seed(seed)
+    if read_every < 1:
+        raise CrfError(f"read_every {read_every}: must be at least 1")
+    fixed_shapes = (device.type != "cpu" or compile) if fixed_shapes is None else fixed_shapes
+    if compile and not fixed_shapes:
+        raise CrfError("--compile compiles the fixed-shape march: it cannot be combined with --march exact")
+    generator = torch.Generator(device=device).manual_seed(seed)
     if resume:
         if not out.is_file():
             raise CrfError(f"--resume: {out} does not exist (start without --resume)")
@@ -239,7 +284,7 @@ def train(
         hulls, ema = state["hull"].to(device), state["occ_ema"].to(device).clone()
         step, elapsed = int(state["step"]), float(state["elapsed"])
         next_instance = int(state.get("next_instance", torch.tensor(0)))
-        generator.set_state(state["rng"].to(torch.uint8))
+        restore_generator(generator, state["rng"], seed, 0, step)
     else:
         aabb = scene_box(category)
         with torch.random.fork_rng(devices=[]):
@@ -256,7 +301,7 @@ def train(
                 model.views[split] = table
         step, elapsed, next_instance = 0, 0.0, 0
         state = {}
-    rank_generator = rank_generator_for(state, seed, ranks, step) or generator
+    rank_generator = rank_generator_for(state, seed, ranks, step, device) or generator
     ranks.broadcast_(list(field.parameters()), "sharing the initial weights")
     opt = make_optimizer(field, cfg)
     restore_optimizer(opt, state)
@@ -267,8 +312,28 @@ def train(
     n_rays = ranks.share(cfg.rays)
     weight = n_rays * ranks.world / cfg.rays  # this rank's part of the step's mean loss, times world
     meta = dict(extra_meta or {})
+    march = FixedMarch(field, compile) if cfg.sampler == "grid" and fixed_shapes else None
+    if march is not None:
+        march.load_state(state, device)
+    cells = None if hulls is None else [h.reshape(-1).nonzero().squeeze(-1) for h in hulls]  # once: hulls are fixed
+    consequence = f"{out} keeps its last checkpoint"
+    log = StepLog(2, device, size=read_every)  # per step: loss, MSE
+    loss_value, mse_value, dropped = float("nan"), float("nan"), 0
+
+    def read_out(resize: bool) -> None:
+        """The steps' losses since the last read (raising on a non-finite one) and, at a
+        ``read_every`` boundary, the march's buffer sizes: one host read each."""
+        nonlocal loss_value, mse_value, dropped
+        rows = log.read()
+        check_losses(rows, "training", consequence)
+        if rows and ranks.world == 1:
+            loss_value, mse_value = rows[-1][1]
+        if resize and march is not None:
+            dropped += march.resize()
 
     def checkpoint() -> None:
+        read_out(False)
+        check_finite(params, "training", consequence)
         rank_states = ranks.gather(rank_generator.get_state().tolist(), "gathering generator states") if ranks.world > 1 else []
         if ranks.main:
             train_state = {
@@ -279,6 +344,7 @@ def train(
                 "next_instance": torch.tensor(next_instance),
                 **optimizer_tensors(opt),
                 **{f"rng_rank.{r}": torch.tensor(s, dtype=torch.uint8) for r, s in enumerate(rank_states)},
+                **(march.state() if march is not None else {}),
             }
             if rank_states:
                 train_state["world"] = torch.tensor(ranks.world)
@@ -288,7 +354,6 @@ def train(
         ranks.barrier("waiting for rank 0 to write the checkpoint")
 
     budget = None if minutes is None else 60.0 * minutes
-    loss_value, psnr_value = float("nan"), 0.0
     t_start = time.perf_counter() - elapsed
     try:  # Ctrl-C writes a checkpoint first, so an interrupted run can be resumed
         while step < cfg.steps and (budget is None or elapsed < budget):
@@ -299,31 +364,37 @@ def train(
             noise = cfg.density_noise * max(0.0, 1.0 - step / max(1, cfg.occ_warmup))
             out_r = render_rays(
                 field, batch.rays, batch.instance, generator=rank_generator, density_noise=noise,
-                early_stop=cfg.train_early_stop, jitter=batch.jitter,
+                early_stop=cfg.train_early_stop, jitter=batch.jitter, march=march,
             )
-            loss = torch.mean((out_r.rgb - batch.rgb) ** 2)
+            loss = batch_mse(out_r.rgb, batch.rgb, out_r.complete)
             mse = loss.detach()
             if out_r.coarse_rgb is not None:
-                loss = loss + torch.mean((out_r.coarse_rgb - batch.rgb) ** 2)
+                loss = loss + batch_mse(out_r.coarse_rgb, batch.rgb, None)
             if cfg.view_reg > 0:
                 loss = loss + cfg.view_reg * view_dependence_penalty(field, batch.rays, batch.instance, out_r.depth, out_r.opacity, rank_generator)
-            shared = []  # the step's mean loss, MSE and clock over ranks, from the gradient all-reduce
+            loss = loss if weight == 1.0 else loss * weight
+            log.record(step, torch.stack([loss.detach(), mse]))
+            shared = []  # under torchrun: the step's mean loss, MSE and clock over ranks, from the gradient all-reduce
 
-            def average_gradients() -> None:
-                shared[:] = ranks.average(params, [float(loss.detach()) * weight, float(mse) * weight, time.perf_counter() - t_start])
+            def average_gradients() -> None:  # one host read per step: every rank must agree on when to stop
+                shared[:] = ranks.average(params, [float(loss.detach()), float(mse) * weight, time.perf_counter() - t_start])
+                check_losses([(step, shared)], "training", consequence)
 
-            adam_step(opt, loss if weight == 1.0 else loss * weight, "training", step, f"{out} keeps its last checkpoint", average_gradients)
-            loss_value, mse_value, clock = shared
+            adam_step(opt, loss, average_gradients if ranks.world > 1 else None)
             step += 1
             if hulls is not None and step >= cfg.occ_warmup and step % cfg.occ_every == 0:
                 per_update = max(1, math.ceil(len(category.instances) / 4))
                 ks = [(next_instance + i) % len(category.instances) for i in range(per_update)]
                 next_instance = (next_instance + per_update) % len(category.instances)
-                refresh_occupancy(field, hulls, ema, ks, generator, ranks)
-            elapsed = time.perf_counter() - t_start if ranks.world == 1 else clock  # every rank stops at the same step
-            psnr_value = -10.0 * math.log10(max(mse_value, 1e-10))
+                refresh_occupancy(field, hulls, ema, ks, generator, ranks, cells, march.step if march else None)
+            if ranks.world > 1:
+                loss_value, mse_value, elapsed = shared  # every rank stops at the same step
+            else:
+                elapsed = time.perf_counter() - t_start
+            if step % read_every == 0 or step % cfg.checkpoint_every == 0:
+                read_out(step % read_every == 0)
             if on_step is not None:
-                on_step(step, loss_value, psnr_value, cfg.rays * step / max(elapsed, 1e-9))
+                on_step(step, loss_value, mse_to_psnr(mse_value), cfg.rays * step / max(elapsed, 1e-9))
             if step % cfg.checkpoint_every == 0:
                 checkpoint()
     except KeyboardInterrupt:
@@ -332,17 +403,34 @@ def train(
         checkpoint()
         raise KeyboardInterrupt(f"checkpoint at step {step} written to {out}; continue with --resume") from None
     checkpoint()
-    return model, TrainResult(step, elapsed, loss_value, psnr_value)
+    dropped += march.pending_drops() if march is not None else 0
+    return model, TrainResult(step, elapsed, loss_value, mse_to_psnr(mse_value), dropped)
 
 
-def rank_generator_for(state: dict[str, torch.Tensor], seed: int, ranks: Ranks, step: int) -> torch.Generator | None:
-    """This rank's own sampling generator (None for a single process, which uses the shared one):
-    its checkpointed state when the run resumes at the same world size, else seeded by
-    ``(seed, rank, step)``."""
+def mse_to_psnr(mse: float) -> float:
+    """PSNR of images in [0, 1] from their MSE (NaN before the first read-out)."""
+    return -10.0 * math.log10(max(mse, 1e-10)) if math.isfinite(mse) else float("nan")
+
+
+def restore_generator(gen: torch.Generator, saved: torch.Tensor, seed: int, rank: int, step: int) -> torch.Generator:
+    """``gen`` at a checkpoint's state.  A state saved on another kind of device (a CUDA
+    generator's is 16 bytes, a CPU one's 5056) cannot be continued, so such a run resumes with a
+    fresh stream seeded by ``(seed, rank, step)``."""
+    try:
+        return gen.set_state(saved.to(torch.uint8))
+    except RuntimeError:
+        return gen.manual_seed(rank_seed(seed, rank, step))
+
+
+def rank_generator_for(state: dict[str, torch.Tensor], seed: int, ranks: Ranks, step: int,
+                       device: torch.device | str = "cpu") -> torch.Generator | None:
+    """This rank's own sampling generator on ``device`` (None for a single process, which uses
+    the shared one): its checkpointed state when the run resumes at the same world size, else
+    seeded by ``(seed, rank, step)``."""
     if ranks.world == 1:
         return None
-    gen = torch.Generator()
+    gen = torch.Generator(device=device)
     key = f"rng_rank.{ranks.rank}"
     if key in state and int(state.get("world", torch.tensor(0))) == ranks.world:
-        return gen.set_state(state[key].to(torch.uint8))
+        return restore_generator(gen, state[key], seed, ranks.rank, step)
     return gen.manual_seed(rank_seed(seed, ranks.rank, step))

@@ -23,6 +23,12 @@ PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
 ArchChoice = enum.Enum("ArchChoice", {a: a for a in ARCHS}, type=str)
 
 
+class MarchChoice(str, enum.Enum):
+    auto = "auto"
+    fixed = "fixed"
+    exact = "exact"
+
+
 # ----------------------------------------------------------------------------- progress
 
 
@@ -65,10 +71,14 @@ class TrainProgress:
         remaining = (self.cfg.steps - step) / steps_per_s if steps_per_s > 0 else math.inf
         if self.budget is not None:
             remaining = min(remaining, self.budget - elapsed)
-        self.bar.update(
-            self.task, completed=min(done, 1.0), step=step, loss=f"{loss:.4f}", psnr=f"{psnr:5.2f}",
+        self.bar.update(  # loss and PSNR are NaN until training's first read-out
+            self.task, completed=min(done, 1.0), step=step, loss=_number(loss, "{:.4f}"), psnr=_number(psnr, "{:5.2f}"),
             rate=_si(rays_per_s), eta=_clock(max(remaining, 0.0)),
         )
+
+
+def _number(x: float, form: str) -> str:
+    return form.format(x) if math.isfinite(x) else "-"
 
 
 def _si(x: float) -> str:
@@ -105,14 +115,20 @@ def format_score(score: dict) -> str:
 
 def run_training(
     category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int = 100, ranks=None,
+    compile: bool = False,
+    march: str = "auto",
 ):
     """Train on a loaded category with a progress bar and run records (crfedit.runlog), both on
-    rank 0 only under torchrun; return (model, TrainResult)."""
+    rank 0 only under torchrun; return (model, TrainResult).  Training reads its loss back every
+    gcd(``log_every``, READ_EVERY) steps, so every logged row holds that step's own loss."""
     from ..distributed import SINGLE
     from ..modelfile import stored_training
     from ..runlog import RunLog, config_block, record_paths
     from ..threads import requested_threads
-    from ..train import train
+    from ..train import READ_EVERY, train
+
+    fixed = {"auto": None, "fixed": True, "exact": False}[march]
+    options = {"read_every": math.gcd(log_every, READ_EVERY), "compile": compile, "fixed_shapes": fixed}
 
     ranks = ranks or SINGLE
     first_step = 0
@@ -122,7 +138,7 @@ def run_training(
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps)")
         cfg = stored_cfg
     if not ranks.main:
-        return train(category, cfg, out, device, seed=seed, minutes=minutes, resume=resume, ranks=ranks)
+        return train(category, cfg, out, device, seed=seed, minutes=minutes, resume=resume, ranks=ranks, **options)
     run = {"command": command_line(), "dataset": str(category.root), "dataset_fingerprint": category.fingerprint,
            "seed": seed, "device": str(device), "threads": requested_threads(), "minutes": minutes, "resumed_at": first_step}
     paths = record_paths(out)
@@ -136,7 +152,7 @@ def run_training(
 
             return train(
                 category, cfg, out, device, seed=seed, minutes=minutes, resume=resume,
-                on_step=on_step, extra_meta={"command": command_line()}, ranks=ranks,
+                on_step=on_step, extra_meta={"command": command_line()}, ranks=ranks, **options,
             )
     finally:
         log.close()
@@ -162,6 +178,8 @@ def train_cmd(
     view_reg: Annotated[Optional[float], typer.Option("--view-reg", help="Weight of the view-dependence regularizer (one-view-per-instance data).")] = None,
     sets: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE", help="Override any config field, KEY=VALUE (repeatable), e.g. --set rays=1024.")] = None,
     log_every: Annotated[int, typer.Option("--log-every", help="Write a row of the CSV log (and TensorBoard, when installed) every N steps.")] = 100,
+    compile: Annotated[bool, typer.Option("--compile", help="Run the fixed-shape march's networks through torch.compile (needs a C++ compiler; the first steps compile for seconds).")] = False,
+    march: Annotated[MarchChoice, typer.Option("--march", help="fixed: fixed-capacity sample buffers, no host read in a step (auto on a GPU); exact: buffers sized by nonzero (auto on a CPU).")] = MarchChoice.auto,
 ) -> None:
     """Train one model over a category: shared networks plus a shape and a color code per instance.
 
@@ -192,8 +210,10 @@ def train_cmd(
         raise CrfError(f"--view-reg {view_reg:g}: must be 0 or more")
     res = parse_resolution(res)
     check_output_file(out, resume, overwrite)
+    ranks = ranks_from_env()
+    dev = resolve_device(device) if ranks is None else rank_device(device, ranks)
     cfg = make_config(
-        preset.value, {"arch": arch.value if arch else None, "steps": steps, "view_reg": view_reg}, sets or []
+        preset.value, {"arch": arch.value if arch else None, "steps": steps, "view_reg": view_reg}, sets or [], dev.type
     )
     if resume:
         if not out.is_file():
@@ -204,13 +224,11 @@ def train_cmd(
             res = stored_width
         elif stored_width is not None and res != stored_width:
             raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
-    ranks = ranks_from_env()
-    dev = resolve_device(device) if ranks is None else rank_device(device, ranks)
     ranks = ranks or SINGLE
     with process_group(ranks, dev):
         category = load_category(data, res=res)
         seed_everything(seed)  # train() draws the initial weights from torch's global generator
-        model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks)
+        model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value)
     if not ranks.main:
         return
     score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
@@ -324,7 +342,7 @@ def quickstart_cmd(
     model_path = out / "model.safetensors"
     category = load_category(out / "data")
     seed_everything(seed)
-    model, result = run_training(category, model_path, make_config("fast"), dev, seed, minutes, False)
+    model, result = run_training(category, model_path, make_config("fast", device_type=dev.type), dev, seed, minutes, False)
 
     typer.echo("3/4 rendering a turntable of chair 0 (orbit:24)")
     frames_dir = out / "turntable"

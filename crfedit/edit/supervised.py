@@ -111,12 +111,14 @@ def remove_selected(
             in_s = p.dense(occupancy.lookup(sel[None], torch.zeros_like(p.samples.ray), p.xn).to(out.sigmas.dtype))
             targets.append(composite_dense(p.t_starts, p.t_ends, out.sigmas * (1 - in_s), out.rgbs, p.background))
 
+    outside = (~inside).nonzero().squeeze(-1)  # once: a mask index inside the loss is a host read per step
+
     def loss_fn():
         raw, feat = field.density_from_fuse_inputs(inputs)
         log_sigma = torch.log1p(field.sigma(raw))
         total = options.lambda_reg * edit.penalty()
         total = total + torch.where(inside, log_sigma**2, (log_sigma - log0) ** 2).mean()
-        total = total + ((feat - feat0) ** 2).sum(dim=-1)[~inside].mean()
+        total = total + ((feat[outside] - feat0[outside]) ** 2).sum(dim=-1).mean()
         for p, target in zip(passes, targets):
             out = p.forward()
             total = total + mse(out.rgb, target.rgb) + mse(out.opacity, target.opacity)
