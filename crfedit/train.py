@@ -232,7 +232,7 @@ def train(
     category: Category,
     cfg: Config,
     out: str | Path,
-    device: torch.device,
+    device: torch.device | str,
     seed: int = 0,
     minutes: float | None = None,
     resume: bool = False,
@@ -261,7 +261,7 @@ def train(
     all ranks, each rank drawing its share from the instances :meth:`Ranks.shard` gives it.
     ``batches`` replaces that random sampler (e.g. to feed every world size the same rays).
     """
-    out = Path(out)
+    out, device = Path(out), torch.device(device)
     if ranks.world > min(cfg.rays, len(category.instances)):
         raise CrfError(f"{ranks.world} ranks: at most one rank per instance and per ray ({len(category.instances)} instances, rays={cfg.rays})")
     if read_every < 1:
