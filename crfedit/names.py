@@ -15,6 +15,10 @@ STRATEGIES = ("hybrid", "codes", "all")
 all: every network weight and the instance's code rows."""
 ADD_METHODS = ("composite", "density")
 """How ``add`` supervises the pasted part: its rendered image, or the donor's density."""
+PENALTIES = ("tensor", "element")
+"""How an edit's weight penalty weighs a tensor's drift (:func:`crfedit.edit.losses.weight_penalty`):
+``tensor`` (per-tensor means, the default) or ``element`` (every trained number alike)."""
+
 EDIT_METHODS = ("selection", "paper")
 """How remove and edit-color use the scribbles.  selection: lift them to a 3-D selection and
 supervise the edit with it (``edit.selection``, ``edit.supervised``); paper: the paper's losses

@@ -23,7 +23,7 @@ from crfedit.delta import apply_edit_files, read_delta
 from crfedit.edit import CODES, TRAINED, EditOptions, add, edit_color, remove, swap_codes, trained_prefixes, transfer
 from crfedit.edit.cache import ViewCache, edit_passes
 from crfedit.edit.core import InstanceEdit
-from crfedit.edit.losses import density_cross_entropy, density_entropy, log_density_drift, visible_log_density
+from crfedit.edit.losses import ELEMENT_SCALE, density_cross_entropy, density_entropy, log_density_drift, visible_log_density, weight_penalty
 from crfedit.edit.scribble import parse_color, strokes_json_mask
 from crfedit.masks import dilate, erode
 from crfedit.edit.shape import first_mode, parse_offset
@@ -319,6 +319,46 @@ def test_cross_entropy_and_surface_terms():
     visible_log_density(w, sig).sum().backward()
     assert sig.grad[0, 1] > 0 and sig.grad[0, 0] == 0 and sig.grad[0, 2] == 0
     assert log_density_drift(w, sig, sig.detach()).item() == 0.0
+
+
+def test_weight_penalty_per_tensor_and_per_element_closed_form():
+    # a 4-row code table (row 2 edited) and a 2×3 weight; every number drifts by 1
+    start = {"color_codes": torch.zeros(4, 2), "w": torch.zeros(2, 3)}
+    now = {"color_codes": torch.zeros(4, 2), "w": torch.ones(2, 3)}
+    now["color_codes"][2] = 1.0
+    now["color_codes"][0] = 5.0  # another instance's row: never counted
+    rows = {"color_codes": 2}
+    # per tensor: mean over the row (1) + mean over the weight (1)
+    assert weight_penalty(now, start, rows).item() == pytest.approx(2.0)
+    # per element: 2 + 6 drifted numbers, each weighed 1/ELEMENT_SCALE
+    assert weight_penalty(now, start, rows, "element").item() == pytest.approx(8 / ELEMENT_SCALE)
+    # per tensor a number of the 2-number row weighs 3× one of the 6-number weight; per element alike
+    g = {n: t.clone().requires_grad_(True) for n, t in now.items()}
+    weight_penalty(g, start, rows).backward()
+    assert g["color_codes"].grad[2, 0] == pytest.approx(3 * g["w"].grad[0, 0])
+    g = {n: t.clone().requires_grad_(True) for n, t in now.items()}
+    weight_penalty(g, start, rows, "element").backward()
+    assert g["color_codes"].grad[2, 0] == pytest.approx(g["w"].grad[0, 0])
+    assert g["color_codes"].grad[0].abs().sum() == 0
+    with pytest.raises(ValueError, match="per='row'"):
+        weight_penalty(now, start, rows, "row")
+    with pytest.raises(CrfError, match="--penalty row"):
+        EditOptions(penalty="row").validated()
+
+
+def test_element_penalty_frees_a_codes_only_edit(trained):
+    """The codes strategy trains one 32-number row: per tensor each number is held ~100× harder
+    than an F_rad weight, per element it moves further under the same loss and λ."""
+    _, model, category = trained
+    _, view, fg, keep, _ = scribbles(category, 0, "back")
+    drift = {}
+    for per in ("tensor", "element"):
+        options = EditOptions(strategy="codes", steps=20, rays=128, penalty=per)
+        result = edit_color(model, 0, view.camera, fg, "red", keep, options)
+        drift[per] = result.tensors["color_code"].abs().sum().item()
+        hyper = json.loads(result.meta["hyperparameters"])
+        assert hyper.get("penalty", "tensor") == per
+    assert drift["element"] > 1.2 * drift["tensor"] > 0
 
 
 # ----------------------------------------------------------------------------- inputs

@@ -14,13 +14,14 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import ADD_METHODS, STRATEGIES, EDIT_METHODS
+from ..names import ADD_METHODS, EDIT_METHODS, PENALTIES, STRATEGIES
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
 
 
 Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
 AddMethod = enum.Enum("AddMethod", {m: m for m in ADD_METHODS}, type=str)
 EditMethod = enum.Enum("EditMethod", {m: m for m in EDIT_METHODS}, type=str)
+Penalty = enum.Enum("Penalty", {m: m for m in PENALTIES}, type=str)
 
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors).")]
@@ -29,6 +30,7 @@ ViewOpt = Annotated[str, typer.Option("--view", help="The one view the scribbles
 OutOpt = Annotated[Path, typer.Option("--out", help="Edit file to write (.safetensors); written atomically.")]
 PriorOpt = Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")]
 StrategyOpt = Annotated[Strategy, typer.Option("--strategy", help="What to train: hybrid (the paper's), codes (the instance's code only) or all (every weight).")]
+PenaltyOpt = Annotated[Penalty, typer.Option("--penalty", help="Weight penalty: tensor (Σ per-tensor means, default) or element (every trained number weighed alike, so strategies are penalised alike).")]
 StepsOpt = Annotated[int, typer.Option("--steps", help="Optimization steps.")]
 LrOpt = Annotated[float, typer.Option("--lr", help="Adam learning rate.")]
 RaysOpt = Annotated[int, typer.Option("--rays", help="Most rays rendered per step (scribbled + kept).")]
@@ -120,10 +122,11 @@ def _preview(model, instance: int, folder: Path | None, spec: str) -> None:
     typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
 
 
-def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int):
+def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Optional[Penalty] = None):
     from ..edit import EditOptions
 
-    return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed).validated()
+    return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed,
+                       penalty=(penalty or Penalty.tensor).value).validated()
 
 
 def _write(result, out: Path, label: str) -> None:
@@ -155,6 +158,7 @@ def edit_color_cmd(
     views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
+    penalty: PenaltyOpt = Penalty.tensor,
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
@@ -167,7 +171,7 @@ def edit_color_cmd(
 
     rgb = parse_color(color)
     _require_scribble(scribble, scribble_json, "part to recolour")
-    options = _options(strategy, steps, lr, rays, seed)
+    options = _options(strategy, steps, lr, rays, seed, penalty)
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
@@ -198,6 +202,7 @@ def remove_cmd(
     views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
+    penalty: PenaltyOpt = Penalty.tensor,
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
@@ -208,7 +213,7 @@ def remove_cmd(
     from ..edit import remove
 
     _require_scribble(scribble, scribble_json, "part to remove")
-    options = _options(strategy, steps, lr, rays, seed)
+    options = _options(strategy, steps, lr, rays, seed, penalty)
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
@@ -236,6 +241,7 @@ def add_cmd(
     keep_json: KeepJsonOpt = None,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
+    penalty: PenaltyOpt = Penalty.tensor,
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
@@ -250,7 +256,7 @@ def add_cmd(
     from ..io import read_json
 
     dxdy = parse_offset(offset)
-    options = _options(strategy, steps, lr, rays, seed)
+    options = _options(strategy, steps, lr, rays, seed, penalty)
     _check_out(out, model)
     m = _load(model, edit, device)
     k, j = m.instance_index(instance), m.instance_index(donor)

@@ -61,7 +61,7 @@ def edit_color(
         return _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator)
-    edit = InstanceEdit(model, k, "color", options.strategy)
+    edit = InstanceEdit(model, k, "color", options.strategy, options.penalty)
     rays = select_rays(camera, torch.cat([fg, bg]), model.device)
     (render,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=options.cache)
     with torch.no_grad():

@@ -27,7 +27,7 @@ from ..errors import CrfError
 from ..model import CategoryModel
 from ..names import CODE_TABLES
 from ..optim import run_adam
-from .losses import weight_penalty
+from .losses import PENALTIES, weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
 
 
@@ -46,7 +46,11 @@ class EditOptions:
     seed: int = 0
     """Seeds the choice of rays and the occupancy probes; the same seed gives the same edit."""
     lambda_reg: float = 10.0
-    """Weight of Σ_tensors mean((θ − θ₀)²)."""
+    """Weight of the weight penalty: Σ_tensors mean((θ − θ₀)²), or with ``penalty="element"``
+    Σ_numbers (θ − θ₀)² / 4096 (:func:`~crfedit.edit.losses.weight_penalty`)."""
+    penalty: str = "tensor"
+    """``tensor`` (per-tensor means) or ``element`` (every trained number weighed alike, so
+    strategies that train tensors of different sizes are penalised alike)."""
     lambda_dens: float = 0.01
     """Weight of the density entropy of scribbled rays (removal)."""
     lambda_surface: float = 0.1
@@ -69,6 +73,7 @@ class EditOptions:
             (np.isfinite(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a positive number"),
             (self.rays >= 2, f"--rays {self.rays}: need at least 2"),
             (min(self.lambda_reg, self.lambda_dens, self.lambda_surface, self.lambda_match) >= 0, "loss weights must be ≥ 0"),
+            (self.penalty in PENALTIES, f"--penalty {self.penalty}: expected one of {', '.join(PENALTIES)}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -98,7 +103,7 @@ class InstanceEdit:
     Only the parameters under the strategy's prefixes require gradients.
     """
 
-    def __init__(self, model: CategoryModel, instance: int, group: str, strategy: str):
+    def __init__(self, model: CategoryModel, instance: int, group: str, strategy: str, penalty: str = "tensor"):
         self.before, self.instance = model, instance
         field = model.field_for(instance)
         self.field = copy.deepcopy(field) if field is model.field else field
@@ -113,9 +118,10 @@ class InstanceEdit:
             raise CrfError(f"--strategy {strategy}: this model has no parameters to train for a {group} edit")
         self.start = {n: p.detach().clone() for n, p in self.params.items()}
         self.rows = {n: instance for n in self.params if n in CODE_TABLES}
+        self.per = penalty
 
     def penalty(self) -> Tensor:
-        return weight_penalty(self.params, self.start, self.rows)
+        return weight_penalty(self.params, self.start, self.rows, self.per)
 
     def after(self, extra: Mapping[str, Tensor] | None = None) -> CategoryModel:
         """``before`` with the instance's trained tensors (and ``extra`` state, e.g. a new
@@ -154,6 +160,8 @@ def finish(
     """Record the edit as a delta and return the model that delta reproduces."""
     after = edit.after(extra)
     seconds = time.perf_counter() - started
+    if edit.per != "tensor":
+        hyper = {**hyper, "penalty": edit.per}
     meta = {
         "hyperparameters": json.dumps(hyper, sort_keys=True),
         "final_loss": repr(final_loss),

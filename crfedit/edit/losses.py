@@ -7,6 +7,8 @@ from typing import Mapping
 import torch
 from torch import Tensor
 
+from ..names import PENALTIES
+
 VALID_SIGMA = 1e-20
 """Densities at or below this count as "no sample" (the compacted layout pads rays with σ = 0)."""
 _MASKED = -1e4  # logit of a padded sample: exp(−1e4 − ·) = 0 exactly, yet finite
@@ -65,16 +67,34 @@ def log_density_drift(weights0: Tensor, sigmas: Tensor, sigmas0: Tensor) -> Tens
     return (weights0.detach() * (torch.log1p(sigmas) - torch.log1p(sigmas0.detach())) ** 2).sum(dim=-1)
 
 
-def weight_penalty(current: Mapping[str, Tensor], start: Mapping[str, Tensor], rows: Mapping[str, int]) -> Tensor:
-    """Σ over trained tensors of mean((θ − θ₀)²); a code table (named in ``rows``) counts only
-    the edited instance's row.  Per-tensor means keep the penalty on the scale of a pixel loss
-    whatever the tensor sizes (a plain sum over every weight swamps it)."""
+ELEMENT_SCALE = 4096
+"""The ``element`` penalty divides Σ(θ − θ₀)² by this: about the size of the largest trained
+weight matrices (F_rad's first layer: 3 520 numbers, F_fuse's: 7 872), so those keep roughly
+the per-number weight the ``tensor`` penalty gives them while code rows and biases lose the
+100–4 000× excess that the per-tensor mean gives small tensors."""
+
+
+def weight_penalty(
+    current: Mapping[str, Tensor], start: Mapping[str, Tensor], rows: Mapping[str, int], per: str = "tensor",
+) -> Tensor:
+    """The drift of the trained tensors from their start; a code table (named in ``rows``)
+    counts only the edited instance's row.
+
+    ``per="tensor"``: Σ over tensors of mean((θ − θ₀)²).  Per-tensor means keep the penalty on
+    the scale of a pixel loss whatever the tensor sizes, but weigh a number by 1/(its tensor's
+    size): a 32-number code row is held ~100× harder per number than an F_rad weight, so
+    strategies that train different tensors are not penalised alike.  ``per="element"``:
+    Σ over every trained number of (θ − θ₀)² / :data:`ELEMENT_SCALE`, the same weight for a
+    number in any tensor and any strategy."""
+    if per not in PENALTIES:
+        raise ValueError(f"weight_penalty: per={per!r}, expected one of {PENALTIES}")
     total = None
     for name, theta in current.items():
         theta0 = start[name]
         if name in rows:
             theta, theta0 = theta[rows[name]], theta0[rows[name]]
-        term = torch.mean((theta - theta0) ** 2)
+        sq = (theta - theta0) ** 2
+        term = torch.mean(sq) if per == "tensor" else torch.sum(sq) / ELEMENT_SCALE
         total = term if total is None else total + term
     if total is None:
         raise ValueError("weight_penalty: no trained tensors")

@@ -145,7 +145,7 @@ def remove(
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator, also_random=True)
     n_fg = fg.numel()
-    edit = InstanceEdit(model, k, "shape", options.strategy)
+    edit = InstanceEdit(model, k, "shape", options.strategy, options.penalty)
     candidates = edit.field.occupancy[k].clone()
     rays = select_rays(camera, torch.cat([fg, bg]), model.device)
     passes = edit_passes(edit.field, rays, k, list(edit.params), density_changes=True, cache=options.cache)
@@ -289,7 +289,7 @@ def add(
     target_rgb[:n_fg] = donor_out.rgb.reshape(-1, 3)[src.to(device)]
     target_alpha[:n_fg] = donor_out.opacity.reshape(-1)[src.to(device)]
 
-    edit = InstanceEdit(model, k, "shape", options.strategy)
+    edit = InstanceEdit(model, k, "shape", options.strategy, options.penalty)
     original = edit.field.occupancy[k].clone()
     if edit.field.cfg.sampler == "grid":
         all_dst = torch.from_numpy(np.flatnonzero(pasted))

@@ -90,7 +90,7 @@ def remove_selected(
     started = time.perf_counter()
     selection.check_for(model, k)
     generator = torch.Generator().manual_seed(options.seed)
-    edit = InstanceEdit(model, k, "shape", options.strategy)
+    edit = InstanceEdit(model, k, "shape", options.strategy, options.penalty)
     field = edit.field
     device = model.device
     grid = field.occupancy[k].clone()
@@ -154,7 +154,7 @@ def recolor_selected(
     started = time.perf_counter()
     selection.check_for(model, k)
     generator = torch.Generator().manual_seed(options.seed)
-    edit = InstanceEdit(model, k, "color", options.strategy)
+    edit = InstanceEdit(model, k, "color", options.strategy, options.penalty)
     device = model.device
     sel = selection.mask.to(device)
     ratio = recolor_ratio(appear, scribbled_rgb)
