@@ -17,7 +17,7 @@ ADD_METHODS = ("composite", "density")
 """How ``add`` supervises the pasted part: its rendered image, or the donor's density."""
 PENALTIES = ("tensor", "element")
 """How an edit's weight penalty weighs a tensor's drift (:func:`crfedit.edit.losses.weight_penalty`):
-``tensor`` (per-tensor means, the default) or ``element`` (every trained number alike)."""
+``element`` (every trained number alike, the default) or ``tensor`` (per-tensor means)."""
 
 EDIT_METHODS = ("selection", "paper")
 """How remove and edit-color use the scribbles.  selection: lift them to a 3-D selection and

@@ -30,7 +30,7 @@ ViewOpt = Annotated[str, typer.Option("--view", help="The one view the scribbles
 OutOpt = Annotated[Path, typer.Option("--out", help="Edit file to write (.safetensors); written atomically.")]
 PriorOpt = Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")]
 StrategyOpt = Annotated[Strategy, typer.Option("--strategy", help="What to train: hybrid (the paper's), codes (the instance's code only) or all (every weight).")]
-PenaltyOpt = Annotated[Penalty, typer.Option("--penalty", help="Weight penalty: tensor (Σ per-tensor means, default) or element (every trained number weighed alike, so strategies are penalised alike).")]
+PenaltyOpt = Annotated[Penalty, typer.Option("--penalty", help="Weight penalty: element (every trained number weighed alike, so strategies are penalised alike; default) or tensor (Σ per-tensor means, the earlier rule).")]
 StepsOpt = Annotated[int, typer.Option("--steps", help="Optimization steps.")]
 LrOpt = Annotated[float, typer.Option("--lr", help="Adam learning rate.")]
 RaysOpt = Annotated[int, typer.Option("--rays", help="Most rays rendered per step (scribbled + kept).")]
@@ -126,7 +126,7 @@ def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, pe
     from ..edit import EditOptions
 
     return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed,
-                       penalty=(penalty or Penalty.tensor).value).validated()
+                       penalty=(penalty or Penalty.element).value).validated()
 
 
 def _write(result, out: Path, label: str) -> None:
@@ -158,7 +158,7 @@ def edit_color_cmd(
     views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
-    penalty: PenaltyOpt = Penalty.tensor,
+    penalty: PenaltyOpt = Penalty.element,
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
@@ -202,7 +202,7 @@ def remove_cmd(
     views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
-    penalty: PenaltyOpt = Penalty.tensor,
+    penalty: PenaltyOpt = Penalty.element,
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
@@ -241,7 +241,7 @@ def add_cmd(
     keep_json: KeepJsonOpt = None,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
-    penalty: PenaltyOpt = Penalty.tensor,
+    penalty: PenaltyOpt = Penalty.element,
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,

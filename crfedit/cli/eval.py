@@ -184,7 +184,7 @@ def edits_cmd(
     steps: Annotated[int, typer.Option("--steps", help="Optimization steps of each edit.")] = 100,
     rays: Annotated[int, typer.Option("--rays", help="Most rays rendered per edit step.")] = 1024,
     lr: Annotated[float, typer.Option("--lr", help="Adam learning rate of the edits.")] = 1e-2,
-    penalty: Annotated[str, typer.Option("--penalty", help="Weight penalty of the edits: tensor (Σ per-tensor means, default) or element (every trained number weighed alike).")] = "tensor",
+    penalty: Annotated[str, typer.Option("--penalty", help="Weight penalty of the edits: element (every trained number weighed alike; default) or tensor (Σ per-tensor means, the earlier rule).")] = "element",
     lpips_weights: LpipsOpt = None,
     as_json: JsonOpt = False,
     strict: StrictOpt = False,

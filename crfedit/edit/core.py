@@ -46,11 +46,12 @@ class EditOptions:
     seed: int = 0
     """Seeds the choice of rays and the occupancy probes; the same seed gives the same edit."""
     lambda_reg: float = 10.0
-    """Weight of the weight penalty: Σ_tensors mean((θ − θ₀)²), or with ``penalty="element"``
-    Σ_numbers (θ − θ₀)² / 4096 (:func:`~crfedit.edit.losses.weight_penalty`)."""
-    penalty: str = "tensor"
-    """``tensor`` (per-tensor means) or ``element`` (every trained number weighed alike, so
-    strategies that train tensors of different sizes are penalised alike)."""
+    """Weight of the weight penalty: Σ_numbers (θ − θ₀)² / 4096, or with ``penalty="tensor"``
+    Σ_tensors mean((θ − θ₀)²) (:func:`~crfedit.edit.losses.weight_penalty`)."""
+    penalty: str = "element"
+    """``element`` (every trained number weighed alike, so strategies that train tensors of
+    different sizes are penalised alike) or ``tensor`` (per-tensor means, the rule before
+    issue 14's fairness change; docs/benchmarks.md compares the two)."""
     lambda_dens: float = 0.01
     """Weight of the density entropy of scribbled rays (removal)."""
     lambda_surface: float = 0.1
@@ -103,7 +104,7 @@ class InstanceEdit:
     Only the parameters under the strategy's prefixes require gradients.
     """
 
-    def __init__(self, model: CategoryModel, instance: int, group: str, strategy: str, penalty: str = "tensor"):
+    def __init__(self, model: CategoryModel, instance: int, group: str, strategy: str, penalty: str = "element"):
         self.before, self.instance = model, instance
         field = model.field_for(instance)
         self.field = copy.deepcopy(field) if field is model.field else field
@@ -160,8 +161,7 @@ def finish(
     """Record the edit as a delta and return the model that delta reproduces."""
     after = edit.after(extra)
     seconds = time.perf_counter() - started
-    if edit.per != "tensor":
-        hyper = {**hyper, "penalty": edit.per}
+    hyper = {**hyper, "penalty": edit.per}
     meta = {
         "hyperparameters": json.dumps(hyper, sort_keys=True),
         "final_loss": repr(final_loss),
