@@ -13,8 +13,10 @@ CODE_TABLES = (SHAPE_CODES, COLOR_CODES)
 STRATEGIES = ("hybrid", "codes", "all")
 """What an edit trains.  hybrid: ``edit.params.TRAINED``; codes: the instance's code row only;
 all: every network weight and the instance's code rows."""
-ADD_METHODS = ("composite", "density")
-"""How ``add`` supervises the pasted part: its rendered image, or the donor's density."""
+ADD_METHODS = ("selection", "composite", "density")
+"""How ``add`` supervises the pasted part: the donor's density and features at 3-D points of a
+selection of the part moved into place (the default), or, with the paper's one-view
+supervision, its rendered image or the donor's density along the pasted rays."""
 PENALTIES = ("tensor", "element")
 """How an edit's weight penalty weighs a tensor's drift (:func:`crfedit.edit.losses.weight_penalty`):
 ``element`` (every trained number alike, the default) or ``tensor`` (per-tensor means)."""

@@ -60,6 +60,12 @@ def held_out(category, k: int):
     return inst.splits["test"] + inst.splits["val"]
 
 
+def occupancy_centers(res: int) -> torch.Tensor:
+    from crfedit import occupancy
+
+    return occupancy.cell_centers(res, torch.device("cpu"))
+
+
 def render(model: CategoryModel, k: int, camera):
     return render_camera(model.field_for(k), camera, k)
 
@@ -261,6 +267,56 @@ def test_add_composite_grows_the_instance(trained):
         add(model, k, view.camera, j, mask, (40, 0), donor_view.camera)
     with pytest.raises(CrfError, match="--offset 3: expected DX,DY"):
         parse_offset("3")
+
+
+def test_paste_translation_moves_a_pixel_per_depth_over_focal():
+    from crfedit.cameras import Camera, look_at
+    from crfedit.config import PRESETS
+    from crfedit.edit.supervised import paste_translation, shifted_cells
+
+    field = ConditionalRadianceField(dataclasses.replace(PRESETS["fast"], occ_res=8), 2)
+    mask = torch.zeros(8, 8, 8, dtype=torch.bool)
+    mask[3:5, 3:5, 3:5] = True  # a block around the box centre (the origin)
+    cam = Camera(look_at((0.0, -4.0, 0.0)), focal=40.0, width=32, height=32)  # looks along +Y, up +Z
+    t = paste_translation(field, mask, cam, (8, -4))
+    depth = 4.0
+    # 8 px right (the camera's +X) and 4 px up (+Z), each pixel depth/focal world units at the part
+    assert torch.allclose(t, torch.tensor([8 * depth / 40.0, 0.0, 4 * depth / 40.0]), atol=1e-5)
+    # one cell is 2/8 normalized units: a shift of exactly one cell along x moves the block by one
+    moved = shifted_cells(mask, torch.tensor([0.25, 0.0, 0.0]))
+    assert moved[5, 3:5, 3:5].all() and moved[4, 4, 4] and not moved[7].any()
+
+
+def test_add_by_selection_copies_the_part_in_3d_and_holds_the_rest(trained):
+    _, model, category = trained
+    k, j = 0, 2
+    donor_view = category.instances[j].splits["train"][0]
+    mask = donor_view.parts == part_id(category.instances[j], "back")
+    result = add(model, k, donor_view.camera, j, mask, (0, 0), donor_view.camera, options=EditOptions(steps=60))
+    hyper = json.loads(result.meta["hyperparameters"])
+    assert hyper["method"] == "selection" and hyper["translation"] == [0.0, 0.0, 0.0]
+    assert set(result.tensors) == {"F_fuse.0.weight", "F_fuse.0.bias", "F_dens.weight", "F_dens.bias", "occupancy"}
+    # at the donor's dense points of its selected part the target's density moved toward the donor's
+    from crfedit.edit.selection import ScribbleView, select
+
+    sel = select(model, j, [ScribbleView(donor_view.camera, mask)])
+    res = sel.mask.shape[-1]
+    cells = (sel.mask & model.field.occupancy[j]).reshape(-1).nonzero().squeeze(-1)
+    pts = occupancy_centers(res)[cells]
+    with torch.no_grad():
+        donor = model.field.density(pts, j)
+        dense = donor > 1.0
+        before = model.field.density(pts, k)[dense]
+        after = result.model.field_for(k).density(pts, k)[dense]
+        gap_before = (torch.log1p(before) - torch.log1p(donor[dense])).abs().mean()
+        gap_after = (torch.log1p(after) - torch.log1p(donor[dense])).abs().mean()
+    assert dense.sum() > 10 and gap_after < 0.6 * gap_before
+    assert result.model.field_for(k).occupancy[k][sel.mask & model.field.occupancy[j]].float().mean() > 0.5
+    # the delta is scoped to instance k: another instance renders bit-identically
+    other = category.instances[1].splits["test"][0].camera
+    assert torch.equal(render(result.model, 1, other).rgb, render(model, 1, other).rgb)
+    with pytest.raises(CrfError, match="moves the whole copied region out of the 32x32 view"):
+        add(model, k, donor_view.camera, j, mask, (40, 0), donor_view.camera)
 
 
 # ----------------------------------------------------------------------------- loss terms

@@ -236,7 +236,8 @@ def add_cmd(
     copy_mask: Annotated[Path, typer.Option("--copy", help="The part to copy, drawn on the donor view: a mask PNG (white on black), or strokes JSON when the name ends in .json.")],
     offset: Annotated[str, typer.Option("--offset", help="Where to paste: DX,DY pixels right and down, e.g. 6,0 or -4,2.")],
     donor_view: Annotated[Optional[str], typer.Option("--donor-view", help="The donor view the copy mask belongs to (default: --view).")] = None,
-    method: Annotated[AddMethod, typer.Option("--method", help="composite: fit the pasted image; density: match the donor's density along the pasted rays.")] = AddMethod.composite,
+    method: Annotated[AddMethod, typer.Option("--method", help="composite: fit the pasted image; density: match the donor's density along the pasted rays; selection (default): lift the copy mask to a 3-D selection of the donor's part and copy its density and features, moved into place, at points in 3-D.")] = AddMethod.selection,
+    selection: Annotated[Optional[Path], typer.Option("--selection", help="With --method selection: a selection file of the DONOR's part from `crfedit select` (default: computed from --copy).")] = None,
     keep: KeepShapeOpt = None,
     keep_json: KeepJsonOpt = None,
     edit: PriorOpt = None,
@@ -272,7 +273,10 @@ def add_cmd(
         )
     bg = load_mask(keep, keep_json, camera.width, camera.height, "keep")
     bg = None if bg is None else bg.mask
-    _write(add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options), out, label)
+    if selection is not None and method != AddMethod.selection:
+        raise CrfError("--selection belongs to --method selection")
+    sel = _selection(selection, m, j)
+    _write(add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel), out, label)
 
 
 @app.command("transfer")

@@ -22,7 +22,9 @@ thinned the whole chair (docs/editing.md has the measurements).
   image, colour and opacity (``composite``), or, on the pasted rays, the donor's normalized
   density distribution by cross-entropy plus its opacity (``density``).  The pasted part keeps
   its distance from the camera: a pasted ray gets the donor density found at the same distance
-  along the donor ray.
+  along the donor ray.  ``selection`` instead lifts the copy mask to a 3-D selection of the
+  donor's part, moves it by the offset at the part's depth, and copies its density and
+  bottleneck features there at points in 3-D (:func:`~.supervised.add_selected`).
 
 The occupancy grid follows the density.  Before adding, the cells that the donor's occupied
 samples map to along the pasted rays are opened (dilated by one cell).  After either edit, the
@@ -56,7 +58,7 @@ from .losses import density_cross_entropy, density_entropy, log_density_drift, m
 from .params import used_code_tables
 from .scribble import check_masks, pick_pixels
 from .selection import ScribbleView, Selection, select
-from .supervised import remove_selected
+from .supervised import add_selected, remove_selected
 from .transfer import swap_codes
 
 MODE_ALPHA = 0.01
@@ -243,12 +245,18 @@ def add(
     copy_mask: np.ndarray,  # [H, W] bool, in the donor view
     offset: tuple[int, int],
     donor_camera: Camera | None = None,
-    method: str = "composite",
+    method: str = "selection",
     keep: np.ndarray | None = None,
     options: EditOptions = EditOptions(),
+    selection: Selection | None = None,
 ) -> EditResult:
     """Add the donor's part under ``copy_mask`` (donor view) to ``instance``, pasted ``offset``
-    = (dx, dy) pixels away in ``camera``'s view."""
+    = (dx, dy) pixels away in ``camera``'s view.
+
+    ``method``: ``composite`` (the paper's: fit the pasted image along the pasted rays),
+    ``density`` (match the donor's density along them) or ``selection`` (lift the copy mask to
+    a 3-D selection of the donor, or take ``selection``, and copy that part's density and
+    features at points in 3-D: :func:`~crfedit.edit.supervised.add_selected`)."""
     started = time.perf_counter()
     options = options.validated()
     if method not in ADD_METHODS:
@@ -274,6 +282,10 @@ def add(
     if not inside.any():
         raise CrfError(f"--offset {dx},{dy} moves the whole copied region out of the {w}x{h} view")
     ys, xs = ys[inside], xs[inside]
+    if method == "selection":
+        if selection is None:
+            selection = select(model, j, [ScribbleView(donor_camera, copy_mask)])
+        return add_selected(model, k, j, selection, camera, offset, options)
     src_of = np.full(h * w, -1, dtype=np.int64)
     src_of[(ys + dy) * w + (xs + dx)] = ys * w + xs
     pasted = src_of.reshape(h, w) >= 0

@@ -30,6 +30,7 @@ from torch import Tensor
 
 from .. import occupancy
 from ..cameras import Camera, Rays, rays_from_camera
+from ..errors import CrfError
 from ..model import CategoryModel
 from ..rendering import composite_dense
 from .cache import edit_passes
@@ -192,3 +193,95 @@ def recolor_selected(
         "selected_samples": int(in_s.sum()), "cached_samples": p.n_cached, "stage": p.stage, "cameras": [camera_meta(c) for c in cameras],
     }
     return finish(edit, "color", hyper, final, started)
+
+
+def paste_translation(field, selection_mask: Tensor, camera: Camera, offset: tuple[int, int]) -> Tensor:
+    """The world translation [3] that moves the selected donor cells ``offset`` = (dx, dy) pixels
+    right and down in ``camera``'s image, at the depth of their centroid (a pinhole's pixel
+    spans depth / focal world units there)."""
+    res = selection_mask.shape[-1]
+    lo, hi = field.aabb[:3], field.aabb[3:]
+    cells = selection_mask.reshape(-1).nonzero().squeeze(-1)
+    centroid = (lo + (occupancy.cell_centers(res, lo.device)[cells] + 1.0) * 0.5 * (hi - lo)).mean(dim=0)
+    c2w = torch.as_tensor(np.asarray(camera.c2w), dtype=lo.dtype, device=lo.device)
+    right, up, back, eye = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3]
+    depth = ((centroid - eye) * -back).sum()
+    dx, dy = offset
+    return (dx * right - dy * up) * depth / camera.focal
+
+
+def shifted_cells(mask: Tensor, shift_n: Tensor) -> Tensor:
+    """The cells ``mask`` [R, R, R] covers after a translation ``shift_n`` [3] in normalized
+    units, dilated by one cell so that no part of a shifted cell is missed."""
+    res = mask.shape[-1]
+    cells = mask.reshape(-1).nonzero().squeeze(-1)
+    ijk, inside = occupancy.cell_index(occupancy.cell_centers(res, mask.device)[cells] + shift_n, res)
+    ijk = ijk[inside]
+    out = torch.zeros_like(mask)
+    out[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    return occupancy.dilate(out, 1)
+
+
+def add_selected(
+    model: CategoryModel, k: int, donor: int, selection: Selection, camera: Camera, offset: tuple[int, int],
+    options: EditOptions,
+) -> EditResult:
+    """Add the donor's selected part to instance ``k``, moved ``offset`` pixels in ``camera``'s
+    view (trains F_fuse + F_dens).  A teacher–student fit at points in 3-D: in the pasted cells
+    S′ = S + t, σ and the bottleneck features take the donor's values at x − t where x − t lies
+    in S (the part's colour then follows instance ``k``'s colour code, as in the paper), and the
+    instance's own elsewhere; in the instance's other occupied cells both are held.  The
+    occupancy grid then gains the pasted cells where the fit put density."""
+    from .shape import _occupancy_after
+
+    started = time.perf_counter()
+    selection.check_for(model, donor)
+    generator = torch.Generator().manual_seed(options.seed)
+    edit = InstanceEdit(model, k, "shape", options.strategy, options.penalty)
+    field = edit.field
+    donor_field = model.field_for(donor)
+    device = model.device
+    source = selection.mask.to(device) & donor_field.occupancy[donor]
+    if not bool(source.any()):
+        raise CrfError("the selection covers none of the donor's occupied cells")
+    shift = paste_translation(field, source, camera, offset)
+    lo, hi = field.aabb[:3], field.aabb[3:]
+    shift_n = shift * 2.0 / (hi - lo)
+    pasted = shifted_cells(source, shift_n)
+    if not bool(pasted.any()):
+        raise CrfError(f"--offset {offset[0]},{offset[1]} moves the whole part out of the scene box")
+    original = field.occupancy[k].clone()
+    union = original | pasted
+    pts, in_pasted = occupied_points(union, pasted, options.rays, 2 * options.rays, generator)
+    pre = pts - shift_n
+    inst_d = torch.full((pts.shape[0],), donor, dtype=torch.long, device=device)
+    copied = in_pasted & occupancy.lookup(source[None], torch.zeros_like(inst_d), pre)
+    copied &= occupancy.lookup(donor_field.occupancy, inst_d, pre)  # σ = 0 where the renderer never samples the donor
+    with torch.no_grad():
+        raw0, feat0 = field.density_from_fuse_inputs(field.fuse_inputs(pts, field.codes(k)[0]))
+        sigma0 = field.sigma(raw0) * occupancy.lookup(original[None], torch.zeros_like(inst_d), pts)
+        raw_d, feat_d = donor_field.density_from_fuse_inputs(donor_field.fuse_inputs(pre, donor_field.codes(donor)[0]))
+        sigma_d = donor_field.sigma(raw_d)
+        take = copied & (sigma_d > sigma0)  # where the pasted part is denser than what is there
+        log_t = torch.log1p(torch.where(take, sigma_d, sigma0))
+        feat_t = torch.where(take[:, None], feat_d, feat0)
+        cell = float((hi - lo).max()) / original.shape[-1]
+        # features matter where the target is opaque over a cell; held exactly outside S′
+        w_feat = torch.where(in_pasted, 1.0 - torch.exp(-torch.where(take, sigma_d, sigma0) * cell), torch.ones_like(sigma0))
+
+    def loss_fn():
+        raw, feat = field.density_from_fuse_inputs(field.fuse_inputs(pts, field.codes(k)[0]))
+        log_sigma = torch.log1p(field.sigma(raw))
+        total = options.lambda_reg * edit.penalty()
+        total = total + ((log_sigma - log_t) ** 2).mean()
+        return total + (w_feat * ((feat - feat_t) ** 2).sum(dim=-1)).mean()
+
+    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "add edit", options.on_step)
+    extra, modules = _occupancy_after(edit, union, generator)
+    hyper = {
+        "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
+        "points": int(pts.shape[0]), "seed": options.seed, "lambda_reg": options.lambda_reg,
+        "donor": model.names[donor], "offset": list(offset), "translation": [round(float(v), 6) for v in shift],
+        "selected_cells": int(source.sum()), "pasted_cells": int(pasted.sum()), "camera": camera_meta(camera),
+    }
+    return finish(edit, "add", hyper, final, started, extra, modules)

@@ -296,7 +296,7 @@ class Replay:
                 words.append(f"--donor-view {self._view(prefix, req.donor_view, 'donor-view')}")
             if req.keep is not None:
                 words.append(f"--keep-json {self._strokes(prefix, 'keep', req.keep)}")
-            if req.method != "composite":
+            if req.method != ADD_METHODS[0]:
                 words.append(f"--method {req.method}")
         else:
             drawn = req.drawn
