@@ -26,7 +26,7 @@ from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, selection_iou
 
 VARIANTS = {
-    "default (logistic, 3 self-training rounds, smoothing, connectivity)": ({}, True),
+    "default (bottleneck + colour + chromaticity + position; logistic, 3 self-training rounds, smoothing, connectivity)": ({}, True),
     "no keep strokes": ({}, False),
     "no self-training": ({"self_training": 0}, True),
     "no smoothing, no connectivity": ({"smooth": False, "connected": False}, True),
@@ -34,6 +34,8 @@ VARIANTS = {
     "features: bottleneck + position": ({"features": ("bottleneck", "position")}, True),
     "features: bottleneck + colour": ({"features": ("bottleneck", "color")}, True),
     "position weight 0.25, 6 self-training rounds": ({"position_weight": 0.25, "self_training": 6}, True),
+    "features: bottleneck + colour + position (the default before chromaticity)": ({"features": ("bottleneck", "color", "position")}, True),
+    "features: bottleneck + chromaticity + position": ({"features": ("bottleneck", "chroma", "position")}, True),
 }
 
 

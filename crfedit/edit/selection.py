@@ -49,9 +49,11 @@ FORMAT = "crfedit-selection"
 VERSION = "1"
 MIN_OPACITY = 0.5
 """A pixel shows the object (and has a surface point) where its rendered opacity is at least this."""
-FEATURES = ("bottleneck", "color", "position")
+FEATURES = ("bottleneck", "color", "chroma", "position")
+"""The feature groups a selection uses by default."""
+FEATURE_GROUPS = (*FEATURES, "chroma")
 """Per-point feature groups :func:`point_features` can build."""
-WIDTHS = {"color": 3, "position": 9}
+WIDTHS = {"color": 3, "chroma": 3, "position": 9}
 """Feature widths per group (the bottleneck's is the model's)."""
 
 
@@ -69,7 +71,7 @@ class SelectOptions:
     """How scribbles become a selection."""
 
     features: tuple[str, ...] = FEATURES
-    """Feature groups describing a point (see :data:`FEATURES`)."""
+    """Feature groups describing a point (from :data:`FEATURE_GROUPS`)."""
     position_weight: float = 1.0
     """Scale of the standardized position group against the others."""
     self_training: int = 3
@@ -138,7 +140,7 @@ def surface_points(
 
 @torch.no_grad()
 def point_features(field: ConditionalRadianceField, instance: int, points: Tensor, view_from: Tensor, groups: Sequence[str]) -> Tensor:
-    """The field's own description of world ``points`` [M, 3]: the chosen :data:`FEATURES`
+    """The field's own description of world ``points`` [M, 3]: the chosen :data:`FEATURE_GROUPS`
     groups concatenated, unstandardized.  Colour is F_rad's output looking from ``view_from`` [3];
     position is the normalized point and its second-order terms (so that a linear classifier
     can select e.g. both arms but not the seat between them)."""
@@ -151,11 +153,15 @@ def point_features(field: ConditionalRadianceField, instance: int, points: Tenso
         elif group == "color":
             dirs = F.normalize(points - view_from, dim=-1)
             out.append(field.radiance(feat, dirs, instance))
+        elif group == "chroma":  # rgb / (r + g + b): a Lambertian shading factor cancels
+            dirs = F.normalize(points - view_from, dim=-1)
+            rgb = field.radiance(feat, dirs, instance)
+            out.append(rgb / (rgb.sum(dim=-1, keepdim=True) + 0.05))
         elif group == "position":
             x, y, z = xn.unbind(-1)
             out.append(torch.stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], dim=-1))
         else:
-            raise CrfError(f"selection feature {group!r}: expected one of {', '.join(FEATURES)}")
+            raise CrfError(f"selection feature {group!r}: expected one of {', '.join(FEATURE_GROUPS)}")
     return torch.cat(out, dim=-1)
 
 
