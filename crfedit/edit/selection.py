@@ -146,16 +146,16 @@ def point_features(field: ConditionalRadianceField, instance: int, points: Tenso
     can select e.g. both arms but not the seat between them)."""
     xn = field.normalize(points)
     feat = field.features(xn, instance)
+    rgb = None
+    if "color" in groups or "chroma" in groups:  # F_rad once for both colour groups
+        rgb = field.radiance(feat, F.normalize(points - view_from, dim=-1), instance)
     out = []
     for group in groups:
         if group == "bottleneck":
             out.append(feat)
         elif group == "color":
-            dirs = F.normalize(points - view_from, dim=-1)
-            out.append(field.radiance(feat, dirs, instance))
+            out.append(rgb)
         elif group == "chroma":  # rgb / (r + g + b): a Lambertian shading factor cancels
-            dirs = F.normalize(points - view_from, dim=-1)
-            rgb = field.radiance(feat, dirs, instance)
             out.append(rgb / (rgb.sum(dim=-1, keepdim=True) + 0.05))
         elif group == "position":
             x, y, z = xn.unbind(-1)
