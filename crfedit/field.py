@@ -272,6 +272,11 @@ class ConditionalRadianceField(FieldNet):
         lo, hi = self.aabb[:3], self.aabb[3:]
         return (points - lo) / (hi - lo) * 2.0 - 1.0
 
+    def denormalize(self, xn: Tensor) -> Tensor:
+        """Normalized points in [-1, 1]³ → world (the inverse of :meth:`normalize`)."""
+        lo, hi = self.aabb[:3], self.aabb[3:]
+        return lo + (xn + 1.0) * 0.5 * (hi - lo)
+
     def code_tables(self) -> tuple[Tensor | None, Tensor | None]:
         """(shape codes, colour codes) [K, D] as the architecture uses them (None = unused)."""
         s = self.shape_codes if self.uses_shape_code else None

@@ -272,8 +272,7 @@ def select(
     occupied = field.occupancy[k]
     res = occupied.shape[-1]
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
-    lo, hi = field.aabb[:3], field.aabb[3:]
-    cell_pts = lo + (occupancy.cell_centers(res, occupied.device)[cells] + 1.0) * 0.5 * (hi - lo)
+    cell_pts = field.denormalize(occupancy.cell_centers(res, occupied.device)[cells])
     eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
     groups = options.features
     feats = lambda p: point_features(field, k, p, eye, groups)

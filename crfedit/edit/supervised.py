@@ -200,10 +200,9 @@ def paste_translation(field, selection_mask: Tensor, camera: Camera, offset: tup
     right and down in ``camera``'s image, at the depth of their centroid (a pinhole's pixel
     spans depth / focal world units there)."""
     res = selection_mask.shape[-1]
-    lo, hi = field.aabb[:3], field.aabb[3:]
     cells = selection_mask.reshape(-1).nonzero().squeeze(-1)
-    centroid = (lo + (occupancy.cell_centers(res, lo.device)[cells] + 1.0) * 0.5 * (hi - lo)).mean(dim=0)
-    c2w = torch.as_tensor(np.asarray(camera.c2w), dtype=lo.dtype, device=lo.device)
+    centroid = field.denormalize(occupancy.cell_centers(res, field.aabb.device)[cells]).mean(dim=0)
+    c2w = torch.as_tensor(np.asarray(camera.c2w), dtype=centroid.dtype, device=centroid.device)
     right, up, back, eye = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3]
     depth = ((centroid - eye) * -back).sum()
     dx, dy = offset
