@@ -15,12 +15,8 @@ import argparse
 import importlib.util
 from pathlib import Path
 
-import torch
-
 import crfedit.evaluation as evaluation
-from crfedit.data.loading import load_category
-from crfedit.evaluation import evaluate_edits, load_twin_cases, model_width
-from crfedit.model import load_model
+from crfedit.evaluation import evaluate_edits
 from crfedit.twin_scores import part_of
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
@@ -34,10 +30,7 @@ def main() -> None:
     ap.add_argument("data")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
-    torch.set_num_threads(1)
-    model, _ = load_model(args.model)
-    category = load_category(Path(args.data), res=model_width(model, "test"))
-    cases = load_twin_cases(model, category)
+    model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
     rows = {}
     for label, oracle in (("selection from the scribbles (default)", False), ("oracle selection", True)):
         if oracle:

@@ -37,10 +37,9 @@ from pathlib import Path
 
 import torch
 
-from crfedit.bench import BenchSettings, tiny_category, train_curve
+from crfedit.bench import BenchSettings, benchmark_category, train_curve
 from crfedit.config import make_config
-from crfedit.data.loading import Category, load_category
-from crfedit.data.synth import SynthConfig, write_synth_category
+from crfedit.data.loading import Category
 from crfedit.edit import EditOptions
 from crfedit.edit.cache import ViewCache
 from crfedit.errors import CrfError
@@ -204,15 +203,7 @@ def main(argv: list[str] | None = None) -> int:
         configure_threads(args.threads)
         device = resolve_device(args.device)
         with tempfile.TemporaryDirectory(prefix="crfedit-gpu-data-") as tmp:
-            if args.data is not None:
-                category = load_category(args.data)
-            elif args.tiny:
-                category = tiny_category(Path(tmp) / "chairs")
-            else:
-                data = ROOT / "runs" / "bench" / "chairs"
-                if not (data / "instances.txt").is_file():
-                    write_synth_category(data, SynthConfig())
-                category = load_category(data)
+            category = benchmark_category(args.data, args.tiny, tmp, ROOT / "runs" / "bench" / "chairs")
             result = measure(category, device, args)
         args.json.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, json.dumps(result, indent=1, default=str) + "\n")

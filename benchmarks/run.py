@@ -21,10 +21,8 @@ from pathlib import Path
 
 import torch
 
-from crfedit.bench import BenchSettings, run_bench, tiny_category
+from crfedit.bench import BenchSettings, benchmark_category, run_bench
 from crfedit.report import write_outputs
-from crfedit.data.loading import load_category
-from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.errors import CrfError
 from crfedit.runtime import resolve_device
 
@@ -56,16 +54,8 @@ def main(argv: list[str] | None = None) -> int:
         settings = settings.validated()
         device = resolve_device(args.device)
         with tempfile.TemporaryDirectory(prefix="crfedit-bench-data-") as tmp:
-            if args.data is not None:
-                category = load_category(args.data)
-            elif args.tiny:
-                category = tiny_category(Path(tmp) / "chairs")
-            else:
-                data = ROOT / "runs" / "bench" / "chairs"
-                if not (data / "instances.txt").is_file():
-                    print(f"generating the benchmark category into {data}", file=sys.stderr)
-                    write_synth_category(data, SynthConfig())
-                category = load_category(data)
+            category = benchmark_category(args.data, args.tiny, tmp, ROOT / "runs" / "bench" / "chairs",
+                                          lambda m: print(m, file=sys.stderr))
             report = run_bench(category, settings, device, workdir=args.work, progress=lambda m: print(m, file=sys.stderr))
             written = write_outputs(report, args.csv, args.md)
     except CrfError as e:

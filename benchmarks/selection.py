@@ -59,16 +59,22 @@ def oracle_selection(model, case, inst, part_id: int) -> Selection:
     return Selection(values, case.instance, model.names[case.instance], model.fingerprint(), {})
 
 
+def load_twin_benchmark(model_path: str, data: str):
+    """(model, category at the model's test width, twin cases), one torch thread: what the twin
+    benchmarks (this one and edit_ceiling.py) run on."""
+    torch.set_num_threads(1)
+    model, _ = load_model(model_path)
+    category = load_category(Path(data), res=model_width(model, "test"))
+    return model, category, load_twin_cases(model, category)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model")
     ap.add_argument("data")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
-    torch.set_num_threads(1)
-    model, _ = load_model(args.model)
-    category = load_category(Path(args.data), res=model_width(model, "test"))
-    cases = load_twin_cases(model, category)
+    model, category, cases = load_twin_benchmark(args.model, args.data)
     select(model, cases[0].instance, [ScribbleView(cases[0].camera, cases[0].scribble, cases[0].keep)])  # warm-up
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; IoU on each source's test views.", "",

@@ -344,3 +344,20 @@ def tiny_category(folder: str | Path) -> Category:
     if not (folder / "instances.txt").is_file():
         write_synth_category(folder, SynthConfig(instances=2, views=6, res=16))
     return load_category(folder)
+
+
+def benchmark_category(data: str | Path | None, tiny: bool, scratch: str | Path, default: str | Path,
+                       say: Progress | None = None) -> Category:
+    """The category a benchmark script runs on: ``data`` when given, else the ``--tiny`` one in
+    ``scratch``, else the default procedural category (24 chairs at 64²) at ``default``,
+    generated there once (``say`` is told) and reused afterwards."""
+    if data is not None:
+        return load_category(data)
+    if tiny:
+        return tiny_category(Path(scratch) / "chairs")
+    default = Path(default)
+    if not (default / "instances.txt").is_file():
+        if say is not None:
+            say(f"generating the benchmark category into {default}")
+        write_synth_category(default, SynthConfig())
+    return load_category(default)
