@@ -41,7 +41,7 @@ from .delta import Delta, apply_deltas, grow, make_delta
 from .edit.core import EditResult, camera_meta
 from .edit.losses import mse, weight_penalty
 from .edit.params import used_code_tables
-from .edit.shape import rethreshold
+from .edit.core import rethreshold
 from .errors import CrfError
 from .field import ConditionalRadianceField
 from .io import read_image

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import json
 import time
 from dataclasses import dataclass
@@ -21,9 +22,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import occupancy
 from ..cameras import Camera, Rays, rays_from_camera
 from ..delta import Delta, apply_deltas, make_delta, save_delta
 from ..errors import CrfError
+from ..field import ConditionalRadianceField
 from ..model import CategoryModel
 from ..names import CODE_TABLES
 from ..optim import run_adam
@@ -124,6 +127,15 @@ class InstanceEdit:
     def penalty(self) -> Tensor:
         return weight_penalty(self.params, self.start, self.rows, self.per)
 
+    def occupancy_delta(self, grid: Tensor) -> tuple[dict, tuple[str, ...]]:
+        """(extra overrides, extra modules) for :func:`finish` that store ``grid`` [R, R, R] as
+        the instance's occupancy (nothing without the grid sampler)."""
+        if self.field.cfg.sampler != "grid":
+            return {}, ()
+        table = self.field.occupancy.detach().clone()
+        table[self.instance] = grid
+        return {"occupancy": table}, ("occupancy",)
+
     def after(self, extra: Mapping[str, Tensor] | None = None) -> CategoryModel:
         """``before`` with the instance's trained tensors (and ``extra`` state, e.g. a new
         occupancy table) replaced; code tables keep every other row."""
@@ -139,6 +151,32 @@ class InstanceEdit:
         replaced.update(extra or {})
         return dataclasses.replace(self.before, overrides={**self.before.overrides, self.instance: replaced})
 
+
+OCC_PROBES = 4
+"""Random density probes per candidate cell when a shape edit re-thresholds the grid."""
+
+
+@torch.no_grad()
+def rethreshold(field: ConditionalRadianceField, instance: int, candidates: Tensor, generator: torch.Generator) -> Tensor:
+    """The instance's occupancy grid [R, R, R] after a shape edit: candidate cells whose edited
+    density passes the training threshold at any of :data:`OCC_PROBES` random probes, dilated by
+    one cell and kept within ``candidates``."""
+    cfg = field.cfg
+    res = candidates.shape[-1]
+    density = functools.partial(field.density, instance=instance)
+    ema = torch.zeros(res**3, device=candidates.device)
+    step = occupancy.step_size(field.aabb, res, cfg.steps_per_cell)
+    grid = candidates.reshape(-1)
+    for _ in range(OCC_PROBES):
+        grid = occupancy.update_from_density(ema, candidates.reshape(-1), density, step, cfg.occ_threshold, 1.0, generator)
+    return occupancy.dilate(grid.view(res, res, res), 1) & candidates
+
+
+def occupancy_after(edit: InstanceEdit, candidates: Tensor, generator: torch.Generator) -> tuple[dict, tuple[str, ...]]:
+    """:meth:`InstanceEdit.occupancy_delta` of the re-thresholded ``candidates`` (grid sampler only)."""
+    if edit.field.cfg.sampler != "grid":
+        return {}, ()
+    return edit.occupancy_delta(rethreshold(edit.field, edit.instance, candidates, generator))
 
 def optimize(
     params: Sequence[Tensor], loss_fn: Callable[[], Tensor], steps: int, lr: float, what: str,

@@ -35,7 +35,6 @@ only where no density is left nearby.
 
 from __future__ import annotations
 
-import functools
 import time
 from typing import NamedTuple
 
@@ -53,7 +52,7 @@ from ..renderer import render_camera
 from ..rendering import composite_dense
 from ..sampling import grid_samples
 from .cache import EditPass, edit_passes
-from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
+from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize, select_rays
 from .losses import density_cross_entropy, density_entropy, log_density_drift, mse, visible_log_density
 from .params import used_code_tables
 from .scribble import check_masks, pick_pixels
@@ -63,7 +62,6 @@ from .transfer import swap_codes
 
 MODE_ALPHA = 0.01
 """A sample belongs to a density mode while its opacity 1 − exp(−σδ) exceeds this."""
-OCC_PROBES = 4
 
 
 class RemovalTarget(NamedTuple):
@@ -74,22 +72,6 @@ class RemovalTarget(NamedTuple):
     seen: Tensor  # [N, S] weights of the surfaces to keep at their density (w⁰; the surface behind for --occluded)
     sigmas: Tensor  # [N, S] starting densities
     push: Tensor  # [n_fg, S] bool: samples of the scribbled rays whose density is to go
-
-
-@torch.no_grad()
-def rethreshold(field: ConditionalRadianceField, instance: int, candidates: Tensor, generator: torch.Generator) -> Tensor:
-    """The instance's occupancy grid [R, R, R] after a shape edit: candidate cells whose edited
-    density passes the training threshold at any of :data:`OCC_PROBES` random probes, dilated by
-    one cell and kept within ``candidates``."""
-    cfg = field.cfg
-    res = candidates.shape[-1]
-    density = functools.partial(field.density, instance=instance)
-    ema = torch.zeros(res**3, device=candidates.device)
-    step = occupancy.step_size(field.aabb, res, cfg.steps_per_cell)
-    grid = candidates.reshape(-1)
-    for _ in range(OCC_PROBES):
-        grid = occupancy.update_from_density(ema, candidates.reshape(-1), density, step, cfg.occ_threshold, 1.0, generator)
-    return occupancy.dilate(grid.view(res, res, res), 1) & candidates
 
 
 def first_mode(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor) -> Tensor:
@@ -107,16 +89,6 @@ def first_mode(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor) -> Tensor:
     breaks = (~active | gap) & (idx > first)
     end = torch.where(breaks.any(dim=-1, keepdim=True), breaks.float().argmax(dim=-1, keepdim=True), active.shape[-1])
     return (idx >= first) & (idx < end) & active.any(dim=-1, keepdim=True)
-
-
-def _occupancy_after(edit: InstanceEdit, candidates: Tensor, generator: torch.Generator) -> tuple[dict, tuple[str, ...]]:
-    """(extra overrides, extra modules) that store the re-thresholded grid (grid sampler only)."""
-    field = edit.field
-    if field.cfg.sampler != "grid":
-        return {}, ()
-    table = field.occupancy.detach().clone()
-    table[edit.instance] = rethreshold(field, edit.instance, candidates, generator)
-    return {"occupancy": table}, ("occupancy",)
 
 
 def remove(
@@ -179,7 +151,7 @@ def remove(
         return total
 
     final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "removal", options.on_step)
-    extra, extra_modules = _occupancy_after(edit, candidates, generator)
+    extra, extra_modules = occupancy_after(edit, candidates, generator)
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
         "seed": options.seed, "lambda_reg": options.lambda_reg, "lambda_dens": options.lambda_dens,
@@ -338,7 +310,7 @@ def add(
         return total
 
     final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "add edit", options.on_step)
-    extra, extra_modules = _occupancy_after(edit, candidates, generator)
+    extra, extra_modules = occupancy_after(edit, candidates, generator)
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
         "seed": options.seed, "lambda_reg": options.lambda_reg, "lambda_surface": options.lambda_surface,

@@ -34,7 +34,7 @@ from ..errors import CrfError
 from ..model import CategoryModel
 from ..rendering import composite_dense
 from .cache import edit_passes
-from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize
+from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
 from .losses import mse
 from .selection import Selection
 
@@ -126,11 +126,7 @@ def remove_selected(
         return total
 
     final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "removal", options.on_step)
-    extra, modules = {}, ()
-    if field.cfg.sampler == "grid":
-        table = field.occupancy.detach().clone()
-        table[k] = grid & ~sel
-        extra, modules = {"occupancy": table}, ("occupancy",)
+    extra, modules = edit.occupancy_delta(grid & ~sel)
     hyper = {
         "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
         "rays": int(rays.origins.shape[0]), "points": int(pts.shape[0]), "seed": options.seed,
@@ -231,8 +227,6 @@ def add_selected(
     in S (the part's colour then follows instance ``k``'s colour code, as in the paper), and the
     instance's own elsewhere; in the instance's other occupied cells both are held.  The
     occupancy grid then gains the pasted cells where the fit put density."""
-    from .shape import _occupancy_after
-
     started = time.perf_counter()
     selection.check_for(model, donor)
     generator = torch.Generator().manual_seed(options.seed)
@@ -276,7 +270,7 @@ def add_selected(
         return total + (w_feat * ((feat - feat_t) ** 2).sum(dim=-1)).mean()
 
     final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "add edit", options.on_step)
-    extra, modules = _occupancy_after(edit, union, generator)
+    extra, modules = occupancy_after(edit, union, generator)
     hyper = {
         "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
         "points": int(pts.shape[0]), "seed": options.seed, "lambda_reg": options.lambda_reg,
