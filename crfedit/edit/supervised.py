@@ -33,7 +33,7 @@ from ..cameras import Camera, Rays, rays_from_camera
 from ..errors import CrfError
 from ..model import CategoryModel
 from ..rendering import composite_dense
-from .cache import edit_passes
+from .cache import cache_stage, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
 from .losses import mse
 from .selection import Selection
@@ -250,20 +250,26 @@ def add_selected(
     inst_d = torch.full((pts.shape[0],), donor, dtype=torch.long, device=device)
     copied = in_pasted & occupancy.lookup(source[None], torch.zeros_like(inst_d), pre)
     copied &= occupancy.lookup(donor_field.occupancy, inst_d, pre)  # σ = 0 where the renderer never samples the donor
+    cached = None
+    if cache_stage(list(edit.params), density_changes=True) == "fuse":  # nothing upstream of F_fuse trains
+        with torch.no_grad():
+            cached = field.fuse_inputs(pts, field.codes(k)[0])
+    fuse_inputs = lambda: cached if cached is not None else field.fuse_inputs(pts, field.codes(k)[0])
     with torch.no_grad():
-        raw0, feat0 = field.density_from_fuse_inputs(field.fuse_inputs(pts, field.codes(k)[0]))
+        raw0, feat0 = field.density_from_fuse_inputs(fuse_inputs())
         sigma0 = field.sigma(raw0) * occupancy.lookup(original[None], torch.zeros_like(inst_d), pts)
         raw_d, feat_d = donor_field.density_from_fuse_inputs(donor_field.fuse_inputs(pre, donor_field.codes(donor)[0]))
         sigma_d = donor_field.sigma(raw_d)
         take = copied & (sigma_d > sigma0)  # where the pasted part is denser than what is there
-        log_t = torch.log1p(torch.where(take, sigma_d, sigma0))
+        sigma_t = torch.where(take, sigma_d, sigma0)
+        log_t = torch.log1p(sigma_t)
         feat_t = torch.where(take[:, None], feat_d, feat0)
         cell = float((hi - lo).max()) / original.shape[-1]
         # features matter where the target is opaque over a cell; held exactly outside S′
-        w_feat = torch.where(in_pasted, 1.0 - torch.exp(-torch.where(take, sigma_d, sigma0) * cell), torch.ones_like(sigma0))
+        w_feat = torch.where(in_pasted, 1.0 - torch.exp(-sigma_t * cell), torch.ones_like(sigma0))
 
     def loss_fn():
-        raw, feat = field.density_from_fuse_inputs(field.fuse_inputs(pts, field.codes(k)[0]))
+        raw, feat = field.density_from_fuse_inputs(fuse_inputs())
         log_sigma = torch.log1p(field.sigma(raw))
         total = options.lambda_reg * edit.penalty()
         total = total + ((log_sigma - log_t) ** 2).mean()
