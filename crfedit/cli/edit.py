@@ -122,11 +122,10 @@ def _preview(model, instance: int, folder: Path | None, spec: str) -> None:
     typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
 
 
-def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Optional[Penalty] = None):
+def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty):
     from ..edit import EditOptions
 
-    return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed,
-                       penalty=(penalty or Penalty.element).value).validated()
+    return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed, penalty=penalty.value).validated()
 
 
 def _write(result, out: Path, label: str) -> None:
