@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    ScribbleView, Selection, load_selection, preview, save_selection, select, smooth_over_occupied, connected_to,
-    surface_points,
+    ScribbleView, Selection, appearance_gate, classifier, hysteresis, load_selection, preview, save_selection, select,
+    smooth_over_occupied, connected_to, surface_points,
 )
 from crfedit.edit.supervised import recolor_ratio
 from crfedit import occupancy
@@ -56,6 +56,11 @@ def test_selection_from_one_view_covers_the_part_in_other_views(trained):
     held = category.instances[k].splits["test"] + category.instances[k].splits["val"]
     sel = select(model, k, [ScribbleView(view.camera, fg, keep)])
     assert selection_iou(model, sel, k, held, pid) > 0.75
+    # a cell holding a keep-stroke point scores 0, so not even a recolour's growth takes it
+    field = model.field_for(k)
+    pts, on = surface_points(field, view.camera, k)
+    kept = pts[torch.from_numpy(keep.reshape(-1)) & on]
+    assert len(kept) > 0 and not bool(sel.grown(low=1e-6).at(field.normalize(kept)).any())
     # what was never scribbled nor kept: a sparse scribble (every 4th pixel) still selects the part
     sparse = fg & (np.indices(fg.shape).sum(0) % 4 == 0)
     assert selection_iou(model, select(model, k, [ScribbleView(view.camera, sparse, None)]), k, held, pid) > 0.5
@@ -77,6 +82,47 @@ def test_smoothing_and_connectivity_closed_forms():
     seeds[0, 0, 0] = True
     reached = connected_to(sel, seeds)
     assert reached[0:2, 0, 0].all() and not reached[4:6, 0, 0].any()
+
+
+def test_hysteresis_and_grown_closed_forms():
+    """Cells ≥ low join through a connected chain from the seeds; a gap below low stops them."""
+    values = torch.zeros(8, 1, 1)
+    values[:, 0, 0] = torch.tensor([0.9, 0.4, 0.35, 0.2, 0.45, 0.9, 0.1, 0.0])
+    seeds = torch.zeros(8, 1, 1, dtype=torch.bool)
+    seeds[0] = True
+    out = hysteresis(values, seeds, 0.5, 0.3)[:, 0, 0]
+    assert (out[:3] >= 0.5).all()  # 0.9 → 0.4 → 0.35: reached, raised to the threshold
+    assert out[1] == pytest.approx(0.5) and out[0] == pytest.approx(0.9)
+    assert (out[3:] < 0.5).all()  # 0.2 breaks the chain: the 0.9 blob beyond is capped below 0.5
+    assert out[5] == pytest.approx(0.4995)
+    # Selection.grown: the same rule seeded by the selection itself
+    sel = Selection(values, 0, "x", "fp", {})
+    assert sel.mask[:, 0, 0].tolist() == [True, False, False, False, False, True, False, False]
+    assert sel.grown().mask[:, 0, 0].tolist() == [True, True, True, False, True, True, False, False]
+    assert sel.grown(low=0.5).mask.equal(sel.mask)
+
+
+def test_appearance_gate_closed_form():
+    """Positives spaced 1 apart: with factor 2 a cell 1.5 from the nearest positive passes, 2.5 does not."""
+    pos = torch.tensor([[0.0], [1.0], [2.0]])
+    cells = torch.tensor([[1.2], [3.5], [4.5], [-2.5]])
+    assert appearance_gate(cells, pos, 2.0).tolist() == [True, True, False, False]
+    assert appearance_gate(cells, pos, 3.0).tolist() == [True, True, True, True]
+
+
+def test_appearance_fit_frees_the_same_material_far_away():
+    """Columns (appearance, position): the scribble covers material +1 near x = 0; the same material
+    at x = 4 starts as a negative (unscribbled).  Only the appearance fit drops it from the
+    negatives, so only with it is the far piece of the part selected."""
+    g = torch.Generator().manual_seed(0)
+    def pts(a, x0, n=40):
+        return torch.stack([torch.full((n,), a) + 0.05 * torch.randn(n, generator=g), x0 + torch.rand(n, generator=g)], -1)
+    pos, same_far, other = pts(1.0, 0.0), pts(1.0, 4.0), torch.cat([pts(-1.0, 0.0), pts(-1.0, 2.0), pts(-1.0, 4.0)])
+    none = torch.zeros(0, 2)
+    with_fit = classifier(pos, none, torch.cat([same_far, other]), 3, 3.0, appearance=torch.tensor([0]))
+    without = classifier(pos, none, torch.cat([same_far, other]), 3, 3.0)
+    assert float(with_fit(same_far).mean()) > 0.5 and float(with_fit(other).max()) < 0.5
+    assert float(without(same_far).max()) < 0.5
 
 
 def test_recolor_ratio_keeps_shading():

@@ -17,11 +17,27 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    rule, fewer feature groups) did worse: docs/editing.md.
 4. **Negatives without keep strokes.**  The view's other surface points are negatives, but
    the unscribbled rest of the scribbled part must not stay one: each of
-   ``self_training`` rounds refits without the view points the last fit called positive.
-5. **Refine.**  Values are blended half-and-half with the mean over each cell's occupied
+   ``self_training`` rounds refits without the view points that the last fit — or a fit on
+   appearance alone (every group but position) — calls positive.  The appearance fit is what
+   lets a part far from the scribble in space but made of the same material (the legs of a
+   frame scribbled on its backrest) leave the negatives.
+5. **Appearance gate.**  A linear classifier extrapolates: a part the scribbled view never
+   showed (a seat hidden behind the scribbled arms) can land on the positive side merely by
+   being unlike the negatives.  A cell whose appearance (bottleneck + chromaticity) is farther
+   from every positive than ``appearance_gate`` × the positives' own spacing (95th percentile
+   of their nearest-neighbour distances) is not selected.
+6. **Refine.**  Values are blended half-and-half with the mean over each cell's occupied
    3×3×3 neighbourhood (a smoothing that respects the grid's empty space, mild enough that a
-   one-cell-thick part survives it), and only selected cells
-   connected (26-neighbourhood, through selected cells) to a cell holding a positive are kept.
+   one-cell-thick part survives it); only selected cells connected (26-neighbourhood, through
+   selected cells) to a scribbled cell stay selected, and a cell holding a keep-stroke point
+   scores 0.
+
+A recolour uses the selection *grown* by hysteresis (:meth:`Selection.grown`, as in edge
+detection): cells of value ≥ :data:`GROW_LOW` connected to the selection join it.  The costs
+are asymmetric: a recolour that misses a boundary cell leaves a visible unrecoloured patch
+(a brightly lit edge scores lower), one that takes a neighbour's boundary cell tints a sliver;
+a removal that takes a neighbour's cell leaves a hole in it, so removal and add use the
+selection as it is.  Measured in docs/selection.md.
 """
 
 from __future__ import annotations
@@ -51,6 +67,8 @@ MIN_OPACITY = 0.5
 """A pixel shows the object (and has a surface point) where its rendered opacity is at least this."""
 FEATURES = ("bottleneck", "color", "chroma", "position")
 """The feature groups a selection uses by default."""
+GROW_LOW = 0.3
+"""A recolour's selection also takes the cells of value ≥ this connected to it (:meth:`Selection.grown`)."""
 FEATURE_GROUPS = (*FEATURES, "chroma")
 """Per-point feature groups :func:`point_features` can build."""
 WIDTHS = {"color": 3, "chroma": 3, "position": 9}
@@ -78,6 +96,11 @@ class SelectOptions:
     """Rounds that drop from the negatives the view points the classifier calls positive."""
     keep_weight: float = 3.0
     """Weight of a keep-stroke point against one of the view's other surface points."""
+    appearance_self_training: bool = True
+    """Self-training also drops the view points an appearance-only fit calls positive."""
+    appearance_gate: float = 8.0
+    """Cells farther in appearance from every positive than this × the positives' spacing are
+    not selected (0: no gate)."""
     smooth: bool = True
     """Blend each cell's value half-and-half with its occupied 3×3×3 neighbourhood's mean."""
     connected: bool = True
@@ -108,6 +131,12 @@ class Selection:
         """Whether normalized points [..., 3] lie in a selected cell (outside the box: False)."""
         inst = torch.zeros(xn.shape[:-1], dtype=torch.long, device=xn.device)
         return occupancy.lookup(self.mask[None].to(xn.device), inst, xn)
+
+    def grown(self, low: float = GROW_LOW) -> "Selection":
+        """This selection plus every cell of value ≥ ``low`` connected to it (26-neighbourhood):
+        hysteresis, the region a recolour changes (see the module docstring)."""
+        values = hysteresis(self.values, self.mask, self.threshold, low)
+        return Selection(values, self.instance, self.instance_name, self.model_fingerprint, self.meta, self.threshold)
 
     def check_for(self, model: CategoryModel, instance: int) -> None:
         """A one-line error unless this selection was made for ``model``'s ``instance``."""
@@ -194,11 +223,12 @@ def fit_logistic(pos: Tensor, neg: Tensor, neg_weight: Tensor, l2: float = 1e-2)
     return lambda q: torch.sigmoid(q @ w + b)
 
 
-def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weight: float):
+def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weight: float, appearance: Tensor | None = None):
     """Positives against the keep strokes' points (each weighing ``keep_weight``) and the view's
     other surface points; each of ``rounds`` self-training rounds drops the other points the last
-    fit calls positive (the unscribbled rest of the part must not stay a negative).  With no
-    negative at all (the scribbles cover the whole object) everything is selected."""
+    fit calls positive (the unscribbled rest of the part must not stay a negative), or that a fit
+    on the ``appearance`` columns alone calls positive.  With no negative at all (the scribbles
+    cover the whole object) everything is selected."""
     active = torch.ones(len(others), dtype=torch.bool, device=others.device)
     clf = None
     for _ in range(rounds + 1):
@@ -209,7 +239,24 @@ def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weig
         clf = fit_logistic(pos, neg, weight)
         if len(others):
             active = clf(others) < 0.5
+            if appearance is not None:
+                looks = fit_logistic(pos[:, appearance], neg[:, appearance], weight)
+                active &= looks(others[:, appearance]) < 0.5
     return clf
+
+
+def appearance_gate(cells: Tensor, pos: Tensor, factor: float, max_positives: int = 2000) -> Tensor:
+    """Whether each cell's appearance [N, F] lies within ``factor`` × the positives' spacing of
+    some positive [P, F] (the spacing: 95th percentile of the positives' nearest-neighbour
+    distances, over at most ``max_positives`` evenly spaced positives)."""
+    if len(pos) > max_positives:
+        pos = pos[torch.linspace(0, len(pos) - 1, max_positives).long()]
+    if len(pos) < 2:
+        return torch.ones(len(cells), dtype=torch.bool, device=cells.device)
+    d = torch.cdist(pos, pos)
+    d.fill_diagonal_(float("inf"))
+    spacing = torch.quantile(d.min(dim=1).values, 0.95)
+    return torch.cdist(cells, pos).min(dim=1).values <= factor * spacing
 
 
 # ----------------------------------------------------------------------------- refinement
@@ -221,6 +268,13 @@ def smooth_over_occupied(values: Tensor, occupied: Tensor) -> Tensor:
     num = F.avg_pool3d((values * occupied)[None, None], 3, stride=1, padding=1, count_include_pad=False)
     den = F.avg_pool3d(occ, 3, stride=1, padding=1, count_include_pad=False)
     return torch.where(occupied, (num / den.clamp_min(1e-12))[0, 0], torch.zeros_like(values))
+
+
+def hysteresis(values: Tensor, seeds: Tensor, high: float, low: float) -> Tensor:
+    """``values`` [R, R, R] with the cells reached from ``seeds`` through cells of value ≥
+    ``low`` raised to at least ``high`` and every other cell capped just below ``high``."""
+    reached = connected_to(values >= low, seeds)
+    return torch.where(reached, values.clamp_min(high), values.clamp(max=high * 0.999))
 
 
 def connected_to(selected: Tensor, seeds: Tensor) -> Tensor:
@@ -251,6 +305,15 @@ def _lift(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: 
     return cat(pos), cat(neg), cat(implied)
 
 
+def _cells_of(field, points: Tensor, res: int) -> Tensor:
+    """[R, R, R] bool: the cells holding any of world ``points`` [M, 3]."""
+    grid = torch.zeros(res, res, res, dtype=torch.bool, device=points.device)
+    ijk, inside = occupancy.cell_index(field.normalize(points), res)
+    ijk = ijk[inside]
+    grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    return grid
+
+
 @torch.no_grad()
 def select(
     model: CategoryModel, instance: int | str, views: Sequence[ScribbleView], options: SelectOptions = SelectOptions(),
@@ -279,19 +342,24 @@ def select(
     f_cells = feats(cell_pts)
     widths = [WIDTHS.get(g, field.cfg.bottleneck) for g in groups]
     z = _standardizer(f_cells, widths, [options.position_weight if g == "position" else 1.0 for g in groups])
-    clf = classifier(z(feats(pos_pts)), z(feats(neg_pts)), z(feats(cand_pts)), options.self_training, options.keep_weight)
+    columns = torch.arange(sum(widths)).split(widths)
+    looks = torch.cat([c for g, c in zip(groups, columns) if g != "position"]) if len(groups) > 1 and "position" in groups else None
+    z_pos, z_cells = z(feats(pos_pts)), z(f_cells)
+    clf = classifier(z_pos, z(feats(neg_pts)), z(feats(cand_pts)), options.self_training, options.keep_weight,
+                     looks if options.appearance_self_training else None)
+    pred = clf(z_cells)
+    gated = [c for g, c in zip(groups, columns) if g in ("bottleneck", "chroma")]
+    if options.appearance_gate > 0 and gated:
+        gated = torch.cat(gated)
+        pred = pred * appearance_gate(z_cells[:, gated], z_pos[:, gated], options.appearance_gate)
     values = torch.zeros(res**3, device=occupied.device)
-    values[cells] = clf(z(f_cells))
+    values[cells] = pred
     values = values.view(res, res, res)
     if options.smooth:  # half the cell's own value: a thin part must survive its neighbours
         values = 0.5 * (values + smooth_over_occupied(values, occupied))
     if options.connected:
-        seeds = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        ijk, inside = occupancy.cell_index(field.normalize(pos_pts), res)
-        ijk = ijk[inside]
-        seeds.view(res, res, res)[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-        keep = connected_to(values >= options.threshold, occupancy.dilate(seeds.view(res, res, res), 1))
-        values = torch.where(keep | (values < options.threshold), values, values.clamp(max=options.threshold * 0.999))
+        values = hysteresis(values, occupancy.dilate(_cells_of(field, pos_pts, res), 1), options.threshold, options.threshold)
+    values = torch.where(_cells_of(field, neg_pts, res), torch.zeros_like(values), values)
     meta = {
         "positives": int(pos_pts.shape[0]), "keep_points": int(neg_pts.shape[0]), "view_points": int(cand_pts.shape[0]),
         "views": len(views), "features": list(groups), "occupied_cells": int(cells.numel()),
@@ -342,11 +410,15 @@ TINT = (1.0, 0.15, 0.1)
 @torch.no_grad()
 def preview(model: CategoryModel, sel: Selection, camera: Camera, strength: float = 0.6) -> np.ndarray:
     """The instance's render from ``camera`` [H, W, 3] with the selected surface tinted, so the
-    user sees what an edit will change before any weight moves."""
+    user sees what an edit will change before any weight moves: the selection (what every edit
+    changes) at ``strength``, the cells only a recolour adds (:meth:`Selection.grown`) at half."""
     field = model.field_for(sel.instance)
     out = render_camera(field, camera, sel.instance)
     pts, on = surface_points(field, camera, sel.instance, out=out)
-    hit = (sel.at(field.normalize(pts)) & on).reshape(camera.height, camera.width, 1)
+    xn = field.normalize(pts)
+    hit = (sel.at(xn) & on).reshape(camera.height, camera.width, 1)
+    also = (sel.grown().at(xn) & on).reshape(camera.height, camera.width, 1) & ~hit
     tint = torch.tensor(TINT, device=out.rgb.device)
     rgb = torch.where(hit, (1 - strength) * out.rgb + strength * tint, out.rgb)
+    rgb = torch.where(also, (1 - strength / 2) * out.rgb + strength / 2 * tint, rgb)
     return rgb.clamp(0, 1).cpu().numpy()
