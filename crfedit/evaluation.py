@@ -417,8 +417,7 @@ def evaluate_edits(
             scribbled = category.instance(case.spec.source).view(case.spec.view)
             appear = appearance(source_dir, scribbled, case.scribble, case.spec.part, case.spec.color)
         sel = select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep)])
-        changed = sel.grown() if case.spec.kind == "color" else sel  # the region the edit changes
-        iou = {"selection_iou": selection_iou(model, changed, source_dir, source_views, case.spec.part)}
+        iou = {"selection_iou": selection_iou(model, sel, source_dir, source_views, case.spec.part)}
         for strategy in strategies:
             problem = strategy_problem(model, case.spec.kind, strategy)
             if problem is not None:

@@ -10,7 +10,7 @@ teacher, θ₀), with targets known in closed form:
   up axis) the target is the teacher's render *with S's density zeroed*.  The occupancy grid
   then drops S's cells, so the renderer never samples them.
 * **recolour** (trains F_rad + colour code; density is fixed, so every sample's compositing
-  weight is a constant): a sample inside S (grown by hysteresis, :meth:`.Selection.grown`) targets its starting colour × r, with
+  weight is a constant): a sample inside S targets its starting colour × r, with
   r = c_appear / c̄ per channel — c_appear the colour the part should *appear* under the
   scribble, c̄ the mean rendered colour of the scribbled pixels.  A Lambertian part's shading
   factor cancels in that ratio, so the target keeps the shading (a darker pixel stays darker
@@ -153,7 +153,7 @@ def recolor_selected(
     generator = torch.Generator().manual_seed(options.seed)
     edit = InstanceEdit(model, k, "color", options.strategy, options.penalty)
     device = model.device
-    sel = selection.grown().mask.to(device)  # hysteresis: a missed boundary cell shows, a taken one barely does
+    sel = selection.mask.to(device)
     ratio = recolor_ratio(appear, scribbled_rgb)
     rays = supervision_rays(cameras, max(8, options.rays // (len(TURNS) * len(cameras))), generator, device)
     (p,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=options.cache)
