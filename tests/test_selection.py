@@ -56,7 +56,7 @@ def test_selection_from_one_view_covers_the_part_in_other_views(trained):
     held = category.instances[k].splits["test"] + category.instances[k].splits["val"]
     sel = select(model, k, [ScribbleView(view.camera, fg, keep)])
     assert selection_iou(model, sel, k, held, pid) > 0.75
-    # a cell holding a keep-stroke point scores 0, so not even a recolour's growth takes it
+    # a cell holding a keep-stroke point scores 0, so not even growth by hysteresis takes it
     field = model.field_for(k)
     pts, on = surface_points(field, view.camera, k)
     kept = pts[torch.from_numpy(keep.reshape(-1)) & on]

@@ -65,7 +65,8 @@ MIN_OPACITY = 0.5
 FEATURES = ("bottleneck", "color", "chroma", "position")
 """The feature groups a selection uses by default."""
 GROW_LOW = 0.3
-"""A recolour's selection also takes the cells of value ≥ this connected to it (:meth:`Selection.grown`)."""
+""":meth:`Selection.grown` also takes the cells of value ≥ this connected to the selection
+(a measured diagnostic; no edit uses it, see the module docstring)."""
 FEATURE_GROUPS = (*FEATURES, "chroma")
 """Per-point feature groups :func:`point_features` can build."""
 WIDTHS = {"color": 3, "chroma": 3, "position": 9}
@@ -131,7 +132,7 @@ class Selection:
 
     def grown(self, low: float = GROW_LOW) -> "Selection":
         """This selection plus every cell of value ≥ ``low`` connected to it (26-neighbourhood):
-        hysteresis, the region a recolour changes (see the module docstring)."""
+        hysteresis.  Measured for recolours and not used by them (see the module docstring)."""
         values = hysteresis(self.values, self.mask, self.threshold, low)
         return Selection(values, self.instance, self.instance_name, self.model_fingerprint, self.meta, self.threshold)
 
