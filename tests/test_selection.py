@@ -12,10 +12,11 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    ScribbleView, Selection, appearance_gate, classifier, hysteresis, load_selection, preview, save_selection, select,
+    ScribbleView, Selection, appearance_gate, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
     smooth_over_occupied, connected_to, surface_points,
 )
-from crfedit.edit.supervised import recolor_ratio
+from crfedit.edit.core import InstanceEdit
+from crfedit.edit.supervised import PointTargets, recolor_ratio, removal_cells, surface_selected
 from crfedit import occupancy
 from crfedit.errors import CrfError
 from crfedit.masks import dilate, erode
@@ -136,6 +137,74 @@ def test_recolor_ratio_keeps_shading():
     assert torch.isfinite(recolor_ratio([1.0, 0.0, 0.0], torch.zeros(4, 3))).all()
 
 
+def _selection(values: torch.Tensor) -> Selection:
+    return Selection(values, 0, "x", "f", {})
+
+
+def test_removal_cells_closed_form():
+    """S, plus occupied neighbours of S at value ≥ GROW_LOW; nothing farther, nothing empty."""
+    values = torch.zeros(8, 8, 8)
+    values[3, 3, 3] = 0.9  # S
+    values[3, 3, 4] = 0.4  # skin: next to S, above GROW_LOW
+    values[3, 4, 3] = 0.2  # next to S, below GROW_LOW
+    values[3, 3, 6] = 0.4  # above GROW_LOW, three cells from S
+    values[4, 3, 3] = 0.45  # next to S but not occupied
+    grid = torch.ones(8, 8, 8, dtype=torch.bool)
+    grid[4, 3, 3] = False
+    got = removal_cells(_selection(values), grid)
+    want = torch.zeros_like(grid)
+    want[3, 3, 3] = want[3, 3, 4] = True
+    assert torch.equal(got, want)
+
+
+def test_chroma_alike_closed_form():
+    """Within factor · r + 0.01 of the positives' median chromaticity, r their 90th-percentile
+    distance to it: here the median is (0.5, 0.3, 0.2) and r = 0.1."""
+    pos = torch.tensor([[0.5, 0.3, 0.2]] * 9 + [[0.6, 0.3, 0.2]])
+    pos[0, 0] = 0.4
+    cells = torch.tensor([[0.5, 0.3, 0.2], [0.5, 0.5, 0.2], [0.5, 0.505, 0.2], [0.5, 0.515, 0.2], [0.2, 0.3, 0.5]])
+    # r = quantile([0.1, 0, …, 0, 0.1], 0.9) = 0.1 → bound 2·0.1 + 0.01 = 0.21
+    assert chroma_alike(cells, pos, 2.0).tolist() == [True, True, True, False, False]
+
+
+def test_surface_selected_closed_form():
+    """A sample takes the part's new colour when its ray's surface lies in S and the sample lies
+    within one cell of S; a ray whose surface misses S keeps every sample's colour."""
+    res = 8
+    sel = torch.zeros(res, res, res, dtype=torch.bool)
+    sel[4, 4, 4] = True
+    c = lambda i, j, k: [(i + 0.5) / res * 2 - 1, (j + 0.5) / res * 2 - 1, (k + 0.5) / res * 2 - 1]
+    # ray 0: a faint sample one cell in front of S, the surface sample in S, one two cells behind
+    # ray 1: a sample next to S, but the ray's surface is three cells away
+    xn = torch.tensor([c(4, 4, 3), c(4, 4, 4), c(4, 4, 6), c(4, 5, 4), c(4, 7, 4)])
+    ray = torch.tensor([0, 0, 0, 1, 1])
+    w = torch.tensor([0.1, 0.8, 0.1, 0.05, 0.9])
+    got = surface_selected(sel, ray, xn, w, 2)
+    assert got.tolist() == [True, True, False, False, False]
+
+
+def test_point_targets_scale_the_part_and_hold_the_rest(trained):
+    """Targets in S are the teacher's colour × ratio (clamped), the rest the teacher's; with a
+    ratio of 1 the starting model already meets them exactly."""
+    _, model, category = trained
+    k = 2
+    view, fg, keep, _ = part_view(category, k, "seat")
+    sel = select(model, k, [ScribbleView(view.camera, fg, keep)]).mask
+    edit = InstanceEdit(model, k, "color", "hybrid")
+    ratio = torch.tensor([0.5, 1.5, 1.0])
+    pt = PointTargets(edit, sel, ratio, 64, torch.Generator().manual_seed(0))
+    field = model.field_for(k)
+    with torch.no_grad():
+        rgb0 = field.radiance(field.features(pt.pts, k), pt.dirs, k)
+    inside = occupancy.lookup(sel[None], torch.zeros(len(pt.pts), dtype=torch.long), pt.pts)
+    assert 0 < int(inside.sum()) < len(inside)
+    assert torch.allclose(pt.target[inside], (rgb0[inside] * ratio).clamp(0, 1), atol=1e-6)
+    assert torch.allclose(pt.target[~inside], rgb0[~inside], atol=1e-6)
+    assert abs(float(pt.w.sum()) - 1) < 1e-5 and float(pt.loss().detach()) > 0
+    same = PointTargets(edit, sel, torch.ones(3), 64, torch.Generator().manual_seed(0))
+    assert float(same.loss().detach()) < 1e-10
+
+
 def test_removal_zeroes_the_selection_and_holds_the_rest(trained):
     _, model, category = trained
     k = 2
@@ -143,13 +212,16 @@ def test_removal_zeroes_the_selection_and_holds_the_rest(trained):
     sel = select(model, k, [ScribbleView(view.camera, fg, keep)])
     result = remove(model, k, view.camera, fg, keep, options=EditOptions(steps=60), selection=sel)
     grid_before, grid_after = model.field.occupancy[k], result.tensors["occupancy"]
-    assert torch.equal(grid_after, grid_before & ~sel.mask)  # the grid drops exactly S's cells
+    emptied = removal_cells(sel, grid_before)
+    assert torch.equal(grid_after, grid_before & ~emptied)  # the grid drops S and its skin
+    assert bool((emptied >= (sel.mask & grid_before)).all()) and bool((emptied <= occupancy.dilate(sel.mask, 1)).all())
     field0, field1 = model.field_for(k), result.model.field_for(k)
     cells = (grid_before & sel.mask).nonzero()
     xn = (cells.float() + 0.5) / grid_before.shape[-1] * 2 - 1
-    with torch.no_grad():  # the network itself (not only the grid) lost S's density
+    with torch.no_grad():  # the network itself (not only the grid) lost much of S's density; the
+        # grid is what zeroes it in a render, and the rest is held 10× harder than S is pulled
         s0, s1 = field0.density(xn, k), field1.density(xn, k)
-    assert float(torch.log1p(s1).mean()) < 0.5 * float(torch.log1p(s0).mean())
+    assert float(torch.log1p(s1).mean()) < 0.7 * float(torch.log1p(s0).mean())
     # rendered held-out views: the part clears; what lies > 3 cells from S changes less than
     # under the paper's removal from the same scribbles
     paper = remove(model, k, view.camera, fg, keep, options=EditOptions(steps=60), method="paper").model.field_for(k)

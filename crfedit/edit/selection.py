@@ -34,7 +34,9 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
 
 ``Selection.grown`` (hysteresis: cells of value ≥ :data:`GROW_LOW` connected to the selection
 join it) is measured in docs/selection.md but not used by the edits: it raised the procedural
-recolours' gap closed by 0.10 and tinted other parts of a weakly trained model.
+recolours' gap closed by 0.10 and tinted other parts of a weakly trained model.  A removal
+empties only the one-cell skin of S at that value (:func:`~.supervised.removal_cells`), and
+an unselected cell of another chromaticity than the scribbled points is capped below it.
 """
 
 from __future__ import annotations
@@ -66,7 +68,8 @@ FEATURES = ("bottleneck", "color", "chroma", "position")
 """The feature groups a selection uses by default."""
 GROW_LOW = 0.3
 """:meth:`Selection.grown` also takes the cells of value ≥ this connected to the selection
-(a measured diagnostic; no edit uses it, see the module docstring)."""
+(a measured diagnostic; no edit uses it, see the module docstring); a removal also empties the
+cells next to S of value ≥ this."""
 FEATURE_GROUPS = (*FEATURES, "chroma")
 """Per-point feature groups :func:`point_features` can build."""
 WIDTHS = {"color": 3, "chroma": 3, "position": 9}
@@ -99,6 +102,11 @@ class SelectOptions:
     appearance_gate: float = 8.0
     """Cells farther in appearance from every positive than this × the positives' spacing are
     not selected (0: no gate)."""
+    skin_chroma: float = 2.0
+    """Unselected cells whose chromaticity is unlike the scribbled points' (:func:`chroma_alike`
+    with this factor) are capped below :data:`GROW_LOW`, so neither a removal's skin nor
+    :meth:`Selection.grown` takes a neighbour of another colour, such as the seat under a
+    removed cushion (0: no cap; the selection itself never changes)."""
     smooth: bool = True
     """Blend each cell's value half-and-half with its occupied 3×3×3 neighbourhood's mean."""
     connected: bool = True
@@ -243,6 +251,15 @@ def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weig
     return clf
 
 
+def chroma_alike(cells: Tensor, pos: Tensor, factor: float) -> Tensor:
+    """Whether each cell's chromaticity [N, 3] lies within ``factor`` · r + 0.01 of the
+    positives' [P, 3] median chromaticity, r the 90th percentile of the positives' own
+    distances to it."""
+    med = pos.median(dim=0).values
+    r = torch.quantile((pos - med).norm(dim=-1), 0.9) if len(pos) > 1 else torch.zeros((), device=pos.device)
+    return (cells - med).norm(dim=-1) <= factor * r + 0.01
+
+
 def appearance_gate(cells: Tensor, pos: Tensor, factor: float, max_positives: int = 2000) -> Tensor:
     """Whether each cell's appearance [N, F] lies within ``factor`` × the positives' spacing of
     some positive [P, F] (the spacing: 95th percentile of the positives' nearest-neighbour
@@ -342,7 +359,8 @@ def select(
     z = _standardizer(f_cells, widths, [options.position_weight if g == "position" else 1.0 for g in groups])
     columns = torch.arange(sum(widths)).split(widths)
     looks = torch.cat([c for g, c in zip(groups, columns) if g != "position"]) if len(groups) > 1 and "position" in groups else None
-    z_pos, z_cells = z(feats(pos_pts)), z(f_cells)
+    f_pos = feats(pos_pts)
+    z_pos, z_cells = z(f_pos), z(f_cells)
     clf = classifier(z_pos, z(feats(neg_pts)), z(feats(cand_pts)), options.self_training, options.keep_weight,
                      looks if options.appearance_self_training else None)
     pred = clf(z_cells)
@@ -358,6 +376,12 @@ def select(
     if options.connected:
         values = hysteresis(values, occupancy.dilate(_cells_of(field, pos_pts, res), 1), options.threshold, options.threshold)
     values = torch.where(_cells_of(field, neg_pts, res), torch.zeros_like(values), values)
+    if options.skin_chroma > 0 and "chroma" in groups:  # see SelectOptions.skin_chroma
+        chroma = columns[groups.index("chroma")]
+        alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+        alike[cells] = chroma_alike(f_cells[:, chroma], f_pos[:, chroma], options.skin_chroma)
+        unlike = (values < options.threshold) & ~alike.view(res, res, res)
+        values = torch.where(unlike, values.clamp(max=GROW_LOW * 0.999), values)
     meta = {
         "positives": int(pos_pts.shape[0]), "keep_points": int(neg_pts.shape[0]), "view_points": int(cand_pts.shape[0]),
         "views": len(views), "features": list(groups), "occupied_cells": int(cells.numel()),

@@ -4,18 +4,22 @@ is, in every view, instead of only along the scribbled view's rays.
 Both edits are teacher–student fits of the paper's modules against the starting model (the
 teacher, θ₀), with targets known in closed form:
 
-* **remove** (trains F_fuse + F_dens): at points sampled in the instance's occupied cells,
-  σ → 0 inside S and σ, bottleneck features held at the teacher's outside S; along the rays of
+* **remove** (trains F_fuse + F_dens): it empties S and S's skin (:func:`removal_cells`).  At
+  points sampled in the instance's occupied cells, σ → 0 in the emptied cells and σ, bottleneck
+  features held firmly (:data:`HOLD_WEIGHT`) at the teacher's elsewhere; along the rays of
   several views (the scribbled ones and the same cameras turned by 90°, 180°, 270° about the
-  up axis) the target is the teacher's render *with S's density zeroed*.  The occupancy grid
-  then drops S's cells, so the renderer never samples them.
+  up axis) the target is the teacher's render *with the emptied cells' density zeroed*.  The
+  occupancy grid then drops those cells, so the renderer never samples them.
 * **recolour** (trains F_rad + colour code; density is fixed, so every sample's compositing
   weight is a constant): a sample inside S targets its starting colour × r, with
   r = c_appear / c̄ per channel — c_appear the colour the part should *appear* under the
   scribble, c̄ the mean rendered colour of the scribbled pixels.  A Lambertian part's shading
   factor cancels in that ratio, so the target keeps the shading (a darker pixel stays darker
-  by the same factor).  Samples outside S hold their starting colour.  The loss is the
-  weight-averaged per-sample error plus the pixel error of the views' rays.
+  by the same factor).  Samples near S whose ray's surface lies in S count as inside
+  (:func:`surface_selected`); samples outside S hold their starting colour.  The loss is the
+  weight-averaged per-sample error, the pixel error of the views' rays, and the error at 3-D
+  points of the occupied cells seen from random directions (:class:`PointTargets`), which
+  reach the faces no supervision ray saw.
 """
 
 from __future__ import annotations
@@ -36,12 +40,18 @@ from ..rendering import composite_dense
 from .cache import cache_stage, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
 from .losses import mse
-from .selection import Selection
+from .selection import GROW_LOW, Selection
 
 TURNS = (0.0, 90.0, 180.0, 270.0)
 """Supervision views: each scribbled camera turned about the world's up (Z) axis by these angles."""
 MIN_MEAN_COLOR = 0.05
 """c̄ is floored per channel at this, so a near-black part still gets a finite ratio."""
+HOLD_WEIGHT = 10.0
+"""Removal: weight of holding σ and the bottleneck at the teacher's values outside S, against
+σ → 0 inside.  The network's drift outside S is what a removal damages; the occupancy grid
+already skips S's cells, so holding the rest firmly costs the removal little."""
+POINTS_PER_RAY = 0.25
+"""Recolour: 3-D target points in S per supervision ray (twice as many outside S)."""
 
 
 def turned_about_z(camera: Camera, degrees: float) -> Camera:
@@ -84,6 +94,15 @@ def occupied_points(grid: Tensor, selected: Tensor, n_in: int, n_out: int, gener
     return pts, inside
 
 
+def removal_cells(selection: Selection, grid: Tensor) -> Tensor:
+    """The occupied cells [R, R, R] a removal empties: S, plus the occupied cells next to S whose
+    selection value is at least :data:`~.selection.GROW_LOW` — the part's skin, which a cell
+    grid cut through at threshold 0.5 leaves as a faint outline where the part was."""
+    values = selection.values.to(grid.device)
+    sel = (values >= selection.threshold) & grid
+    return sel | (occupancy.dilate(sel, 1) & grid & (values >= GROW_LOW))
+
+
 def remove_selected(
     model: CategoryModel, k: int, selection: Selection, cameras: Sequence[Camera], options: EditOptions
 ) -> EditResult:
@@ -95,7 +114,7 @@ def remove_selected(
     field = edit.field
     device = model.device
     grid = field.occupancy[k].clone()
-    sel = selection.mask.to(device) & grid
+    sel = removal_cells(selection, grid)
     pts, inside = occupied_points(grid, sel, options.rays, 2 * options.rays, generator)
     shape_code, _ = field.codes(k)
     with torch.no_grad():
@@ -118,8 +137,8 @@ def remove_selected(
         raw, feat = field.density_from_fuse_inputs(inputs)
         log_sigma = torch.log1p(field.sigma(raw))
         total = options.lambda_reg * edit.penalty()
-        total = total + torch.where(inside, log_sigma**2, (log_sigma - log0) ** 2).mean()
-        total = total + ((feat[outside] - feat0[outside]) ** 2).sum(dim=-1).mean()
+        total = total + torch.where(inside, log_sigma**2, HOLD_WEIGHT * (log_sigma - log0) ** 2).mean()
+        total = total + HOLD_WEIGHT * ((feat[outside] - feat0[outside]) ** 2).sum(dim=-1).mean()
         for p, target in zip(passes, targets):
             out = p.forward()
             total = total + mse(out.rgb, target.rgb) + mse(out.opacity, target.opacity)
@@ -134,6 +153,56 @@ def remove_selected(
         "cameras": [camera_meta(c) for c in cameras],
     }
     return finish(edit, "remove", hyper, final, started, extra, modules)
+
+
+def surface_selected(sel: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: int) -> Tensor:
+    """[m] True for the samples within one cell of S whose ray's surface point (the weight-
+    averaged sample position) lies in S: a surface's compositing weight spreads over the cells
+    around it, and samples there must take the part's new colour too."""
+    zero = torch.zeros_like(ray)
+    wsum = torch.zeros(n_rays, device=w.device, dtype=w.dtype).index_add(0, ray, w).clamp_min(1e-12)
+    surface = torch.zeros(n_rays, 3, device=w.device, dtype=w.dtype).index_add(0, ray, w[:, None] * xn) / wsum[:, None]
+    hit = occupancy.lookup(sel[None], torch.zeros(n_rays, dtype=torch.long, device=ray.device), surface)
+    return hit[ray] & occupancy.lookup(occupancy.dilate(sel, 1)[None], zero, xn)
+
+
+class PointTargets:
+    """Teacher–student colour targets at 3-D points of the instance's occupied cells, seen
+    from random directions: ``n`` points in S (target: the teacher's colour × ratio) and
+    ``2n`` outside (target: the teacher's colour), half of those within two cells of S.
+
+    The views' rays reach only the surfaces those views see, from their directions; F_rad also
+    reads the view direction, so without these points a face no supervision ray saw (a side
+    face, a view from higher up) keeps its old colour.  Each point is weighted by its cell's
+    opacity under the teacher, 1 − exp(−σ · cell side), so empty space inside an occupied cell
+    does not count.
+    """
+
+    def __init__(self, edit: InstanceEdit, sel: Tensor, ratio: Tensor, n: int, generator: torch.Generator):
+        field, k = edit.field, edit.instance
+        grid = field.occupancy[k]
+        self.pts, inside = occupied_points(grid, sel & grid, n, 2 * n, generator)
+        d = torch.randn(self.pts.shape[0], 3, generator=generator).to(self.pts.device)
+        self.dirs = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        self.edit = edit
+        self.upstream = any(not (name.startswith("F_rad.") or name == "color_codes") for name in edit.params)
+        cell = float((field.aabb[3:] - field.aabb[:3]).max()) / grid.shape[-1]
+        with torch.no_grad():
+            self.feat = field.features(self.pts, k)
+            self.inputs = field.F_rad.inputs(self.feat, self.dirs)  # constant unless upstream modules train
+            rgb0 = field.radiance(self.feat, self.dirs, k)
+            alpha = 1.0 - torch.exp(-field.density(self.pts, k) * cell)
+            self.target = torch.where(inside[:, None], (rgb0 * ratio).clamp(0, 1), rgb0)
+            self.w = (alpha / alpha.sum().clamp_min(1e-12))[:, None]
+
+    def loss(self) -> Tensor:
+        field, k = self.edit.field, self.edit.instance
+        if self.upstream:
+            rgb = field.radiance(field.features(self.pts, k), self.dirs, k)
+        else:
+            _, code, idx = field.select(k)
+            rgb = field.F_rad(self.inputs, code, idx)
+        return (self.w * (rgb - self.target) ** 2).sum()
 
 
 def recolor_ratio(appear: Sequence[float], rendered: Tensor) -> Tensor:
@@ -172,14 +241,17 @@ def recolor_selected(
         rgb0, w0, pixel0 = current()
         ray, xn = (p.ray, p.xn_kept) if radiance else (p.samples.ray, p.xn)
         in_s = occupancy.lookup(sel[None], torch.zeros_like(ray), xn)
+        in_s = in_s | surface_selected(sel, ray, xn, w0, pixel0.shape[0])
         target_s = torch.where(in_s[:, None], (rgb0 * ratio).clamp(0, 1), rgb0)
         # weights are fixed (density does not change), so a pixel is linear in its samples' colours
         target_px = pixel0.index_add(0, ray, w0[:, None] * (target_s - rgb0))
         w = w0[:, None] / w0.sum().clamp_min(1e-12)
+    points = PointTargets(edit, sel, ratio, max(8, int(options.rays * POINTS_PER_RAY)), generator)
 
     def loss_fn():
         rgb_s, _, pixel = current()
-        return (w * (rgb_s - target_s) ** 2).sum() + mse(pixel, target_px) + options.lambda_reg * edit.penalty()
+        total = (w * (rgb_s - target_s) ** 2).sum() + mse(pixel, target_px) + options.lambda_reg * edit.penalty()
+        return total + points.loss()
 
     final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "colour edit", options.on_step)
     hyper = {
