@@ -98,9 +98,8 @@ def removal_cells(selection: Selection, grid: Tensor) -> Tensor:
     """The occupied cells [R, R, R] a removal empties: S, plus the occupied cells next to S whose
     selection value is at least :data:`~.selection.GROW_LOW` — the part's skin, which a cell
     grid cut through at threshold 0.5 leaves as a faint outline where the part was."""
-    values = selection.values.to(grid.device)
-    sel = (values >= selection.threshold) & grid
-    return sel | (occupancy.dilate(sel, 1) & grid & (values >= GROW_LOW))
+    sel = selection.mask.to(grid.device) & grid
+    return sel | (occupancy.dilate(sel, 1) & grid & (selection.values.to(grid.device) >= GROW_LOW))
 
 
 def remove_selected(
@@ -181,28 +180,31 @@ class PointTargets:
     def __init__(self, edit: InstanceEdit, sel: Tensor, ratio: Tensor, n: int, generator: torch.Generator):
         field, k = edit.field, edit.instance
         grid = field.occupancy[k]
-        self.pts, inside = occupied_points(grid, sel & grid, n, 2 * n, generator)
+        self.pts, inside = occupied_points(grid, sel, n, 2 * n, generator)
         d = torch.randn(self.pts.shape[0], 3, generator=generator).to(self.pts.device)
         self.dirs = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         self.edit = edit
         self.upstream = any(not (name.startswith("F_rad.") or name == "color_codes") for name in edit.params)
-        cell = float((field.aabb[3:] - field.aabb[:3]).max()) / grid.shape[-1]
+        cell = occupancy.step_size(field.aabb, grid.shape[-1], 1.0)
         with torch.no_grad():
-            self.feat = field.features(self.pts, k)
-            self.inputs = field.F_rad.inputs(self.feat, self.dirs)  # constant unless upstream modules train
-            rgb0 = field.radiance(self.feat, self.dirs, k)
-            alpha = 1.0 - torch.exp(-field.density(self.pts, k) * cell)
+            shape_code, _, idx = field.select(k)
+            raw, feat = field.density_and_features(self.pts, shape_code, idx)  # one pass for both
+            self.inputs = field.F_rad.inputs(feat, self.dirs)  # constant unless upstream modules train
+            rgb0 = self.rgb()
+            alpha = 1.0 - torch.exp(-field.sigma(raw) * cell)
             self.target = torch.where(inside[:, None], (rgb0 * ratio).clamp(0, 1), rgb0)
             self.w = (alpha / alpha.sum().clamp_min(1e-12))[:, None]
 
-    def loss(self) -> Tensor:
+    def rgb(self) -> Tensor:
+        """The edited field's colour [n, 3] at the points, from their directions."""
         field, k = self.edit.field, self.edit.instance
         if self.upstream:
-            rgb = field.radiance(field.features(self.pts, k), self.dirs, k)
-        else:
-            _, code, idx = field.select(k)
-            rgb = field.F_rad(self.inputs, code, idx)
-        return (self.w * (rgb - self.target) ** 2).sum()
+            return field.radiance(field.features(self.pts, k), self.dirs, k)
+        _, code, idx = field.select(k)
+        return field.F_rad(self.inputs, code, idx)
+
+    def loss(self) -> Tensor:
+        return (self.w * (self.rgb() - self.target) ** 2).sum()
 
 
 def recolor_ratio(appear: Sequence[float], rendered: Tensor) -> Tensor:
