@@ -474,7 +474,7 @@ def test_ui_command_warns_when_bound_beyond_this_machine(monkeypatch, scene, tmp
 
 
 def test_ui_command_serves_until_interrupted(scene, tmp_path):
-    env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1", CRFEDIT_THREADS="1")
+    env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1", CRFEDIT_THREADS="1", PYTHONFAULTHANDLER="1")
     proc = subprocess.Popen([sys.executable, "-m", "crfedit", "ui", str(scene[0]), "--port", "0", "--workdir", str(tmp_path / "w")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
@@ -488,7 +488,12 @@ def test_ui_command_serves_until_interrupted(scene, tmp_path):
         with urllib.request.urlopen(url.replace("/?token=", "/api/state?token="), timeout=30) as r:
             assert json.loads(r.read())["instances"] == ["chair_000", "chair_001", "chair_002"]
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
+        try:
+            out, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:  # show where it hangs: faulthandler dumps every thread on SIGABRT
+            proc.send_signal(signal.SIGABRT)
+            out, err = proc.communicate(timeout=30)
+            raise AssertionError(f"crfedit ui did not stop within 30 s of SIGINT; its threads:\n{err}") from None
         assert proc.returncode == 0 and "stopped" in out, err
     finally:
         if proc.poll() is None:
