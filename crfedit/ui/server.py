@@ -66,6 +66,9 @@ class Job:
     started: float = field(default_factory=time.perf_counter)
 
 
+SHUTDOWN_S = 3.0  # seconds open requests get to finish when the server stops
+
+
 def _error(status: int, message: str) -> web.Response:
     return web.json_response({"error": " ".join(str(message).split())}, status=status)
 
@@ -363,7 +366,8 @@ class Server:
 
 
 async def _start(server: Server, host: str, port: int) -> web.AppRunner:
-    runner = web.AppRunner(server.app(), access_log=None)
+    # Ctrl-C should stop promptly: open requests get SHUTDOWN_S to finish (aiohttp waits 60 s by default).
+    runner = web.AppRunner(server.app(), access_log=None, shutdown_timeout=SHUTDOWN_S)
     await runner.setup()
     site = web.TCPSite(runner, host, port)
     try:
