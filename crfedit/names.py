@@ -21,6 +21,11 @@ PENALTIES = ("tensor", "element")
 """How an edit's weight penalty weighs a tensor's drift (:func:`crfedit.edit.losses.weight_penalty`):
 ``element`` (every trained number alike, the default) or ``tensor`` (per-tensor means)."""
 
+RECOLOR_RULES = ("shading", "ratio")
+"""A selection recolour's target inside S (:class:`crfedit.edit.supervised.RecolorTarget`):
+``shading`` (the new colour × each point's shading, the default) or ``ratio`` (each point's
+colour × new / old per channel)."""
+
 EDIT_METHODS = ("selection", "paper")
 """How remove and edit-color use the scribbles.  selection: lift them to a 3-D selection and
 supervise the edit with it (``edit.selection``, ``edit.supervised``); paper: the paper's losses

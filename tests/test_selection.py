@@ -16,7 +16,7 @@ from crfedit.edit.selection import (
     smooth_over_occupied, connected_to, surface_points,
 )
 from crfedit.edit.core import InstanceEdit
-from crfedit.edit.supervised import PointTargets, recolor_ratio, removal_cells, surface_selected
+from crfedit.edit.supervised import PointTargets, RecolorTarget, removal_cells, surface_selected
 from crfedit import occupancy
 from crfedit.errors import CrfError
 from crfedit.masks import dilate, erode
@@ -126,15 +126,31 @@ def test_appearance_fit_frees_the_same_material_far_away():
     assert float(without(same_far).max()) < 0.5
 
 
-def test_recolor_ratio_keeps_shading():
-    """Lambertian pixels albedo·s: the ratio from the mean appearance maps each pixel to new·s."""
+def test_recolor_targets_keep_shading():
+    """Lambertian pixels albedo·s: both rules map each pixel to new·s / mean(s)."""
     old, new = torch.tensor([0.8, 0.4, 0.2]), torch.tensor([0.2, 0.6, 0.9])
     shade = torch.tensor([0.35, 0.7, 1.0])[:, None]
     pixels = old * shade
     appear = (new * shade.mean()).tolist()
-    assert torch.allclose(pixels * recolor_ratio(appear, pixels), new * shade, atol=1e-6)
-    # a near-black part: the mean is floored, so the ratio stays finite
-    assert torch.isfinite(recolor_ratio([1.0, 0.0, 0.0], torch.zeros(4, 3))).all()
+    for rule in ("shading", "ratio"):
+        assert torch.allclose(RecolorTarget(appear, pixels, rule)(pixels), new * shade, atol=1e-6), rule
+    # a near-black part: the mean is floored, so the targets stay finite
+    for rule in ("shading", "ratio"):
+        assert torch.isfinite(RecolorTarget([1.0, 0.0, 0.0], torch.zeros(4, 3), rule)(torch.rand(4, 3))).all()
+
+
+def test_recolor_shading_rule_does_not_scale_colour_noise():
+    """Noise across c̄ (here a green error on a dark red part turned light green): the ratio
+    multiplies it by c_appear/c̄ in green (×9 here); the shading rule keeps only its projection
+    on c̄, so the target stays the new colour × the pixel's shading."""
+    old = torch.tensor([0.2, 0.1, 0.1])
+    appear = [0.9, 0.9, 0.2]
+    noisy = old + torch.tensor([0.0, 0.02, 0.0])  # one sample with a green error
+    ratio = RecolorTarget(appear, old[None], "ratio")(noisy[None])[0]
+    shading = RecolorTarget(appear, old[None], "shading")(noisy[None])[0]
+    assert torch.allclose(ratio, torch.tensor([0.9, 1.0, 0.2]), atol=1e-6)  # green 0.12·9 = 1.08, clamped
+    s = float(noisy @ old / (old @ old))  # 1 + 0.002/0.06
+    assert torch.allclose(shading, torch.tensor(appear) * s, atol=1e-6)
 
 
 def _selection(values: torch.Tensor) -> Selection:
@@ -184,24 +200,24 @@ def test_surface_selected_closed_form():
 
 
 def test_point_targets_scale_the_part_and_hold_the_rest(trained):
-    """Targets in S are the teacher's colour × ratio (clamped), the rest the teacher's; with a
-    ratio of 1 the starting model already meets them exactly."""
+    """Targets in S are the recolour rule's (here the teacher's colour × ratio, clamped), the
+    rest the teacher's; with a ratio of 1 the starting model already meets them exactly."""
     _, model, category = trained
     k = 2
     view, fg, keep, _ = part_view(category, k, "seat")
     sel = select(model, k, [ScribbleView(view.camera, fg, keep)]).mask
     edit = InstanceEdit(model, k, "color", "hybrid")
-    ratio = torch.tensor([0.5, 1.5, 1.0])
-    pt = PointTargets(edit, sel, ratio, 64, torch.Generator().manual_seed(0))
+    recolor = RecolorTarget([0.3, 0.6, 0.2], torch.tensor([[0.6, 0.4, 0.2]]), "ratio")  # ratio (0.5, 1.5, 1)
+    pt = PointTargets(edit, sel, recolor, 64, torch.Generator().manual_seed(0))
     field = model.field_for(k)
     with torch.no_grad():
         rgb0 = field.radiance(field.features(pt.pts, k), pt.dirs, k)
     inside = occupancy.lookup(sel[None], torch.zeros(len(pt.pts), dtype=torch.long), pt.pts)
     assert 0 < int(inside.sum()) < len(inside)
-    assert torch.allclose(pt.target[inside], (rgb0[inside] * ratio).clamp(0, 1), atol=1e-6)
+    assert torch.allclose(pt.target[inside], (rgb0[inside] * torch.tensor([0.5, 1.5, 1.0])).clamp(0, 1), atol=1e-6)
     assert torch.allclose(pt.target[~inside], rgb0[~inside], atol=1e-6)
     assert abs(float(pt.w.sum()) - 1) < 1e-5 and float(pt.loss().detach()) > 0
-    same = PointTargets(edit, sel, torch.ones(3), 64, torch.Generator().manual_seed(0))
+    same = PointTargets(edit, sel, RecolorTarget([0.6, 0.4, 0.2], torch.tensor([[0.6, 0.4, 0.2]]), "ratio"), 64, torch.Generator().manual_seed(0))
     assert float(same.loss().detach()) < 1e-10
 
 

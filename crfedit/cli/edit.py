@@ -14,7 +14,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import ADD_METHODS, EDIT_METHODS, PENALTIES, STRATEGIES
+from ..names import ADD_METHODS, EDIT_METHODS, PENALTIES, RECOLOR_RULES, STRATEGIES
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
 
 
@@ -22,6 +22,7 @@ Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
 AddMethod = enum.Enum("AddMethod", {m: m for m in ADD_METHODS}, type=str)
 EditMethod = enum.Enum("EditMethod", {m: m for m in EDIT_METHODS}, type=str)
 Penalty = enum.Enum("Penalty", {m: m for m in PENALTIES}, type=str)
+Recolor = enum.Enum("Recolor", {m: m for m in RECOLOR_RULES}, type=str)
 
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors).")]
@@ -122,10 +123,10 @@ def _preview(model, instance: int, folder: Path | None, spec: str) -> None:
     typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
 
 
-def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty):
+def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty, recolor: Recolor = Recolor.shading):
     from ..edit import EditOptions
 
-    return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed, penalty=penalty.value).validated()
+    return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed, penalty=penalty.value, recolor=recolor.value).validated()
 
 
 def _write(result, out: Path, label: str) -> None:
@@ -158,6 +159,7 @@ def edit_color_cmd(
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     penalty: PenaltyOpt = Penalty.element,
+    recolor: Annotated[Recolor, typer.Option("--recolor", help="--method selection: the part's new colour × each point's shading along the scribbled pixels' mean colour (shading; default), or each point's colour × new/old per channel (ratio, which also scales the model's colour noise).")] = Recolor.shading,
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
@@ -170,7 +172,7 @@ def edit_color_cmd(
 
     rgb = parse_color(color)
     _require_scribble(scribble, scribble_json, "part to recolour")
-    options = _options(strategy, steps, lr, rays, seed, penalty)
+    options = _options(strategy, steps, lr, rays, seed, penalty, recolor)
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)

@@ -185,6 +185,7 @@ def edits_cmd(
     rays: Annotated[int, typer.Option("--rays", help="Most rays rendered per edit step.")] = 1024,
     lr: Annotated[float, typer.Option("--lr", help="Adam learning rate of the edits.")] = 1e-2,
     penalty: Annotated[str, typer.Option("--penalty", help="Weight penalty of the edits: element (every trained number weighed alike; default) or tensor (Σ per-tensor means, the earlier rule).")] = "element",
+    recolor: Annotated[str, typer.Option("--recolor", help="Recolour target of the selection edits: shading (default) or ratio (the earlier rule; see crfedit edit-color --help).")] = "shading",
     lpips_weights: LpipsOpt = None,
     as_json: JsonOpt = False,
     strict: StrictOpt = False,
@@ -204,7 +205,7 @@ def edits_cmd(
     from ..runtime import resolve_device
 
     chosen = _strategies(strategies)
-    options = EditOptions(steps=steps, rays=rays, lr=lr, seed=seed, penalty=penalty).validated()
+    options = EditOptions(steps=steps, rays=rays, lr=lr, seed=seed, penalty=penalty, recolor=recolor).validated()
     if nerf_steps < 1:
         raise CrfError(f"--nerf-steps {nerf_steps}: must be at least 1")
     if nerf_minutes is not None and not (nerf_minutes > 0 and math.isfinite(nerf_minutes)):

@@ -28,7 +28,7 @@ from ..delta import Delta, apply_deltas, make_delta, save_delta
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..model import CategoryModel
-from ..names import CODE_TABLES
+from ..names import CODE_TABLES, RECOLOR_RULES
 from ..optim import run_adam
 from .losses import PENALTIES, weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
@@ -55,6 +55,11 @@ class EditOptions:
     """``element`` (every trained number weighed alike, so strategies that train tensors of
     different sizes are penalised alike) or ``tensor`` (per-tensor means, the rule before
     issue 14's fairness change; docs/benchmarks.md compares the two)."""
+    recolor: str = "shading"
+    """Selection recolour target inside S (:class:`~crfedit.edit.supervised.RecolorTarget`):
+    ``shading`` (the new colour × the sample's shading along the scribbled mean; default) or
+    ``ratio`` (the sample's colour × new / old, per channel: the rule before, which also scales
+    the model's colour noise)."""
     lambda_dens: float = 0.01
     """Weight of the density entropy of scribbled rays (removal)."""
     lambda_surface: float = 0.1
@@ -78,6 +83,7 @@ class EditOptions:
             (self.rays >= 2, f"--rays {self.rays}: need at least 2"),
             (min(self.lambda_reg, self.lambda_dens, self.lambda_surface, self.lambda_match) >= 0, "loss weights must be ≥ 0"),
             (self.penalty in PENALTIES, f"--penalty {self.penalty}: expected one of {', '.join(PENALTIES)}"),
+            (self.recolor in RECOLOR_RULES, f"--recolor {self.recolor}: expected one of {', '.join(RECOLOR_RULES)}"),
         ]
         for ok, message in checks:
             if not ok:

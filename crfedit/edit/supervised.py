@@ -11,11 +11,11 @@ teacher, θ₀), with targets known in closed form:
   up axis) the target is the teacher's render *with the emptied cells' density zeroed*.  The
   occupancy grid then drops those cells, so the renderer never samples them.
 * **recolour** (trains F_rad + colour code; density is fixed, so every sample's compositing
-  weight is a constant): a sample inside S targets its starting colour × r, with
-  r = c_appear / c̄ per channel — c_appear the colour the part should *appear* under the
-  scribble, c̄ the mean rendered colour of the scribbled pixels.  A Lambertian part's shading
-  factor cancels in that ratio, so the target keeps the shading (a darker pixel stays darker
-  by the same factor).  Samples near S whose ray's surface lies in S count as inside
+  weight is a constant): a sample of colour c inside S targets c_appear · ⟨c, c̄⟩ / ⟨c̄, c̄⟩ —
+  c_appear the colour the part should *appear* under the scribble, c̄ the mean rendered colour
+  of the scribbled pixels — so it keeps its shading relative to the scribbled pixels (a darker
+  pixel stays darker by the same factor) and takes the new colour (:class:`RecolorTarget`;
+  ``EditOptions.recolor="ratio"`` is the per-channel c · c_appear / c̄ of before).  Samples near S whose ray's surface lies in S count as inside
   (:func:`surface_selected`); samples outside S hold their starting colour.  The loss is the
   weight-averaged per-sample error, the pixel error of the views' rays, and the error at 3-D
   points of the occupied cells seen from random directions (:class:`PointTargets`), which
@@ -167,7 +167,7 @@ def surface_selected(sel: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: in
 
 class PointTargets:
     """Teacher–student colour targets at 3-D points of the instance's occupied cells, seen
-    from random directions: ``n`` points in S (target: the teacher's colour × ratio) and
+    from random directions: ``n`` points in S (target: ``recolor`` of the teacher's colour) and
     ``2n`` outside (target: the teacher's colour), half of those within two cells of S.
 
     The views' rays reach only the surfaces those views see, from their directions; F_rad also
@@ -177,7 +177,7 @@ class PointTargets:
     does not count.
     """
 
-    def __init__(self, edit: InstanceEdit, sel: Tensor, ratio: Tensor, n: int, generator: torch.Generator):
+    def __init__(self, edit: InstanceEdit, sel: Tensor, recolor, n: int, generator: torch.Generator):
         field, k = edit.field, edit.instance
         grid = field.occupancy[k]
         self.pts, inside = occupied_points(grid, sel, n, 2 * n, generator)
@@ -192,7 +192,7 @@ class PointTargets:
             self.inputs = field.F_rad.inputs(feat, self.dirs)  # constant unless upstream modules train
             rgb0 = self.rgb()
             alpha = 1.0 - torch.exp(-field.sigma(raw) * cell)
-            self.target = torch.where(inside[:, None], (rgb0 * ratio).clamp(0, 1), rgb0)
+            self.target = torch.where(inside[:, None], recolor(rgb0), rgb0)
             self.w = (alpha / alpha.sum().clamp_min(1e-12))[:, None]
 
     def rgb(self) -> Tensor:
@@ -207,10 +207,28 @@ class PointTargets:
         return (self.w * (self.rgb() - self.target) ** 2).sum()
 
 
-def recolor_ratio(appear: Sequence[float], rendered: Tensor) -> Tensor:
-    """r = c_appear / max(c̄, :data:`MIN_MEAN_COLOR`) per channel, c̄ the mean of ``rendered`` [n, 3]."""
-    mean = rendered.mean(dim=0).clamp_min(MIN_MEAN_COLOR)
-    return torch.as_tensor(appear, dtype=mean.dtype, device=mean.device) / mean
+class RecolorTarget:
+    """The colour a sample of the part should take: its starting colour ``rgb`` [m, 3] mapped so
+    the scribbled pixels' mean c̄ (``rendered`` [n, 3]) becomes ``appear``.
+
+    * ``ratio``: rgb ⊙ (c_appear / c̄), per channel.
+    * ``shading`` (the default): c_appear · s with s = ⟨rgb, c̄⟩ / ⟨c̄, c̄⟩, the sample's shading relative to
+      the scribbled mean.  For a white-lit Lambertian part (rgb = albedo · shade) both give
+      c_appear · shade / mean shade; they differ on what is not shading: the per-channel ratio
+      multiplies the model's colour noise by up to max(r) in one channel (a dark red part turned
+      light green scales its green noise by ~9), the projection keeps only its component along c̄.
+    """
+
+    def __init__(self, appear: Sequence[float], rendered: Tensor, rule: str = "shading"):
+        self.rule = rule
+        self.mean = rendered.mean(dim=0).clamp_min(MIN_MEAN_COLOR)
+        self.appear = torch.as_tensor(appear, dtype=self.mean.dtype, device=self.mean.device)
+
+    def __call__(self, rgb: Tensor) -> Tensor:
+        if self.rule == "ratio":
+            return (rgb * (self.appear / self.mean)).clamp(0, 1)
+        shade = rgb @ self.mean / (self.mean @ self.mean)
+        return (shade[:, None] * self.appear).clamp(0, 1)
 
 
 def recolor_selected(
@@ -225,7 +243,7 @@ def recolor_selected(
     edit = InstanceEdit(model, k, "color", options.strategy, options.penalty)
     device = model.device
     sel = selection.mask.to(device)
-    ratio = recolor_ratio(appear, scribbled_rgb)
+    recolor = RecolorTarget(appear, scribbled_rgb, options.recolor)
     rays = supervision_rays(cameras, max(8, options.rays // (len(TURNS) * len(cameras))), generator, device)
     (p,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=options.cache)
     radiance = p.stage == "radiance"
@@ -244,11 +262,11 @@ def recolor_selected(
         ray, xn = (p.ray, p.xn_kept) if radiance else (p.samples.ray, p.xn)
         in_s = occupancy.lookup(sel[None], torch.zeros_like(ray), xn)
         in_s = in_s | surface_selected(sel, ray, xn, w0, pixel0.shape[0])
-        target_s = torch.where(in_s[:, None], (rgb0 * ratio).clamp(0, 1), rgb0)
+        target_s = torch.where(in_s[:, None], recolor(rgb0), rgb0)
         # weights are fixed (density does not change), so a pixel is linear in its samples' colours
         target_px = pixel0.index_add(0, ray, w0[:, None] * (target_s - rgb0))
         w = w0[:, None] / w0.sum().clamp_min(1e-12)
-    points = PointTargets(edit, sel, ratio, max(8, int(options.rays * POINTS_PER_RAY)), generator)
+    points = PointTargets(edit, sel, recolor, max(8, int(options.rays * POINTS_PER_RAY)), generator)
 
     def loss_fn():
         rgb_s, _, pixel = current()
@@ -259,7 +277,7 @@ def recolor_selected(
     hyper = {
         "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
         "rays": int(rays.origins.shape[0]), "seed": options.seed, "lambda_reg": options.lambda_reg,
-        "appear": [float(c) for c in appear], "ratio": [round(float(r), 4) for r in ratio],
+        "appear": [float(c) for c in appear], "recolor_rule": recolor.rule, "ratio": [round(float(r), 4) for r in recolor.appear / recolor.mean],
         "selected_samples": int(in_s.sum()), "cached_samples": p.n_cached, "stage": p.stage, "cameras": [camera_meta(c) for c in cameras],
     }
     return finish(edit, "color", hyper, final, started)
