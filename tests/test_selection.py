@@ -137,6 +137,8 @@ def test_recolor_targets_keep_shading():
     # a near-black part: the mean is floored, so the targets stay finite
     for rule in ("shading", "ratio"):
         assert torch.isfinite(RecolorTarget([1.0, 0.0, 0.0], torch.zeros(4, 3), rule)(torch.rand(4, 3))).all()
+    with pytest.raises(ValueError, match="rule='tint'"):
+        RecolorTarget([1.0, 0.0, 0.0], pixels, "tint")
 
 
 def test_recolor_shading_rule_does_not_scale_colour_noise():

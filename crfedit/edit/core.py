@@ -55,7 +55,7 @@ class EditOptions:
     """``element`` (every trained number weighed alike, so strategies that train tensors of
     different sizes are penalised alike) or ``tensor`` (per-tensor means, the rule before
     issue 14's fairness change; docs/benchmarks.md compares the two)."""
-    recolor: str = "shading"
+    recolor: str = RECOLOR_RULES[0]
     """Selection recolour target inside S (:class:`~crfedit.edit.supervised.RecolorTarget`):
     ``shading`` (the new colour × the sample's shading along the scribbled mean; default) or
     ``ratio`` (the sample's colour × new / old, per channel: the rule before, which also scales

@@ -15,11 +15,11 @@ teacher, θ₀), with targets known in closed form:
   c_appear the colour the part should *appear* under the scribble, c̄ the mean rendered colour
   of the scribbled pixels — so it keeps its shading relative to the scribbled pixels (a darker
   pixel stays darker by the same factor) and takes the new colour (:class:`RecolorTarget`;
-  ``EditOptions.recolor="ratio"`` is the per-channel c · c_appear / c̄ of before).  Samples near S whose ray's surface lies in S count as inside
-  (:func:`surface_selected`); samples outside S hold their starting colour.  The loss is the
-  weight-averaged per-sample error, the pixel error of the views' rays, and the error at 3-D
-  points of the occupied cells seen from random directions (:class:`PointTargets`), which
-  reach the faces no supervision ray saw.
+  ``EditOptions.recolor="ratio"`` is the per-channel c · c_appear / c̄ of before).  Samples
+  near S whose ray's surface lies in S count as inside (:func:`surface_selected`); samples
+  outside S hold their starting colour.  The loss is the weight-averaged per-sample error, the
+  pixel error of the views' rays, and the error at 3-D points of the occupied cells seen from
+  random directions (:class:`PointTargets`), which reach the faces no supervision ray saw.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from .. import occupancy
 from ..cameras import Camera, Rays, rays_from_camera
 from ..errors import CrfError
 from ..model import CategoryModel
+from ..names import RECOLOR_RULES
 from ..rendering import composite_dense
 from .cache import cache_stage, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
@@ -212,14 +213,16 @@ class RecolorTarget:
     the scribbled pixels' mean c̄ (``rendered`` [n, 3]) becomes ``appear``.
 
     * ``ratio``: rgb ⊙ (c_appear / c̄), per channel.
-    * ``shading`` (the default): c_appear · s with s = ⟨rgb, c̄⟩ / ⟨c̄, c̄⟩, the sample's shading relative to
-      the scribbled mean.  For a white-lit Lambertian part (rgb = albedo · shade) both give
+    * ``shading`` (the default): c_appear · s with s = ⟨rgb, c̄⟩ / ⟨c̄, c̄⟩, the sample's
+      shading relative to the scribbled mean.  For a white-lit Lambertian part (rgb = albedo · shade) both give
       c_appear · shade / mean shade; they differ on what is not shading: the per-channel ratio
       multiplies the model's colour noise by up to max(r) in one channel (a dark red part turned
       light green scales its green noise by ~9), the projection keeps only its component along c̄.
     """
 
-    def __init__(self, appear: Sequence[float], rendered: Tensor, rule: str = "shading"):
+    def __init__(self, appear: Sequence[float], rendered: Tensor, rule: str = RECOLOR_RULES[0]):
+        if rule not in RECOLOR_RULES:
+            raise ValueError(f"RecolorTarget: rule={rule!r}, expected one of {RECOLOR_RULES}")
         self.rule = rule
         self.mean = rendered.mean(dim=0).clamp_min(MIN_MEAN_COLOR)
         self.appear = torch.as_tensor(appear, dtype=self.mean.dtype, device=self.mean.device)

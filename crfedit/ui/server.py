@@ -39,6 +39,8 @@ MAX_BODY = 2 * 1024 * 1024
 TOKEN_HEADER = "X-Crfedit-Token"
 LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
 WILDCARD = ("0.0.0.0", "::", "")
+SHUTDOWN_S = 3.0
+"""Seconds open requests get to finish when the server stops (aiohttp waits 60 s by default)."""
 STATIC_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".svg": "image/svg+xml"}
 CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; "
        "frame-ancestors 'none'; base-uri 'none'; form-action 'none'")
@@ -64,9 +66,6 @@ class Job:
     message: str = ""
     result: dict | None = None
     started: float = field(default_factory=time.perf_counter)
-
-
-SHUTDOWN_S = 3.0  # seconds open requests get to finish when the server stops
 
 
 def _error(status: int, message: str) -> web.Response:
@@ -366,7 +365,6 @@ class Server:
 
 
 async def _start(server: Server, host: str, port: int) -> web.AppRunner:
-    # Ctrl-C should stop promptly: open requests get SHUTDOWN_S to finish (aiohttp waits 60 s by default).
     runner = web.AppRunner(server.app(), access_log=None, shutdown_timeout=SHUTDOWN_S)
     await runner.setup()
     site = web.TCPSite(runner, host, port)
