@@ -20,13 +20,15 @@ import torch
 
 from crfedit.data.loading import load_category
 from crfedit import occupancy
-from crfedit.edit.selection import ScribbleView, Selection, SelectOptions, select, surface_points
+from crfedit.edit.selection import ScribbleView, Selection, options_for, select, surface_points
 from crfedit.evaluation import load_twin_cases, model_width
 from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, selection_iou
 
-VARIANTS = {  # name: (SelectOptions overrides, keep strokes given, recolour grows the selection)
-    "default (bottleneck + colour + chromaticity + position; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing, connectivity)": ({}, True, False),
+VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for), keep strokes given, recolour grows the selection)
+    "default (bottleneck + colour + chromaticity + position; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing, connectivity; recolours join the chromaticity-only selection)": ({}, True, False),
+    "recolours without the chromaticity-only join": ({"chroma_union": 0.0}, True, False),
+    "recolours join it without the saturation test": ({"chroma_saturation": 0.0}, True, False),
     "colour twins scored on the selection grown by hysteresis (Selection.grown; not what the edits use)": ({}, True, True),
     "no appearance gate": ({"appearance_gate": 0.0}, True, True),
     "no appearance fit in self-training": ({"appearance_self_training": False}, True, True),
@@ -101,9 +103,9 @@ def main() -> None:
         lines.append(line)
 
     for name, (overrides, with_keep, grow) in VARIANTS.items():
-        options = dataclasses.replace(SelectOptions(), **overrides)
         sels, secs = [], []
         for case in cases:
+            options = dataclasses.replace(options_for(case.spec.kind), **overrides)
             t = time.perf_counter()
             sels.append(select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep if with_keep else None)], options))
             secs.append(time.perf_counter() - t)

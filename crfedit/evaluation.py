@@ -32,7 +32,7 @@ from .data.loading import Category, View, load_category, load_twins
 from .distributed import SINGLE, Ranks
 from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
 from .edit.params import GROUP, trained_prefixes
-from .edit.selection import ScribbleView, select
+from .edit.selection import ScribbleView, options_for, select
 from .errors import CrfError
 from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
@@ -416,7 +416,7 @@ def evaluate_edits(
         if case.spec.kind == "color":
             scribbled = category.instance(case.spec.source).view(case.spec.view)
             appear = appearance(source_dir, scribbled, case.scribble, case.spec.part, case.spec.color)
-        sel = select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep)])
+        sel = select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep)], options_for(case.spec.kind))
         iou = {"selection_iou": selection_iou(model, sel, source_dir, source_views, case.spec.part)}
         for strategy in strategies:
             problem = strategy_problem(model, case.spec.kind, strategy)

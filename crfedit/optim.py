@@ -70,11 +70,12 @@ def check_finite(params: Iterable[Tensor], what: str, consequence: str) -> None:
 def run_adam(
     opt: torch.optim.Optimizer, loss_fn: Callable[[], Tensor], steps: int, what: str,
     on_step: Callable[[int, float], None] | None = None, consequence: str = "nothing was written",
+    before_step: Callable[[], None] | None = None,
 ) -> float:
     """``steps`` steps of ``opt`` on ``loss_fn()``, then a check that every loss and every
     parameter it trains is finite; returns the last loss.  ``on_step(step, loss)`` after each
     step (1-based) reads each loss as it comes, and a NaN/inf one stops before its gradient;
-    without it the losses are read once, at the end."""
+    without it the losses are read once, at the end.  ``before_step`` as in :func:`adam_step`."""
     params = [p for g in opt.param_groups for p in g["params"]]
     log = StepLog(1, params[0].device if params else "cpu", size=steps)
     value = float("nan")
@@ -85,7 +86,7 @@ def run_adam(
             check_losses([(step, [value])], what, consequence)
         else:
             log.record(step, loss.detach().reshape(1))
-        adam_step(opt, loss)
+        adam_step(opt, loss, before_step)
         if on_step is not None:
             on_step(step + 1, value)
     rows = log.read()

@@ -23,7 +23,7 @@ from crfedit.delta import apply_edit_files, read_delta
 from crfedit.edit import CODES, TRAINED, EditOptions, add, edit_color, remove, swap_codes, trained_prefixes, transfer
 from crfedit.edit.cache import ViewCache, edit_passes
 from crfedit.edit.core import InstanceEdit
-from crfedit.edit.losses import ELEMENT_SCALE, density_cross_entropy, density_entropy, log_density_drift, visible_log_density, weight_penalty
+from crfedit.edit.losses import ELEMENT_SCALE, add_weight_penalty_grad_, density_cross_entropy, density_entropy, log_density_drift, visible_log_density, weight_penalty
 from crfedit.edit.scribble import parse_color, strokes_json_mask
 from crfedit.masks import dilate, erode
 from crfedit.edit.shape import first_mode, parse_offset
@@ -400,6 +400,29 @@ def test_weight_penalty_per_tensor_and_per_element_closed_form():
         weight_penalty(now, start, rows, "row")
     with pytest.raises(CrfError, match="--penalty row"):
         EditOptions(penalty="row").validated()
+
+
+@pytest.mark.parametrize("per", ["tensor", "element"])
+def test_weight_penalty_closed_form_gradient_equals_autograd(per):
+    """Edits add the penalty's gradient after the backward pass (add_weight_penalty_grad_):
+    it must be autograd's gradient of weight_penalty, added to what the loss left in .grad,
+    and touch no other instance's code row."""
+    g = torch.Generator().manual_seed(3)
+    start = {"color_codes": torch.randn(4, 5, generator=g), "w": torch.randn(3, 7, generator=g), "b": torch.randn(3, generator=g)}
+    now = {n: (t + torch.randn(t.shape, generator=g)).requires_grad_(True) for n, t in start.items()}
+    rows = {"color_codes": 2}
+    (2.5 * weight_penalty(now, start, rows, per)).backward()
+    expected = {n: t.grad.clone() for n, t in now.items()}
+    loss_grad = {n: torch.randn(t.shape, generator=g) for n, t in now.items()}
+    for n, t in now.items():
+        t.grad = loss_grad[n].clone() if n != "b" else None  # a tensor the loss did not reach
+    add_weight_penalty_grad_(now, start, rows, per, 2.5)
+    for n, t in now.items():
+        base = loss_grad[n] if n != "b" else torch.zeros_like(t)
+        assert torch.allclose(t.grad, base + expected[n], atol=1e-6, rtol=1e-5), n
+    assert torch.equal(now["color_codes"].grad[0], loss_grad["color_codes"][0])
+    with pytest.raises(ValueError, match="per='row'"):
+        add_weight_penalty_grad_(now, start, rows, "row", 1.0)
 
 
 def test_element_penalty_frees_a_codes_only_edit(trained):

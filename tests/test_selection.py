@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    ScribbleView, Selection, appearance_gate, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
+    CHROMA_UNION, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
     smooth_over_occupied, connected_to, surface_points,
 )
 from crfedit.edit.core import InstanceEdit
@@ -65,6 +65,31 @@ def test_selection_from_one_view_covers_the_part_in_other_views(trained):
     # what was never scribbled nor kept: a sparse scribble (every 4th pixel) still selects the part
     sparse = fg & (np.indices(fg.shape).sum(0) % 4 == 0)
     assert selection_iou(model, select(model, k, [ScribbleView(view.camera, sparse, None)]), k, held, pid) > 0.5
+
+
+def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
+    """Recolours join the chromaticity-only selection (cell-wise max) unless it holds more
+    than chroma_union × the cells: joined, no cell loses value; refused, nothing changes."""
+    _, model, category = trained
+    k = 1
+    view, fg, keep, _ = part_view(category, k, "back")
+    views = [ScribbleView(view.camera, fg, keep)]
+    plain = select(model, k, views)
+    assert "chroma_union" not in plain.meta  # removals' and the default options' selection
+    joined = select(model, k, views, SelectOptions(chroma_union=1e6))
+    refused = select(model, k, views, SelectOptions(chroma_union=1e-6))
+    alone = refused.meta["chroma_union"]["cells"]
+    assert alone > 0 and joined.meta["chroma_union"]["cells"] == alone
+    assert joined.meta["chroma_union"]["joined"] is (joined.meta["chroma_union"]["saturation"] >= SelectOptions().chroma_saturation)
+    if not joined.meta["chroma_union"]["joined"]:  # a near-grey part: force the join to test it
+        joined = select(model, k, views, SelectOptions(chroma_union=1e6, chroma_saturation=0.0))
+        assert joined.meta["chroma_union"]["joined"]
+    assert refused.meta["chroma_union"]["joined"] is False and torch.equal(refused.values, plain.values)
+    assert bool((joined.values >= plain.values).all()) and bool((joined.mask | ~plain.mask).all())
+    assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
+    assert options_for("color").chroma_union == CHROMA_UNION > 0 and options_for("remove").chroma_union == 0
+    with pytest.raises(CrfError, match="a selection for 'bogus'"):
+        options_for("bogus")
 
 
 def test_smoothing_and_connectivity_closed_forms():
@@ -319,6 +344,11 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert out.is_file() and sorted(p.name for p in (tmp_path / "prev").iterdir()) == ["0000.png", "0001.png"]
     r = runner.invoke(app, [*args, "--keep", str(tmp_path / "fg.png"), "--keep", str(tmp_path / "fg.png"), "--out", str(tmp_path / "x.safetensors")])
     assert r.exit_code == 2 and "one per --view" in r.output and not (tmp_path / "x.safetensors").exists()
+    r = runner.invoke(app, [*args, "--for", "paint", "--out", str(tmp_path / "x.safetensors")])
+    assert r.exit_code == 2 and "a selection for 'paint'" in r.output and not (tmp_path / "x.safetensors").exists()
+    r = runner.invoke(app, [*args, "--for", "remove", "--out", str(tmp_path / "r.safetensors")])
+    assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "r.safetensors").meta
+    assert "chroma_union" in load_selection(out).meta  # --for color, the default
     edit_out = tmp_path / "e.safetensors"
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[0], "--view", f"train:{index}",
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out)])

@@ -39,10 +39,11 @@ def select_cmd(
     edit: PriorOpt = None,
     preview: Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG previews with the selection tinted.")] = None,
     views: Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")] = "orbit:8",
+    kind: Annotated[str, typer.Option("--for", help="The edit the selection is for: color (also takes the cells of the scribble's chromaticity), remove or add.")] = "color",
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
-    from ..edit.selection import ScribbleView, preview as tinted, save_selection, select
+    from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
     from ..io import write_png
     from ..views import resolve_views
 
@@ -50,6 +51,7 @@ def select_cmd(
         raise CrfError(f"give one --scribble per --view ({len(view)} views, {len(scribble)} scribbles)")
     if keep and len(keep) != len(view):
         raise CrfError(f"give no --keep or one per --view ({len(view)} views, {len(keep)} keep masks)")
+    options = options_for(kind)
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
@@ -58,7 +60,7 @@ def select_cmd(
         _, camera = _one_view(m, spec, k)
         bg = _mask(keep[i], m, k, camera, "keep") if keep else None
         scribbles.append(ScribbleView(camera, _mask(scribble[i], m, k, camera, "scribble"), bg))
-    sel = select(m, k, scribbles)
+    sel = select(m, k, scribbles, options)
     save_selection(out, sel)
     info = sel.meta
     typer.echo(

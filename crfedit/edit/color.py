@@ -28,7 +28,7 @@ from .cache import edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
 from .losses import mse
 from .scribble import check_masks, parse_color, pick_pixels
-from .selection import MIN_OPACITY, ScribbleView, Selection, select
+from .selection import MIN_OPACITY, ScribbleView, Selection, options_for, select
 from .supervised import recolor_selected
 
 
@@ -69,9 +69,9 @@ def edit_color(
     target[: fg.numel()] = torch.tensor(rgb, dtype=target.dtype, device=target.device)
 
     def loss_fn():
-        return mse(render.forward().rgb, target) + options.lambda_reg * edit.penalty()
+        return mse(render.forward().rgb, target)
 
-    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "colour edit", options.on_step)
+    final = optimize(edit, loss_fn, options, "colour edit")
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
         "seed": options.seed, "lambda_reg": options.lambda_reg, "color": list(rgb),
@@ -88,5 +88,5 @@ def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection
     if not bool(on.any()):
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
     if selection is None:
-        selection = select(model, k, [ScribbleView(camera, scribble, keep)], renders=[view])
+        selection = select(model, k, [ScribbleView(camera, scribble, keep)], options_for("color"), renders=[view])
     return recolor_selected(model, k, selection, [camera], view.rgb.cpu()[on], rgb, options)

@@ -30,7 +30,7 @@ from ..field import ConditionalRadianceField
 from ..model import CategoryModel
 from ..names import CODE_TABLES, RECOLOR_RULES
 from ..optim import run_adam
-from .losses import PENALTIES, weight_penalty
+from .losses import PENALTIES, add_weight_penalty_grad_, weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
 
 
@@ -100,6 +100,9 @@ class EditResult:
     meta: dict[str, str]
     final_loss: float
     seconds: float
+    """The whole edit's wall time (a given selection excluded)."""
+    optimize_seconds: float = dataclasses.field(default=0.0, kw_only=True)
+    """Of which the optimization steps (:func:`optimize`); 0 for edits without any."""
 
     def save(self, path, **extra_meta: str) -> None:
         """Write the delta atomically; ``extra_meta`` (``command``, ``view`` …) is provenance
@@ -129,9 +132,14 @@ class InstanceEdit:
         self.start = {n: p.detach().clone() for n, p in self.params.items()}
         self.rows = {n: instance for n in self.params if n in CODE_TABLES}
         self.per = penalty
+        self.optimize_seconds = 0.0  # set by optimize()
 
     def penalty(self) -> Tensor:
         return weight_penalty(self.params, self.start, self.rows, self.per)
+
+    def add_penalty_grad(self, scale: float) -> None:
+        """Add ``scale`` · ∇ :meth:`penalty` to the trained tensors' gradients (closed form)."""
+        add_weight_penalty_grad_(self.params, self.start, self.rows, self.per, scale)
 
     def occupancy_delta(self, grid: Tensor) -> tuple[dict, tuple[str, ...]]:
         """(extra overrides, extra modules) for :func:`finish` that store ``grid`` [R, R, R] as
@@ -184,13 +192,22 @@ def occupancy_after(edit: InstanceEdit, candidates: Tensor, generator: torch.Gen
         return {}, ()
     return edit.occupancy_delta(rethreshold(edit.field, edit.instance, candidates, generator))
 
-def optimize(
-    params: Sequence[Tensor], loss_fn: Callable[[], Tensor], steps: int, lr: float, what: str,
-    on_step: Callable[[int, float], None] | None = None,
-) -> float:
-    """``steps`` Adam steps on ``loss_fn``; returns the last loss.  A NaN/inf loss or parameter
-    raises :class:`NonFiniteError` (nothing is written); ``on_step(step, loss)`` after each step."""
-    return run_adam(torch.optim.Adam(list(params), lr=lr, fused=True), loss_fn, steps, what, on_step)
+def optimize(edit: InstanceEdit, loss_fn: Callable[[], Tensor], options: EditOptions, what: str) -> float:
+    """``options.steps`` Adam steps on ``loss_fn() + options.lambda_reg · edit.penalty()``;
+    returns the last step's ``loss_fn()`` plus the penalty at the result.
+
+    The penalty's gradient is added in closed form after each backward pass
+    (:func:`~crfedit.edit.losses.add_weight_penalty_grad_`), so ``loss_fn`` leaves it out.  A
+    NaN/inf loss or parameter raises :class:`NonFiniteError` (nothing is written);
+    ``options.on_step(step, loss)`` after each step sees ``loss_fn()``'s value.
+    """
+    started = time.perf_counter()
+    opt = torch.optim.Adam(list(edit.params.values()), lr=options.lr, fused=True)
+    last = run_adam(opt, loss_fn, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg))
+    with torch.no_grad():
+        last += options.lambda_reg * float(edit.penalty())
+    edit.optimize_seconds = time.perf_counter() - started
+    return last
 
 
 def finish(
@@ -214,7 +231,7 @@ def finish(
     }
     tensors, meta = make_delta(edit.before, after, edit.instance, kind, (*edit.prefixes, *extra_modules), meta)
     model = apply_deltas(edit.before, [Delta("(new edit)", tensors, meta)])
-    return EditResult(model, tensors, meta, final_loss, seconds)
+    return EditResult(model, tensors, meta, final_loss, seconds, optimize_seconds=edit.optimize_seconds)
 
 
 def camera_meta(camera: Camera) -> dict:

@@ -56,7 +56,7 @@ from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, oc
 from .losses import density_cross_entropy, density_entropy, log_density_drift, mse, visible_log_density
 from .params import used_code_tables
 from .scribble import check_masks, pick_pixels
-from .selection import ScribbleView, Selection, select
+from .selection import ScribbleView, Selection, options_for, select
 from .supervised import add_selected, remove_selected
 from .transfer import swap_codes
 
@@ -114,7 +114,7 @@ def remove(
         if occluded:
             raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
         if selection is None:
-            selection = select(model, k, [ScribbleView(camera, scribble, keep)])
+            selection = select(model, k, [ScribbleView(camera, scribble, keep)], options_for("remove"))
         return remove_selected(model, k, selection, [camera], options)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator, also_random=True)
@@ -140,7 +140,7 @@ def remove(
             targets.append(RemovalTarget(rgb, alpha, seen, out.sigmas, push))
 
     def loss_fn():
-        total = options.lambda_reg * edit.penalty()
+        total = 0.0
         for p, target in zip(passes, targets):
             out = p.forward()
             total = total + mse(out.rgb, target.rgb) + mse(out.opacity, target.opacity)
@@ -150,7 +150,7 @@ def remove(
             total = total + options.lambda_surface * (lowered.mean() + kept.mean())
         return total
 
-    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "removal", options.on_step)
+    final = optimize(edit, loss_fn, options, "removal")
     extra, extra_modules = occupancy_after(edit, candidates, generator)
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
@@ -256,7 +256,7 @@ def add(
     ys, xs = ys[inside], xs[inside]
     if method == "selection":
         if selection is None:
-            selection = select(model, j, [ScribbleView(donor_camera, copy_mask)])
+            selection = select(model, j, [ScribbleView(donor_camera, copy_mask)], options_for("add"))
         return add_selected(model, k, j, selection, camera, offset, options)
     src_of = np.full(h * w, -1, dtype=np.int64)
     src_of[(ys + dy) * w + (xs + dx)] = ys * w + xs
@@ -297,7 +297,7 @@ def add(
                 donor_sigmas.append(donor_densities(donor_field, j, select_rays(donor_camera, src, device), p, rays, n_fg))
 
     def loss_fn():
-        total = options.lambda_reg * edit.penalty()
+        total = 0.0
         for i, p in enumerate(passes):
             out = p.forward()
             if method == "composite":
@@ -309,7 +309,7 @@ def add(
             total = total + options.lambda_surface * log_density_drift(seen[i], out.sigmas, sigmas0[i]).mean()
         return total
 
-    final = optimize(list(edit.params.values()), loss_fn, options.steps, options.lr, "add edit", options.on_step)
+    final = optimize(edit, loss_fn, options, "add edit")
     extra, extra_modules = occupancy_after(edit, candidates, generator)
     hyper = {
         "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,

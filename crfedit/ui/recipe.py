@@ -328,6 +328,7 @@ class Replay:
                 self.lines += [f"base64 -d > {path} <<'EOF'", base64.b64encode(_empty_png(s.view.camera)).decode(), "EOF"]
                 words.append(f"--keep {path}")
         words += [f"--edit {p}" for p in self.outputs]
+        words.append(f"--for {req.kind}")
         if self.device:
             words.append(f"--device {self.device}")
         self.lines.append(" ".join([*words, f'--out "$out/{prefix}-selection.safetensors"']))

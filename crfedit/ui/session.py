@@ -31,7 +31,7 @@ from ..data.loading import Category
 from ..delta import Delta, apply_deltas, bake, rebase, read_delta, save_delta
 from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
-from ..edit.selection import ScribbleView, Selection, preview, select
+from ..edit.selection import ScribbleView, Selection, options_for, preview, select
 from ..errors import CrfError
 from ..model import CategoryModel, save_model
 from ..renderer import render_camera
@@ -101,7 +101,7 @@ class UiSession:
         self._fields = _Lru(4)
         self._view_caches = _Lru(VIEW_CACHES)
         self._selections = _Lru(16)
-        self._shown: dict[int, tuple[ScribbleSet, ...]] = {}
+        self._shown: dict[int, tuple[tuple[ScribbleSet, ...], str]] = {}  # instance → (scribbles, edit kind)
         self._sizes: dict[str, int] = {}
 
     # ------------------------------------------------------------------------- state
@@ -165,14 +165,14 @@ class UiSession:
         model, key = self._snapshot(which)
         k = instance_of(model, instance)
         ref = parse_view(view, model, k)
-        scribbles = self._shown_scribbles(k) if tint else None
-        cache_key = (key, k, ref.key, None if scribbles is None else _canon(scribbles))
+        shown = self._shown_scribbles(k) if tint else None
+        cache_key = (key, k, ref.key, None if shown is None else (_canon(shown[0]), shown[1]))
         with self._lock:
             hit = self._renders.get(cache_key)
         if hit is not None:
             return hit
-        if scribbles is not None:
-            image = preview(model, self._selection(model, key, k, scribbles), ref.camera)
+        if shown is not None:
+            image = preview(model, self._selection(model, key, k, *shown), ref.camera)
         else:
             image = render_camera(self._field(model, key, k), ref.camera, k).rgb
         png = png_bytes(image)
@@ -197,35 +197,40 @@ class UiSession:
 
     # ------------------------------------------------------------------------- selection
 
-    def _selection(self, model: CategoryModel, key, k: int, scribbles: tuple[ScribbleSet, ...]) -> Selection:
-        cache_key = (key, k, _canon(scribbles))
+    def _selection(self, model: CategoryModel, key, k: int, scribbles: tuple[ScribbleSet, ...], kind: str) -> Selection:
+        """The selection ``scribbles`` mean for an edit of ``kind`` (:func:`options_for`), cached."""
+        options = options_for(kind)
+        cache_key = (key, k, _canon(scribbles), kind)
         with self._lock:
             hit = self._selections.get(cache_key)
         if hit is None:
             views = [ScribbleView(s.view.camera, s.fg.mask, None if s.bg is None else s.bg.mask) for s in scribbles]
-            hit = select(model, k, views)
+            hit = select(model, k, views, options)
             with self._lock:
                 self._selections.put(cache_key, hit)
         return hit
 
-    def _shown_scribbles(self, k: int) -> tuple[ScribbleSet, ...]:
+    def _shown_scribbles(self, k: int) -> tuple[tuple[ScribbleSet, ...], str]:
+        """(scribbles, edit kind) of the selection shown on instance ``k``."""
         with self._lock:
-            scribbles = self._shown.get(k)
-        if scribbles is None:
+            shown = self._shown.get(k)
+        if shown is None:
             raise CrfError("nothing is selected: scribble 'edit here' on the part and press Select")
-        return scribbles
+        return shown
 
     def select(self, body) -> dict:
-        """Lift the page's scribbles (``{"instance", "views": [{"view", "fg", "bg"}, …]}``) to a
-        3-D selection, show it from now on, and keep the scribbled views' features for a colour edit."""
+        """Lift the page's scribbles (``{"instance", "views": [{"view", "fg", "bg"}, …], "kind"}``)
+        to a 3-D selection for an edit of ``kind`` (color, the default, remove or add), show it
+        from now on, and keep the scribbled views' features for a colour edit."""
         if not isinstance(body, dict):
             raise CrfError("expected a JSON object")
         model, key = self._snapshot()
         k = instance_of(model, body.get("instance"))
         scribbles = parse_scribbles(body.get("views"), model, k)
-        sel = self._selection(model, key, k, scribbles)
+        kind = body.get("kind", "color")
+        sel = self._selection(model, key, k, scribbles, kind)
         with self._lock:
-            self._shown[k] = scribbles
+            self._shown[k] = (scribbles, kind)
         for s in scribbles:
             self._view_cache(model, key, k, s.view)
         info = sel.meta
@@ -264,7 +269,7 @@ class UiSession:
         else:
             drawn = req.drawn
             fg, bg = drawn.fg.mask, None if drawn.bg is None else drawn.bg.mask
-            sel = self._selection(model, key, k, req.scribbles) if req.method == "selection" else None
+            sel = self._selection(model, key, k, req.scribbles, req.kind) if req.method == "selection" else None
             if req.kind == "color":
                 cache = self._view_cache(model, key, k, req.view)
                 result = edit_color(model, k, req.view.camera, fg, req.color, bg, options, req.method, sel)

@@ -22,7 +22,10 @@ function parseOrbit(key) {
 async function doSelect() {
   const start = performance.now();
   status("selecting…");
-  const info = await postJson("/api/select", { instance: S.instance, views: scribbledViews(S.instance) });
+  const kind = $("edit-kind").value;  // recolours select a little more (one material): crfedit.edit.selection.options_for
+  const body = { instance: S.instance, views: scribbledViews(S.instance) };
+  if (kind === "color" || kind === "remove" || kind === "add") body.kind = kind;
+  const info = await postJson("/api/select", body);
   S.tint = true;
   $("tint").checked = true;
   $("selection-info").textContent = `${info.selected_cells} of ${info.occupied_cells} occupied cells selected from ${info.views} view(s) (${info.seconds.toFixed(2)} s)`;
