@@ -358,6 +358,7 @@ def test_select_command_and_its_errors(trained, tmp_path):
                             "--preview", str(tmp_path / "after"), "--views", "orbit:3"])
     assert r.exit_code == 0, r.output
     assert edit_out.is_file() and len(list((tmp_path / "after").glob("*.png"))) == 3
+    assert "made with crfedit select --for color" in r.output  # a recolour's selection given to a removal
 
 
 def test_twin_score_closed_forms():

@@ -98,14 +98,18 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
     return fg.mask, None if bg is None else bg.mask
 
 
-def _selection(path: Path | None, model, instance: int):
-    """The selection file at ``path`` checked against the model and instance (None: none given)."""
+def _selection(path: Path | None, model, instance: int, kind: str):
+    """The selection file at ``path`` checked against the model and instance (None: none
+    given); a warning when it was made ``--for`` another kind of edit than ``kind``."""
     if path is None:
         return None
     from ..edit.selection import load_selection
 
     sel = load_selection(path)
     sel.check_for(model, instance)
+    made = sel.meta.get("for")
+    if made is not None and made != kind:
+        typer.echo(f"warning: {path} was made with crfedit select --for {made}; this {kind} edit's own selection would be --for {kind}", err=True)
     return sel
 
 
@@ -178,7 +182,7 @@ def edit_color_cmd(
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
-    sel = _selection(selection, m, k)
+    sel = _selection(selection, m, k, "color")
     result = edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel)
     _write(result, out, label)
     _preview(result.model, k, preview, views)
@@ -220,7 +224,7 @@ def remove_cmd(
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
-    sel = _selection(selection, m, k)
+    sel = _selection(selection, m, k, "remove")
     result = remove(m, k, camera, fg, bg, occluded, options, method.value, sel)
     _write(result, out, label)
     _preview(result.model, k, preview, views)
@@ -276,7 +280,7 @@ def add_cmd(
     bg = None if bg is None else bg.mask
     if selection is not None and method != AddMethod.selection:
         raise CrfError("--selection belongs to --method selection")
-    sel = _selection(selection, m, j)
+    sel = _selection(selection, m, j, "add")
     _write(add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel), out, label)
 
 

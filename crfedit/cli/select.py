@@ -61,6 +61,7 @@ def select_cmd(
         bg = _mask(keep[i], m, k, camera, "keep") if keep else None
         scribbles.append(ScribbleView(camera, _mask(scribble[i], m, k, camera, "scribble"), bg))
     sel = select(m, k, scribbles, options)
+    sel.meta["for"] = kind
     save_selection(out, sel)
     info = sel.meta
     typer.echo(
