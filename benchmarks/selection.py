@@ -26,9 +26,9 @@ from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, selection_iou
 
 VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for), keep strokes given, recolour grows the selection)
-    "default (bottleneck + colour + chromaticity + position; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing, connectivity; recolours join the chromaticity-only selection)": ({}, True, False),
-    "recolours without the chromaticity-only join": ({"chroma_union": 0.0}, True, False),
-    "recolours join it without the saturation test": ({"chroma_saturation": 0.0}, True, False),
+    "default (bottleneck + colour + chromaticity + position; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing, connectivity; recolours and removals join the chromaticity-only selection)": ({}, True, False),
+    "without the chromaticity-only join": ({"chroma_union": 0.0}, True, False),
+    "the join without the saturation test": ({"chroma_saturation": 0.0}, True, False),
     "colour twins scored on the selection grown by hysteresis (Selection.grown; not what the edits use)": ({}, True, True),
     "no appearance gate": ({"appearance_gate": 0.0}, True, False),
     "no appearance fit in self-training": ({"appearance_self_training": False}, True, False),

@@ -75,7 +75,7 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     view, fg, keep, _ = part_view(category, k, "back")
     views = [ScribbleView(view.camera, fg, keep)]
     plain = select(model, k, views)
-    assert "chroma_union" not in plain.meta  # removals' and the default options' selection
+    assert "chroma_union" not in plain.meta  # additions' and the default options' selection
     joined = select(model, k, views, SelectOptions(chroma_union=1e6))
     refused = select(model, k, views, SelectOptions(chroma_union=1e-6))
     alone = refused.meta["chroma_union"]["cells"]
@@ -87,7 +87,8 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     assert refused.meta["chroma_union"]["joined"] is False and torch.equal(refused.values, plain.values)
     assert bool((joined.values >= plain.values).all()) and bool((joined.mask | ~plain.mask).all())
     assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
-    assert options_for("color").chroma_union == CHROMA_UNION > 0 and options_for("remove").chroma_union == 0
+    assert options_for("color").chroma_union == options_for("remove").chroma_union == CHROMA_UNION > 0
+    assert options_for("add").chroma_union == 0
     with pytest.raises(CrfError, match="a selection for 'bogus'"):
         options_for("bogus")
 
@@ -346,9 +347,9 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert r.exit_code == 2 and "one per --view" in r.output and not (tmp_path / "x.safetensors").exists()
     r = runner.invoke(app, [*args, "--for", "paint", "--out", str(tmp_path / "x.safetensors")])
     assert r.exit_code == 2 and "a selection for 'paint'" in r.output and not (tmp_path / "x.safetensors").exists()
-    r = runner.invoke(app, [*args, "--for", "remove", "--out", str(tmp_path / "r.safetensors")])
-    assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "r.safetensors").meta
-    assert "chroma_union" in load_selection(out).meta  # --for color, the default
+    r = runner.invoke(app, [*args, "--for", "add", "--out", str(tmp_path / "a.safetensors")])
+    assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "a.safetensors").meta
+    assert "chroma_union" in load_selection(out).meta and load_selection(out).meta["for"] == "color"  # the default
     edit_out = tmp_path / "e.safetensors"
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[0], "--view", f"train:{index}",
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out)])
@@ -358,7 +359,11 @@ def test_select_command_and_its_errors(trained, tmp_path):
                             "--preview", str(tmp_path / "after"), "--views", "orbit:3"])
     assert r.exit_code == 0, r.output
     assert edit_out.is_file() and len(list((tmp_path / "after").glob("*.png"))) == 3
-    assert "made with crfedit select --for color" in r.output  # a recolour's selection given to a removal
+    assert "warning" not in r.output  # a recolour's selection is what a removal makes too
+    r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--steps", "1",
+                            "--scribble", str(tmp_path / "fg.png"), "--selection", str(tmp_path / "a.safetensors"),
+                            "--out", str(tmp_path / "e2.safetensors")])
+    assert r.exit_code == 0 and "made with crfedit select --for add" in r.output, r.output
 
 
 def test_twin_score_closed_forms():

@@ -251,8 +251,8 @@ def test_select_tints_the_selection_over_any_view_until_cleared(ui, scene):
     assert not changed[scene[5] < 0.5].any()  # never off the object
     other = ui.get("/api/view?instance=0&view=train:4&tint=1")  # switching views keeps the selection
     assert other != ui.get("/api/view?instance=0&view=train:4")
-    # the page sends the edit kind: a removal's selection never joins the chromaticity-only one
-    assert ui.post("/api/select", {**body, "kind": "remove"})["selected_cells"] <= info["selected_cells"]
+    # the page sends the edit kind: an addition's selection never joins the chromaticity-only one
+    assert ui.post("/api/select", {**body, "kind": "add"})["selected_cells"] <= info["selected_cells"]
     assert "a selection for 'paint'" in ui.error("POST", "/api/select", {**body, "kind": "paint"})
     ui.post("/api/select/clear", {"instance": 0})
     assert "nothing is selected" in ui.error("GET", "/api/view?instance=0&view=train:0&tint=1")

@@ -100,15 +100,15 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
 
 def _selection(path: Path | None, model, instance: int, kind: str):
     """The selection file at ``path`` checked against the model and instance (None: none
-    given); a warning when it was made ``--for`` another kind of edit than ``kind``."""
+    given); a warning when it was made ``--for`` a kind of edit that selects differently."""
     if path is None:
         return None
-    from ..edit.selection import load_selection
+    from ..edit.selection import EDIT_KINDS, load_selection, options_for
 
     sel = load_selection(path)
     sel.check_for(model, instance)
     made = sel.meta.get("for")
-    if made is not None and made != kind:
+    if made in EDIT_KINDS and options_for(made) != options_for(kind):
         typer.echo(f"warning: {path} was made with crfedit select --for {made}; this {kind} edit's own selection would be --for {kind}", err=True)
     return sel
 

@@ -33,8 +33,8 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    scores 0.
 7. **Recolours: chromaticity alone.**  Steps 3–6 on the chromaticity group alone select parts
    of the scribbled material that look different elsewhere (a frame's legs, a lit top face);
-   for a recolour (:func:`options_for`) that selection is joined cell by cell, unless the part
-   is near-grey or it floods the instance (:attr:`SelectOptions.chroma_union`).
+   for a recolour or a removal (:func:`options_for`) that selection is joined cell by cell,
+   unless the part is near-grey or it floods the instance (:attr:`SelectOptions.chroma_union`).
 
 ``Selection.grown`` (hysteresis: cells of value ≥ :data:`GROW_LOW` connected to the selection
 join it) is measured in docs/selection.md but not used by the edits: it raised the procedural
@@ -114,7 +114,7 @@ class SelectOptions:
     chroma_union: float = 0.0
     """Also select what chromaticity alone selects — steps 3–6 on the chromaticity group only,
     joined by a cell-wise max — when that selects at most this × as many cells as the full
-    features do (0: never).  Recolours use :data:`CHROMA_UNION` (:func:`options_for`)."""
+    features do (0: never).  Recolours and removals use :data:`CHROMA_UNION` (:func:`options_for`)."""
     chroma_saturation: float = 0.4
     """Nor does it join unless the scribbled points' median chromaticity has at least this HSV
     saturation (max − min) / max (a colour's, which shading does not change): the chromaticity of a near-grey part is mostly the model's
@@ -133,7 +133,7 @@ class SelectOptions:
 
 
 CHROMA_UNION = 2.5
-"""Recolours' :attr:`SelectOptions.chroma_union`.  The full features miss parts of one material
+"""Recolours' and removals' :attr:`SelectOptions.chroma_union`.  The full features miss parts of one material
 that look different elsewhere: a wooden frame's legs when its back is scribbled, a lit top
 face.  Chromaticity alone takes them (a Lambertian shading factor cancels in it) but on its own
 floods parts of a shared hue.  On the 8 colour twins of the two benchmark categories its
@@ -144,14 +144,12 @@ EDIT_KINDS = ("color", "remove", "add")
 
 
 def options_for(kind: str) -> SelectOptions:
-    """The selection options an edit of ``kind`` uses: recolours join the chromaticity-only
-    selection (:data:`CHROMA_UNION`); removals and additions do not (tried without the
-    saturation test, it took their selections' IoU from 0.87 to 0.91 and 0.86 to 0.87 but their
-    damage outside the part up 0.3 dB, and the gap closed moved by +0.02 and −0.00:
-    docs/selection.md)."""
+    """The selection options an edit of ``kind`` uses: recolours and removals join the
+    chromaticity-only selection (:data:`CHROMA_UNION`), additions (a donor's part) do not: it
+    doubled the damage of an added part to the rest of the chair (docs/selection.md)."""
     if kind not in EDIT_KINDS:
         raise CrfError(f"a selection for {kind!r}: expected one of {', '.join(EDIT_KINDS)}")
-    return SelectOptions(chroma_union=CHROMA_UNION) if kind == "color" else SelectOptions()
+    return SelectOptions(chroma_union=CHROMA_UNION) if kind in ("color", "remove") else SelectOptions()
 
 
 @dataclass
