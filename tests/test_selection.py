@@ -76,15 +76,14 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     views = [ScribbleView(view.camera, fg, keep)]
     plain = select(model, k, views)
     assert "chroma_union" not in plain.meta  # additions' and the default options' selection
-    joined = select(model, k, views, SelectOptions(chroma_union=1e6))
-    refused = select(model, k, views, SelectOptions(chroma_union=1e-6))
+    joined = select(model, k, views, SelectOptions(chroma_union=1e6, chroma_saturation=0.0))
+    refused = select(model, k, views, SelectOptions(chroma_union=1e-6, chroma_saturation=0.0))  # it floods
+    grey = select(model, k, views, SelectOptions(chroma_union=1e6, chroma_saturation=1.01))  # no part is that saturated
     alone = refused.meta["chroma_union"]["cells"]
-    assert alone > 0 and joined.meta["chroma_union"]["cells"] == alone
-    assert joined.meta["chroma_union"]["joined"] is (joined.meta["chroma_union"]["saturation"] >= SelectOptions().chroma_saturation)
-    if not joined.meta["chroma_union"]["joined"]:  # a near-grey part: force the join to test it
-        joined = select(model, k, views, SelectOptions(chroma_union=1e6, chroma_saturation=0.0))
-        assert joined.meta["chroma_union"]["joined"]
-    assert refused.meta["chroma_union"]["joined"] is False and torch.equal(refused.values, plain.values)
+    assert alone > 0 and joined.meta["chroma_union"]["cells"] == alone and joined.meta["chroma_union"]["joined"]
+    assert grey.meta["chroma_union"] == {"saturation": joined.meta["chroma_union"]["saturation"], "cells": None, "joined": False}
+    for unjoined in (refused, grey):
+        assert unjoined.meta["chroma_union"]["joined"] is False and torch.equal(unjoined.values, plain.values)
     assert bool((joined.values >= plain.values).all()) and bool((joined.mask | ~plain.mask).all())
     assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
     assert options_for("color").chroma_union == options_for("remove").chroma_union == CHROMA_UNION > 0

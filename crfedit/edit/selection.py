@@ -31,7 +31,7 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    one-cell-thick part survives it); only selected cells connected (26-neighbourhood, through
    selected cells) to a scribbled cell stay selected, and a cell holding a keep-stroke point
    scores 0.
-7. **Recolours: chromaticity alone.**  Steps 3–6 on the chromaticity group alone select parts
+7. **Recolours and removals: chromaticity alone.**  Steps 3–6 on the chromaticity group alone select parts
    of the scribbled material that look different elsewhere (a frame's legs, a lit top face);
    for a recolour or a removal (:func:`options_for`) that selection is joined cell by cell,
    unless the part is near-grey or it floods the instance (:attr:`SelectOptions.chroma_union`).
@@ -114,14 +114,16 @@ class SelectOptions:
     chroma_union: float = 0.0
     """Also select what chromaticity alone selects — steps 3–6 on the chromaticity group only,
     joined by a cell-wise max — when that selects at most this × as many cells as the full
-    features do (0: never).  Recolours and removals use :data:`CHROMA_UNION` (:func:`options_for`)."""
+    features do (0: never).  Recolours and removals use :data:`CHROMA_UNION`
+    (:func:`options_for`)."""
     chroma_saturation: float = 0.4
-    """Nor does it join unless the scribbled points' median chromaticity has at least this HSV
-    saturation (max − min) / max (a colour's, which shading does not change): the chromaticity of a near-grey part is mostly the model's
-    colour noise.  Measured (see :data:`CHROMA_UNION`): a white chair 0.07 (joining cost its
-    recolour 1.6 dB outside the part), the tests' weakly trained beige seat 0.24 (joining tinted
-    the other parts 7 levels more), procedural twins 0.22–0.26 (joining changed their gap
-    closed by < 0.03) and 0.70, real wooden and orange parts 0.49–0.82."""
+    """Nor does it join (nor run) unless the scribbled points' median chromaticity has at least
+    this HSV saturation (max − min) / max, a colour's, which shading does not change: the
+    chromaticity of a near-grey part is mostly the model's colour noise.  Measured on the
+    colour twins: a white chair 0.07 (joining cost its recolour 1.6 dB outside the part), the
+    tests' weakly trained beige seat 0.24 (joining tinted the other parts 7 levels more),
+    procedural parts 0.22–0.26 (joining changed their gap closed by < 0.03) and 0.70, real
+    wooden and orange parts 0.49–0.82."""
     smooth: bool = True
     """Blend each cell's value half-and-half with its occupied 3×3×3 neighbourhood's mean."""
     connected: bool = True
@@ -133,9 +135,9 @@ class SelectOptions:
 
 
 CHROMA_UNION = 2.5
-"""Recolours' and removals' :attr:`SelectOptions.chroma_union`.  The full features miss parts of one material
-that look different elsewhere: a wooden frame's legs when its back is scribbled, a lit top
-face.  Chromaticity alone takes them (a Lambertian shading factor cancels in it) but on its own
+"""Recolours' and removals' :attr:`SelectOptions.chroma_union`.  The full features miss parts
+of one material that look different elsewhere: a wooden frame's legs when its back is
+scribbled, a lit top face.  Chromaticity alone takes them (a Lambertian shading factor cancels in it) but on its own
 floods parts of a shared hue.  On the 8 colour twins of the two benchmark categories its
 selection held 0.7–1.9× the full features' cells on 7 and 3.7× on one (IoU 0.36 against the
 full features' 0.82): the factor sits between the two."""
@@ -428,15 +430,16 @@ def select(
     union = None
     if options.chroma_union > 0 and "chroma" in groups and len(groups) > 1:  # see SelectOptions.chroma_union
         c = columns["chroma"]
-        alone = _refine(_classify(("chroma",), [WIDTHS["chroma"]], f_pos[:, c], f_keep[:, c], f_view[:, c], f_cells[:, c], options),
-                        cells, occupied, scribbled, kept, options)
-        n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
         med = f_pos[:, c].median(dim=0).values
         saturation = float((med.max() - med.min()) / med.max().clamp_min(1e-6))
-        union = {"cells": n_alone, "saturation": round(saturation, 3),
-                 "joined": n_alone <= options.chroma_union * max(n_main, 1) and saturation >= options.chroma_saturation}
-        if union["joined"]:
-            values = torch.maximum(values, alone)
+        union = {"saturation": round(saturation, 3), "cells": None, "joined": False}
+        if saturation >= options.chroma_saturation:
+            alone = _refine(_classify(("chroma",), [WIDTHS["chroma"]], f_pos[:, c], f_keep[:, c], f_view[:, c], f_cells[:, c], options),
+                            cells, occupied, scribbled, kept, options)
+            n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
+            union.update(cells=n_alone, joined=n_alone <= options.chroma_union * max(n_main, 1))
+            if union["joined"]:
+                values = torch.maximum(values, alone)
     if options.skin_chroma > 0 and "chroma" in groups:  # see SelectOptions.skin_chroma
         c = columns["chroma"]
         alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
