@@ -2,7 +2,8 @@
 
     python benchmarks/edit_speed.py MODEL DATA [--repeat 7] [--out FILE.md]
 
-Each twin's scribbles are lifted to a selection once (timed as `select`); then its edit — the
+Each twin's scribbles are lifted to the selection its edit makes (the edit kind's options,
+timed as `select`); then its edit — the
 recolour or the removal that `crfedit eval edits` makes, default options — is made ``--repeat``
 times with that selection, after one warm-up edit.  The edit's seconds are the library's own
 : ``EditResult.optimize_seconds``, the 100 optimization steps the goals count, and
@@ -23,9 +24,7 @@ import numpy as np
 import torch
 
 from crfedit.edit import EditOptions
-from crfedit.edit.selection import ScribbleView, select
-from crfedit.evaluation import apply_twin_edit
-from crfedit.twin_scores import appearance
+from crfedit.evaluation import apply_twin_edit, twin_appearance, twin_selection
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -40,7 +39,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
-    select(model, cases[0].instance, [ScribbleView(cases[0].camera, cases[0].scribble, cases[0].keep)])  # warm-up
+    twin_selection(model, cases[0])  # warm-up
     options = EditOptions()
     lines = [
         f"Model `{args.model}`, data `{args.data}`; {platform.processor() or platform.machine()}, torch {torch.__version__}, "
@@ -49,14 +48,10 @@ def main() -> None:
     ]
     per_kind: dict[str, list[tuple[float, float]]] = {}
     for case in cases:
-        inst = category.instance(case.spec.source)
         t = time.perf_counter()
-        sel = select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep)])
+        sel = twin_selection(model, case)
         select_s = time.perf_counter() - t
-        appear = None
-        if case.spec.kind == "color":
-            scribbled = inst.view(case.spec.view)
-            appear = appearance(inst.path, scribbled, case.scribble, case.spec.part, case.spec.color)
+        appear = twin_appearance(category, case)
         edit = lambda: apply_twin_edit(model, case, options, appear=appear, selection=sel)
         edit()  # warm-up
         runs = [edit() for _ in range(args.repeat)]

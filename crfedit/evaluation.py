@@ -32,7 +32,7 @@ from .data.loading import Category, View, load_category, load_twins
 from .distributed import SINGLE, Ranks
 from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
 from .edit.params import GROUP, trained_prefixes
-from .edit.selection import ScribbleView, options_for, select
+from .edit.selection import ScribbleView, Selection, options_for, select
 from .errors import CrfError
 from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
@@ -241,6 +241,20 @@ def load_twin_cases(model: CategoryModel, category: Category) -> list[TwinCase]:
     return twin_cases(model, category, load_twins(category.root, res=model_width(model, "test")))
 
 
+def twin_selection(model: CategoryModel, case: TwinCase) -> Selection:
+    """The selection the twin's edit makes from its scribbles (the edit kind's options)."""
+    return select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep)], options_for(case.spec.kind))
+
+
+def twin_appearance(category: Category, case: TwinCase) -> tuple[float, ...] | None:
+    """The colour a colour twin's part should *appear* under its scribble
+    (:func:`~crfedit.twin_scores.appearance`); None for other twins or without part maps."""
+    if case.spec.kind != "color":
+        return None
+    source = category.instance(case.spec.source)
+    return appearance(source.path, source.view(case.spec.view), case.scribble, case.spec.part, case.spec.color)
+
+
 def apply_twin_edit(
     model: CategoryModel, case: TwinCase, options: EditOptions, instance: int | None = None, method: str = "selection",
     appear: tuple[float, ...] | None = None, selection=None,
@@ -412,11 +426,8 @@ def evaluate_edits(
         context[case.spec.name]["psnr_before"] = runs[-1]["psnr"]
         runs[-1]["psnr_before"] = runs[-1]["psnr"]
         runs[-1]["gap_closed"] = 0.0
-        appear = None
-        if case.spec.kind == "color":
-            scribbled = category.instance(case.spec.source).view(case.spec.view)
-            appear = appearance(source_dir, scribbled, case.scribble, case.spec.part, case.spec.color)
-        sel = select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep)], options_for(case.spec.kind))
+        appear = twin_appearance(category, case)
+        sel = twin_selection(model, case)
         iou = {"selection_iou": selection_iou(model, sel, source_dir, source_views, case.spec.part)}
         for strategy in strategies:
             problem = strategy_problem(model, case.spec.kind, strategy)
