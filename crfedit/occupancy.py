@@ -49,6 +49,20 @@ def _at_cells(grids: Tensor, instance: Tensor, ijk: Tensor) -> Tensor:
     return grids.reshape(-1)[flat]
 
 
+def masked_trilinear(values: Tensor, known: Tensor, xn: Tensor) -> Tensor:
+    """Trilinear interpolation of per-cell ``values`` [R, R, R] at normalized points ``xn``
+    [M, 3] over the ``known`` cells [R, R, R] only: the weights of the other cells are dropped
+    and the rest renormalized; 0 where no known cell is among the eight.  [M]
+
+    A surface the renderer places between an occupied cell and an empty one then reads the
+    occupied cell's value, not a blend with the empty cell's meaningless zero."""
+    g = xn.flip(-1).reshape(1, -1, 1, 1, 3)  # grid_sample's (x, y, z) index (W, H, D) = [iz, iy, ix]
+    known_f = known.to(values.dtype)
+    num = F.grid_sample((values * known_f)[None, None], g, mode="bilinear", align_corners=False).reshape(-1)
+    den = F.grid_sample(known_f[None, None], g, mode="bilinear", align_corners=False).reshape(-1)
+    return torch.where(den > 1e-6, num / den.clamp_min(1e-6), torch.zeros_like(num))
+
+
 def cell_centers(res: int, device: torch.device | str = "cpu") -> Tensor:
     """Normalized centers of all cells, in the grid's flat [ix, iy, iz] order.  [R³, 3]"""
     c = (torch.arange(res, device=device, dtype=torch.float32) + 0.5) / res * 2.0 - 1.0

@@ -15,6 +15,7 @@ from crfedit.occupancy import (
     cell_index,
     dilate,
     lookup,
+    masked_trilinear,
     occupied_box,
     step_size,
     update_from_density,
@@ -45,6 +46,26 @@ def test_lookup_single_occupied_cell():
     outside = torch.tensor([[-0.25, 0.25, 1.2], [-0.25, 0.25, 7.0]])
     assert cell_index(outside, 4)[0].tolist() == [[1, 2, 3], [1, 2, 3]]
     assert lookup(grids, torch.tensor([1, 1]), outside).tolist() == [False, False]
+
+
+def test_masked_trilinear_closed_form():
+    """Trilinear over the known cells only, renormalized; the axes are the grid's [ix, iy, iz]."""
+    res = 4
+    c = lambda i, j, k: [(i + 0.5) / res * 2 - 1, (j + 0.5) / res * 2 - 1, (k + 0.5) / res * 2 - 1]
+    values = torch.full((res, res, res), 7.0)  # unknown cells' values must not count
+    known = torch.zeros(res, res, res, dtype=torch.bool)
+    for ijk, v in (((1, 1, 1), 1.0), ((2, 1, 1), 0.25), ((1, 1, 2), 0.0)):
+        values[ijk], known[ijk] = v, True
+    mid = lambda a, b, t=0.5: [x + t * (y - x) for x, y in zip(c(*a), c(*b))]
+    pts = torch.tensor([
+        c(1, 1, 1),                       # a known centre: its value
+        mid((1, 1, 1), (2, 1, 1)),        # halfway along x: (1 + 0.25) / 2
+        mid((1, 1, 1), (1, 1, 2), 0.25),  # a quarter along z: 0.75 · 1 + 0.25 · 0
+        mid((1, 1, 1), (1, 2, 1), 0.75),  # towards an unknown cell: only the known one counts
+        c(3, 3, 3),                       # no known cell among the eight: 0
+    ])
+    got = masked_trilinear(values, known, pts)
+    assert torch.allclose(got, torch.tensor([1.0, 0.625, 0.75, 1.0, 0.0]), atol=1e-6), got
 
 
 def test_cell_centers_follow_the_flat_grid_order():

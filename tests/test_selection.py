@@ -16,7 +16,7 @@ from crfedit.edit.selection import (
     smooth_over_occupied, connected_to, surface_points,
 )
 from crfedit.edit.core import InstanceEdit
-from crfedit.edit.supervised import PointTargets, RecolorTarget, removal_cells, surface_selected
+from crfedit.edit.supervised import PointTargets, RecolorTarget, removal_cells, sample_share, surface_selected
 from crfedit import occupancy
 from crfedit.errors import CrfError
 from crfedit.masks import dilate, erode
@@ -226,6 +226,30 @@ def test_surface_selected_closed_form():
     assert got.tolist() == [True, True, False, False, False]
 
 
+def test_sample_share_closed_form():
+    """1 in S and for surface-selected samples; S's interpolated share over the occupied cells
+    elsewhere, so a surface sample in the empty cell in front of S takes the new colour and a
+    sample a quarter of the way into the next part a quarter of it; 0 away from S."""
+    res = 8
+    c = lambda i, j, k: [(i + 0.5) / res * 2 - 1, (j + 0.5) / res * 2 - 1, (k + 0.5) / res * 2 - 1]
+    mid = lambda a, b, t: [x + t * (y - x) for x, y in zip(c(*a), c(*b))]
+    sel = torch.zeros(res, res, res, dtype=torch.bool)
+    sel[4, 4, 4] = True
+    grid = sel.clone()
+    grid[4, 4, 5] = True  # another part's occupied cell behind S; (4, 4, 3) in front is empty
+    xn = torch.tensor([
+        c(4, 4, 4),                        # in S
+        mid((4, 4, 3), (4, 4, 4), 0.25),   # in the empty cell in front of S, near S
+        mid((4, 4, 4), (4, 4, 5), 0.75),   # in the next part's cell, a quarter from S
+        c(4, 4, 5),                        # the next part's centre
+        c(1, 1, 1),                        # far away
+    ])
+    ray = torch.arange(5)
+    w = torch.full((5,), 0.5)
+    got = sample_share(sel, grid, ray, xn, w, 5)
+    assert torch.allclose(got, torch.tensor([1.0, 1.0, 0.25, 0.0, 0.0]), atol=1e-6), got
+
+
 def test_point_targets_scale_the_part_and_hold_the_rest(trained):
     """Targets in S are the recolour rule's (here the teacher's colour × ratio, clamped), the
     rest the teacher's; with a ratio of 1 the starting model already meets them exactly."""
@@ -241,8 +265,15 @@ def test_point_targets_scale_the_part_and_hold_the_rest(trained):
         rgb0 = field.radiance(field.features(pt.pts, k), pt.dirs, k)
     inside = occupancy.lookup(sel[None], torch.zeros(len(pt.pts), dtype=torch.long), pt.pts)
     assert 0 < int(inside.sum()) < len(inside)
-    assert torch.allclose(pt.target[inside], (rgb0[inside] * torch.tensor([0.5, 1.5, 1.0])).clamp(0, 1), atol=1e-6)
-    assert torch.allclose(pt.target[~inside], rgb0[~inside], atol=1e-6)
+    new = (rgb0 * torch.tensor([0.5, 1.5, 1.0])).clamp(0, 1)
+    assert torch.allclose(pt.target[inside], new[inside], atol=1e-6)
+    grid = field.occupancy[k]
+    share = occupancy.masked_trilinear((sel & grid).float(), grid, pt.pts)
+    blend = ~inside & (share > 0)  # just outside S: S's interpolated share of the new colour
+    assert 0 < int(blend.sum()) and float(share[blend].max()) < 1
+    assert torch.allclose(pt.target[blend], rgb0[blend] + share[blend, None] * (new[blend] - rgb0[blend]), atol=1e-6)
+    held = ~inside & (share == 0)
+    assert int(held.sum()) > 0 and torch.allclose(pt.target[held], rgb0[held], atol=1e-6)
     assert abs(float(pt.w.sum()) - 1) < 1e-5 and float(pt.loss().detach()) > 0
     same = PointTargets(edit, sel, RecolorTarget([0.6, 0.4, 0.2], torch.tensor([[0.6, 0.4, 0.2]]), "ratio"), 64, torch.Generator().manual_seed(0))
     assert float(same.loss().detach()) < 1e-10

@@ -16,8 +16,9 @@ teacher, θ₀), with targets known in closed form:
   of the scribbled pixels — so it keeps its shading relative to the scribbled pixels (a darker
   pixel stays darker by the same factor) and takes the new colour (:class:`RecolorTarget`;
   ``EditOptions.recolor="ratio"`` is the per-channel c · c_appear / c̄ of before).  Samples
-  near S whose ray's surface lies in S count as inside (:func:`surface_selected`); samples
-  outside S hold their starting colour.  The loss is the weight-averaged per-sample error, the
+  near S whose ray's surface lies in S count as inside (:func:`surface_selected`); other
+  samples and points take the new colour in proportion to S's share interpolated over the
+  occupied cells (:func:`sample_share`), so samples away from S hold their starting colour.  The loss is the weight-averaged per-sample error, the
   pixel error of the views' rays, and the error at 3-D points of the occupied cells seen from
   random directions (:class:`PointTargets`), which reach the faces no supervision ray saw.
 """
@@ -165,6 +166,21 @@ def surface_selected(sel: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: in
     return hit[ray] & occupancy.lookup(occupancy.dilate(sel, 1)[None], zero, xn)
 
 
+def sample_share(sel: Tensor, grid: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: int) -> Tensor:
+    """[m] How much of the part's new colour each sample takes, in [0, 1]: 1 in S's cells and
+    for :func:`surface_selected` samples, else S's share trilinearly interpolated over the
+    instance's occupied cells ``grid`` (:func:`~crfedit.occupancy.masked_trilinear`).
+
+    A cell-wise test alone leaves pixel-sized specks of a recoloured face in the old colour:
+    the rendered surface of a face lying on a cell boundary falls now in the part's cell and
+    now in the empty one beside it.  The interpolation reads the occupied neighbour instead,
+    and blends across the boundary between two parts."""
+    zero = torch.zeros_like(ray)
+    hard = occupancy.lookup(sel[None], zero, xn) | surface_selected(sel, ray, xn, w, n_rays)
+    soft = occupancy.masked_trilinear((sel & grid).to(w.dtype), grid, xn)
+    return torch.maximum(hard.to(w.dtype), soft)
+
+
 class PointTargets:
     """Teacher–student colour targets at 3-D points of the instance's occupied cells, seen
     from random directions: ``n`` points in S (target: ``recolor`` of the teacher's colour) and
@@ -192,7 +208,8 @@ class PointTargets:
             self.inputs = field.F_rad.inputs(feat, self.dirs)  # constant unless upstream modules train
             rgb0 = self.rgb()
             alpha = 1.0 - torch.exp(-field.sigma(raw) * cell)
-            self.target = torch.where(inside[:, None], recolor(rgb0), rgb0)
+            share = torch.maximum(inside.to(rgb0.dtype), occupancy.masked_trilinear((sel & grid).to(rgb0.dtype), grid, self.pts))
+            self.target = rgb0 + share[:, None] * (recolor(rgb0) - rgb0)
             self.w = (alpha / alpha.sum().clamp_min(1e-12))[:, None]
 
     def rgb(self) -> Tensor:
@@ -262,9 +279,8 @@ def recolor_selected(
     with torch.no_grad():
         rgb0, w0, pixel0 = current()
         ray, xn = (p.ray, p.xn_kept) if radiance else (p.samples.ray, p.xn)
-        in_s = occupancy.lookup(sel[None], torch.zeros_like(ray), xn)
-        in_s = in_s | surface_selected(sel, ray, xn, w0, pixel0.shape[0])
-        target_s = torch.where(in_s[:, None], recolor(rgb0), rgb0)
+        share = sample_share(sel, edit.field.occupancy[k], ray, xn, w0, pixel0.shape[0])
+        target_s = rgb0 + share[:, None] * (recolor(rgb0) - rgb0)
         # weights are fixed (density does not change), so a pixel is linear in its samples' colours
         target_px = pixel0.index_add(0, ray, w0[:, None] * (target_s - rgb0))
         w = w0[:, None] / w0.sum().clamp_min(1e-12)
@@ -295,7 +311,7 @@ def recolor_selected(
         "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
         "rays": int(rays.origins.shape[0]), "seed": options.seed, "lambda_reg": options.lambda_reg,
         "appear": [float(c) for c in appear], "recolor_rule": recolor.rule, "ratio": [round(float(r), 4) for r in recolor.appear / recolor.mean],
-        "selected_samples": int(in_s.sum()), "cached_samples": p.n_cached, "stage": p.stage, "cameras": [camera_meta(c) for c in cameras],
+        "selected_samples": round(float(share.sum()), 1), "cached_samples": p.n_cached, "stage": p.stage, "cameras": [camera_meta(c) for c in cameras],
     }
     return finish(edit, "color", hyper, final, started)
 

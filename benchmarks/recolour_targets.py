@@ -1,0 +1,128 @@
+"""How much of each colour twin's gap the recolour's *targets* close, before any network fit:
+every twin's test views rendered with each sample's colour set to the target the recolour's loss
+gives it (the starting model's density, so each pixel is its samples' weighted sum).
+
+    python benchmarks/recolour_targets.py MODEL DATA [--out FILE.md]
+
+Rows vary where the targets say the part is:
+* **cell test**: a sample takes the new colour in S's cells and when its ray's surface lies in S
+  (`supervised.surface_selected`; the rule before `sample_share`);
+* **share** (what the edits use): and elsewhere in proportion to S's share interpolated over the
+  occupied cells (`supervised.sample_share`);
+* each with S from the scribbles (`evaluation.twin_selection`) or the oracle selection of
+  benchmarks/selection.py (ground-truth part maps of the train views);
+* **pixel-perfect**: every sample of a ray whose test-view pixel shows the part (read from the
+  ground truth): what the target rule itself leaves.
+
+Scored like `crfedit eval edits` (mean PSNR over the views, gap closed to the source's own
+reconstruction).  Like edit_ceiling.py it reads answers, so it is a diagnostic, not a method:
+the distance from a row to the edit's own gap closed is the network fit's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import crfedit.evaluation as evaluation
+from crfedit import occupancy
+from crfedit.cameras import rays_from_camera
+from crfedit.edit.cache import edit_passes
+from crfedit.edit.selection import MIN_OPACITY
+from crfedit.edit.supervised import RecolorTarget, sample_share, surface_selected
+from crfedit.metrics import score_images
+from crfedit.renderer import render_camera
+from crfedit.twin_scores import gap_closed, part_map, part_of
+
+_spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
+bench_selection = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bench_selection)
+
+ROWS = (  # (label, selection, rule)
+    ("cell test, selection from the scribbles", "scribbles", "cells"),
+    ("share, selection from the scribbles (the edits' targets)", "scribbles", "share"),
+    ("cell test, oracle selection", "oracle", "cells"),
+    ("share, oracle selection", "oracle", "share"),
+    ("pixel-perfect (ground-truth part pixels)", None, "pixels"),
+)
+
+
+@torch.no_grad()
+def target_render(model, case, category, sel, rule: str) -> list[np.ndarray]:
+    """The twin's test views with every kept sample at its recolour target."""
+    k, field = case.instance, model.field_for(case.instance)
+    view = render_camera(field, case.camera, k)
+    on = torch.from_numpy(case.scribble) & (view.opacity.cpu() >= MIN_OPACITY)
+    recolor = RecolorTarget(evaluation.twin_appearance(category, case), view.rgb.cpu()[on])
+    grid = field.occupancy[k]
+    inst = category.instance(case.spec.source)
+    part_id = part_of(inst.path, case.spec.part)["id"]
+    images = []
+    for source_view, twin_view in zip(inst.splits["test"], case.views):
+        rays = rays_from_camera(twin_view.camera, model.device)
+        (p,) = edit_passes(field, rays, k, ["F_rad.", "color_codes"], density_changes=False)
+        _, code = field.codes(k)
+        rgb0 = p.sample_rgb(p.net, code)
+        n = p.constant.shape[0]
+        if rule == "pixels":
+            on_part = torch.from_numpy(part_map(inst.path, source_view).reshape(-1) == part_id).to(p.ray.device)
+            share = on_part[p.ray].to(rgb0.dtype)
+        else:
+            m = sel.mask.to(grid.device) & grid
+            if rule == "cells":
+                hard = occupancy.lookup(m[None], torch.zeros_like(p.ray), p.xn_kept) | surface_selected(m, p.ray, p.xn_kept, p.w, n)
+                share = hard.to(rgb0.dtype)
+            else:
+                share = sample_share(m, grid, p.ray, p.xn_kept, p.w, n)
+        target = rgb0 + share[:, None] * (recolor(rgb0) - rgb0)
+        pixels = p.constant.index_add(0, p.ray, p.w[:, None] * target)
+        h, w = twin_view.rgb.shape[:2]
+        images.append(pixels.clamp(0, 1).view(h, w, 3).cpu().numpy())
+    return images
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("model")
+    ap.add_argument("data")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
+    cases = [c for c in cases if c.spec.kind == "color" and evaluation.twin_appearance(category, c) is not None]
+    if not cases:
+        raise SystemExit("no colour twin with part maps in this dataset")
+    selections, before, ceiling = {}, [], []
+    for case in cases:
+        inst = category.instance(case.spec.source)
+        selections[case.spec.name] = {
+            "scribbles": evaluation.twin_selection(model, case),
+            "oracle": bench_selection.oracle_selection(model, case, inst, part_of(inst.path, case.spec.part)["id"]),
+        }
+        unedited = [o.rgb.clamp(0, 1).cpu().numpy() for o in evaluation.render_views(model, case.instance, [v.camera for v in case.views])]
+        before.append(score_images(unedited, [v.rgb for v in case.views])["psnr"])
+        ceiling.append(score_images(unedited, [v.rgb for v in inst.splits["test"][: len(case.views)]])["psnr"])
+    names = [c.spec.name for c in cases]
+    lines = [
+        f"Model `{args.model}`, data `{args.data}`, {len(cases)} colour twins; gap closed by the target render (no fit).", "",
+        "| targets | mean gap closed | " + " | ".join(names) + " |", "|---|---:|" + "---:|" * len(names),
+    ]
+    for label, which, rule in ROWS:
+        gaps = []
+        for i, case in enumerate(cases):
+            sel = selections[case.spec.name][which] if which else None
+            images = target_render(model, case, category, sel, rule)
+            gaps.append(gap_closed(score_images(images, [v.rgb for v in case.views])["psnr"], before[i], ceiling[i]))
+        lines.append(f"| {label} | {np.mean(gaps):.3f} | " + " | ".join(f"{g:.3f}" for g in gaps) + " |")
+        print(lines[-1], flush=True)
+    text = "\n".join(lines)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
