@@ -18,9 +18,10 @@ teacher, θ₀), with targets known in closed form:
   ``EditOptions.recolor="ratio"`` is the per-channel c · c_appear / c̄ of before).  Samples
   near S whose ray's surface lies in S count as inside (:func:`surface_selected`); other
   samples and points take the new colour in proportion to S's share interpolated over the
-  occupied cells (:func:`sample_share`), so samples away from S hold their starting colour.  The loss is the weight-averaged per-sample error, the
-  pixel error of the views' rays, and the error at 3-D points of the occupied cells seen from
-  random directions (:class:`PointTargets`), which reach the faces no supervision ray saw.
+  occupied cells (:func:`sample_share`), so samples away from S hold their starting colour.
+  The loss is the weight-averaged per-sample error, the pixel error of the views' rays, and
+  the error at 3-D points of the occupied cells seen from random directions
+  (:class:`PointTargets`), which reach the faces no supervision ray saw.
 """
 
 from __future__ import annotations
@@ -184,7 +185,9 @@ def sample_share(sel: Tensor, grid: Tensor, ray: Tensor, xn: Tensor, w: Tensor, 
 class PointTargets:
     """Teacher–student colour targets at 3-D points of the instance's occupied cells, seen
     from random directions: ``n`` points in S (target: ``recolor`` of the teacher's colour) and
-    ``2n`` outside (target: the teacher's colour), half of those within two cells of S.
+    ``2n`` outside (target: the teacher's colour, blended towards ``recolor`` by S's
+    interpolated share where S is less than a cell away, as in :func:`sample_share`), half of
+    those within two cells of S.
 
     The views' rays reach only the surfaces those views see, from their directions; F_rad also
     reads the view direction, so without these points a face no supervision ray saw (a side
