@@ -6,7 +6,7 @@ gives it (the starting model's density, so each pixel is its samples' weighted s
 
 Rows vary where the targets say the part is:
 * **cell test**: a sample takes the new colour in S's cells and when its ray's surface lies in S
-  (`supervised.surface_selected`; the rule before `sample_share`);
+  (`supervised.in_selection`; the rule before `sample_share`);
 * **share** (what the edits use): and elsewhere in proportion to S's share interpolated over the
   occupied cells (`supervised.sample_share`);
 * each with S from the scribbles (`evaluation.twin_selection`) or the oracle selection of
@@ -29,11 +29,10 @@ import numpy as np
 import torch
 
 import crfedit.evaluation as evaluation
-from crfedit import occupancy
 from crfedit.cameras import rays_from_camera
 from crfedit.edit.cache import edit_passes
 from crfedit.edit.selection import MIN_OPACITY
-from crfedit.edit.supervised import RecolorTarget, sample_share, surface_selected
+from crfedit.edit.supervised import RecolorTarget, in_selection, selection_share
 from crfedit.metrics import score_images
 from crfedit.renderer import render_camera
 from crfedit.twin_scores import gap_closed, part_map, part_of
@@ -73,12 +72,9 @@ def target_render(model, case, category, sel, rule: str) -> list[np.ndarray]:
             share = on_part[p.ray].to(rgb0.dtype)
         else:
             m = sel.mask.to(grid.device) & grid
-            if rule == "cells":
-                hard = occupancy.lookup(m[None], torch.zeros_like(p.ray), p.xn_kept) | surface_selected(m, p.ray, p.xn_kept, p.w, n)
-                share = hard.to(rgb0.dtype)
-            else:
-                share = sample_share(m, grid, p.ray, p.xn_kept, p.w, n)
-        target = rgb0 + share[:, None] * (recolor(rgb0) - rgb0)
+            full = in_selection(m, p.ray, p.xn_kept, p.w, n)
+            share = full.to(rgb0.dtype) if rule == "cells" else selection_share(m, grid, p.xn_kept, full)
+        target = recolor.toward(rgb0, share)
         pixels = p.constant.index_add(0, p.ray, p.w[:, None] * target)
         h, w = twin_view.rgb.shape[:2]
         images.append(pixels.clamp(0, 1).view(h, w, 3).cpu().numpy())

@@ -167,26 +167,35 @@ def surface_selected(sel: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: in
     return hit[ray] & occupancy.lookup(occupancy.dilate(sel, 1)[None], zero, xn)
 
 
-def sample_share(sel: Tensor, grid: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: int) -> Tensor:
-    """[m] How much of the part's new colour each sample takes, in [0, 1]: 1 in S's cells and
-    for :func:`surface_selected` samples, else S's share trilinearly interpolated over the
-    instance's occupied cells ``grid`` (:func:`~crfedit.occupancy.masked_trilinear`).
+def in_selection(sel: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: int) -> Tensor:
+    """[m] True for the samples in S's cells and the :func:`surface_selected` ones: the cell
+    test, which takes the part's new colour fully."""
+    return occupancy.lookup(sel[None], torch.zeros_like(ray), xn) | surface_selected(sel, ray, xn, w, n_rays)
+
+
+def selection_share(sel: Tensor, grid: Tensor, xn: Tensor, full: Tensor) -> Tensor:
+    """[m] How much of the part's new colour each point ``xn`` takes, in [0, 1]: 1 where
+    ``full``, else S's share trilinearly interpolated over the instance's occupied cells
+    ``grid`` (:func:`~crfedit.occupancy.masked_trilinear`).
 
     A cell-wise test alone leaves pixel-sized specks of a recoloured face in the old colour:
     the rendered surface of a face lying on a cell boundary falls now in the part's cell and
     now in the empty one beside it.  The interpolation reads the occupied neighbour instead,
     and blends across the boundary between two parts."""
-    zero = torch.zeros_like(ray)
-    hard = occupancy.lookup(sel[None], zero, xn) | surface_selected(sel, ray, xn, w, n_rays)
-    soft = occupancy.masked_trilinear((sel & grid).to(w.dtype), grid, xn)
-    return torch.maximum(hard.to(w.dtype), soft)
+    soft = occupancy.masked_trilinear((sel & grid).to(xn.dtype), grid, xn)
+    return torch.maximum(full.to(soft.dtype), soft)
+
+
+def sample_share(sel: Tensor, grid: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: int) -> Tensor:
+    """[m] Each sample's :func:`selection_share`, full for the samples :func:`in_selection`."""
+    return selection_share(sel, grid, xn, in_selection(sel, ray, xn, w, n_rays))
 
 
 class PointTargets:
     """Teacher–student colour targets at 3-D points of the instance's occupied cells, seen
     from random directions: ``n`` points in S (target: ``recolor`` of the teacher's colour) and
     ``2n`` outside (target: the teacher's colour, blended towards ``recolor`` by S's
-    interpolated share where S is less than a cell away, as in :func:`sample_share`), half of
+    interpolated share where S is less than a cell away, :func:`selection_share`), half of
     those within two cells of S.
 
     The views' rays reach only the surfaces those views see, from their directions; F_rad also
@@ -211,8 +220,7 @@ class PointTargets:
             self.inputs = field.F_rad.inputs(feat, self.dirs)  # constant unless upstream modules train
             rgb0 = self.rgb()
             alpha = 1.0 - torch.exp(-field.sigma(raw) * cell)
-            share = torch.maximum(inside.to(rgb0.dtype), occupancy.masked_trilinear((sel & grid).to(rgb0.dtype), grid, self.pts))
-            self.target = rgb0 + share[:, None] * (recolor(rgb0) - rgb0)
+            self.target = recolor.toward(rgb0, selection_share(sel, grid, self.pts, inside))
             self.w = (alpha / alpha.sum().clamp_min(1e-12))[:, None]
 
     def rgb(self) -> Tensor:
@@ -245,6 +253,10 @@ class RecolorTarget:
         self.rule = rule
         self.mean = rendered.mean(dim=0).clamp_min(MIN_MEAN_COLOR)
         self.appear = torch.as_tensor(appear, dtype=self.mean.dtype, device=self.mean.device)
+
+    def toward(self, rgb: Tensor, share: Tensor) -> Tensor:
+        """``rgb`` [m, 3] moved ``share`` [m] of the way to its target: rgb + share · (target − rgb)."""
+        return rgb + share[:, None] * (self(rgb) - rgb)
 
     def __call__(self, rgb: Tensor) -> Tensor:
         if self.rule == "ratio":
@@ -283,7 +295,7 @@ def recolor_selected(
         rgb0, w0, pixel0 = current()
         ray, xn = (p.ray, p.xn_kept) if radiance else (p.samples.ray, p.xn)
         share = sample_share(sel, edit.field.occupancy[k], ray, xn, w0, pixel0.shape[0])
-        target_s = rgb0 + share[:, None] * (recolor(rgb0) - rgb0)
+        target_s = recolor.toward(rgb0, share)
         # weights are fixed (density does not change), so a pixel is linear in its samples' colours
         target_px = pixel0.index_add(0, ray, w0[:, None] * (target_s - rgb0))
         w = w0[:, None] / w0.sum().clamp_min(1e-12)
