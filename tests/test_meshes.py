@@ -20,12 +20,16 @@ from crfedit.cli import app  # noqa: E402
 from crfedit.data.loading import load_category, load_twins, read_twin_specs  # noqa: E402
 from crfedit.data.mesh_io import albedo_table, load_normalized, load_part_mesh, normalize_mesh, part_colors  # noqa: E402
 from crfedit.data.meshes import (  # noqa: E402
+    MAX_HIDDEN_SHARE,
     MeshDatasetConfig,
     RayScene,
     facing_normals,
+    hidden_share,
+    in_frame,
     instance_names_from,
     removable_parts,
     render_view,
+    stroke_view,
     separable_parts,
     write_mesh_category,
 )
@@ -182,7 +186,7 @@ def test_twins_and_attribution(boxes, tmp_path):
         json.dumps({"name": "Box chair", "creator": "A. Maker", "license": "CC-BY 3.0", "source": "https://example.org/b"})
     )
     out = tmp_path / "data"
-    result = write_mesh_category(out, [boxes], MeshDatasetConfig(views=10, res=32, seed=0))
+    result = write_mesh_category(out, [boxes], MeshDatasetConfig(views=20, res=32, seed=0))
     specs = {s.kind: s for s in read_twin_specs(out)}
     assert set(specs) == {"color", "remove"}
     assert specs["remove"].part == "post" and specs["color"].part == "seat"
@@ -196,6 +200,57 @@ def test_twins_and_attribution(boxes, tmp_path):
     text = (out / "ATTRIBUTION.txt").read_text()
     assert "two_boxes (from two_boxes.obj)" in text and "A. Maker" in text and "CC-BY 3.0" in text
     assert "https://example.org/b" in text
+
+
+def write_cushion_on_seat(folder: Path) -> Path:
+    """A seat slab with a cushion lying on it: removing the cushion uncovers the seat's top,
+    which no camera saw."""
+    v1, f1 = box_obj((-0.5, -0.5, -0.5), (0.5, 0.5, 0.0), 1)
+    v2, f2 = box_obj((-0.4, -0.4, 0.0), (0.4, 0.4, 0.1), 9)
+    (folder / "cushion.mtl").write_text("newmtl seat\nKd 0.8 0.2 0.1\n\nnewmtl cushion\nKd 0.1 0.3 0.9\n")
+    path = folder / "cushion.obj"
+    path.write_text("\n".join(["mtllib cushion.mtl", *v1, *v2, "usemtl seat", *f1, "usemtl cushion", *f2]) + "\n")
+    return path
+
+
+def test_in_frame_closed_form():
+    cam = camera([0.0, -2.0, 0.0], [0.0, 0.0, 0.0], res=33)
+    points = np.array([[0, 0, 0], [0, -3, 0], [5, 0, 0], [0.3, 0, 0.3]], dtype=float)
+    # the target, behind the camera, far off to the side (x/depth = 2.5 > tan(fov/2)), inside
+    assert in_frame(cam, points).tolist() == [True, False, False, True]
+
+
+def test_hidden_share_tells_a_cushion_from_a_post(boxes, tmp_path):
+    from crfedit.data.synth import sample_cameras
+
+    cams = sample_cameras(np.random.default_rng(0), 50, 32)
+    post = load_part_mesh(boxes)
+    # behind a post: background and seen seat, but for its footprint (the post's top in view)
+    assert 0.1 < hidden_share(post, 1, cams["test"], cams["train"]) < MAX_HIDDEN_SHARE
+    cushion = load_part_mesh(write_cushion_on_seat(tmp_path))
+    assert [p.name for p in cushion.parts] == ["cushion", "seat"]
+    # under it the unseen seat top; from low views, past its far edge, the background
+    assert hidden_share(cushion, 1, cams["test"], cams["train"]) > 0.8
+    assert hidden_share(cushion, 1, cams["test"], cams["train"] + cams["val"]) > 0.8  # however many views
+    # a removal twin must not measure inpainting: the cushion gets a colour twin only
+    out = tmp_path / "data"
+    write_mesh_category(out, [tmp_path / "cushion.obj"], MeshDatasetConfig(views=10, res=32, seed=0))
+    assert [s.kind for s in read_twin_specs(out)] == ["color"]
+
+
+def test_thin_parts_get_strokes_along_them():
+    from crfedit.data.synth import scribbles, stroke_region
+    from crfedit.masks import erode
+
+    parts = np.zeros((32, 32), dtype=np.uint8)
+    parts[4:28, 10] = 1  # a 1-px leg, 24 px long
+    parts[8:18, 16:26] = 2  # a 10×10 seat
+    assert (stroke_region(parts == 2, 16) == erode(parts == 2, 2)).all()  # 6×6 = 36 ≥ 16
+    assert (stroke_region(parts == 1, 16) == (parts == 1)).all()  # erosion would leave nothing
+    fg, keep = scribbles(np.random.default_rng(0), parts, 1)
+    assert fg.sum() >= 3 and (fg <= (parts == 1)).all()  # on the leg, not a speck beside it
+    frames = [type("F", (), {"parts": parts})(), type("F", (), {"parts": np.where(parts == 1, 0, parts)})()]
+    assert stroke_view(frames, 1, 16) == (0, 24)
 
 
 def test_same_seed_same_files(boxes, tmp_path):

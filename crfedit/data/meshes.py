@@ -47,7 +47,9 @@ from .synth import (
     check_synth_args,
     contrasting_color,
     sample_cameras,
+    min_scribble_pixels,
     scribbles,
+    stroke_region,
     twin_sources,
 )
 
@@ -156,11 +158,6 @@ def part_areas(mesh: PartMesh) -> np.ndarray:
     return np.bincount(mesh.face_part, weights=area, minlength=len(mesh.parts) + 1)
 
 
-def min_scribble_pixels(res: int) -> int:
-    """Interior pixels a part needs in its best view to be scribbled on: 16 at 64×64, ∝ area."""
-    return max(4, round(16 * (res / 64) ** 2))
-
-
 def scribble_view(frames: list[Frame], part_id: int) -> tuple[int, int]:
     """(index, pixel count) of the frame where the part's interior — its mask eroded by 2 px,
     where synth's :func:`scribbles` puts the strokes — is largest.  Thin parts (tubes, frames,
@@ -168,6 +165,71 @@ def scribble_view(frames: list[Frame], part_id: int) -> tuple[int, int]:
     """
     counts = [int(erode(f.parts == part_id, 2).sum()) for f in frames]
     return int(np.argmax(counts)), max(counts)
+
+
+def stroke_view(frames: list[Frame], part_id: int, need: int) -> tuple[int, int]:
+    """(index, pixel count) of the frame where synth's :func:`scribbles` have the most room on
+    the part: its :func:`stroke_region`, which falls back to the uneroded part for thin parts
+    (legs, tubes) that :func:`scribble_view` scores near zero."""
+    counts = [int(stroke_region(f.parts == part_id, need).sum()) for f in frames]
+    return int(np.argmax(counts)), max(counts)
+
+
+def in_frame(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """Which world ``points [N, 3]`` project inside the image, in front of the camera.  [N]"""
+    local = (points - camera.c2w[:3, 3]) @ camera.c2w[:3, :3]  # camera axes: x right, y up, −z ahead
+    ahead = -local[:, 2]
+    safe = np.where(ahead > 0, ahead, 1.0)
+    u = local[:, 0] / safe * camera.focal + 0.5 * camera.width
+    v = -local[:, 1] / safe * camera.focal + 0.5 * camera.height
+    return (ahead > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+
+
+def seen_from(scene: RayScene, cameras: list[Camera], points: np.ndarray, tolerance: float = 2e-3) -> np.ndarray:
+    """Which surface ``points [N, 3]`` some camera sees: in its frame, and its ray's first hit is
+    no nearer than the point (less ``tolerance``, in the normalized object's units).  [N]"""
+    seen = np.zeros(len(points), dtype=bool)
+    for cam in cameras:
+        todo = ~seen & in_frame(cam, points)
+        if not todo.any():
+            continue
+        origin = cam.c2w[:3, 3]
+        ray = points[todo] - origin
+        dist = np.linalg.norm(ray, axis=1)
+        _, t = scene.first_hits(np.ascontiguousarray(np.broadcast_to(origin, ray.shape)), ray / dist[:, None])
+        seen[np.flatnonzero(todo)[t >= dist - tolerance]] = True
+    return seen
+
+
+def hidden_share(mesh: PartMesh, part_id: int, views: list[Camera], seen_by: list[Camera]) -> float:
+    """Share of the part's pixels in ``views`` where removing it uncovers a surface no camera of
+    ``seen_by`` saw: 0 for a part that hides only background and seen faces (arms, legs), near 1
+    for a cushion on a seat.
+
+    A removal twin shows what lay behind the part.  What no training view saw (a seat's top
+    under its cushion) no edit can recover from the model, so a twin that uncovers it measures
+    inpainting, not removal; :func:`twin_parts` avoids such parts.
+    """
+    scene, without = RayScene(mesh), RayScene(mesh.without_part(part_id))
+    pixels = hidden = 0
+    for cam in views:
+        origins, directions = camera_rays(cam)
+        face, _ = scene.first_hits(np.ascontiguousarray(origins), directions)
+        on_part = (face >= 0) & (mesh.face_part[np.maximum(face, 0)] == part_id)
+        o, d = np.ascontiguousarray(origins[on_part]), directions[on_part]
+        behind, t = without.first_hits(o, d) if len(o) else (np.zeros(0, dtype=np.int64), np.zeros(0))
+        uncovered = behind >= 0
+        points = o[uncovered] + d[uncovered] * (t[uncovered, None] - 1e-3)  # just in front of the face
+        pixels += int(on_part.sum())
+        hidden += int((~seen_from(scene, seen_by, points)).sum()) if len(points) else 0
+    return hidden / pixels if pixels else 0.0
+
+
+MAX_HIDDEN_SHARE = 0.25
+"""The most :func:`hidden_share` a removal twin's part may have.  On the 24 real chairs of
+``examples/real-chairs.sh``: legs, frames, feet and an armrest 0.00–0.14 (a post standing on a
+seat, its footprint: about 0.17); small glides and caps, a wooden frame, a leather pad
+0.24–0.53; cushions and seat pads 0.63–0.94."""
 
 
 def removable_parts(mesh: PartMesh) -> list[int]:
@@ -227,8 +289,8 @@ def instance_names_from(paths: list[Path]) -> list[str]:
 
 def mesh_steps(meshes: int, config: MeshDatasetConfig) -> int:
     """Progress steps :func:`write_mesh_category` reports at most: one per mesh, one per twin
-    source (fewer sources when few meshes have parts big enough to scribble on)."""
-    return meshes + (len(twin_sources(meshes)) if config.twins else 0)
+    source (up to 4 per twin kind; fewer when few meshes have parts fit for twins)."""
+    return meshes + (min(meshes, 2 * len(twin_sources(meshes))) if config.twins else 0)
 
 
 def _check(out: Path, paths: list[Path], config: MeshDatasetConfig) -> None:
@@ -253,6 +315,8 @@ class _Instance:
     colors: list[str]
     cams: dict[str, list[Camera]]
     room: dict[int, tuple[int, int]]  # part id → scribble_view(train frames, id)
+    reach: dict[int, tuple[int, int]]  # removable part id → stroke_view(train frames, id, need)
+    hidden: dict[int, float]  # removable part id → hidden_share on the test views
 
 
 def _write_instance(
@@ -270,26 +334,27 @@ def _write_instance(
 def twin_parts(inst: _Instance, res: int) -> tuple[int | None, int | None]:
     """(part to recolor, part to remove) of an instance, None where there is none.
 
-    Remove the :func:`removable_parts` one with the most scribble room (:func:`scribble_view`);
-    recolor the part with the most room among the others (the removed one if it is the only
-    candidate).  Each needs :func:`min_scribble_pixels`.
+    Remove the :func:`removable_parts` one with the most stroke room (:func:`stroke_view`, thin
+    parts allowed) among those whose removal uncovers at most :data:`MAX_HIDDEN_SHARE` of
+    never-seen surface (:func:`hidden_share`); recolor the part with the most scribble room
+    (:func:`scribble_view`) among the others (the removed one if it is the only candidate).
+    Each needs :func:`min_scribble_pixels`.
     """
     need = min_scribble_pixels(res)
     room = {pid: count for pid, (_, count) in inst.room.items() if count >= need}
-    removable = [pid for pid in removable_parts(inst.mesh) if pid in room]
-    remove = max(removable, key=room.get) if removable else None
+    reach = {pid: count for pid, (_, count) in inst.reach.items() if count >= need and inst.hidden[pid] <= MAX_HIDDEN_SHARE}
+    remove = max(reach, key=reach.get) if reach else None
     others = {pid: count for pid, count in room.items() if pid != remove} or room
     return (max(others, key=others.get) if others else None), remove
 
 
-def pick_twin_sources(instances: list[_Instance], res: int) -> list[int]:
-    """Up to 4 instances spread over the list, drawn from those with a part to remove when
-    enough have one (so most sources get both twins), else from those with a part to recolor."""
+def pick_twin_sources(instances: list[_Instance], res: int) -> dict[str, list[int]]:
+    """Per twin kind, up to 4 instances spread over those that have a part for it
+    (:func:`twin_parts`).  The kinds draw from their own pools: which chairs get a removal twin
+    (few parts uncover nothing unseen) does not move the colour twins."""
     picks = [twin_parts(inst, res) for inst in instances]
-    both = [i for i, (c, r) in enumerate(picks) if c is not None and r is not None]
-    some = [i for i, (c, r) in enumerate(picks) if c is not None or r is not None]
-    pool = both if len(both) >= min(4, len(some)) else some
-    return [pool[k] for k in twin_sources(len(pool))]
+    pools = {kind: [i for i, pick in enumerate(picks) if pick[k] is not None] for k, kind in enumerate(("color", "remove"))}
+    return {kind: [pool[k] for k in twin_sources(len(pool))] for kind, pool in pools.items()}
 
 
 def _write_twin(
@@ -304,7 +369,7 @@ def _write_twin(
         color = None
         twin_mesh, twin_colors = inst.mesh.without_part(part_id), inst.colors
     _write_instance(out / folder, twin_mesh, twin_colors, {"test": inst.cams["test"]}, config.aa)
-    view = inst.room[part_id][0]
+    view = (inst.room if kind == "color" else inst.reach)[part_id][0]
     source_view = render_view(RayScene(inst.mesh), inst.cams["train"][view], albedo_table(inst.mesh, inst.colors))
     rng = np.random.default_rng([config.seed, index, 2 if kind == "color" else 3])
     fg, keep = scribbles(rng, source_view.parts, part_id)
@@ -363,14 +428,18 @@ def write_mesh_category(
         cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
         frames = _write_instance(out / name, mesh, colors, cams, config.aa)
         room = {p.id: scribble_view(frames["train"], p.id) for p in mesh.parts}
-        instances.append(_Instance(name, mesh, colors, cams, room))
+        need = min_scribble_pixels(config.res)
+        reach = {pid: stroke_view(frames["train"], pid, need) for pid in removable_parts(mesh)} if config.twins else {}
+        hidden = {pid: hidden_share(mesh, pid, cams["test"], cams["train"]) for pid, (_, n) in reach.items() if n >= need}
+        instances.append(_Instance(name, mesh, colors, cams, room, reach, hidden))
         if progress:
             progress(name)
     twins: list[TwinSpec] = []
-    for index in pick_twin_sources(instances, config.res) if config.twins else []:
-        recolor, remove = twin_parts(instances[index], config.res)
-        for kind, part_id in (("color", recolor), ("remove", remove)):
-            if part_id is not None:
+    sources = pick_twin_sources(instances, config.res) if config.twins else {}
+    for index in sorted(set(sum(sources.values(), []))):
+        for k, kind in enumerate(("color", "remove")):
+            if index in sources[kind]:
+                part_id = twin_parts(instances[index], config.res)[k]
                 twins.append(_write_twin(out, instances[index], index, kind, part_id, config))
         if progress:
             progress(f"{names[index]} twins")

@@ -318,15 +318,31 @@ def random_strokes(rng: np.random.Generator, region: np.ndarray, count: int, ste
     return strokes_mask(region.shape, strokes, radius) & region
 
 
+def min_scribble_pixels(res: int) -> int:
+    """Interior pixels a part needs in its best view to be scribbled on: 16 at 64×64, ∝ area."""
+    return max(4, round(16 * (res / 64) ** 2))
+
+
+def stroke_region(part: np.ndarray, need: int) -> np.ndarray:
+    """Where strokes on a part mask [H, W] go: the part eroded by 2 px, else by 1, else the
+    part itself, whichever first keeps ``need`` pixels.  A thin part (a leg, a tube) gets
+    strokes along it rather than a speck in its one pixel that survives erosion."""
+    for radius in (2, 1):
+        inside = erode(part, radius)
+        if inside.sum() >= need:
+            return inside
+    return part
+
+
 def scribbles(rng: np.random.Generator, parts: np.ndarray, part_id: int) -> tuple[np.ndarray, np.ndarray]:
     """(foreground, keep) masks for editing part ``part_id`` in a part map [H, W].
 
-    Foreground strokes lie inside the part eroded by 2 px (1 or 0 px when the part is too thin);
-    keep strokes lie on other parts and the background, off the part dilated by 3 px.
+    Foreground strokes lie in the part's :func:`stroke_region`; keep strokes lie on other parts
+    and the background, off the part dilated by 3 px.
     """
     part = parts == part_id
-    inside = next((m for m in (erode(part, r) for r in (2, 1, 0)) if m.any()), part)
     size = parts.shape[1]
+    inside = stroke_region(part, min_scribble_pixels(size))
     step, radius = max(3.0, size / 10), max(1.0, size / 48)
     fg = random_strokes(rng, inside, 3, step, radius)
     away = ~dilate(part, 3)
