@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    CHROMA_UNION, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
+    CHROMA_UNION, COLOR_THRESHOLD, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
     smooth_over_occupied, connected_to, surface_points,
 )
 from crfedit.edit.core import InstanceEdit
@@ -88,6 +88,19 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
     assert options_for("color").chroma_union == options_for("remove").chroma_union == CHROMA_UNION > 0
     assert options_for("add").chroma_union == 0
+    # recolours select at the lower threshold, after the same refinement: same values, more cells
+    assert options_for("color").select_threshold == COLOR_THRESHOLD < 0.5
+    assert options_for("remove").select_threshold is None and options_for("add").select_threshold is None
+    low = select(model, k, views, SelectOptions(select_threshold=COLOR_THRESHOLD, band_chroma=0.0))
+    assert torch.equal(low.values, plain.values) and low.threshold == COLOR_THRESHOLD and plain.threshold == 0.5
+    assert low.meta["selected_cells"] == int((plain.values >= COLOR_THRESHOLD).sum()) == int(low.mask.sum())
+    assert int(low.mask.sum()) > int(plain.mask.sum()) and bool((low.mask | ~plain.mask).all())
+    # the chromaticity test only caps cells of the 0.3–0.5 band below 0.3, and takes some
+    gated = select(model, k, views, SelectOptions(select_threshold=COLOR_THRESHOLD))
+    changed = gated.values != plain.values
+    band = (plain.values >= COLOR_THRESHOLD) & (plain.values < 0.5)
+    assert bool(changed.any()) and bool((band | ~changed).all()) and bool((gated.values[changed] < COLOR_THRESHOLD).all())
+    assert int(plain.mask.sum()) <= int(gated.mask.sum()) < int(low.mask.sum())
     with pytest.raises(CrfError, match="a selection for 'bogus'"):
         options_for("bogus")
 
@@ -389,7 +402,8 @@ def test_select_command_and_its_errors(trained, tmp_path):
                             "--preview", str(tmp_path / "after"), "--views", "orbit:3"])
     assert r.exit_code == 0, r.output
     assert edit_out.is_file() and len(list((tmp_path / "after").glob("*.png"))) == 3
-    assert "warning" not in r.output  # a recolour's selection is what a removal makes too
+    # a recolour's selection takes the 0.3–0.5 band, which a removal's does not
+    assert "made with crfedit select --for color; this remove edit's own selection would be --for remove" in r.output
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--steps", "1",
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(tmp_path / "a.safetensors"),
                             "--out", str(tmp_path / "e2.safetensors")])
