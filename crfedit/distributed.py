@@ -143,11 +143,26 @@ def _checksum(t: Tensor) -> Tensor:
     return torch.stack([flat.sum(), (flat * weights).sum()])
 
 
+_BROKEN = False
+
+
+def broken() -> bool:
+    """Whether a collective of this process has failed (another rank died or timed out).
+
+    The process group is then left as it is: gloo reports a dead peer from its own threads, and
+    tearing down its connections afterwards can abort the process (``terminate called after
+    throwing gloo::IoException``, SIGABRT) before the one-line error reaches the user.  The
+    command line exits with ``os._exit`` after printing it (:func:`crfedit.cli.main`)."""
+    return _BROKEN
+
+
 @contextmanager
 def _collective(ranks: Ranks, what: str) -> Iterator[None]:
+    global _BROKEN
     try:
         yield
     except RuntimeError as e:  # torch's DistBackendError and gloo/nccl errors are RuntimeErrors
+        _BROKEN = True
         first = str(e).strip().splitlines()[0][:160] if str(e).strip() else e.__class__.__name__
         raise DistributedError(
             f"rank {ranks.rank} of {ranks.world}: {what} failed, another rank stopped or the collective "
@@ -220,7 +235,8 @@ def process_group(ranks: Ranks, device: torch.device, timeout_s: float | None = 
     try:
         yield ranks
     finally:
-        dist.destroy_process_group()
+        if not _BROKEN:  # see broken(): a group with a dead peer is not torn down
+            dist.destroy_process_group()
 
 
 def rank_seed(seed: int, rank: int, step: int = 0) -> int:

@@ -31,7 +31,7 @@ from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.data.loading import training_rays
 from crfedit.distributed import SINGLE as SINGLE_RANK
-from crfedit.distributed import DistributedError, Ranks, process_group, rank_device, rank_seed, ranks_from_env
+from crfedit.distributed import DistributedError, Ranks, broken, process_group, rank_device, rank_seed, ranks_from_env
 from crfedit.errors import CrfError
 from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.edit import EditOptions
@@ -111,6 +111,9 @@ def _worker(rank: int, port: int, data: str, out: str) -> None:
         except DistributedError as e:
             outcome = str(e)
         (out_dir / f"crash.rank{rank}.txt").write_text(outcome)
+        (out_dir / f"broken.rank{rank}.txt").write_text(str(broken()))
+    if broken():  # as the command line does: no teardown of a group whose peer died (it can abort)
+        os._exit(0)
 
 
 def _free_port() -> int:
@@ -178,6 +181,7 @@ def test_two_ranks_with_half_the_rays_each_match_one_process(two_ranks, tiny_cha
 def test_a_dead_rank_stops_the_job_and_the_checkpoint_resumes_in_one_process(two_ranks, tiny_chairs, tmp_path):
     message = (two_ranks / "crash.rank0.txt").read_text()
     assert message.startswith("rank 0 of 2: averaging gradients failed, another rank stopped"), message
+    assert (two_ranks / "broken.rank0.txt").read_text() == "True" and not broken()  # flagged there, not here
     path = tmp_path / "crash.safetensors"
     path.write_bytes((two_ranks / "crash.safetensors").read_bytes())
     model, state = load_model(path)
@@ -246,3 +250,18 @@ def test_sharded_edit_evaluation_equals_one_process(two_ranks):
     full, _ = load_model(two_ranks / "full.safetensors")
     single = json.loads(json.dumps(twin_report(full, two_ranks / "twins")))
     assert r0 == single and len(r0["runs"]) == 4 * 2  # 4 twins × (unedited, hybrid)
+
+
+def test_a_broken_job_exits_without_teardown():
+    """After a failed collective the command line leaves with its exit code and runs no
+    interpreter teardown (no atexit handler, no gloo destructor); otherwise it exits normally."""
+    import subprocess
+    import sys
+
+    script = ("import atexit, sys; import crfedit.distributed as d; d._BROKEN = {b}; "
+              "atexit.register(lambda: print('teardown')); from crfedit.cli import main; "
+              "sys.argv = ['crfedit', 'info', 'no/such/folder']; main()")
+    for flag, teardown in ((True, False), (False, True)):
+        r = subprocess.run([sys.executable, "-c", script.format(b=flag)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and r.stderr.startswith("error: "), (r.returncode, r.stderr)
+        assert ("teardown" in r.stdout) == teardown, (flag, r.stdout)

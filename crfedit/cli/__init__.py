@@ -36,7 +36,30 @@ def _unexpected(e: BaseException) -> str:
 def main() -> None:
     """Run the command line.  Usage errors (an unknown command or option, a value Typer cannot
     parse) are one line on stderr and exit 2, like every other bad input; an unexpected error is
-    one line and exit 1, its traceback shown with ``--debug`` or ``CRFEDIT_DEBUG=1``."""
+    one line and exit 1, its traceback shown with ``--debug`` or ``CRFEDIT_DEBUG=1``.  A rank
+    whose collective failed exits at once after its line (:func:`crfedit.distributed.broken`)."""
+    try:
+        _main()
+    except SystemExit as e:
+        _leave_a_broken_job(e.code)
+        raise
+    _leave_a_broken_job(0)
+
+
+def _leave_a_broken_job(code) -> None:
+    """``os._exit(code)`` when a collective of this process failed: no interpreter teardown, so
+    no gloo connection to a dead rank is closed (which can abort with SIGABRT)."""
+    import os
+    import sys
+
+    dist = sys.modules.get("crfedit.distributed")  # not imported: no job, nothing to leave
+    if dist is not None and dist.broken():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code if isinstance(code, int) else 1)
+
+
+def _main() -> None:
     import sys
 
     import typer
