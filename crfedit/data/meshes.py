@@ -46,8 +46,9 @@ from .synth import (
     SynthConfig,
     check_synth_args,
     contrasting_color,
-    sample_cameras,
+    best_view,
     min_scribble_pixels,
+    sample_cameras,
     scribbles,
     stroke_region,
     twin_sources,
@@ -163,16 +164,14 @@ def scribble_view(frames: list[Frame], part_id: int) -> tuple[int, int]:
     where synth's :func:`scribbles` puts the strokes — is largest.  Thin parts (tubes, frames,
     slats) score near zero: a stroke cannot stay on them.
     """
-    counts = [int(erode(f.parts == part_id, 2).sum()) for f in frames]
-    return int(np.argmax(counts)), max(counts)
+    return best_view(frames, part_id, lambda mask: erode(mask, 2))
 
 
 def stroke_view(frames: list[Frame], part_id: int, need: int) -> tuple[int, int]:
     """(index, pixel count) of the frame where synth's :func:`scribbles` have the most room on
     the part: its :func:`stroke_region`, which falls back to the uneroded part for thin parts
     (legs, tubes) that :func:`scribble_view` scores near zero."""
-    counts = [int(stroke_region(f.parts == part_id, need).sum()) for f in frames]
-    return int(np.argmax(counts)), max(counts)
+    return best_view(frames, part_id, lambda mask: stroke_region(mask, need))
 
 
 def in_frame(camera: Camera, points: np.ndarray) -> np.ndarray:
@@ -348,11 +347,10 @@ def twin_parts(inst: _Instance, res: int) -> tuple[int | None, int | None]:
     return (max(others, key=others.get) if others else None), remove
 
 
-def pick_twin_sources(instances: list[_Instance], res: int) -> dict[str, list[int]]:
-    """Per twin kind, up to 4 instances spread over those that have a part for it
-    (:func:`twin_parts`).  The kinds draw from their own pools: which chairs get a removal twin
-    (few parts uncover nothing unseen) does not move the colour twins."""
-    picks = [twin_parts(inst, res) for inst in instances]
+def pick_twin_sources(picks: list[tuple[int | None, int | None]]) -> dict[str, list[int]]:
+    """Per twin kind, up to 4 instances spread over those that have a part for it (``picks``:
+    :func:`twin_parts` of each instance).  The kinds draw from their own pools: which chairs
+    get a removal twin (few parts uncover nothing unseen) does not move the colour twins."""
     pools = {kind: [i for i, pick in enumerate(picks) if pick[k] is not None] for k, kind in enumerate(("color", "remove"))}
     return {kind: [pool[k] for k in twin_sources(len(pool))] for kind, pool in pools.items()}
 
@@ -422,24 +420,23 @@ def write_mesh_category(
     names = instance_names_from(paths)
     if (out / "twins").is_dir():
         shutil.rmtree(out / "twins")
-    instances = []
+    instances, need = [], min_scribble_pixels(config.res)
     for index, (name, mesh) in enumerate(zip(names, meshes)):
         colors = part_colors(mesh, config.palette, np.random.default_rng([config.seed, index, 0]))
         cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
         frames = _write_instance(out / name, mesh, colors, cams, config.aa)
         room = {p.id: scribble_view(frames["train"], p.id) for p in mesh.parts}
-        need = min_scribble_pixels(config.res)
         reach = {pid: stroke_view(frames["train"], pid, need) for pid in removable_parts(mesh)} if config.twins else {}
         hidden = {pid: hidden_share(mesh, pid, cams["test"], cams["train"]) for pid, (_, n) in reach.items() if n >= need}
         instances.append(_Instance(name, mesh, colors, cams, room, reach, hidden))
         if progress:
             progress(name)
     twins: list[TwinSpec] = []
-    sources = pick_twin_sources(instances, config.res) if config.twins else {}
+    picks = [twin_parts(inst, config.res) for inst in instances] if config.twins else []
+    sources = pick_twin_sources(picks) if config.twins else {}
     for index in sorted(set(sum(sources.values(), []))):
-        for k, kind in enumerate(("color", "remove")):
+        for part_id, kind in zip(picks[index], ("color", "remove")):
             if index in sources[kind]:
-                part_id = twin_parts(instances[index], config.res)[k]
                 twins.append(_write_twin(out, instances[index], index, kind, part_id, config))
         if progress:
             progress(f"{names[index]} twins")

@@ -415,9 +415,10 @@ def _write_instance(folder: Path, chair: Chair, cams: dict[str, list[Camera]], a
     return frames
 
 
-def _best_view(frames: list[Frame], part_id: int) -> tuple[int, int]:
-    """(index, pixel count) of the frame where the part covers the most pixels."""
-    counts = [int((f.parts == part_id).sum()) for f in frames]
+def best_view(frames: list[Frame], part_id: int, region=lambda mask: mask) -> tuple[int, int]:
+    """(index, pixel count) of the frame where ``region`` of the part's mask (by default the
+    mask itself) holds the most pixels."""
+    counts = [int(region(f.parts == part_id).sum()) for f in frames]
     return int(np.argmax(counts)), max(counts)
 
 
@@ -426,7 +427,7 @@ def _write_twin(
     rng: np.random.Generator, aa: int = 1,
 ) -> TwinSpec:
     """Render the edited ``chair`` at the source's test poses; scribble ``part`` in its best train view."""
-    view, _ = _best_view(frames["train"], part.id)
+    view, _ = best_view(frames["train"], part.id)
     name = f"{source}_{kind}"
     folder = Path("twins") / name
     twin = chair.recolored(part.name, color) if kind == "color" else chair.without(part.name)
@@ -444,7 +445,7 @@ def _twins_of(
     """A color twin (seat or back, alternating with ``order``) and a removal twin (arms, else stretchers/slats)."""
     wanted = RECOLORABLE_PARTS[order % 2], RECOLORABLE_PARTS[1 - order % 2]
     first, second = (chair.part(n) for n in wanted)
-    recolor = first if _best_view(frames["train"], first.id)[1] >= 25 else second  # 25 px: room for strokes
+    recolor = first if best_view(frames["train"], first.id)[1] >= 25 else second  # 25 px: room for strokes
     target = contrasting_color([p.color for p in chair.parts])
     specs = [_write_twin(out, name, "color", chair, recolor, target, frames, np.random.default_rng([*seed, 2]), aa)]
     removable = next((chair.part(n) for n in REMOVABLE_PARTS if chair.part(n)), None)

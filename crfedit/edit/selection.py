@@ -471,21 +471,23 @@ def select(
             union.update(cells=n_alone, joined=n_alone <= options.chroma_union * max(n_main, 1))
             if union["joined"]:
                 values = torch.maximum(values, alone)
-    if options.skin_chroma > 0 and "chroma" in groups:  # see SelectOptions.skin_chroma
+    def cap_unlike(values: Tensor, factor: float, below: float, low: float = 0.0) -> Tensor:
+        """``values`` with each cell of value in [``low``, threshold) whose chromaticity is
+        unlike the scribbled points' (:func:`chroma_alike` with ``factor``) capped just below
+        ``below``."""
         c = columns["chroma"]
         alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], options.skin_chroma)
-        unlike = (values < options.threshold) & ~alike.view(res, res, res)
-        values = torch.where(unlike, values.clamp(max=GROW_LOW * 0.999), values)
+        alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], factor)
+        unlike = (values < options.threshold) & (values >= low) & ~alike.view(res, res, res)
+        return torch.where(unlike, values.clamp(max=below * 0.999), values)
+
+    if options.skin_chroma > 0 and "chroma" in groups:  # see SelectOptions.skin_chroma
+        values = cap_unlike(values, options.skin_chroma, GROW_LOW)
     at = options.threshold if options.select_threshold is None else options.select_threshold
     if at < options.threshold and saturation < options.chroma_saturation:  # see SelectOptions.band_chroma
         at = options.threshold
     elif at < options.threshold and options.band_chroma > 0 and "chroma" in groups:
-        c = columns["chroma"]
-        near = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        near[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], options.band_chroma)
-        band = (values < options.threshold) & (values >= at) & ~near.view(res, res, res)
-        values = torch.where(band, values.clamp(max=at * 0.999), values)
+        values = cap_unlike(values, options.band_chroma, at, low=at)
     meta = {
         "positives": int(pos_pts.shape[0]), "keep_points": int(neg_pts.shape[0]), "view_points": int(cand_pts.shape[0]),
         "views": len(views), "features": list(groups), "occupied_cells": int(cells.numel()),
