@@ -1,0 +1,131 @@
+"""Does a second view fix a selection?  The twins' selections corrected by a simulated user, and
+the edits made with them, scored like `crfedit eval edits`.
+
+    python benchmarks/correction.py MODEL DATA [--rounds 2] [--out FILE.md]
+
+`crfedit select` takes one set of strokes per view, so that a user who sees a wrong selection in
+the preview can correct it from another view.  Each round here plays that user, as interactive
+segmentation benchmarks do with their simulated clicks: among the twin's train views not used yet,
+it takes the one where the current selection errs on the most pixels (ground-truth part maps,
+each error region eroded by 1 px so that the blur at part boundaries does not count), draws keep
+strokes on the wrongly selected pixels and scribble strokes on the missed ones (2 strokes each, the
+dataset's stroke size; a view needs a scribble, so with nothing missed a stroke goes on the part
+where it is rightly selected), adds that view to the scribbles and selects again.  The simulated
+user reads the ground truth, so this measures the multi-view selection, not a method.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+import crfedit.evaluation as evaluation
+from crfedit.data.synth import random_strokes
+from crfedit.edit.selection import ScribbleView, options_for, select, surface_points
+from crfedit.evaluation import evaluate_edits
+from crfedit.masks import erode
+from crfedit.twin_scores import part_map, part_of, selection_iou
+
+_spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
+bench_selection = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bench_selection)
+
+
+def correction_view(model, case, inst, part_id: int, sel, used: set[str], rng: np.random.Generator):
+    """(view name, ScribbleView) of one simulated correction of ``sel``, or None when no unused
+    train view shows an error region that survives a 1-px erosion."""
+    field, best = model.field_for(case.instance), None
+    for i, view in enumerate(inst.splits["train"]):
+        name = f"train:{i}"
+        if name in used:
+            continue
+        pts, on = surface_points(field, view.camera, case.instance)
+        shape = (view.camera.height, view.camera.width)
+        on = on.cpu().numpy().reshape(shape)
+        pred = sel.at(field.normalize(pts)).cpu().numpy().reshape(shape) & on
+        gt = (part_map(inst.path, view) == part_id) & on
+        wrong, missed = erode(pred & ~gt, 1), erode(gt & ~pred, 1)
+        errors = int(wrong.sum() + missed.sum())
+        if errors and (best is None or errors > best[0]):
+            best = (errors, name, view, wrong, missed, pred & gt)
+    if best is None:
+        return None
+    _, name, view, wrong, missed, right = best
+    size = view.camera.height
+    step, radius = max(3.0, size / 10), max(1.0, size / 48)
+    keep = random_strokes(rng, wrong, 2, step, radius)
+    scribble = random_strokes(rng, missed, 2, step, radius)
+    if not scribble.any():
+        scribble = random_strokes(rng, erode(right, 1) if erode(right, 1).any() else right, 1, step, radius)
+    if not scribble.any():
+        return None
+    return name, ScribbleView(view.camera, scribble, keep if keep.any() else None)
+
+
+def corrected_selections(model, category, cases, rounds: int, seed: int = 0) -> list[dict]:
+    """Per round (0: the twins' own scribbles), {id(case.scribble): Selection} for every twin."""
+    out = [dict() for _ in range(rounds + 1)]
+    for case in cases:
+        inst = category.instance(case.spec.source)
+        pid = part_of(inst.path, case.spec.part)["id"]
+        options = options_for(case.spec.kind)
+        views, used = [ScribbleView(case.camera, case.scribble, case.keep)], {case.spec.view}
+        rng = np.random.default_rng(seed)
+        sel = select(model, case.instance, views, options)
+        out[0][id(case.scribble)] = sel
+        for r in range(1, rounds + 1):
+            found = correction_view(model, case, inst, pid, sel, used, rng)
+            if found is not None:
+                used.add(found[0])
+                views.append(found[1])
+                sel = select(model, case.instance, views, options)
+            out[r][id(case.scribble)] = sel
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("model")
+    ap.add_argument("data")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
+    per_round = corrected_selections(model, category, cases, args.rounds)
+    lines = [
+        f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; hybrid strategy, default options; "
+        "round r: the scribbles plus r simulated corrections.", "",
+        "| round | colour gap closed | colour outside | colour sel. IoU | removal gap closed | removal outside | removal sel. IoU |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    per_twin = []
+    for r, selections in enumerate(per_round):
+        # evaluate_edits calls select(model, k, [ScribbleView(camera, scribble, keep)]) once per twin
+        evaluation.select = lambda m, k, views, *a, _s=selections, **kw: _s[id(views[0].scribble)]
+        result = evaluate_edits(model, category, cases, strategies=("hybrid",), paper=False)
+        c = next(x for x in result["tables"]["color"] if x["method"] == "hybrid")
+        m = next(x for x in result["tables"]["remove"] if x["method"] == "hybrid")
+        lines.append(
+            f"| {r} | {c['gap_closed']:.3f} | {c['psnr_outside']:.2f} dB | {c['selection_iou']:.3f} "
+            f"| {m['gap_closed']:.3f} | {m['psnr_outside']:.2f} dB | {m['selection_iou']:.3f} |"
+        )
+        iou = {}
+        for case in cases:
+            inst = category.instance(case.spec.source)
+            iou[case.spec.name] = selection_iou(model, selections[id(case.scribble)], inst.path, inst.splits["test"], case.spec.part)
+        per_twin.append({x["twin"]: (x["gap_closed"], iou[x["twin"]]) for x in result["runs"] if x["method"] == "hybrid"})
+    lines += ["", "Per twin, gap closed (selection IoU) by round:", "", "| twin | " + " | ".join(f"round {r}" for r in range(len(per_twin))) + " |",
+              "|---|" + "---:|" * len(per_twin)]
+    for twin in per_twin[0]:
+        lines.append(f"| {twin} | " + " | ".join(f"{t[twin][0]:.2f} ({t[twin][1]:.2f})" for t in per_twin) + " |")
+    text = "\n".join(lines)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
