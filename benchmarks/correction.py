@@ -22,12 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-import crfedit.evaluation as evaluation
 from crfedit.data.synth import random_strokes
 from crfedit.edit.selection import ScribbleView, options_for, select, surface_points
-from crfedit.evaluation import evaluate_edits
 from crfedit.masks import erode
-from crfedit.twin_scores import part_map, part_of, selection_iou
+from crfedit.twin_scores import part_map, part_of
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -97,26 +95,13 @@ def main() -> None:
     per_round = corrected_selections(model, category, cases, args.rounds)
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; hybrid strategy, default options; "
-        "round r: the scribbles plus r simulated corrections.", "",
-        "| round | colour gap closed | colour outside | colour sel. IoU | removal gap closed | removal outside | removal sel. IoU |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "round r: the scribbles plus r simulated corrections.", "", *bench_selection.edit_table_header("round"),
     ]
     per_twin = []
     for r, selections in enumerate(per_round):
-        # evaluate_edits calls select(model, k, [ScribbleView(camera, scribble, keep)]) once per twin
-        evaluation.select = lambda m, k, views, *a, _s=selections, **kw: _s[id(views[0].scribble)]
-        result = evaluate_edits(model, category, cases, strategies=("hybrid",), paper=False)
-        c = next(x for x in result["tables"]["color"] if x["method"] == "hybrid")
-        m = next(x for x in result["tables"]["remove"] if x["method"] == "hybrid")
-        lines.append(
-            f"| {r} | {c['gap_closed']:.3f} | {c['psnr_outside']:.2f} dB | {c['selection_iou']:.3f} "
-            f"| {m['gap_closed']:.3f} | {m['psnr_outside']:.2f} dB | {m['selection_iou']:.3f} |"
-        )
-        iou = {}
-        for case in cases:
-            inst = category.instance(case.spec.source)
-            iou[case.spec.name] = selection_iou(model, selections[id(case.scribble)], inst.path, inst.splits["test"], case.spec.part)
-        per_twin.append({x["twin"]: (x["gap_closed"], iou[x["twin"]]) for x in result["runs"] if x["method"] == "hybrid"})
+        row, runs = bench_selection.edits_with(model, category, cases, selections)
+        lines.append(f"| {r} | {row}")
+        per_twin.append({x["twin"]: (x["gap_closed"], x["selection_iou"]) for x in runs})
     lines += ["", "Per twin, gap closed (selection IoU) by round:", "", "| twin | " + " | ".join(f"round {r}" for r in range(len(per_twin))) + " |",
               "|---|" + "---:|" * len(per_twin)]
     for twin in per_twin[0]:

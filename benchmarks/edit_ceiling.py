@@ -15,8 +15,6 @@ import argparse
 import importlib.util
 from pathlib import Path
 
-import crfedit.evaluation as evaluation
-from crfedit.evaluation import evaluate_edits
 from crfedit.twin_scores import part_of
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
@@ -31,30 +29,14 @@ def main() -> None:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
-    rows = {}
-    for label, oracle in (("selection from the scribbles (default)", False), ("oracle selection", True)):
-        if oracle:
-            by_scribble = {}
-            for case in cases:
-                inst = category.instance(case.spec.source)
-                pid = part_of(inst.path, case.spec.part)["id"]
-                by_scribble[id(case.scribble)] = bench_selection.oracle_selection(model, case, inst, pid)
-            # evaluate_edits calls select(model, k, [ScribbleView(camera, scribble, keep)]) once per twin
-            evaluation.select = lambda m, k, views, *a, **kw: by_scribble[id(views[0].scribble)]
-        result = evaluate_edits(model, category, cases, strategies=("hybrid",), paper=False)
-        rows[label] = result["tables"]
-    lines = [
-        f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; hybrid strategy, default options.", "",
-        "| selection | colour gap closed | colour outside | colour sel. IoU | removal gap closed | removal outside | removal sel. IoU |",
-        "|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for label, tables in rows.items():
-        c = next(r for r in tables["color"] if r["method"] == "hybrid")
-        r = next(r for r in tables["remove"] if r["method"] == "hybrid")
-        lines.append(
-            f"| {label} | {c['gap_closed']:.3f} | {c['psnr_outside']:.2f} dB | {c['selection_iou']:.3f} "
-            f"| {r['gap_closed']:.3f} | {r['psnr_outside']:.2f} dB | {r['selection_iou']:.3f} |"
-        )
+    oracle = {}
+    for case in cases:
+        inst = category.instance(case.spec.source)
+        oracle[id(case.scribble)] = bench_selection.oracle_selection(model, case, inst, part_of(inst.path, case.spec.part)["id"])
+    lines = [f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; hybrid strategy, default options.", "",
+             *bench_selection.edit_table_header("selection")]
+    for label, by_scribble in (("selection from the scribbles (default)", None), ("oracle selection", oracle)):
+        lines.append(f"| {label} | " + bench_selection.edits_with(model, category, cases, by_scribble)[0])
     text = "\n".join(lines)
     print(text)
     if args.out:

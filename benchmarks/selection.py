@@ -21,7 +21,8 @@ import torch
 from crfedit.data.loading import load_category
 from crfedit import occupancy
 from crfedit.edit.selection import ScribbleView, Selection, options_for, select, surface_points
-from crfedit.evaluation import load_twin_cases, model_width
+import crfedit.evaluation as evaluation
+from crfedit.evaluation import evaluate_edits, load_twin_cases, model_width
 from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, selection_iou
 
@@ -61,6 +62,32 @@ def oracle_selection(model, case, inst, part_id: int) -> Selection:
         total.index_add_(0, cell[m], torch.ones(int(m.sum())))
     values = (hit / total.clamp_min(1)).view(res, res, res)
     return Selection(values, case.instance, model.names[case.instance], model.fingerprint(), {})
+
+
+def edit_table_header(first: str) -> list[str]:
+    """Header of the hybrid edits' table that edit_ceiling.py and correction.py print, rows
+    from :func:`edits_with`."""
+    return [
+        f"| {first} | colour gap closed | colour outside | colour sel. IoU | removal gap closed | removal outside | removal sel. IoU |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+
+
+def edits_with(model, category, cases, by_scribble: dict | None = None) -> tuple[str, list[dict]]:
+    """The twins' edits (hybrid, default options), made with the given selections
+    (``by_scribble``: ``id(case.scribble)`` → Selection) in place of those of their scribbles
+    when given: (the table row after its first cell, the hybrid runs per twin)."""
+    if by_scribble is not None:  # evaluate_edits calls select(model, k, [ScribbleView(camera, scribble, keep)]) once per twin
+        evaluation.select = lambda m, k, views, *a, **kw: by_scribble[id(views[0].scribble)]
+    try:
+        result = evaluate_edits(model, category, cases, strategies=("hybrid",), paper=False)
+    finally:
+        evaluation.select = select
+    c = next(r for r in result["tables"]["color"] if r["method"] == "hybrid")
+    r = next(r for r in result["tables"]["remove"] if r["method"] == "hybrid")
+    row = (f"{c['gap_closed']:.3f} | {c['psnr_outside']:.2f} dB | {c['selection_iou']:.3f} "
+           f"| {r['gap_closed']:.3f} | {r['psnr_outside']:.2f} dB | {r['selection_iou']:.3f} |")
+    return row, [x for x in result["runs"] if x["method"] == "hybrid"]
 
 
 def load_twin_benchmark(model_path: str, data: str):
