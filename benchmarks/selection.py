@@ -27,7 +27,9 @@ from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, selection_iou
 
 VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for), keep strokes given, recolour grows the selection)
-    "default (bottleneck + colour + chromaticity + position; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing, connectivity; recolours and removals join the chromaticity-only selection)": ({}, True, False),
+    "default (bottleneck + colour + chromaticity + position; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing (bilateral for removals), connectivity; recolours and removals join the chromaticity-only selection)": ({}, True, False),
+    "removals smooth with the plain mean (the previous default)": ({"smooth_bandwidth": 0.0}, True, False),
+    "recolours smooth bilaterally too": ({"smooth_bandwidth": 0.7}, True, False),
     "without the chromaticity-only join": ({"chroma_union": 0.0}, True, False),
     "the join without the saturation test": ({"chroma_saturation": 0.0}, True, False),
     "colour twins scored on the selection grown by hysteresis (Selection.grown; not what the edits use)": ({}, True, True),
@@ -41,6 +43,8 @@ VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for),
     "features: bottleneck + position": ({"features": ("bottleneck", "position")}, True, False),
     "features: bottleneck + colour": ({"features": ("bottleneck", "color")}, True, False),
     "features: bottleneck + chromaticity + position": ({"features": ("bottleneck", "chroma", "position")}, True, False),
+    "features: F_fuse activations in place of the bottleneck": ({"features": ("fuse", "color", "chroma", "position")}, True, False),
+    "features: F_fuse activations added": ({"features": ("bottleneck", "fuse", "color", "chroma", "position")}, True, False),
 }
 
 

@@ -193,9 +193,13 @@ class FieldNet(nn.Module):
             h = h + h_inst
         return FuseInputs(h, pe, s, idx)
 
+    def fuse_activations(self, inputs: "FuseInputs") -> Tensor:
+        """F_fuse's output [M, width]: what F_dens and the bottleneck both read."""
+        return run_mlp(self.F_fuse, torch.cat([inputs.hidden, inputs.pe], dim=-1), inputs.code, inputs.idx)
+
     def density_from_fuse_inputs(self, inputs: "FuseInputs") -> tuple[Tensor, Tensor]:
         """F_fuse → (raw density [M], bottleneck features [M, 8])."""
-        h = run_mlp(self.F_fuse, torch.cat([inputs.hidden, inputs.pe], dim=-1), inputs.code, inputs.idx)
+        h = self.fuse_activations(inputs)
         return self.F_dens(h).squeeze(-1), self.bottleneck(h)
 
     def density_and_features(self, x: Tensor, shape_codes: Tensor | None, idx: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -13,7 +13,7 @@ from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
     CHROMA_UNION, COLOR_THRESHOLD, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
-    smooth_over_occupied, connected_to, surface_points,
+    smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
 )
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import PointTargets, RecolorTarget, removal_cells, sample_share, surface_selected
@@ -121,6 +121,55 @@ def test_smoothing_and_connectivity_closed_forms():
     seeds[0, 0, 0] = True
     reached = connected_to(sel, seeds)
     assert reached[0:2, 0, 0].all() and not reached[4:6, 0, 0].any()
+
+
+def test_neighbour_table_matches_brute_force():
+    g = torch.Generator().manual_seed(3)
+    occ = torch.rand(6, 6, 6, generator=g) < 0.4
+    cells = occ.reshape(-1).nonzero().squeeze(-1)
+    table = neighbour_table(cells, 6)
+    pos = {int(c): i for i, c in enumerate(cells)}
+    for row, c in zip(table.tolist(), cells.tolist()):
+        i, j, k = c // 36, c // 6 % 6, c % 6
+        want = sorted(pos[(a * 6 + b) * 6 + d] for a in range(i - 1, i + 2) for b in range(j - 1, j + 2) for d in range(k - 1, k + 2)
+                      if (a, b, d) != (i, j, k) and 0 <= min(a, b, d) and max(a, b, d) < 6 and (a * 6 + b) * 6 + d in pos)
+        assert sorted(x for x in row if x >= 0) == want
+
+
+def test_bilateral_smoothing_closed_forms():
+    """A huge bandwidth is the plain blend; a small one does not average across a change of
+    appearance (two touching slabs of unlike features)."""
+    g = torch.Generator().manual_seed(0)
+    occ = torch.rand(7, 7, 7, generator=g) < 0.5
+    values = torch.rand(7, 7, 7, generator=g) * occ
+    cells = occ.reshape(-1).nonzero().squeeze(-1)
+    nb = neighbour_table(cells, 7)
+    plain = 0.5 * (values + smooth_over_occupied(values, occ))
+    wide = bilateral_smooth(values.reshape(-1)[cells], torch.randn(len(cells), 4, generator=g), nb, 1e6, 1)
+    torch.testing.assert_close(wide, plain.reshape(-1)[cells])
+    occ = torch.zeros(4, 4, 4, dtype=torch.bool)
+    occ[:, :, 1:3] = True  # slab z=1 (the part, value 1, features 0) against slab z=2 (features 5)
+    cells = occ.reshape(-1).nonzero().squeeze(-1)
+    z = cells % 4
+    vals, feats = (z == 1).float(), (5.0 * (z == 2)).float()[:, None]
+    nb = neighbour_table(cells, 4)
+    sharp = bilateral_smooth(vals, feats, nb, 0.7, 2)
+    assert float(sharp[z == 1].min()) > 0.999 and float(sharp[z == 2].max()) < 1e-6
+    blurred = bilateral_smooth(vals, feats, nb, 1e6, 2)
+    assert float(blurred[z == 2].min()) > 0.3 and float(blurred[z == 1].max()) < 0.8
+
+
+def test_fuse_features_are_what_density_and_bottleneck_read(trained):
+    _, model, _ = trained
+    field = model.field_for(1)
+    pts = field.denormalize(torch.rand(50, 3, generator=torch.Generator().manual_seed(1)) * 1.6 - 0.8)
+    f = point_features(field, 1, pts, torch.tensor([0.0, 0.0, 3.0]), ("fuse", "bottleneck"))
+    w = group_width("fuse", model.cfg)
+    assert w == model.cfg.width and f.shape == (50, w + model.cfg.bottleneck)
+    xn = field.normalize(pts)
+    assert torch.equal(f[:, w:], field.features(xn, 1))  # the bottleneck group, bit for bit as before
+    torch.testing.assert_close(field.sigma(field.F_dens(f[:, :w]).squeeze(-1)), field.density(xn, 1))
+    torch.testing.assert_close(field.bottleneck(f[:, :w]), f[:, w:])
 
 
 def test_hysteresis_and_grown_closed_forms():
