@@ -315,12 +315,17 @@ class ConditionalRadianceField(FieldNet):
         s, _, idx = self.select(instance)
         return net.sigma(net.density_and_features(x, s, idx)[0])
 
+    def fuse_features(self, x: Tensor, instance: int | Tensor, net: FieldNet | None = None) -> Tensor:
+        """F_fuse's output [M, width] at ``x`` [M, 3]: what F_dens and the bottleneck read."""
+        net = self if net is None else net
+        s, _, idx = self.select(instance)
+        return net.fuse_activations(net.fuse_inputs(x, s, idx))
+
     def features(self, x: Tensor, instance: int | Tensor, net: FieldNet | None = None) -> Tensor:
         """The bottleneck features [M, 8] at ``x`` [M, 3]: all that F_rad sees of the position,
         so a colour edit caches them."""
         net = self if net is None else net
-        s, _, idx = self.select(instance)
-        return net.density_and_features(x, s, idx)[1]
+        return net.bottleneck(self.fuse_features(x, instance, net))
 
     def radiance(self, features: Tensor, directions: Tensor, instance: int | Tensor, net: FieldNet | None = None) -> Tensor:
         """RGB [M, 3] in [0, 1] from :meth:`features` [M, 8] and unit view directions [M, 3]."""

@@ -275,8 +275,7 @@ def point_features(field: ConditionalRadianceField, instance: int, points: Tenso
     can select e.g. both arms but not the seat between them); ``fuse`` is F_fuse's output, of
     which the bottleneck is a linear map."""
     xn = field.normalize(points)
-    s, _, idx = field.select(instance)
-    fused = field.fuse_activations(field.fuse_inputs(xn, s, idx))
+    fused = field.fuse_features(xn, instance)
     feat = field.bottleneck(fused)
     rgb = None
     if "color" in groups or "chroma" in groups:  # F_rad once for both colour groups
@@ -479,16 +478,16 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
 def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor | None, occupied: Tensor, scribbled: Tensor,
             kept: Tensor, options: SelectOptions) -> Tensor:
     """Step 6: the cells' probabilities (``classified``: from :func:`_classify`, with their
-    appearance; cells: flat indices of ``occupied``, ``neighbours`` their :func:`neighbour_table`
-    when the smoothing is bilateral)
-    as a grid [R, R, R], smoothed, connected to the ``scribbled`` cells, 0 in the ``kept`` cells."""
+    appearance; cells: flat indices of ``occupied``, ``neighbours`` their :func:`neighbour_table`,
+    given when the smoothing is bilateral) as a grid [R, R, R], smoothed, connected to the
+    ``scribbled`` cells, 0 in the ``kept`` cells."""
     pred, looks = classified
-    if options.smooth and options.smooth_bandwidth > 0:  # half the cell's own value: a thin part must survive its neighbours
+    if neighbours is not None:  # half the cell's own value: a thin part must survive its neighbours
         pred = bilateral_smooth(pred, looks, neighbours, options.smooth_bandwidth, options.smooth_rounds)
     values = torch.zeros(occupied.numel(), device=occupied.device)
     values[cells] = pred
     values = values.view(occupied.shape)
-    if options.smooth and options.smooth_bandwidth <= 0:
+    if options.smooth and neighbours is None:
         values = 0.5 * (values + smooth_over_occupied(values, occupied))
     if options.connected:
         values = hysteresis(values, occupancy.dilate(scribbled, 1), options.threshold, options.threshold)
