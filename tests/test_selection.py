@@ -14,6 +14,7 @@ from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
     CHROMA_UNION, COLOR_THRESHOLD, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
     smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
+    denser_points, fit_logistic,
 )
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import PointTargets, RecolorTarget, removal_cells, sample_share, surface_selected
@@ -170,6 +171,50 @@ def test_fuse_features_are_what_density_and_bottleneck_read(trained):
     assert torch.equal(f[:, w:], field.features(xn, 1))  # the bottleneck group, bit for bit as before
     torch.testing.assert_close(field.sigma(field.F_dens(f[:, :w]).squeeze(-1)), field.density(xn, 1))
     torch.testing.assert_close(field.bottleneck(f[:, :w]), f[:, w:])
+
+
+class _Blob:
+    """A field-like stand-in whose density is exp(−|x − c|²): its gradient points at c."""
+
+    def __init__(self, centre):
+        self.c = torch.tensor(centre)
+        self.F_dens = torch.nn.Identity()
+        self.sigma = torch.exp
+
+    def fuse_features(self, x, instance):
+        return -((x - self.c) ** 2).sum(dim=-1, keepdim=True)
+
+
+def test_denser_points_closed_form():
+    """Each point moves ``distance`` straight towards the density peak, unless that overshoots
+    the peak into lower density; the F_fuse output returned is the one at the point returned."""
+    blob = _Blob([0.2, 0.0, 0.0])
+    far = torch.tensor([[0.2, 0.5, 0.0], [-0.3, 0.0, 0.0]])  # 0.5 from the peak: moves 0.1 closer
+    near = torch.tensor([[0.23, 0.0, 0.0]])  # 0.03 from it: a 0.1 step lands 0.07 past it, less dense
+    pts, fused = denser_points(blob, 0, torch.cat([far, near]), 0.1)
+    expected = torch.tensor([[0.2, 0.4, 0.0], [-0.2, 0.0, 0.0], [0.23, 0.0, 0.0]])
+    assert torch.allclose(pts, expected, atol=1e-6)
+    assert torch.allclose(fused, blob.fuse_features(expected, 0), atol=1e-6)
+
+
+def test_fit_logistic_reaches_the_optimum():
+    """Newton's fit is stationary for the penalized, class-balanced loss (autograd's gradient
+    vanishes there), from any start, on overlapping classes."""
+    g = torch.Generator().manual_seed(0)
+    pos = torch.randn(60, 5, generator=g) + 0.7
+    neg = torch.randn(200, 5, generator=g)
+    weight = torch.rand(200, generator=g) + 0.5
+    fit = fit_logistic(pos, neg, weight, l2=1e-2)
+    w = torch.cat([fit.w, fit.b]).double().requires_grad_(True)
+    x = torch.cat([torch.cat([pos, neg]), torch.ones(260, 1)], dim=1).double()
+    y = torch.cat([torch.ones(60), torch.zeros(200)]).double()
+    wt = torch.cat([torch.full((60,), 0.5 / 60), 0.5 * weight / weight.sum()]).double()
+    loss = (wt * torch.nn.functional.binary_cross_entropy_with_logits(x @ w, y, reduction="none")).sum() + 1e-2 * (w[:-1] ** 2).sum()
+    (grad,) = torch.autograd.grad(loss, w)
+    assert grad.abs().max() < 1e-6
+    assert float(fit(pos).mean()) > 0.5 > float(fit(neg).mean())
+    other = fit_logistic(pos, neg, weight, l2=1e-2, start=type(fit)(torch.ones(5), torch.ones(1)))
+    assert torch.allclose(other.w, fit.w, atol=1e-5) and torch.allclose(other.b, fit.b, atol=1e-5)
 
 
 def test_hysteresis_and_grown_closed_forms():
