@@ -197,10 +197,14 @@ class FieldNet(nn.Module):
         """F_fuse's output [M, width]: what F_dens and the bottleneck both read."""
         return run_mlp(self.F_fuse, torch.cat([inputs.hidden, inputs.pe], dim=-1), inputs.code, inputs.idx)
 
+    def raw_density(self, fused: Tensor) -> Tensor:
+        """F_dens: the raw density [M] from F_fuse's output [M, width] (:meth:`sigma` makes it σ)."""
+        return self.F_dens(fused).squeeze(-1)
+
     def density_from_fuse_inputs(self, inputs: "FuseInputs") -> tuple[Tensor, Tensor]:
         """F_fuse → (raw density [M], bottleneck features [M, 8])."""
         h = self.fuse_activations(inputs)
-        return self.F_dens(h).squeeze(-1), self.bottleneck(h)
+        return self.raw_density(h), self.bottleneck(h)
 
     def density_and_features(self, x: Tensor, shape_codes: Tensor | None, idx: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(raw density [M], bottleneck features [M, 8]): the cache of a colour edit."""

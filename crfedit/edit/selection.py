@@ -324,7 +324,7 @@ def denser_points(field: ConditionalRadianceField, instance: int, xn: Tensor, di
     One gradient step (a forward and backward pass, and one forward pass to check it): a cell
     centre beside a thin part moves onto it, one inside a solid part stays put or moves within
     it."""
-    density = lambda fused: field.sigma(field.F_dens(fused).squeeze(-1))
+    density = lambda fused: field.sigma(field.raw_density(fused))
     with torch.enable_grad():
         x = xn.detach().requires_grad_(True)
         fused = field.fuse_features(x, instance)
