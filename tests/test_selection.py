@@ -14,7 +14,7 @@ from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
     CHROMA_UNION, COLOR_THRESHOLD, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
     smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
-    denser_points, fit_logistic,
+    denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE,
 )
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import PointTargets, RecolorTarget, removal_cells, sample_share, surface_selected
@@ -215,6 +215,34 @@ def test_fit_logistic_reaches_the_optimum():
     assert float(fit(pos).mean()) > 0.5 > float(fit(neg).mean())
     other = fit_logistic(pos, neg, weight, l2=1e-2, start=type(fit)(torch.ones(5), torch.ones(1)))
     assert torch.allclose(other.w, fit.w, atol=1e-5) and torch.allclose(other.b, fit.b, atol=1e-5)
+
+
+def test_fill_rims_closed_form():
+    """A slab selected but for its top rim, lying face-on against an unselected block: a rim
+    cell whose occupied neighbours are half slab joins; a block cell against the slab (a third
+    of its neighbours selected) does not, nor a rim cell that also touches the block, nor a
+    kept cell, nor an empty one."""
+    occ = torch.zeros(9, 9, 9, dtype=torch.bool)
+    values = torch.zeros(9, 9, 9)
+    occ[1:8, 1:3, 2:7] = True  # a slab 7 x 2 x 5 cells ...
+    values[1:7, 1:3, 2:7] = 0.9  # ... selected but for its top layer x = 7
+    occ[1:8, 3:8, 2:7] = True  # a block lying against it along y = 3
+    values[1:8, 3:8, 2:7] = 0.1
+    kept = torch.zeros_like(occ)
+    kept[7, 1, 6] = True
+    out = fill_rims(values, 0.5, occ, kept, COLOR_FILL_SHARE)
+    # rim cell [7, 1, 4]: 12 occupied neighbours (x 6–7, y 1–2, z 3–5), 6 selected (x = 6): 1/2
+    assert (out[7, 1, 2:6] == 0.5).all()  # raised to the cut, not beyond
+    assert out[7, 1, 6] == 0.0  # kept
+    # rim cell [7, 2, 4] also sees 6 block cells: 6 of 18 selected; block cell [3, 3, 4]: 9 of 27
+    assert (out[7, 2] == values[7, 2]).all() and (out[1:8, 3:8] == values[1:8, 3:8]).all()
+    assert fill_rims(values, 0.5, occ, kept, 1 / 3)[3, 3, 4] == 0.5  # exactly a third: filled
+    assert (out[~occ] == 0).all() and out[1:7].equal(values[1:7])
+    # one pass: a cell reached only through a newly filled one stays out
+    values2, occ2 = torch.zeros(3, 3, 6), torch.zeros(3, 3, 6, dtype=torch.bool)
+    values2[1, 1, :2] = 0.9
+    occ2[1, 1] = True  # a one-cell rod, its first two cells selected
+    assert fill_rims(values2, 0.5, occ2, torch.zeros_like(occ2), 0.3)[1, 1].tolist() == pytest.approx([0.9, 0.9, 0.5, 0, 0, 0])
 
 
 def test_hysteresis_and_grown_closed_forms():
