@@ -229,8 +229,9 @@ face-on against the selection has a third of its touching cells' neighbourhood s
 any share above a third leaves it out.  Measured (docs/selection.md), recolours' gap closed:
 procedural 0.783 → 0.811 (`chair_006`'s back 0.53 → 0.63), real 0.509 → 0.512, outside the
 part unchanged; at 0.3 (which takes a touching part's first layer), 0.826 and 0.510 with 0.14
-dB lost outside on the procedural chairs; at 0.5, 0.791 and 0.521.  Removals do not fill: procedural 0.778 → 0.784 but real 0.216 → 0.110 (at 0.4;
-a café chair's aluminium frame took the seat slats it touches)."""
+dB lost outside on the procedural chairs; at 0.5, 0.791 and 0.521.  Removals do not fill:
+procedural 0.778 → 0.784 but real 0.216 → 0.110 (at 0.4; a café chair's aluminium frame took
+the seat slats it touches)."""
 
 
 def options_for(kind: str) -> SelectOptions:
@@ -508,8 +509,7 @@ def fill_rims(values: Tensor, at: float, occupied: Tensor, kept: Tensor, share: 
     of a bulky part that the slab merely touches (most of its occupied neighbours its own
     part's) does not."""
     sel = (values >= at) & occupied
-    pool = lambda g: F.avg_pool3d(g.float()[None, None], 3, stride=1, padding=1, count_include_pad=False)[0, 0]
-    fraction = pool(sel) / pool(occupied).clamp_min(1e-12)  # the same divisor cancels
+    fraction = smooth_over_occupied(sel.float(), occupied)  # the selected share of each neighbourhood
     fill = occupied & ~sel & ~kept & (fraction >= share - 1e-6)
     return torch.where(fill, values.clamp_min(at), values)
 
