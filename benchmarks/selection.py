@@ -27,7 +27,8 @@ from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, selection_iou
 
 VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for), keep strokes given, recolour grows the selection)
-    "default (bottleneck + colour + chromaticity + position at each cell's centre moved a half cell up the density gradient; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing (bilateral for removals), connectivity; recolours and removals join the chromaticity-only selection; recolours fill the rims)": ({}, True, False),
+    "default (bottleneck + colour + chromaticity + position at each cell's centre moved a half cell up the density gradient; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing (bilateral for removals), connectivity; recolours and removals join the chromaticity-only selection; recolours fill the rims; removals veto other colours)": ({}, True, False),
+    "removals do not veto other colours (the previous default)": ({"veto_chroma": 0.0}, True, False),
     "recolours do not fill the rims (the previous default)": ({"fill_share": 0.0}, True, False),
     "rims filled at a share of 0.3, removals too": ({"fill_share": 0.3}, True, False),
     "rims filled at a share of 0.5, removals too": ({"fill_share": 0.5}, True, False),

@@ -343,6 +343,36 @@ def test_chroma_alike_closed_form():
     cells = torch.tensor([[0.5, 0.3, 0.2], [0.5, 0.5, 0.2], [0.5, 0.505, 0.2], [0.5, 0.515, 0.2], [0.2, 0.3, 0.5]])
     # r = quantile([0.1, 0, …, 0, 0.1], 0.9) = 0.1 → bound 2·0.1 + 0.01 = 0.21
     assert chroma_alike(cells, pos, 2.0).tolist() == [True, True, True, False, False]
+    # a floor instead of 0.01 (the veto's VETO_FLOOR): bound 0.2 + 0.1 = 0.3, then 0.45
+    assert chroma_alike(cells, pos, 2.0, 0.1).tolist() == [True, True, True, True, False]
+    assert chroma_alike(cells, pos, 2.0, 0.25).tolist() == [True] * 5
+
+
+def test_chroma_veto_only_caps_unlike_cells_below_the_skin(trained, monkeypatch):
+    """The removal's chromaticity veto lowers only cells of value ≥ GROW_LOW whose chromaticity
+    is unlike the scribbled points', never a scribbled cell, to just below GROW_LOW; a near-grey
+    part is not vetoed."""
+    from crfedit.edit import selection as S
+    _, model, category = trained
+    k = 1
+    view, fg, keep, _ = part_view(category, k, "back")
+    views = [ScribbleView(view.camera, fg, keep)]
+    monkeypatch.setattr(S, "VETO_FLOOR", 0.0)  # the tests' weakly trained parts are near-grey: make the veto bite
+    plain = select(model, k, views, SelectOptions(chroma_saturation=0.0))
+    vetoed = select(model, k, views, SelectOptions(chroma_saturation=0.0, veto_chroma=1.0))
+    changed = vetoed.values != plain.values
+    assert bool(changed.any()) and bool((vetoed.values <= plain.values).all())
+    assert bool((plain.values[changed] >= S.GROW_LOW).all()) and bool((vetoed.values[changed] < S.GROW_LOW).all())
+    field = model.field_for(k)
+    pts, on = surface_points(field, view.camera, k)
+    scribbled = pts[torch.from_numpy(fg.reshape(-1)) & on]
+    grid = torch.zeros_like(changed)
+    ijk, inside = occupancy.cell_index(field.normalize(scribbled), grid.shape[-1])
+    grid[ijk[inside, 0], ijk[inside, 1], ijk[inside, 2]] = True
+    assert not bool((changed & grid).any())
+    grey = select(model, k, views, SelectOptions(chroma_saturation=1.01, veto_chroma=1.0))  # no part is that saturated
+    assert torch.equal(grey.values, select(model, k, views, SelectOptions(chroma_saturation=1.01)).values)
+    assert options_for("remove").veto_chroma == S.REMOVE_VETO_CHROMA > 0 == options_for("color").veto_chroma == options_for("add").veto_chroma
 
 
 def test_surface_selected_closed_form():
