@@ -669,14 +669,17 @@ def select(
             union.update(cells=n_alone, joined=n_alone <= options.chroma_union * max(n_main, 1))
             if union["joined"]:
                 values = torch.maximum(values, alone)
-    def cap_unlike(values: Tensor, factor: float, below: float, low: float = 0.0) -> Tensor:
-        """``values`` with each cell of value in [``low``, threshold) whose chromaticity is
-        unlike the scribbled points' (:func:`chroma_alike` with ``factor``) capped just below
-        ``below``."""
+    def cap_unlike(values: Tensor, factor: float, below: float, low: float = 0.0, high: float = options.threshold,
+                   floor: float = 0.01, spare: Tensor | None = None) -> Tensor:
+        """``values`` with each cell of value in [``low``, ``high``) whose chromaticity is
+        unlike the scribbled points' (:func:`chroma_alike` with ``factor`` and ``floor``)
+        capped just below ``below``; the cells of ``spare`` [R, R, R] are left as they are."""
         c = columns["chroma"]
         alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], factor)
-        unlike = (values < options.threshold) & (values >= low) & ~alike.view(res, res, res)
+        alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], factor, floor)
+        unlike = (values < high) & (values >= low) & ~alike.view(res, res, res)
+        if spare is not None:
+            unlike &= ~spare
         return torch.where(unlike, values.clamp(max=below * 0.999), values)
 
     if options.skin_chroma > 0 and "chroma" in groups:  # see SelectOptions.skin_chroma
@@ -687,11 +690,7 @@ def select(
     elif at < options.threshold and options.band_chroma > 0 and "chroma" in groups:
         values = cap_unlike(values, options.band_chroma, at, low=at)
     if options.veto_chroma > 0 and "chroma" in groups and saturation >= options.chroma_saturation:  # see SelectOptions.veto_chroma
-        c = columns["chroma"]
-        alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], options.veto_chroma, VETO_FLOOR)
-        vetoed = ~alike.view(res, res, res) & ~scribbled & (values >= GROW_LOW)
-        values = torch.where(vetoed, values.clamp(max=GROW_LOW * 0.999), values)
+        values = cap_unlike(values, options.veto_chroma, GROW_LOW, low=GROW_LOW, high=float("inf"), floor=VETO_FLOOR, spare=scribbled)
     if options.fill_share > 0:  # see SelectOptions.fill_share
         values = fill_rims(values, at, occupied, kept, options.fill_share)
     meta = {
