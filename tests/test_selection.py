@@ -17,7 +17,7 @@ from crfedit.edit.selection import (
     denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE,
 )
 from crfedit.edit.core import InstanceEdit
-from crfedit.edit.supervised import PointTargets, RecolorTarget, removal_cells, sample_share, surface_selected
+from crfedit.edit.supervised import SKIN_SHARE, PointTargets, RecolorTarget, removal_cells, sample_share, surface_selected
 from crfedit import occupancy
 from crfedit.errors import CrfError
 from crfedit.masks import dilate, erode
@@ -320,19 +320,27 @@ def _selection(values: torch.Tensor) -> Selection:
 
 
 def test_removal_cells_closed_form():
-    """S, plus occupied neighbours of S at value ≥ GROW_LOW; nothing farther, nothing empty."""
-    values = torch.zeros(8, 8, 8)
-    values[3, 3, 3] = 0.9  # S
-    values[3, 3, 4] = 0.4  # skin: next to S, above GROW_LOW
-    values[3, 4, 3] = 0.2  # next to S, below GROW_LOW
-    values[3, 3, 6] = 0.4  # above GROW_LOW, three cells from S
-    values[4, 3, 3] = 0.45  # next to S but not occupied
-    grid = torch.ones(8, 8, 8, dtype=torch.bool)
-    grid[4, 3, 3] = False
+    """S, plus S's skin: occupied neighbours of S at value ≥ GROW_LOW whose occupied 3×3×3
+    neighbourhood is at least SKIN_SHARE S; nothing farther, nothing empty, no cell of a bulky
+    part that S only touches."""
+    values = torch.zeros(10, 10, 10)
+    grid = torch.zeros(10, 10, 10, dtype=torch.bool)
+    values[2:5, 2:5, 2:5] = 0.9  # S: a 3×3×3 block
+    grid[2:5, 2:5, 2:5] = True
+    grid[5:8, 2:5, 2:5] = True  # a kept block against S's x = 4 face
+    values[5, 3, 3] = 0.4  # next to S, above GROW_LOW, but 9 of its 27 occupied neighbours are S: 1/3
+    grid[3, 3, 5] = True
+    values[3, 3, 5] = 0.4  # outline on S's top face: 9 of its 10 occupied neighbours are S → skin
+    grid[3, 1, 3] = True
+    values[3, 1, 3] = 0.2  # next to S (9 of 10 neighbours S), below GROW_LOW
+    grid[3, 3, 8] = True
+    values[3, 3, 8] = 0.4  # above GROW_LOW, four cells from S
+    values[1, 3, 3] = 0.45  # next to S but not occupied
     got = removal_cells(_selection(values), grid)
-    want = torch.zeros_like(grid)
-    want[3, 3, 3] = want[3, 3, 4] = True
+    want = values >= 0.5
+    want[3, 3, 5] = True
     assert torch.equal(got, want)
+    assert SKIN_SHARE > 1 / 3  # the kept block's face cell stays
 
 
 def test_chroma_alike_closed_form():
