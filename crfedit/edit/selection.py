@@ -537,9 +537,15 @@ def fill_rims(values: Tensor, at: float, occupied: Tensor, kept: Tensor, share: 
     of a bulky part that the slab merely touches (most of its occupied neighbours its own
     part's) does not."""
     sel = (values >= at) & occupied
-    fraction = smooth_over_occupied(sel.float(), occupied)  # the selected share of each neighbourhood
-    fill = occupied & ~sel & ~kept & (fraction >= share - 1e-6)
+    fill = surrounded_by(sel, occupied, share) & ~sel & ~kept
     return torch.where(fill, values.clamp_min(at), values)
+
+
+def surrounded_by(selected: Tensor, occupied: Tensor, share: float) -> Tensor:
+    """[R, R, R] bool: the occupied cells at least ``share`` of whose occupied 3×3×3
+    neighbourhood (itself included) is ``selected`` (a cell's share among the cells around it:
+    :func:`fill_rims` and a removal's skin, ``supervised.removal_cells``)."""
+    return occupied & (smooth_over_occupied(selected.float(), occupied) >= share - 1e-6)
 
 
 def hysteresis(values: Tensor, seeds: Tensor, high: float, low: float) -> Tensor:

@@ -43,7 +43,7 @@ from ..rendering import composite_dense
 from .cache import cache_stage, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
 from .losses import mse
-from .selection import GROW_LOW, Selection, smooth_over_occupied
+from .selection import GROW_LOW, Selection, surrounded_by
 
 TURNS = (0.0, 90.0, 180.0, 270.0)
 """Supervision views: each scribbled camera turned about the world's up (Z) axis by these angles."""
@@ -112,8 +112,7 @@ def removal_cells(selection: Selection, grid: Tensor) -> Tensor:
     was; those cells lie against S with little else occupied around them.  A cell of another
     part that S merely touches (a seat under a thin frame) has mostly its own part around it."""
     sel = selection.mask.to(grid.device) & grid
-    share = smooth_over_occupied(sel.to(torch.float32), grid)
-    skin = occupancy.dilate(sel, 1) & grid & (selection.values.to(grid.device) >= GROW_LOW) & (share >= SKIN_SHARE - 1e-6)
+    skin = occupancy.dilate(sel, 1) & surrounded_by(sel, grid, SKIN_SHARE) & (selection.values.to(grid.device) >= GROW_LOW)
     return sel | skin
 
 
