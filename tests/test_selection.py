@@ -583,3 +583,26 @@ def test_twin_score_closed_forms():
     assert gap_closed(25.0, 20.0, 30.0) == pytest.approx(0.5)
     assert gap_closed(18.0, 20.0, 30.0) == pytest.approx(-0.2)  # worse than not editing
     assert gap_closed(25.0, 30.0, 30.0) is None  # no gap to close
+
+
+def test_removals_read_fuse_but_smooth_along_appearance_only():
+    """A removal's classifier reads F_fuse's activations; the bilateral smoothing's appearance is
+    the other groups' columns, what it is without F_fuse."""
+    from crfedit.edit import selection as S
+    assert options_for("remove").features == S.REMOVE_FEATURES == (*S.FEATURES, "fuse")
+    assert options_for("color").features == options_for("add").features == S.FEATURES
+    g = torch.Generator().manual_seed(0)
+    base, fuse = ("bottleneck", "color", "chroma", "position"), 16
+    widths = [8, 3, 3, 9]
+    cells, pos, view = (torch.randn(n, sum(widths) + fuse, generator=g) for n in (300, 40, 80))
+    pos[:, -fuse:] += 3.0  # only F_fuse tells the positives from the view's other points
+    keep = torch.zeros(0, sum(widths) + fuse)
+    o = SelectOptions(appearance_gate=0.0)
+    with_fuse, looks = S._classify((*base, "fuse"), widths + [fuse], pos, keep, view, cells, o)
+    without, looks0 = S._classify(base, widths, pos[:, :-fuse], keep[:, :-fuse], view[:, :-fuse], cells[:, :-fuse], o)
+    assert looks.shape == (300, 14)
+    torch.testing.assert_close(looks, looks0)
+    shifted = cells.clone()
+    shifted[:, -fuse:] += 3.0
+    assert float(S._classify((*base, "fuse"), widths + [fuse], pos, keep, view, shifted, o)[0].mean()) > 0.9
+    assert float(with_fuse.mean()) < 0.2 < float(without.mean())

@@ -9,7 +9,8 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    expected depth (a *positive*); each keep-stroke pixel on the object a *negative*.
 2. **Describe.**  Every point — the lifted ones and every occupied cell — is described by the
    field's own per-point features (:func:`point_features`): the 8-d bottleneck, the predicted
-   colour, its chromaticity and the position, each group standardized.  A cell is described
+   colour, its chromaticity and the position, each group standardized; a removal also reads
+   F_fuse's activations (:data:`REMOVE_FEATURES`).  A cell is described
    at its centre moved a half cell up the density gradient when that is denser
    (:func:`denser_points`): the lifted points lie on surfaces, and the centre of a cell that a
    thin part only crosses lies in empty space beside it.
@@ -246,6 +247,17 @@ dB lost outside on the procedural chairs; at 0.5, 0.791 and 0.521.  Removals do 
 procedural 0.778 → 0.784 but real 0.216 → 0.110 (at 0.4; a café chair's aluminium frame took
 the seat slats it touches)."""
 
+REMOVE_FEATURES = (*FEATURES, "fuse")
+"""A removal's :attr:`SelectOptions.features`: the default groups plus F_fuse's activations,
+what the density head reads (and what a removal retrains).  A dark-grey tube frame and the
+black shell it carries have nearly one predicted colour (0.17 against 0.11) and bottleneck;
+with the 8-d bottleneck alone the classifier took a third of the shell's seat with the frame
+and the removal emptied all of it.  Measured (docs/selection.md), removals' gap closed:
+procedural 0.776 → 0.777, real (17 000 steps) 0.484 → 0.563 (the armchair's frame −0.56 →
+−0.20), the weaker models 0.288 → 0.308 (procedural, 2 948 steps) and 0.220 → 0.280 (real,
+9 500 steps).  Recolours keep :data:`FEATURES`: with F_fuse the procedural recolours fell
+0.811 → 0.739 and the real ones 0.641 → 0.619."""
+
 REMOVE_VETO_CHROMA = 2.0
 """A removal's :attr:`SelectOptions.veto_chroma`.  The classifier scores small parts touching
 the target above the target itself when they share its bottleneck features (a desk chair's
@@ -265,7 +277,8 @@ def options_for(kind: str) -> SelectOptions:
     """The selection options an edit of ``kind`` uses: recolours and removals join the
     chromaticity-only selection (:data:`CHROMA_UNION`), additions (a donor's part) do not: it
     doubled the damage of an added part to the rest of the chair (docs/selection.md).
-    Removals smooth bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
+    Removals also describe points by F_fuse's activations (:data:`REMOVE_FEATURES`), smooth
+    bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
     chromaticity (:data:`REMOVE_VETO_CHROMA`); recolours select at a lower
     cut (:data:`COLOR_THRESHOLD`) and fill the rims (:data:`COLOR_FILL_SHARE`)."""
     if kind not in EDIT_KINDS:
@@ -273,7 +286,8 @@ def options_for(kind: str) -> SelectOptions:
     if kind == "color":
         return SelectOptions(chroma_union=CHROMA_UNION, select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE)
     if kind == "remove":
-        return SelectOptions(chroma_union=CHROMA_UNION, smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA)
+        return SelectOptions(features=REMOVE_FEATURES, chroma_union=CHROMA_UNION, smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH,
+                             veto_chroma=REMOVE_VETO_CHROMA)
     return SelectOptions()
 
 
@@ -596,7 +610,10 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     """Steps 3 and 5 on the columns of ``groups``: each occupied cell's probability [N] of
     being the part, from the features of the positives, keep points, the view's other surface
     points and the cells (unstandardized, ``widths`` columns per group); and the cells'
-    standardized appearance [N, F] (every group but position), which step 6 smooths along."""
+    standardized appearance [N, F] (every group but position and F_fuse's activations), which
+    step 6 smooths along: the self-training's appearance fit reads F_fuse too, the bilateral
+    smoothing's 26 neighbour distances do not (removals' gap closed within 0.01 of reading it
+    on three of four models, and 0.13 s faster on a 37 000-cell grid with a 64-wide F_fuse)."""
     z = _standardizer(f_cells, widths, [options.position_weight if g == "position" else 1.0 for g in groups])
     columns = torch.arange(sum(widths)).split(widths)
     looks = torch.cat([c for g, c in zip(groups, columns) if g != "position"]) if len(groups) > 1 and "position" in groups else None
@@ -608,7 +625,10 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     if options.appearance_gate > 0 and gated:
         gated = torch.cat(gated)
         pred = pred * appearance_gate(z_cells[:, gated], z_pos[:, gated], options.appearance_gate)
-    return pred, (z_cells if looks is None else z_cells[:, looks])
+    smooth = [c for g, c in zip(groups, columns) if g not in ("position", "fuse")]
+    if looks is None:
+        return pred, z_cells
+    return pred, z_cells[:, torch.cat(smooth) if smooth else looks]
 
 
 def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor | None, occupied: Tensor, scribbled: Tensor,
