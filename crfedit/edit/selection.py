@@ -626,9 +626,7 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
         gated = torch.cat(gated)
         pred = pred * appearance_gate(z_cells[:, gated], z_pos[:, gated], options.appearance_gate)
     smooth = [c for g, c in zip(groups, columns) if g not in ("position", "fuse")]
-    if looks is None:
-        return pred, z_cells
-    return pred, z_cells[:, torch.cat(smooth) if smooth else looks]
+    return pred, (z_cells[:, torch.cat(smooth)] if smooth else z_cells)
 
 
 def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor | None, occupied: Tensor, scribbled: Tensor,
