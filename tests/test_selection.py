@@ -17,7 +17,9 @@ from crfedit.edit.selection import (
     denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE,
 )
 from crfedit.edit.core import InstanceEdit
-from crfedit.edit.supervised import SKIN_SHARE, PointTargets, RecolorTarget, removal_cells, sample_share, surface_selected
+from crfedit.edit.supervised import (
+    JUNCTION_SHARE, SKIN_SHARE, PointTargets, RecolorTarget, removal_cells, removal_split, removed_at, sample_share, surface_selected,
+)
 from crfedit import occupancy
 from crfedit.errors import CrfError
 from crfedit.masks import dilate, erode
@@ -343,6 +345,41 @@ def test_removal_cells_closed_form():
     assert SKIN_SHARE > 1 / 3  # the kept block's face cell stays
 
 
+def test_removal_split_closed_form():
+    """A one-cell rod S along z whose lower part lies against a bulky kept block: a block cell
+    beside the rod has 3 rod cells among its 21 occupied neighbours (1/7 < JUNCTION_SHARE),
+    so the rod cells touching the block's body are junction cells and stay in the grid; the
+    rest is dropped whole.  In a junction cell a point is emptied where the removed cells' share,
+    interpolated over the occupied cells, is at least a half: at the cell's centre, not in
+    its corner toward the block."""
+    res = 14
+    values = torch.zeros(res, res, res)
+    grid = torch.zeros(res, res, res, dtype=torch.bool)
+    values[4, 4, 2:12] = 0.9  # S: the rod
+    grid[4, 4, 2:12] = True
+    grid[5:9, 1:8, 1:8] = True  # the block against the rod's x = 4 side, z 1..7
+    core, junction = removal_split(_selection(values), grid)
+    assert JUNCTION_SHARE > 1 / 7
+    want_junction = torch.zeros_like(grid)
+    want_junction[4, 4, 2:8] = True  # the block's top layer (z = 7: 3 rod cells among 15, 1/5) is not its body
+    want_core = torch.zeros_like(grid)
+    want_core[4, 4, 8:12] = True
+    assert torch.equal(junction, want_junction) and torch.equal(core, want_core)
+    assert torch.equal(core | junction, removal_cells(_selection(values), grid))
+    to_xn = lambda u: (torch.tensor(u, dtype=torch.float32) + 0.5) / res * 2 - 1  # cell coordinates (centre at i) → normalized
+    pts = to_xn([
+        [4.0, 4.0, 5.0],  # junction cell's centre: share 1
+        [4.45, 4.0, 5.0],  # toward the block: rod 0.55 against the block's 0.45
+        [4.45, 4.45, 5.0],  # the corner toward the block: 0.3025 / (0.3025 + 0.2475 + 0.2025) = 0.40
+        [4.45, 4.45, 10.0],  # the same corner of a core cell: emptied whole
+        [5.0, 4.0, 5.0],  # the block
+    ])
+    got = removed_at(core, junction, grid, pts)
+    assert got.tolist() == [True, True, False, True, False]
+    share = occupancy.masked_trilinear((core | junction).float(), grid, pts[2:3])
+    assert abs(float(share) - 0.3025 / 0.7525) < 1e-5
+
+
 def test_chroma_alike_closed_form():
     """Within factor · r + 0.01 of the positives' median chromaticity, r their 90th-percentile
     distance to it: here the median is (0.5, 0.3, 0.2) and r = 0.1."""
@@ -460,7 +497,9 @@ def test_removal_zeroes_the_selection_and_holds_the_rest(trained):
     result = remove(model, k, view.camera, fg, keep, options=EditOptions(steps=60), selection=sel)
     grid_before, grid_after = model.field.occupancy[k], result.tensors["occupancy"]
     emptied = removal_cells(sel, grid_before)
-    assert torch.equal(grid_after, grid_before & ~emptied)  # the grid drops S and its skin
+    core, junction = removal_split(sel, grid_before)
+    assert torch.equal(core | junction, emptied) and not bool((core & junction).any())
+    assert torch.equal(grid_after, grid_before & ~core)  # the grid drops S and its skin but the junction cells
     assert bool((emptied >= (sel.mask & grid_before)).all()) and bool((emptied <= occupancy.dilate(sel.mask, 1)).all())
     field0, field1 = model.field_for(k), result.model.field_for(k)
     cells = (grid_before & sel.mask).nonzero()
