@@ -14,7 +14,7 @@ from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
     CHROMA_UNION, COLOR_THRESHOLD, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
     smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
-    denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE,
+    denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE, local_shape,
 )
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
@@ -624,11 +624,37 @@ def test_twin_score_closed_forms():
     assert gap_closed(25.0, 30.0, 30.0) is None  # no gap to close
 
 
+def test_local_shape_closed_form():
+    """A line, a sheet and a solid block of cells around a point's cell: offsets x ∈ {−1, 0, 1}
+    have variance 2/3, so a line's eigenvalues are (2/3 + ε, ε, ε) with ε = 10⁻³, a sheet's
+    (2/3 + ε, 2/3 + ε, ε), a block's all 2/3 + ε; the grid's outside counts as empty."""
+    res, eps, v = 8, 1e-3, 2 / 3
+    centre = torch.tensor([[(3 + 0.5) / res * 2 - 1] * 3])  # cell (3, 3, 3)
+    line, sheet, block = (torch.zeros(res, res, res, dtype=torch.bool) for _ in range(3))
+    line[2:5, 3, 3] = True
+    sheet[2:5, 2:5, 3] = True
+    block[2:5, 2:5, 2:5] = True
+    want = {
+        "line": [v / (v + eps), 0.0, eps / (v + eps), 3 / 27, (v + eps) ** 0.5],
+        "sheet": [0.0, v / (v + eps), eps / (v + eps), 9 / 27, (v + eps) ** 0.5],
+        "block": [0.0, 0.0, 1.0, 1.0, (v + eps) ** 0.5],
+    }
+    for name, grid in (("line", line), ("sheet", sheet), ("block", block)):
+        got = local_shape(grid, centre)
+        assert got.shape == (1, 5) and torch.allclose(got[0], torch.tensor(want[name]), atol=1e-4), (name, got)
+    corner = torch.zeros(res, res, res, dtype=torch.bool)
+    corner[0:2, 0, 0] = True  # a line at the grid's corner: the block's outside cells are empty
+    got = local_shape(corner, torch.tensor([[0.5 / res * 2 - 1] * 3]))
+    # offsets {0, 1}: variance 1/4
+    assert torch.allclose(got[0], torch.tensor([0.25 / (0.25 + eps), 0.0, eps / (0.25 + eps), 2 / 27, (0.25 + eps) ** 0.5]), atol=1e-4)
+
+
 def test_removals_read_fuse_but_smooth_along_appearance_only():
     """A removal's classifier reads F_fuse's activations; the bilateral smoothing's appearance is
     the other groups' columns, what it is without F_fuse."""
     from crfedit.edit import selection as S
-    assert options_for("remove").features == S.REMOVE_FEATURES == (*S.FEATURES, "fuse")
+    assert options_for("remove").features == S.REMOVE_FEATURES == (*S.FEATURES, "fuse", "geometry")
+    assert options_for("remove").geometry_weight == S.REMOVE_GEOMETRY_WEIGHT < 1
     assert options_for("color").features == options_for("add").features == S.FEATURES
     g = torch.Generator().manual_seed(0)
     base, fuse = ("bottleneck", "color", "chroma", "position"), 16

@@ -10,7 +10,8 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
 2. **Describe.**  Every point — the lifted ones and every occupied cell — is described by the
    field's own per-point features (:func:`point_features`): the 8-d bottleneck, the predicted
    colour, its chromaticity and the position, each group standardized; a removal also reads
-   F_fuse's activations (:data:`REMOVE_FEATURES`).  A cell is described
+   F_fuse's activations and the occupancy grid's local shape around the point
+   (:data:`REMOVE_FEATURES`, :func:`local_shape`).  A cell is described
    at its centre moved a half cell up the density gradient when that is denser
    (:func:`denser_points`): the lifted points lie on surfaces, and the centre of a cell that a
    thin part only crosses lies in empty space beside it.
@@ -95,10 +96,11 @@ GROW_LOW = 0.3
 """:meth:`Selection.grown` also takes the cells of value ≥ this connected to the selection
 (a measured diagnostic; no edit uses it, see the module docstring); a removal also empties the
 cells next to S of value ≥ this."""
-FEATURE_GROUPS = (*FEATURES, "fuse")
+FEATURE_GROUPS = (*FEATURES, "fuse", "geometry")
 """Per-point feature groups :func:`point_features` can build: ``fuse`` (F_fuse's activations,
-the model's width) is measured in docs/selection.md and used by no default."""
-WIDTHS = {"color": 3, "chroma": 3, "position": 9}
+the model's width) and ``geometry`` (:func:`local_shape`), which removals read
+(:data:`REMOVE_FEATURES`)."""
+WIDTHS = {"color": 3, "chroma": 3, "position": 9, "geometry": 5}
 """Feature widths per group (the bottleneck's and F_fuse's are the model's: :func:`group_width`)."""
 
 
@@ -141,6 +143,8 @@ class SelectOptions:
     """Feature groups describing a point (from :data:`FEATURE_GROUPS`)."""
     position_weight: float = 1.0
     """Scale of the standardized position group against the others."""
+    geometry_weight: float = 1.0
+    """Scale of the standardized ``geometry`` group (when in ``features``) against the others."""
     self_training: int = 3
     """Rounds that drop from the negatives the view points the classifier calls positive."""
     keep_weight: float = 3.0
@@ -247,7 +251,7 @@ dB lost outside on the procedural chairs; at 0.5, 0.791 and 0.521.  Removals do 
 procedural 0.778 → 0.784 but real 0.216 → 0.110 (at 0.4; a café chair's aluminium frame took
 the seat slats it touches)."""
 
-REMOVE_FEATURES = (*FEATURES, "fuse")
+REMOVE_FEATURES = (*FEATURES, "fuse", "geometry")
 """A removal's :attr:`SelectOptions.features`: the default groups plus F_fuse's activations,
 what the density head reads (and what a removal retrains).  A dark-grey tube frame and the
 black shell it carries have nearly one predicted colour (0.17 against 0.11) and bottleneck;
@@ -256,7 +260,19 @@ and the removal emptied all of it.  Measured (docs/selection.md), removals' gap 
 procedural 0.776 → 0.777, real (17 000 steps) 0.484 → 0.563 (the armchair's frame −0.56 →
 −0.20), the weaker models 0.288 → 0.308 (procedural, 2 948 steps) and 0.220 → 0.280 (real,
 9 500 steps).  Recolours keep :data:`FEATURES`: with F_fuse the procedural recolours fell
-0.811 → 0.739 and the real ones 0.641 → 0.619."""
+0.811 → 0.739 and the real ones 0.641 → 0.619.  And the grid's local shape
+(:func:`local_shape`, weighted :data:`REMOVE_GEOMETRY_WEIGHT`): a frame's tube is a line of
+cells, the seat it carries a sheet, the two alike in colour and features."""
+
+REMOVE_GEOMETRY_WEIGHT = 0.25
+"""A removal's :attr:`SelectOptions.geometry_weight`.  Measured (docs/selection.md, hybrid,
+gap closed, edit seeds 0 / 1 / 2): procedural removals 0.777 / 0.775 / 0.776 → 0.782 / 0.772 /
+0.772, real (17 000 steps) 0.589 / 0.593 / 0.586 → 0.615 / 0.611 / 0.611 (the armchair's leg
+frame −0.157 → −0.059), the weaker models 0.322 → 0.324 and 0.334 → 0.343.  At weight 1 the
+real removals gained more (0.639) and the procedural ones lost (0.756); at 0.5, 0.777 and
+0.614.  A 5³ block (radius 2) instead of 3³: 0.761 and 0.631."""
+GEOMETRY_RADIUS = 1
+""":func:`local_shape`'s block: the (2r+1)³ cells around the point's cell."""
 
 REMOVE_VETO_CHROMA = 2.0
 """A removal's :attr:`SelectOptions.veto_chroma`.  The classifier scores small parts touching
@@ -277,7 +293,8 @@ def options_for(kind: str) -> SelectOptions:
     """The selection options an edit of ``kind`` uses: recolours and removals join the
     chromaticity-only selection (:data:`CHROMA_UNION`), additions (a donor's part) do not: it
     doubled the damage of an added part to the rest of the chair (docs/selection.md).
-    Removals also describe points by F_fuse's activations (:data:`REMOVE_FEATURES`), smooth
+    Removals also describe points by F_fuse's activations and the grid's local shape
+    (:data:`REMOVE_FEATURES`), smooth
     bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
     chromaticity (:data:`REMOVE_VETO_CHROMA`); recolours select at a lower
     cut (:data:`COLOR_THRESHOLD`) and fill the rims (:data:`COLOR_FILL_SHARE`)."""
@@ -286,8 +303,8 @@ def options_for(kind: str) -> SelectOptions:
     if kind == "color":
         return SelectOptions(chroma_union=CHROMA_UNION, select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE)
     if kind == "remove":
-        return SelectOptions(features=REMOVE_FEATURES, chroma_union=CHROMA_UNION, smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH,
-                             veto_chroma=REMOVE_VETO_CHROMA)
+        return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, chroma_union=CHROMA_UNION,
+                             smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA)
     return SelectOptions()
 
 
@@ -355,7 +372,8 @@ def point_features(
     groups concatenated, unstandardized.  Colour is F_rad's output looking from ``view_from`` [3];
     position is the normalized point and its second-order terms (so that a linear classifier
     can select e.g. both arms but not the seat between them); ``fuse`` is F_fuse's output, of
-    which the bottleneck is a linear map.  ``fused``: F_fuse's output at the points, when the
+    which the bottleneck is a linear map; ``geometry`` the occupancy grid's local shape
+    (:func:`local_shape`).  ``fused``: F_fuse's output at the points, when the
     caller has it."""
     xn = field.normalize(points)
     fused = field.fuse_features(xn, instance) if fused is None else fused
@@ -376,9 +394,37 @@ def point_features(
         elif group == "position":
             x, y, z = xn.unbind(-1)
             out.append(torch.stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], dim=-1))
+        elif group == "geometry":
+            out.append(local_shape(field.occupancy[instance], xn))
         else:
             raise CrfError(f"selection feature {group!r}: expected one of {', '.join(FEATURE_GROUPS)}")
     return torch.cat(out, dim=-1)
+
+
+def local_shape(occupied: Tensor, xn: Tensor, radius: int = GEOMETRY_RADIUS) -> Tensor:
+    """The shape of the occupied cells in the (2r+1)³ block around the cell of each normalized
+    point ``xn`` [M, 3] in grid ``occupied`` [R, R, R], from the eigenvalues λ₁ ≥ λ₂ ≥ λ₃ of
+    their offsets' covariance (+ 10⁻³ I): linearity (λ₁ − λ₂)/λ₁, planarity (λ₂ − λ₃)/λ₁,
+    sphericity λ₃/λ₁, the block's occupied share, and √λ₁ / r.  [M, 5]
+
+    The classic point-cloud descriptors, on the grid: a tube is a line of cells, a seat or a
+    shell a sheet, a cushion a solid; a part's colour and the field's features do not tell
+    a dark frame from the dark seat it carries, its shape does."""
+    res, side = occupied.shape[-1], occupied.shape[-1] + 2 * radius
+    padded = F.pad(occupied.to(xn.dtype), (radius,) * 6).reshape(-1)  # the box's outside is empty
+    ijk, _ = occupancy.cell_index(xn, res)
+    ijk = ijk.clamp(0, res - 1) + radius
+    r = torch.arange(-radius, radius + 1, device=xn.device)
+    offsets = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), dim=-1).reshape(-1, 3)  # [K, 3]
+    flat = (ijk[:, 0] * side + ijk[:, 1]) * side + ijk[:, 2]
+    w = padded[flat[:, None] + ((offsets[:, 0] * side + offsets[:, 1]) * side + offsets[:, 2])[None]]  # [M, K]
+    n = w.sum(dim=1).clamp_min(1.0)
+    d = offsets.to(xn.dtype)
+    mean = w @ d / n[:, None]
+    second = (w @ (d[:, :, None] * d[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3) / n[:, None, None]
+    cov = second - mean[:, :, None] * mean[:, None, :] + 1e-3 * torch.eye(3, dtype=xn.dtype, device=xn.device)
+    l3, l2, l1 = torch.linalg.eigvalsh(cov).clamp_min(1e-6).unbind(-1)  # ascending
+    return torch.stack([(l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, w.mean(dim=1), l1.sqrt() / radius], dim=-1)
 
 
 def denser_points(field: ConditionalRadianceField, instance: int, xn: Tensor, distance: float) -> tuple[Tensor, Tensor]:
@@ -614,7 +660,8 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     step 6 smooths along: the self-training's appearance fit reads F_fuse too, the bilateral
     smoothing's 26 neighbour distances do not (removals' gap closed within 0.01 of reading it
     on three of four models, and 0.13 s faster on a 37 000-cell grid with a 64-wide F_fuse)."""
-    z = _standardizer(f_cells, widths, [options.position_weight if g == "position" else 1.0 for g in groups])
+    weight = {"position": options.position_weight, "geometry": options.geometry_weight}
+    z = _standardizer(f_cells, widths, [weight.get(g, 1.0) for g in groups])
     columns = torch.arange(sum(widths)).split(widths)
     looks = torch.cat([c for g, c in zip(groups, columns) if g != "position"]) if len(groups) > 1 and "position" in groups else None
     z_pos, z_cells = z(f_pos), z(f_cells)
