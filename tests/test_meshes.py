@@ -27,6 +27,7 @@ from crfedit.data.meshes import (  # noqa: E402
     hidden_share,
     in_frame,
     instance_names_from,
+    pick_twin_sources,
     removable_parts,
     render_view,
     stroke_view,
@@ -393,3 +394,12 @@ def test_sh3f_chairs_extract_with_attribution_and_rotation(boxes, tmp_path):
     write_mesh_category(out, [obj], MeshDatasetConfig(views=3, res=8, up="y", twins=False))
     text = (out / "ATTRIBUTION.txt").read_text()
     assert "José Maker" in text and "Nice chair" in text and "blends/view/1" in text
+
+
+def test_more_twin_sources_keep_the_default_ones():
+    picks = [(1, None if i % 3 == 0 else 2) for i in range(20)]  # every 3rd mesh has nothing to remove
+    base, more = pick_twin_sources(picks), pick_twin_sources(picks, 8)
+    assert [len(base[k]) for k in ("color", "remove")] == [4, 4] and [len(more[k]) for k in ("color", "remove")] == [8, 8]
+    for kind, pick in (("color", 0), ("remove", 1)):
+        assert set(base[kind]) <= set(more[kind])
+        assert all(picks[i][pick] is not None for i in more[kind])

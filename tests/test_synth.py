@@ -14,6 +14,7 @@ from crfedit.cameras import Camera, focal_from_angle, look_at
 from crfedit.cli import app
 from crfedit.data import dataset_info, load_category, load_twins, read_mask
 from crfedit.data.format import box_filter
+from crfedit.data.loading import category_fingerprint
 from crfedit.masks import dilate
 from crfedit.data.raycast import LIGHT, box, camera_rays, cylinder, primitive_bounds
 from crfedit.data.synth import (
@@ -23,6 +24,7 @@ from crfedit.data.synth import (
     make_chair,
     render_chair,
     split_counts,
+    twin_sources,
     write_synth_category,
 )
 
@@ -199,3 +201,22 @@ def test_cli_synth(tmp_path):
     (tmp_path / "f" / "keep.txt").write_text("x")
     bad = CliRunner().invoke(app, ["dataset", "synth", str(tmp_path / "f"), "--no-twins"])
     assert bad.exit_code == 2 and "not empty" in bad.stderr
+
+
+def test_more_twin_sources_only_add_twins(tmp_path):
+    assert twin_sources(24) == [0, 6, 12, 18] and twin_sources(24, 8) == [0, 3, 6, 9, 12, 15, 18, 21]
+    for n in (1, 3, 5, 7, 10):
+        for count in (4, 5, 6, 9):
+            got = twin_sources(n, count)
+            assert set(twin_sources(n)) <= set(got) and len(got) == min(count, n) == len(set(got))
+    small = dict(instances=6, views=3, res=12, aa=1)
+    base, more = write_synth_category(tmp_path / "a", SynthConfig(**small)), write_synth_category(
+        tmp_path / "b", SynthConfig(**small, twin_sources=6))
+    assert {t.name for t in base.twins} < {t.name for t in more.twins}
+    assert category_fingerprint(tmp_path / "a", base.names) == category_fingerprint(tmp_path / "b", more.names)
+    for t in base.twins:  # the default twins, scribbles included, come out byte-identical
+        for f in sorted((tmp_path / "a" / t.folder).rglob("*")):
+            if f.is_file():
+                assert f.read_bytes() == (tmp_path / "b" / f.relative_to(tmp_path / "a")).read_bytes(), f
+    bad = CliRunner().invoke(app, ["dataset", "synth", str(tmp_path / "c"), "--twin-sources", "0"])
+    assert bad.exit_code == 2 and "Traceback" not in bad.output

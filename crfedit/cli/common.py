@@ -169,6 +169,10 @@ SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed; the same seed
 AaOpt = Annotated[
     int, typer.Option("--aa", help="Antialiasing: aa×aa rays per pixel, box-filtered (1 = one ray per pixel center, aliased).")
 ]
+TwinSourcesOpt = Annotated[
+    int,
+    typer.Option("--twin-sources", help="Instances per twin kind that get a twin; more than 4 only adds twins (the default 4 stay).", min=1),
+]
 
 
 def command_line() -> str:

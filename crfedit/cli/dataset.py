@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import AaOpt, SeedOpt, dataset_app, user_errors
+from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, user_errors
 
 
 def _rate_column():
@@ -33,6 +33,7 @@ def synth(
     res: Annotated[int, typer.Option("--res", help="Image width and height in pixels.")] = 64,
     seed: SeedOpt = 0,
     twins: Annotated[bool, typer.Option("--twins/--no-twins", help="Also write ground-truth color/removal twins.")] = True,
+    twin_sources: TwinSourcesOpt = 4,
     aa: AaOpt = 3,
 ) -> None:
     """Render procedural chairs with depth, part maps and edit twins."""
@@ -40,7 +41,7 @@ def synth(
 
     from ..data.synth import SynthConfig, check_synth_args, synth_steps, write_synth_category
 
-    config = SynthConfig(instances=instances, views=views, res=res, seed=seed, twins=twins, aa=aa)
+    config = SynthConfig(instances=instances, views=views, res=res, seed=seed, twins=twins, aa=aa, twin_sources=twin_sources)
     check_synth_args(out, config)
     columns = (TextColumn("{task.description:<18}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
     with Progress(*columns) as bar:

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import AaOpt, SeedOpt, dataset_app, user_errors
+from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, user_errors
 
 
 class PaletteChoice(str, enum.Enum):
@@ -34,6 +34,7 @@ def from_meshes(
     ] = PaletteChoice.random,
     up: Annotated[UpChoice, typer.Option("--up", help="The files' up axis: z, or y (most OBJ files, every glTF).")] = UpChoice.z,
     twins: Annotated[bool, typer.Option("--twins/--no-twins", help="Also write ground-truth color/removal twins.")] = True,
+    twin_sources: TwinSourcesOpt = 4,
     aa: AaOpt = 3,
 ) -> None:
     """Render mesh files as a category: parts from material groups, depth and part maps, twins.
@@ -46,7 +47,7 @@ def from_meshes(
     from ..data.meshes import MeshDatasetConfig, mesh_steps, write_mesh_category
     from .dataset import _rate_column
 
-    config = MeshDatasetConfig(views=views, res=res, seed=seed, palette=palette.value, up=up.value, twins=twins, aa=aa)
+    config = MeshDatasetConfig(views=views, res=res, seed=seed, palette=palette.value, up=up.value, twins=twins, aa=aa, twin_sources=twin_sources)
     columns = (TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
     with Progress(*columns) as bar:
         task = bar.add_task("loading meshes", total=mesh_steps(len(meshes), config))

@@ -51,6 +51,7 @@ from .synth import (
     sample_cameras,
     scribbles,
     stroke_region,
+    TWIN_SOURCES,
     twin_sources,
 )
 
@@ -255,7 +256,9 @@ class MeshDatasetConfig:
     up: str = "z"
     """The file's up axis: ``z``, or ``y`` (most OBJ and every glTF file)."""
     twins: bool = True
-    """Also write ground-truth color and removal twins of up to 4 meshes."""
+    """Also write ground-truth color and removal twins."""
+    twin_sources: int = TWIN_SOURCES
+    """Meshes per twin kind that get a twin (:func:`pick_twin_sources`)."""
     aa: int = 3
     """Supersamples per pixel side (aa×aa rays, box-filtered); 1 = one ray per pixel center."""
 
@@ -288,8 +291,9 @@ def instance_names_from(paths: list[Path]) -> list[str]:
 
 def mesh_steps(meshes: int, config: MeshDatasetConfig) -> int:
     """Progress steps :func:`write_mesh_category` reports at most: one per mesh, one per twin
-    source (up to 4 per twin kind; fewer when few meshes have parts fit for twins)."""
-    return meshes + (min(meshes, 2 * len(twin_sources(meshes))) if config.twins else 0)
+    source (up to ``config.twin_sources`` per twin kind; fewer when few meshes have parts fit
+    for twins)."""
+    return meshes + (min(meshes, 2 * len(twin_sources(meshes, config.twin_sources))) if config.twins else 0)
 
 
 def _check(out: Path, paths: list[Path], config: MeshDatasetConfig) -> None:
@@ -301,7 +305,8 @@ def _check(out: Path, paths: list[Path], config: MeshDatasetConfig) -> None:
         raise CrfError(f"--palette {config.palette}: expected random or mtl")
     if config.up not in ("y", "z"):
         raise CrfError(f"--up {config.up}: expected y or z")
-    synth_like = SynthConfig(instances=len(paths), views=config.views, res=config.res, seed=config.seed, twins=config.twins, aa=config.aa)
+    synth_like = SynthConfig(instances=len(paths), views=config.views, res=config.res, seed=config.seed, twins=config.twins, aa=config.aa,
+                             twin_sources=config.twin_sources)
     check_synth_args(out, synth_like)
 
 
@@ -347,12 +352,13 @@ def twin_parts(inst: _Instance, res: int) -> tuple[int | None, int | None]:
     return (max(others, key=others.get) if others else None), remove
 
 
-def pick_twin_sources(picks: list[tuple[int | None, int | None]]) -> dict[str, list[int]]:
-    """Per twin kind, up to 4 instances spread over those that have a part for it (``picks``:
-    :func:`twin_parts` of each instance).  The kinds draw from their own pools: which chairs
+def pick_twin_sources(picks: list[tuple[int | None, int | None]], count: int = TWIN_SOURCES) -> dict[str, list[int]]:
+    """Per twin kind, up to ``count`` instances spread over those that have a part for it
+    (``picks``: :func:`twin_parts` of each instance; the default count's are always among
+    them, :func:`~.synth.twin_sources`).  The kinds draw from their own pools: which chairs
     get a removal twin (few parts uncover nothing unseen) does not move the colour twins."""
     pools = {kind: [i for i, pick in enumerate(picks) if pick[k] is not None] for k, kind in enumerate(("color", "remove"))}
-    return {kind: [pool[k] for k in twin_sources(len(pool))] for kind, pool in pools.items()}
+    return {kind: [pool[k] for k in twin_sources(len(pool), count)] for kind, pool in pools.items()}
 
 
 def _write_twin(
@@ -433,7 +439,7 @@ def write_mesh_category(
             progress(name)
     twins: list[TwinSpec] = []
     picks = [twin_parts(inst, config.res) for inst in instances] if config.twins else []
-    sources = pick_twin_sources(picks) if config.twins else {}
+    sources = pick_twin_sources(picks, config.twin_sources) if config.twins else {}
     for index in sorted(set(sum(sources.values(), []))):
         for part_id, kind in zip(picks[index], ("color", "remove")):
             if index in sources[kind]:

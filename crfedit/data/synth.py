@@ -353,6 +353,10 @@ def scribbles(rng: np.random.Generator, parts: np.ndarray, part_id: int) -> tupl
 # ----------------------------------------------------------------------------- the dataset
 
 
+TWIN_SOURCES = 4
+"""Chairs that get twins by default: the benchmark twins every documented score is measured on."""
+
+
 @dataclass(frozen=True)
 class SynthConfig:
     instances: int = 24
@@ -366,7 +370,9 @@ class SynthConfig:
     aa: int = 3
     """Supersamples per pixel side (aa×aa rays, box-filtered); 1 = one ray per pixel center."""
     twins: bool = True
-    """Also write ground-truth color and removal twins of up to 4 chairs."""
+    """Also write ground-truth color and removal twins."""
+    twin_sources: int = TWIN_SOURCES
+    """Chairs that get twins (:func:`twin_sources`); more than the default only adds twins."""
 
 
 @dataclass(frozen=True)
@@ -376,15 +382,25 @@ class SynthResult:
     seconds: float
 
 
-def twin_sources(instances: int) -> list[int]:
-    """Indices of the chairs that get twins: up to 4, spread over the category."""
-    n = min(4, instances)
-    return sorted({round(k * instances / n) for k in range(n)}) if n else []
+def _spread(instances: int, count: int) -> list[int]:
+    n = min(count, instances)
+    return sorted({round(k * instances / n) for k in range(n)}) if n > 0 else []
+
+
+def twin_sources(instances: int, count: int = TWIN_SOURCES) -> list[int]:
+    """Indices of the chairs that get twins: up to ``count``, spread over the category.
+
+    The default's :data:`TWIN_SOURCES` sources are always among them (a bigger benchmark only
+    adds twins: the default ones, and so every score measured on them, stay as they were),
+    the rest are spread over the category as well."""
+    base = _spread(instances, min(count, TWIN_SOURCES))
+    extra = [i for i in _spread(instances, count) + list(range(instances)) if i not in base]
+    return sorted(base + list(dict.fromkeys(extra))[: max(0, min(count, instances) - len(base))])
 
 
 def synth_steps(config: SynthConfig) -> int:
     """Progress steps :func:`write_synth_category` reports: one per chair, one per twin source."""
-    return config.instances + (len(twin_sources(config.instances)) if config.twins else 0)
+    return config.instances + (len(twin_sources(config.instances, config.twin_sources)) if config.twins else 0)
 
 
 def check_synth_args(out: Path, config: SynthConfig) -> None:
@@ -395,6 +411,8 @@ def check_synth_args(out: Path, config: SynthConfig) -> None:
         raise CrfError(f"--seed {config.seed}: must be 0 or more")
     if config.views < 1:
         raise CrfError(f"--views {config.views}: need at least 1")
+    if config.twin_sources < 1:
+        raise CrfError(f"--twin-sources {config.twin_sources}: need at least 1 (or --no-twins)")
     if config.twins and config.views < 3:
         raise CrfError(f"--views {config.views}: twins need a test split, i.e. at least 3 views (or --no-twins)")
     if not 8 <= config.res <= 4096:
@@ -465,20 +483,23 @@ def write_synth_category(
     check_synth_args(out, config)
     out = Path(out)
     start = time.perf_counter()
-    sources = twin_sources(config.instances) if config.twins else []
+    sources = twin_sources(config.instances, config.twin_sources) if config.twins else []
+    # the default sources get arms, whatever the count, so a bigger benchmark renders the same chairs
+    armed = [i for i in twin_sources(config.instances) if i in sources]
+    order = armed + [i for i in sources if i not in armed]  # seat or back alternates along it
     names, twins = [], []
     with atomic_folder(out) as tmp:
         for index in range(config.instances):
             name = f"chair_{index:03d}"
             # twin sources get arms, so their removal twin removes a part that covers pixels
-            chair = make_chair(np.random.default_rng([config.seed, index, 0]), arms=True if index in sources else None)
+            chair = make_chair(np.random.default_rng([config.seed, index, 0]), arms=True if index in armed else None)
             cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
             frames = _write_instance(tmp / name, chair, cams, config.aa)
             names.append(name)
             if progress:
                 progress(name)
             if index in sources:
-                twins += _twins_of(tmp, name, chair, frames, sources.index(index), [config.seed, index], config.aa)
+                twins += _twins_of(tmp, name, chair, frames, order.index(index), [config.seed, index], config.aa)
                 if progress:
                     progress(f"{name} twins")
         write_instances_txt(tmp, names)

@@ -164,14 +164,19 @@ class SelectOptions:
     joined by a cell-wise max — when that selects at most this × as many cells as the full
     features do (0: never).  Recolours and removals use :data:`CHROMA_UNION`
     (:func:`options_for`)."""
-    chroma_saturation: float = 0.4
+    chroma_saturation: float = 0.3
     """Nor does it join (nor run) unless the scribbled points' median chromaticity has at least
     this HSV saturation (max − min) / max, a colour's, which shading does not change: the
     chromaticity of a near-grey part is mostly the model's colour noise.  Measured on the
     colour twins: a white chair 0.07 (joining cost its recolour 1.6 dB outside the part), the
     tests' weakly trained beige seat 0.24 (joining tinted the other parts 7 levels more),
     procedural parts 0.22–0.26 (joining changed their gap closed by < 0.03) and 0.70, real
-    wooden and orange parts 0.49–0.82."""
+    wooden and orange parts 0.49–0.82.  Was 0.4; on the 16-twin benchmark (``--twin-sources
+    8``, retrained models) the scribbled parts lie at 0.01–0.28 or 0.35–0.92, and 0.3 joins
+    for five more twins: real recolours 0.562 → 0.655 of the gap (edit seed 1: 0.580 →
+    0.657; a pink shell 0.24 stays below, its recolour 0.25), procedural 0.615 → 0.619,
+    removals 0.479 → 0.550 (procedural) and 0.644 → 0.624 (real); 0.2 flooded a procedural
+    back (recolours 0.511)."""
     smooth: bool = True
     """Blend each cell's value half-and-half with its occupied 3×3×3 neighbourhood's mean."""
     smooth_bandwidth: float = 0.0
@@ -271,6 +276,13 @@ gap closed, edit seeds 0 / 1 / 2): procedural removals 0.777 / 0.775 / 0.776 →
 frame −0.157 → −0.059), the weaker models 0.322 → 0.324 and 0.334 → 0.343.  At weight 1 the
 real removals gained more (0.639) and the procedural ones lost (0.756); at 0.5, 0.777 and
 0.614.  A 5³ block (radius 2) instead of 3³: 0.761 and 0.631."""
+REMOVE_POSITION_WEIGHT = 0.5
+"""A removal's :attr:`SelectOptions.position_weight`.  Measured on the 16-twin benchmark
+(``--twin-sources 8``; docs/selection.md, hybrid, gap closed, edit seeds 0 / 1, retrained
+17 000-step models): real removals 0.542 / 0.547 → 0.644 / 0.642 (`katorlegaz_cafe_chair`
+0.35 → 0.89: the quadratic position terms took a band of its back with the frame), procedural
+0.481 / 0.479 → 0.479 / 0.477 (outside the part −0.4 dB; `chair_000`'s arms 0.40 → 0.30);
+0.75: 0.582 and 0.481; 0.25: 0.655 and 0.479."""
 GEOMETRY_RADIUS = 1
 """:func:`local_shape`'s block: the (2r+1)³ cells around the point's cell."""
 
@@ -294,7 +306,7 @@ def options_for(kind: str) -> SelectOptions:
     chromaticity-only selection (:data:`CHROMA_UNION`), additions (a donor's part) do not: it
     doubled the damage of an added part to the rest of the chair (docs/selection.md).
     Removals also describe points by F_fuse's activations and the grid's local shape
-    (:data:`REMOVE_FEATURES`), smooth
+    (:data:`REMOVE_FEATURES`), weigh position at :data:`REMOVE_POSITION_WEIGHT`, smooth
     bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
     chromaticity (:data:`REMOVE_VETO_CHROMA`); recolours select at a lower
     cut (:data:`COLOR_THRESHOLD`) and fill the rims (:data:`COLOR_FILL_SHARE`)."""
@@ -303,7 +315,8 @@ def options_for(kind: str) -> SelectOptions:
     if kind == "color":
         return SelectOptions(chroma_union=CHROMA_UNION, select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE)
     if kind == "remove":
-        return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, chroma_union=CHROMA_UNION,
+        return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, position_weight=REMOVE_POSITION_WEIGHT,
+                             chroma_union=CHROMA_UNION,
                              smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA)
     return SelectOptions()
 
