@@ -173,7 +173,10 @@ def test_two_ranks_with_half_the_rays_each_match_one_process(two_ranks, tiny_cha
     one = model.state()
     assert torch.equal(one["field.occupancy"], two["field.occupancy"])
     worst = max(float((one[k] - two[k]).abs().max()) for k in one if one[k].is_floating_point())
-    assert worst < 1e-4
+    # Only summation order differs (the ranks' all-reduced gradient against one sum), amplified
+    # by 16 Adam steps: 1.07e-4 at most (F_share's grid) on an AVX-512 EPYC, whose GEMM kernels
+    # round differently from an AVX2 one; a different run moves the weights by 0.05.
+    assert worst < 3e-4
     moved = float((one["field.F_dens.weight"] - load_file(str(two_ranks / "full.rank0.safetensors"))["field.F_dens.weight"]).abs().max())
     assert moved > 100 * worst  # a different run differs by far more than the tolerance
 
