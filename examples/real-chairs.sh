@@ -2,11 +2,12 @@
 # Real chairs, end to end: Debian's Sweet Home 3D furniture catalogs → a category of real chair
 # meshes rendered at 64×64 → train → evaluate reconstruction → recolor one chair → render it.
 #
-#   examples/real-chairs.sh [--work DIR] [--count N] [--views V] [--hires] [--data-only]
+#   examples/real-chairs.sh [--work DIR] [--count N] [--views V] [--twin-sources T] [--hires] [--data-only]
 #
 #   --work DIR    where everything goes (default runs/real-chairs)
 #   --count N     chairs in the category (default 24; the catalogs hold 47 with 2+ parts)
 #   --views V     views per chair (default 50: 40 train / 5 val / 5 test)
+#   --twin-sources T  chairs per twin kind with a ground-truth twin (default 4; 8: the 16-twin benchmark)
 #   --hires       also build the category at 128×128 (DIR/chairs128)
 #   --data-only   stop once the data is built (no training)
 #
@@ -17,12 +18,13 @@
 # and source of every chair — keep it with the data and with anything rendered from it.
 set -euo pipefail
 
-work=runs/real-chairs count=24 views=50 hires=0 data_only=0
+work=runs/real-chairs count=24 views=50 twin_sources=4 hires=0 data_only=0
 while [[ $# -gt 0 ]]; do
     case "$1" in
         --work) work="$2"; shift 2 ;;
         --count) count="$2"; shift 2 ;;
         --views) views="$2"; shift 2 ;;
+        --twin-sources) twin_sources="$2"; shift 2 ;;
         --hires) hires=1; shift ;;
         --data-only) data_only=1; shift ;;
         -h|--help) sed -n '2,18p' "$0"; exit 0 ;;
@@ -64,9 +66,9 @@ EOF
 
 # 3. Render the category: parts = material groups, random part colors, depth + part maps, twins.
 data="$work/chairs64"
-crfedit dataset from-meshes "$data" "$work"/meshes/*/*.obj --up y --views "$views" --res 64
+crfedit dataset from-meshes "$data" "$work"/meshes/*/*.obj --up y --views "$views" --res 64 --twin-sources "$twin_sources"
 if [[ $hires -eq 1 ]]; then
-    crfedit dataset from-meshes "$work/chairs128" "$work"/meshes/*/*.obj --up y --views "$views" --res 128
+    crfedit dataset from-meshes "$work/chairs128" "$work"/meshes/*/*.obj --up y --views "$views" --res 128 --twin-sources "$twin_sources"
 fi
 crfedit dataset info "$data"
 [[ $data_only -eq 1 ]] && exit 0
