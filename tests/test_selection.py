@@ -656,6 +656,7 @@ def test_removals_read_fuse_but_smooth_along_appearance_only():
     assert options_for("remove").features == S.REMOVE_FEATURES == (*S.FEATURES, "fuse", "geometry")
     assert options_for("remove").geometry_weight == S.REMOVE_GEOMETRY_WEIGHT < 1
     assert options_for("remove").position_weight == S.REMOVE_POSITION_WEIGHT < 1 == options_for("color").position_weight
+    assert options_for("color").appearance_gate == S.COLOR_APPEARANCE_GATE < options_for("remove").appearance_gate == SelectOptions().appearance_gate
     assert options_for("color").features == options_for("add").features == S.FEATURES
     g = torch.Generator().manual_seed(0)
     base, fuse = ("bottleneck", "color", "chroma", "position"), 16
