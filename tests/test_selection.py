@@ -673,3 +673,48 @@ def test_removals_read_fuse_but_smooth_along_appearance_only():
     shifted[:, -fuse:] += 3.0
     assert float(S._classify((*base, "fuse"), widths + [fuse], pos, keep, view, shifted, o)[0].mean()) > 0.9
     assert float(with_fuse.mean()) < 0.2 < float(without.mean())
+
+
+def test_keep_wins_closed_form():
+    """1-D: a positive at 0 and a keep point at 10.  With ratio 1 the split is halfway (5);
+    with ratio 0.5 a cell must be within half its distance to the positive of the keep point
+    (beyond 20/3); no keep point, no veto; chunking does not change the distances."""
+    from crfedit.edit.selection import keep_wins, nearest_distance
+    pos, keep = torch.tensor([[0.0]]), torch.tensor([[10.0]])
+    cells = torch.tensor([[4.0], [6.0], [6.5], [7.0], [-3.0]])
+    assert keep_wins(cells, pos, keep, 1.0).tolist() == [False, True, True, True, False]
+    assert keep_wins(cells, pos, keep, 0.5).tolist() == [False, False, False, True, False]
+    assert not keep_wins(cells, pos, torch.zeros(0, 1), 1.0).any()
+    g = torch.Generator().manual_seed(0)
+    many, pts = torch.randn(50, 3, generator=g), torch.randn(7, 3, generator=g)
+    assert torch.allclose(nearest_distance(many, pts, chunk=4), torch.cdist(many, pts).min(dim=1).values)
+
+
+def test_a_keep_stroke_wins_over_the_same_look_near_it(trained):
+    """Scribble one end of the seat, keep the other, and let the classifier hardly weigh
+    position (0.01): it cannot tell the two ends apart by look and takes the kept end too.
+    With keep_ratio (position weighing 10 in its distance, 1000 × 0.01, so it splits by
+    place) the kept end's cells score 0 and it leaves the selection, while the scribbled end
+    stays; recolours and removals use it, additions do not."""
+    from crfedit.edit.selection import COLOR_KEEP_RATIO, REMOVE_KEEP_RATIO
+    _, model, category = trained
+    k = 2
+    view, fg, _, _ = part_view(category, k, "seat")
+    cols = np.nonzero(fg.any(axis=0))[0]
+    left = fg & (np.arange(fg.shape[1]) < cols[len(cols) // 2])[None]
+    right = fg & ~dilate(left, 2)
+    x = np.arange(fg.shape[1])[None]
+    c_left, c_end = np.nonzero(left.any(axis=0))[0].max(), np.nonzero(right.any(axis=0))[0].max()
+    line = right & (x >= c_end - 1)  # two columns at its far end
+    views = [ScribbleView(view.camera, left, line)]
+    field = model.field_for(k)
+    pts, on = surface_points(field, view.camera, k)
+    share = lambda sel, m: float(sel.at(field.normalize(pts[torch.from_numpy(m.reshape(-1)) & on])).float().mean())
+    plain = select(model, k, views, SelectOptions(smooth=False, position_weight=0.01))
+    won = select(model, k, views, SelectOptions(smooth=False, position_weight=0.01, keep_ratio=1.0, keep_position_weight=1000.0))
+    far = right & (x > (c_left + c_end) / 2 + 1) & ~dilate(line, 1)  # nearer the keep stroke than the scribble, off its cells
+    assert far.sum() >= 5 and share(plain, far) > 0.5 and share(won, far) < 0.2 and won.meta["keep_wins_cells"] > 0
+    assert share(won, erode(left, 1)) > 0.8
+    assert bool((won.values <= plain.values + 1e-6).all())  # it only ever lowers
+    assert options_for("remove").keep_ratio == REMOVE_KEEP_RATIO > 0 and options_for("color").keep_ratio == COLOR_KEEP_RATIO > 0
+    assert options_for("add").keep_ratio == 0 and "keep_wins_cells" not in plain.meta

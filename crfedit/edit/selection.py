@@ -32,6 +32,10 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    being unlike the negatives.  A cell whose appearance (bottleneck + chromaticity) is farther
    from every positive than ``appearance_gate`` × the positives' own spacing (95th percentile
    of their nearest-neighbour distances) is not selected.
+   **5b. Keep strokes win near them** (recolours and removals, :attr:`SelectOptions.keep_ratio`):
+   a cell nearer a keep-stroke point than every positive (:func:`keep_wins`, in appearance and
+   position) scores 0.  One hyperplane cannot put a part that looks like the scribbled one on
+   the other side, however many keep strokes cover it; near the strokes, this does.
 6. **Refine.**  Values are blended half-and-half with the mean over each cell's occupied
    3×3×3 neighbourhood (a smoothing that respects the grid's empty space, mild enough that a
    one-cell-thick part survives it; a removal's mean is bilateral, twice: neighbours of unlike
@@ -211,6 +215,18 @@ class SelectOptions:
     :data:`VETO_FLOOR` (:func:`chroma_alike`) is capped below :data:`GROW_LOW`: neither
     selected nor taken into a removal's skin.  Only for a saturated part
     (``chroma_saturation``, as for the join).  Removals use :data:`REMOVE_VETO_CHROMA`."""
+    keep_ratio: float = 0.0
+    """When > 0, a keep stroke wins near it: a cell whose nearest keep-stroke point is nearer
+    than this × its nearest positive, in the standardized appearance and position
+    (:data:`KEEP_GROUPS`, :func:`keep_wins`), scores 0 before the refinement, in the full
+    features' selection and in the chromaticity join alike.  The classifier is one hyperplane:
+    a keep stroke on a part that looks like the scribbled one (legs the colour of the
+    stretchers scribbled) cannot pull that part to its side, and the stroke went unheeded.
+    Recolours and removals use :data:`COLOR_KEEP_RATIO` and :data:`REMOVE_KEEP_RATIO` (0: off,
+    the default and additions')."""
+    keep_position_weight: float = 1.0
+    """Position's weight in :attr:`keep_ratio`'s distance, relative to its weight in the
+    classifier (:attr:`position_weight`); recolours use :data:`COLOR_KEEP_POSITION_WEIGHT`."""
     fill_share: float = 0.0
     """When > 0, the selection finally also takes each occupied cell, keep-stroke cells aside,
     at least this share of whose occupied 3×3×3 neighbourhood (itself included) it selects
@@ -314,6 +330,31 @@ VETO_FLOOR = 0.08
 coloured part spread by 0.005–0.02, less than the part's own shading edges differ; with the
 spread alone (factor 3, floor 0.01) the veto cut those edges from the procedural removals'
 parts (gap closed 0.778 → 0.735)."""
+KEEP_GROUPS = ("bottleneck", "color", "chroma", "position")
+"""The feature groups of :attr:`SelectOptions.keep_ratio`'s distance: appearance and position
+(not F_fuse's activations nor the grid's local shape, which removals' classifier also reads)."""
+REMOVE_KEEP_RATIO = 1.0
+"""A removal's :attr:`SelectOptions.keep_ratio`: a cell nearer a keep-stroke point than every
+positive is not selected.  Measured on the 16-twin benchmark over two model pairs
+(procedural / real, training seeds 0 and 1; docs/benchmarks.md), removals' gap closed: 0.550
+/ 0.630 / 0.477 / 0.630 → 0.563 / 0.671 / 0.487 / 0.657 (edit seed 1: 0.548 / 0.625 / 0.479 /
+0.624 → 0.557 / 0.672 / 0.476 / 0.657); after two simulated corrections from other views
+(``benchmarks/correction.py``) 0.612 / 0.748 / 0.549 / 0.714 → 0.682 / 0.832 / 0.675 / 0.818.
+At 0.7: 0.550 / 0.657 / 0.478 / 0.653; 1.3: 0.558 / 0.642 / 0.464 / 0.625; position at half
+or twice the weight: 0.549 / 0.682 / 0.474 / 0.665 and 0.559 / 0.667 / 0.486 / 0.653."""
+COLOR_KEEP_RATIO = 0.7
+"""A recolour's :attr:`SelectOptions.keep_ratio`, with position at
+:data:`COLOR_KEEP_POSITION_WEIGHT`: the keep stroke wins only where it is clearly nearer,
+closer to where it was drawn.  Measured as :data:`REMOVE_KEEP_RATIO`, recolours' gap closed
+from one view 0.847 / 0.634 / 0.856 / 0.528 → 0.846 / 0.628 / 0.860 / 0.527 (edit seed 1:
+0.846 / 0.632 / 0.856 / 0.524 → 0.845 / 0.628 / 0.859 / 0.529), after two corrections 0.795 /
+0.714 / 0.851 / 0.656 → 0.886 / 0.720 / 0.888 / 0.668 (`chair_015`'s recolour, whose first
+correction took its legs: 0.89 → 0.30 before, 0.88 → 0.73 now, 0.90 after the second).  As
+the removals' (1.0, position at 1): 0.839 /
+0.585 / 0.858 / 0.524 from one view (`scopia_armchair2` 0.56 → 0.21); 0.5: 0.841 / 0.641 /
+0.859 / 0.528."""
+COLOR_KEEP_POSITION_WEIGHT = 2.0
+""":data:`COLOR_KEEP_RATIO`'s :attr:`SelectOptions.keep_position_weight`."""
 
 
 def options_for(kind: str) -> SelectOptions:
@@ -325,16 +366,19 @@ def options_for(kind: str) -> SelectOptions:
     bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
     chromaticity (:data:`REMOVE_VETO_CHROMA`); recolours select at a lower
     cut (:data:`COLOR_THRESHOLD`), fill the rims (:data:`COLOR_FILL_SHARE`) and gate
-    appearance tighter (:data:`COLOR_APPEARANCE_GATE`)."""
+    appearance tighter (:data:`COLOR_APPEARANCE_GATE`).  Both let keep strokes win near them
+    (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`)."""
     if kind not in EDIT_KINDS:
         raise CrfError(f"a selection for {kind!r}: expected one of {', '.join(EDIT_KINDS)}")
     if kind == "color":
         return SelectOptions(chroma_union=CHROMA_UNION, select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
-                             appearance_gate=COLOR_APPEARANCE_GATE)
+                             appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
+                             keep_position_weight=COLOR_KEEP_POSITION_WEIGHT)
     if kind == "remove":
         return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, position_weight=REMOVE_POSITION_WEIGHT,
                              chroma_union=CHROMA_UNION,
-                             smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA)
+                             smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA,
+                             keep_ratio=REMOVE_KEEP_RATIO)
     return SelectOptions()
 
 
@@ -578,6 +622,23 @@ def appearance_gate(cells: Tensor, pos: Tensor, factor: float, max_positives: in
     return torch.cdist(cells, pos).min(dim=1).values <= factor * spacing
 
 
+def nearest_distance(cells: Tensor, points: Tensor, max_points: int = 2000, chunk: int = 8192) -> Tensor:
+    """Each cell's [N, F] distance to its nearest point [P, F], over at most ``max_points``
+    evenly spaced points, ``chunk`` cells at a time (bounded memory on a 64³ grid).  [N]"""
+    if len(points) > max_points:
+        points = points[torch.linspace(0, len(points) - 1, max_points).long()]
+    return torch.cat([torch.cdist(c, points).min(dim=1).values for c in cells.split(chunk)]) if len(cells) else cells.new_zeros(0)
+
+
+def keep_wins(cells: Tensor, pos: Tensor, keep: Tensor, ratio: float) -> Tensor:
+    """Whether each cell [N, F] lies nearer some keep point [K, F] than ``ratio`` × its nearest
+    positive [P, F] (:attr:`SelectOptions.keep_ratio`): a Voronoi split between the two kinds
+    of stroke, in whatever space the columns span.  [N] bool; all False without keep points."""
+    if len(keep) == 0 or len(pos) == 0:
+        return torch.zeros(len(cells), dtype=torch.bool, device=cells.device)
+    return nearest_distance(cells, keep) < ratio * nearest_distance(cells, pos)
+
+
 # ----------------------------------------------------------------------------- refinement
 
 
@@ -706,13 +767,29 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     return pred, (z_cells[:, torch.cat(smooth)] if smooth else z_cells)
 
 
+def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_cells, options: SelectOptions) -> Tensor | None:
+    """Step 5b: the cells [N] a keep stroke wins (:attr:`SelectOptions.keep_ratio`), in the
+    :data:`KEEP_GROUPS` columns standardized as the classifier's, position weighted
+    ``keep_position_weight`` × the classifier's weight; None when off or without keep points."""
+    use = [g for g in groups if g in KEEP_GROUPS]
+    if options.keep_ratio <= 0 or len(f_keep) == 0 or not use:
+        return None
+    weight = {"position": options.position_weight * options.keep_position_weight, "geometry": options.geometry_weight}
+    z = _standardizer(f_cells, widths, [weight.get(g, 1.0) for g in groups])
+    columns = dict(zip(groups, torch.arange(sum(widths)).split(widths)))
+    c = torch.cat([columns[g] for g in use])
+    return keep_wins(z(f_cells)[:, c], z(f_pos)[:, c], z(f_keep)[:, c], options.keep_ratio)
+
+
 def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor | None, occupied: Tensor, scribbled: Tensor,
-            kept: Tensor, options: SelectOptions) -> Tensor:
+            kept: Tensor, options: SelectOptions, veto: Tensor | None = None) -> Tensor:
     """Step 6: the cells' probabilities (``classified``: from :func:`_classify`, with their
     appearance; cells: flat indices of ``occupied``, ``neighbours`` their :func:`neighbour_table`,
-    given when the smoothing is bilateral) as a grid [R, R, R], smoothed, connected to the
-    ``scribbled`` cells, 0 in the ``kept`` cells."""
+    given when the smoothing is bilateral) as a grid [R, R, R], 0 where ``veto`` [N] (step 5b),
+    smoothed, connected to the ``scribbled`` cells, 0 in the ``kept`` cells."""
     pred, looks = classified
+    if veto is not None:
+        pred = torch.where(veto, torch.zeros_like(pred), pred)
     if neighbours is not None:  # half the cell's own value: a thin part must survive its neighbours
         pred = bilateral_smooth(pred, looks, neighbours, options.smooth_bandwidth, options.smooth_rounds)
     values = torch.zeros(occupied.numel(), device=occupied.device)
@@ -757,7 +834,8 @@ def select(
     widths = [group_width(g, field.cfg) for g in groups]
     scribbled, kept = _cells_of(field, pos_pts, res), _cells_of(field, neg_pts, res)
     neighbours = neighbour_table(cells, res) if options.smooth and options.smooth_bandwidth > 0 else None
-    values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options), cells, neighbours, occupied, scribbled, kept, options)
+    veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options)
+    values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options), cells, neighbours, occupied, scribbled, kept, options, veto)
     columns = dict(zip(groups, torch.arange(sum(widths)).split(widths)))
     union, saturation = None, 0.0
     if "chroma" in groups:  # HSV saturation of the scribbled points' median chromaticity
@@ -768,7 +846,7 @@ def select(
         union = {"saturation": round(saturation, 3), "cells": None, "joined": False}
         if saturation >= options.chroma_saturation:
             alone = _refine(_classify(("chroma",), [WIDTHS["chroma"]], f_pos[:, c], f_keep[:, c], f_view[:, c], f_cells[:, c], options),
-                            cells, neighbours, occupied, scribbled, kept, options)
+                            cells, neighbours, occupied, scribbled, kept, options, veto)
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
             union.update(cells=n_alone, joined=n_alone <= options.chroma_union * max(n_main, 1))
             if union["joined"]:
@@ -802,6 +880,8 @@ def select(
         "views": len(views), "features": list(groups), "occupied_cells": int(cells.numel()),
         "selected_cells": int((values >= at).sum()), "seconds": round(time.perf_counter() - started, 4),
     }
+    if veto is not None:
+        meta["keep_wins_cells"] = int(veto.sum())
     if union is not None:
         meta["chroma_union"] = union
     return Selection(values.clamp(0, 1), k, model.names[k], model.fingerprint(), meta, at)
