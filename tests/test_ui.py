@@ -476,6 +476,30 @@ def test_ui_command_warns_when_bound_beyond_this_machine(monkeypatch, scene, tmp
     assert seen["host"] == "0.0.0.0" and not (tmp_path / "w").exists()
 
 
+SIGNAL_ON_A_WORKER = """
+import signal, sys, threading, time
+from crfedit.ui.server import serve
+from crfedit.ui.session import open_session
+session, _ = open_session(sys.argv[1], None, [], sys.argv[2], "cpu")
+def kick():  # once the loop idles in epoll_wait, the signal goes to this thread, not the main one
+    time.sleep(1.0)
+    signal.pthread_kill(threading.get_ident(), signal.SIGINT)
+serve(session, "127.0.0.1", 0, lambda url: threading.Thread(target=kick, daemon=True).start())
+print("stopped", flush=True)
+"""
+
+
+def test_ui_stops_when_the_signal_lands_on_another_thread(scene, tmp_path):
+    """The kernel may hand a process's SIGINT to any thread that does not block it.  Sent to a
+    worker thread while the event loop sleeps in epoll_wait, asyncio.run's own handler never
+    ran (the main thread never woke) and the server did not stop; the loop's signal handlers
+    (its self-pipe is the wake-up fd) wake it whichever thread receives the signal."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT), CRFEDIT_THREADS="1")
+    proc = subprocess.run([sys.executable, "-c", SIGNAL_ON_A_WORKER, str(scene[0]), str(tmp_path / "w")],
+                          capture_output=True, text=True, env=env, timeout=30)
+    assert proc.returncode == 0 and "stopped" in proc.stdout, proc.stderr
+
+
 def test_ui_command_serves_until_interrupted(scene, tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1", CRFEDIT_THREADS="1", PYTHONFAULTHANDLER="1")
     proc = subprocess.Popen([sys.executable, "-m", "crfedit", "ui", str(scene[0]), "--port", "0", "--workdir", str(tmp_path / "w")],

@@ -20,6 +20,7 @@ import html
 import itertools
 import json
 import secrets
+import signal
 import sys
 import threading
 import time
@@ -383,15 +384,33 @@ def url_of(server: Server, host: str) -> str:
 
 
 def serve(session: UiSession, host: str, port: int, on_ready) -> None:
-    """Serve until Ctrl-C; ``on_ready(url)`` once listening."""
+    """Serve until Ctrl-C (SIGINT) or SIGTERM; ``on_ready(url)`` once listening.
+
+    The stop signals are the event loop's own handlers where the platform has them
+    (``loop.add_signal_handler``): the loop's self-pipe is then the process's signal wake-up
+    fd, so the loop wakes whichever thread the kernel hands the signal to.  asyncio.run's
+    default SIGINT handling runs only once the main thread leaves its ``epoll_wait``, which a
+    signal delivered to an idle worker thread of the render or edit pool never makes it do:
+    the server then did not stop (seen once in CI)."""
     server = Server(session, secrets.token_urlsafe(24), host)
 
     async def main():
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        handled = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                loop.add_signal_handler(sig, stop.set)
+                handled.append(sig)
+            except (NotImplementedError, RuntimeError, ValueError):  # Windows, or not the main thread
+                pass
         runner = await _start(server, host, port)
         try:
             on_ready(url_of(server, host))
-            await asyncio.Event().wait()
+            await stop.wait()
         finally:
+            for sig in handled:
+                loop.remove_signal_handler(sig)
             server.shutdown_pools()
             await runner.cleanup()
 
