@@ -619,7 +619,7 @@ def appearance_gate(cells: Tensor, pos: Tensor, factor: float, max_positives: in
     d = torch.cdist(pos, pos)
     d.fill_diagonal_(float("inf"))
     spacing = torch.quantile(d.min(dim=1).values, 0.95)
-    return torch.cdist(cells, pos).min(dim=1).values <= factor * spacing
+    return nearest_distance(cells, pos, max_positives) <= factor * spacing
 
 
 def nearest_distance(cells: Tensor, points: Tensor, max_points: int = 2000, chunk: int = 8192) -> Tensor:
