@@ -743,6 +743,18 @@ def _cells_of(field, points: Tensor, res: int) -> Tensor:
     return grid
 
 
+def _columns(groups: Sequence[str], widths: Sequence[int]) -> dict[str, Tensor]:
+    """Each feature group's column indices in :func:`point_features`' output (``widths`` per group)."""
+    return dict(zip(groups, torch.arange(sum(widths)).split(widths)))
+
+
+def _group_standardizer(groups: Sequence[str], widths: Sequence[int], f_cells: Tensor, options: SelectOptions, position_scale: float = 1.0):
+    """:func:`_standardizer` over the cells' features with the groups weighted as ``options``
+    say (position × ``position_scale``, for step 5b's distance)."""
+    weight = {"position": options.position_weight * position_scale, "geometry": options.geometry_weight}
+    return _standardizer(f_cells, widths, [weight.get(g, 1.0) for g in groups])
+
+
 def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_view, f_cells, options: SelectOptions) -> tuple[Tensor, Tensor]:
     """Steps 3 and 5 on the columns of ``groups``: each occupied cell's probability [N] of
     being the part, from the features of the positives, keep points, the view's other surface
@@ -751,19 +763,18 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     step 6 smooths along: the self-training's appearance fit reads F_fuse too, the bilateral
     smoothing's 26 neighbour distances do not (removals' gap closed within 0.01 of reading it
     on three of four models, and 0.13 s faster on a 37 000-cell grid with a 64-wide F_fuse)."""
-    weight = {"position": options.position_weight, "geometry": options.geometry_weight}
-    z = _standardizer(f_cells, widths, [weight.get(g, 1.0) for g in groups])
-    columns = torch.arange(sum(widths)).split(widths)
-    looks = torch.cat([c for g, c in zip(groups, columns) if g != "position"]) if len(groups) > 1 and "position" in groups else None
+    z = _group_standardizer(groups, widths, f_cells, options)
+    columns = _columns(groups, widths)
+    looks = torch.cat([c for g, c in columns.items() if g != "position"]) if len(groups) > 1 and "position" in groups else None
     z_pos, z_cells = z(f_pos), z(f_cells)
     clf = classifier(z_pos, z(f_keep), z(f_view), options.self_training, options.keep_weight,
                      looks if options.appearance_self_training else None)
     pred = clf(z_cells)
-    gated = [c for g, c in zip(groups, columns) if g in ("bottleneck", "chroma")]
+    gated = [c for g, c in columns.items() if g in ("bottleneck", "chroma")]
     if options.appearance_gate > 0 and gated:
         gated = torch.cat(gated)
         pred = pred * appearance_gate(z_cells[:, gated], z_pos[:, gated], options.appearance_gate)
-    smooth = [c for g, c in zip(groups, columns) if g not in ("position", "fuse")]
+    smooth = [c for g, c in columns.items() if g not in ("position", "fuse")]
     return pred, (z_cells[:, torch.cat(smooth)] if smooth else z_cells)
 
 
@@ -774,9 +785,8 @@ def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_ce
     use = [g for g in groups if g in KEEP_GROUPS]
     if options.keep_ratio <= 0 or len(f_keep) == 0 or not use:
         return None
-    weight = {"position": options.position_weight * options.keep_position_weight, "geometry": options.geometry_weight}
-    z = _standardizer(f_cells, widths, [weight.get(g, 1.0) for g in groups])
-    columns = dict(zip(groups, torch.arange(sum(widths)).split(widths)))
+    z = _group_standardizer(groups, widths, f_cells, options, options.keep_position_weight)
+    columns = _columns(groups, widths)
     c = torch.cat([columns[g] for g in use])
     return keep_wins(z(f_cells)[:, c], z(f_pos)[:, c], z(f_keep)[:, c], options.keep_ratio)
 
@@ -836,7 +846,7 @@ def select(
     neighbours = neighbour_table(cells, res) if options.smooth and options.smooth_bandwidth > 0 else None
     veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options)
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options), cells, neighbours, occupied, scribbled, kept, options, veto)
-    columns = dict(zip(groups, torch.arange(sum(widths)).split(widths)))
+    columns = _columns(groups, widths)
     union, saturation = None, 0.0
     if "chroma" in groups:  # HSV saturation of the scribbled points' median chromaticity
         med = f_pos[:, columns["chroma"]].median(dim=0).values

@@ -15,6 +15,7 @@ optimization step; nothing is written.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hmac
 import html
 import itertools
@@ -395,17 +396,15 @@ def serve(session: UiSession, host: str, port: int, on_ready) -> None:
     server = Server(session, secrets.token_urlsafe(24), host)
 
     async def main():
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        handled = []
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            try:
-                loop.add_signal_handler(sig, stop.set)
-                handled.append(sig)
-            except (NotImplementedError, RuntimeError, ValueError):  # Windows, or not the main thread
-                pass
+        stop, loop, handled = asyncio.Event(), asyncio.get_running_loop(), []
         runner = await _start(server, host, port)
         try:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                # Windows has no loop signal handlers (NotImplementedError); off the main thread
+                # they raise too: Ctrl-C then stays asyncio.run's KeyboardInterrupt.
+                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                    loop.add_signal_handler(sig, stop.set)
+                    handled.append(sig)
             on_ready(url_of(server, host))
             await stop.wait()
         finally:
