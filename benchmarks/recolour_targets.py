@@ -99,6 +99,9 @@ def main() -> None:
     cases = [c for c in cases if c.spec.kind == "color" and evaluation.twin_appearance(category, c) is not None]
     if not cases:
         raise SystemExit("no colour twin with part maps in this dataset")
+    def views_of(m, case) -> list[np.ndarray]:
+        return [o.rgb.clamp(0, 1).cpu().numpy() for o in evaluation.render_views(m, case.instance, [v.camera for v in case.views])]
+
     selections, before, ceiling = {}, [], []
     for case in cases:
         inst = category.instance(case.spec.source)
@@ -106,7 +109,7 @@ def main() -> None:
             "scribbles": evaluation.twin_selection(model, case),
             "oracle": bench_selection.oracle_selection(model, case, inst, part_of(inst.path, case.spec.part)["id"]),
         }
-        unedited = [o.rgb.clamp(0, 1).cpu().numpy() for o in evaluation.render_views(model, case.instance, [v.camera for v in case.views])]
+        unedited = views_of(model, case)
         before.append(score_images(unedited, [v.rgb for v in case.views])["psnr"])
         ceiling.append(score_images(unedited, [v.rgb for v in inst.splits["test"][: len(case.views)]])["psnr"])
     names = [c.spec.name for c in cases]
@@ -114,24 +117,19 @@ def main() -> None:
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} colour twins; gap closed by the target render (no fit), then by the edits.", "",
         "| targets | mean gap closed | " + " | ".join(names) + " |", "|---|---:|" + "---:|" * len(names),
     ]
-    for label, which, rule in ROWS:
-        gaps = []
-        for i, case in enumerate(cases):
-            sel = selections[case.spec.name][which] if which else None
-            images = target_render(model, case, category, sel, rule)
-            gaps.append(gap_closed(score_images(images, [v.rgb for v in case.views])["psnr"], before[i], ceiling[i]))
+
+    def row(label: str, images_of) -> None:
+        """One table row: each case's gap closed by ``images_of(case)``, and their mean."""
+        gaps = [gap_closed(score_images(images_of(case), [v.rgb for v in case.views])["psnr"], before[i], ceiling[i]) for i, case in enumerate(cases)]
         lines.append(f"| {label} | {np.mean(gaps):.3f} | " + " | ".join(f"{g:.3f}" for g in gaps) + " |")
         print(lines[-1], flush=True)
+
+    for label, which, rule in ROWS:
+        row(label, lambda case: target_render(model, case, category, selections[case.spec.name][which] if which else None, rule))
     for strategy in ("hybrid", "all"):
-        gaps = []
-        for i, case in enumerate(cases):
-            options = EditOptions(strategy=strategy)
-            result = evaluation.apply_twin_edit(model, case, options, appear=evaluation.twin_appearance(category, case),
-                                                selection=selections[case.spec.name]["scribbles"])
-            images = [o.rgb.clamp(0, 1).cpu().numpy() for o in evaluation.render_views(result.model, case.instance, [v.camera for v in case.views])]
-            gaps.append(gap_closed(score_images(images, [v.rgb for v in case.views])["psnr"], before[i], ceiling[i]))
-        lines.append(f"| the edit, `{strategy}` (fit, selection from the scribbles) | {np.mean(gaps):.3f} | " + " | ".join(f"{g:.3f}" for g in gaps) + " |")
-        print(lines[-1], flush=True)
+        edit = lambda case: evaluation.apply_twin_edit(model, case, EditOptions(strategy=strategy), appear=evaluation.twin_appearance(category, case),
+                                                       selection=selections[case.spec.name]["scribbles"]).model
+        row(f"the edit, `{strategy}` (fit, selection from the scribbles)", lambda case: views_of(edit(case), case))
     text = "\n".join(lines)
     print(text)
     if args.out:
