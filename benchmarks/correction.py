@@ -1,7 +1,7 @@
 """Does a second view fix a selection?  The twins' selections corrected by a simulated user, and
 the edits made with them, scored like `crfedit eval edits`.
 
-    python benchmarks/correction.py MODEL DATA [--rounds 2] [--out FILE.md]
+    python benchmarks/correction.py MODEL DATA [--rounds 2] [--pick worst|random|farthest] [--seed 0] [--out FILE.md]
 
 `crfedit select` takes one set of strokes per view, so that a user who sees a wrong selection in
 the preview can correct it from another view.  Each round here plays that user, as interactive
@@ -12,6 +12,11 @@ strokes on the wrongly selected pixels and scribble strokes on the missed ones (
 dataset's stroke size; a view needs a scribble, so with nothing missed a stroke goes on the part
 where it is rightly selected), adds that view to the scribbles and selects again.  The simulated
 user reads the ground truth, so this measures the multi-view selection, not a method.
+
+``--pick`` says which unused train view the user corrects from: ``worst`` (the default, above),
+``random`` (any one, drawn with ``--seed``), or ``farthest`` (the one whose viewing direction
+makes the largest angle with the nearest of the views already used: what a user who knows
+nothing of the errors would turn to).  Only ``worst`` reads the ground truth to choose.
 """
 
 from __future__ import annotations
@@ -32,14 +37,36 @@ bench_selection = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench_selection)
 
 
-def correction_view(model, case, inst, part_id: int, sel, used: set[str], rng: np.random.Generator):
-    """(view name, ScribbleView) of one simulated correction of ``sel``, or None when no unused
-    train view shows an error region that survives a 1-px erosion."""
+PICKS = ("worst", "random", "farthest")
+
+
+def looking(camera) -> np.ndarray:
+    """The unit direction a camera looks along (its −Z axis)."""
+    d = -np.asarray(camera.c2w, dtype=np.float64)[:3, 2]
+    return d / np.linalg.norm(d)
+
+
+def view_order(inst, used: dict[str, object], pick: str, rng: np.random.Generator) -> list[int]:
+    """The unused train views of ``inst`` to try, best first, by ``pick`` (``used``: name →
+    camera).  ``worst`` keeps them all (the error count decides)."""
+    free = [i for i in range(len(inst.splits["train"])) if f"train:{i}" not in used]
+    if pick == "random":
+        return [free[int(rng.integers(len(free)))]] if free else []
+    if pick == "farthest":
+        seen = [looking(c) for c in used.values()]
+        angle = {i: min(float(np.arccos(np.clip(looking(inst.splits["train"][i].camera) @ s, -1, 1))) for s in seen) for i in free}
+        return sorted(free, key=lambda i: -angle[i])[:1]
+    return free
+
+
+def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object], rng: np.random.Generator, pick: str = "worst"):
+    """(view name, camera, ScribbleView or None) of one simulated correction of ``sel``, or None
+    when no view is left to look at.  The ScribbleView is None where the view looked at shows no
+    error region that survives a 1-px erosion (the user checked it and found nothing to fix);
+    ``worst`` looks only where there is one."""
     field, best = model.field_for(case.instance), None
-    for i, view in enumerate(inst.splits["train"]):
-        name = f"train:{i}"
-        if name in used:
-            continue
+    for i in view_order(inst, used, pick, rng):
+        view, name = inst.splits["train"][i], f"train:{i}"
         pts, on = surface_points(field, view.camera, case.instance)
         shape = (view.camera.height, view.camera.width)
         on = on.cpu().numpy().reshape(shape)
@@ -47,11 +74,13 @@ def correction_view(model, case, inst, part_id: int, sel, used: set[str], rng: n
         gt = (part_map(inst.path, view) == part_id) & on
         wrong, missed = erode(pred & ~gt, 1), erode(gt & ~pred, 1)
         errors = int(wrong.sum() + missed.sum())
-        if errors and (best is None or errors > best[0]):
+        if (errors or pick != "worst") and (best is None or errors > best[0]):
             best = (errors, name, view, wrong, missed, pred & gt)
     if best is None:
         return None
-    _, name, view, wrong, missed, right = best
+    errors, name, view, wrong, missed, right = best
+    if not errors:
+        return name, view.camera, None
     size = view.camera.height
     step, radius = max(3.0, size / 10), max(1.0, size / 48)
     keep = random_strokes(rng, wrong, 2, step, radius)
@@ -59,27 +88,29 @@ def correction_view(model, case, inst, part_id: int, sel, used: set[str], rng: n
     if not scribble.any():
         scribble = random_strokes(rng, erode(right, 1) if erode(right, 1).any() else right, 1, step, radius)
     if not scribble.any():
-        return None
-    return name, ScribbleView(view.camera, scribble, keep if keep.any() else None)
+        return name, view.camera, None
+    return name, view.camera, ScribbleView(view.camera, scribble, keep if keep.any() else None)
 
 
-def corrected_selections(model, category, cases, rounds: int, seed: int = 0) -> list[dict]:
+def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pick: str = "worst") -> list[dict]:
     """Per round (0: the twins' own scribbles), {id(case.scribble): Selection} for every twin."""
     out = [dict() for _ in range(rounds + 1)]
     for case in cases:
         inst = category.instance(case.spec.source)
         pid = part_of(inst.path, case.spec.part)["id"]
         options = options_for(case.spec.kind)
-        views, used = [ScribbleView(case.camera, case.scribble, case.keep)], {case.spec.view}
+        views, used = [ScribbleView(case.camera, case.scribble, case.keep)], {case.spec.view: case.camera}
         rng = np.random.default_rng(seed)
         sel = select(model, case.instance, views, options)
         out[0][id(case.scribble)] = sel
         for r in range(1, rounds + 1):
-            found = correction_view(model, case, inst, pid, sel, used, rng)
+            found = correction_view(model, case, inst, pid, sel, used, rng, pick)
             if found is not None:
-                used.add(found[0])
-                views.append(found[1])
-                sel = select(model, case.instance, views, options)
+                name, camera, view = found
+                used[name] = camera
+                if view is not None:
+                    views.append(view)
+                    sel = select(model, case.instance, views, options)
             out[r][id(case.scribble)] = sel
     return out
 
@@ -89,13 +120,15 @@ def main() -> None:
     ap.add_argument("model")
     ap.add_argument("data")
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--pick", choices=PICKS, default="worst", help="which view each correction comes from")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the simulated strokes (and of --pick random)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
-    per_round = corrected_selections(model, category, cases, args.rounds)
+    per_round = corrected_selections(model, category, cases, args.rounds, args.seed, args.pick)
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; hybrid strategy, default options; "
-        "round r: the scribbles plus r simulated corrections.", "", *bench_selection.edit_table_header("round"),
+        f"round r: the scribbles plus r simulated corrections, each from the {args.pick} unused train view (seed {args.seed}).", "", *bench_selection.edit_table_header("round"),
     ]
     per_twin = []
     for r, selections in enumerate(per_round):
