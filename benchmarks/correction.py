@@ -47,15 +47,19 @@ def looking(camera) -> np.ndarray:
 
 
 def view_order(inst, used: dict[str, object], pick: str, rng: np.random.Generator) -> list[int]:
-    """The unused train views of ``inst`` to try, best first, by ``pick`` (``used``: name →
-    camera).  ``worst`` keeps them all (the error count decides)."""
+    """The unused train views of ``inst`` the user looks at, by ``pick`` (``used``: name →
+    camera): one for ``random`` and ``farthest`` (the first of equals), all for ``worst``
+    (the error count decides)."""
     free = [i for i in range(len(inst.splits["train"])) if f"train:{i}" not in used]
     if pick == "random":
         return [free[int(rng.integers(len(free)))]] if free else []
     if pick == "farthest":
         seen = [looking(c) for c in used.values()]
-        angle = {i: min(float(np.arccos(np.clip(looking(inst.splits["train"][i].camera) @ s, -1, 1))) for s in seen) for i in free}
-        return sorted(free, key=lambda i: -angle[i])[:1]
+
+        def angle(i: int) -> float:  # to the nearest view used
+            return min(float(np.arccos(np.clip(looking(inst.splits["train"][i].camera) @ s, -1, 1))) for s in seen)
+
+        return [max(free, key=angle)] if free else []
     return free
 
 
