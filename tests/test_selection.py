@@ -70,6 +70,53 @@ def test_selection_from_one_view_covers_the_part_in_other_views(trained):
     assert selection_iou(model, select(model, k, [ScribbleView(view.camera, sparse, None)]), k, held, pid) > 0.5
 
 
+def test_twin_selection_iou_counts_the_pixels_labelled_object_only(trained):
+    """eval edits' selection IoU: a selection of every cell scores |part| / |object| over the
+    pixels that both the part map and the render show as object; the render's halo (pixels
+    it shows that the part map calls background) counts neither way."""
+    from crfedit.twin_scores import part_map, selection_iou as twin_iou
+
+    _, model, category = trained
+    k = 2
+    inst = category.instances[k]
+    views = inst.splits["test"][:3]
+    res = model.cfg.occ_res
+    everything = Selection(torch.ones((res,) * 3), k, model.names[k], model.fingerprint(), {})
+    pid = next(p["id"] for p in json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
+    part = labelled = halo = 0
+    for v in views:
+        ids = part_map(inst.path, v).reshape(-1)
+        _, on = surface_points(model.field_for(k), v.camera, k)
+        on = on.numpy()
+        part += int((on & (ids == pid)).sum())
+        labelled += int((on & (ids > 0)).sum())
+        halo += int((on & (ids == 0)).sum())
+    assert halo > 0 and part > 0  # the toy model's render does overhang its silhouettes
+    assert twin_iou(model, everything, inst.path, views, "seat") == pytest.approx(part / labelled)
+
+
+def test_full_scribble_benchmark_paints_the_part_and_keeps_the_rest():
+    """benchmarks/full_scribble.py: the whole part eroded by 1 px is the scribble (the part
+    itself when fewer than 8 pixels survive), every other part away from it the keep strokes."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("full_scribble", Path(__file__).parents[1] / "benchmarks" / "full_scribble.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    parts = np.zeros((12, 12), dtype=np.uint8)
+    parts[2:8, 2:8], parts[2:8, 9:11], parts[9:11, 2:4] = 1, 2, 3
+    fg, keep = bench.full_labels(parts, 1)
+    want = np.zeros_like(fg)
+    want[3:7, 3:7] = True
+    assert (fg == want).all() and (keep == ((parts == 2) | (parts == 3))).all()
+    fg, keep = bench.full_labels(parts, 2)  # 2 px wide: nothing survives erosion
+    assert (fg == (parts == 2)).all() and (keep == ((parts == 1) | (parts == 3))).all()
+    parts[2:8, 8] = 1  # part 1 now touches part 2: its column beside it is no keep stroke
+    fg, keep = bench.full_labels(parts, 2)
+    assert not keep[2:8, 8].any() and keep[2:8, 2:8].all() and (keep == ((parts > 0) & ~dilate(parts == 2, 1))).all()
+
+
 def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     """Recolours join the chromaticity-only selection (cell-wise max) unless it holds more
     than chroma_union × the cells: joined, no cell loses value; refused, nothing changes."""
