@@ -13,7 +13,8 @@ A third column isolates the features from the rest of the selection: a logistic 
 (:func:`~crfedit.edit.selection.fit_logistic`, default feature groups: bottleneck, colour,
 chromaticity, position) fitted on the fully labelled view's rendered surface points and
 evaluated at the test views' rendered surface points, over the pixels the part map and the
-render both show as object (``selection_iou``'s pixels), with no cells and no refinement.
+render both show as object (:func:`~crfedit.twin_scores.surface_iou`, as ``selection_iou``),
+with no cells and no refinement.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from crfedit.edit.selection import FEATURES, fit_logistic, point_features, surfa
 from crfedit.evaluation import evaluate_edits, load_category_for, load_twin_cases
 from crfedit.masks import dilate, erode
 from crfedit.model import load_model
-from crfedit.twin_scores import part_map, part_of
+from crfedit.twin_scores import part_map, part_of, surface_iou
 
 _spec = importlib.util.spec_from_file_location("bench_edit_models", Path(__file__).with_name("edit_models.py"))
 edit_models = importlib.util.module_from_spec(_spec)
@@ -71,16 +72,9 @@ def point_classifier_iou(model, category, case) -> float:
     mean, std = both.mean(dim=0), both.std(dim=0).clamp_min(1e-6)
     z = lambda f: ((f - mean) / std).double()
     clf = fit_logistic(z(f_pos), z(f_neg), torch.ones(len(f_neg), dtype=torch.float64))
-    pid = part_of(inst.path, case.spec.part)["id"]
-    inter = union = 0
-    for v in inst.splits["test"][: len(case.views)]:
-        ids = part_map(inst.path, v).reshape(-1)
-        pts, on = surface_points(field, v.camera, k)
-        labelled = on.numpy() & (ids > 0)
-        pred = (clf(z(point_features(field, k, pts, eye(v.camera), FEATURES))) >= 0.5).numpy() & labelled
-        gt = (ids == pid) & labelled
-        inter, union = inter + int((pred & gt).sum()), union + int((pred | gt).sum())
-    return inter / max(union, 1)
+    predict = lambda pts, camera: clf(z(point_features(field, k, pts, eye(camera), FEATURES))) >= 0.5
+    views = inst.splits["test"][: len(case.views)]
+    return surface_iou(field, k, inst.path, views, part_of(inst.path, case.spec.part)["id"], predict) or 0.0
 
 
 def main() -> None:

@@ -17,11 +17,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
+from torch import Tensor
 
+from .cameras import Camera
 from .data.format import resize_nearest
 from .data.loading import View
 from .edit.scribble import parse_color
@@ -99,26 +101,35 @@ def appearance(instance_dir: Path, view: View, scribble: np.ndarray, part: str, 
 
 @torch.no_grad()
 def selection_iou(model: CategoryModel, sel: Selection, instance_dir: Path, views: Sequence[View], part: str) -> float | None:
-    """IoU of the selected surface and the part's pixels over ``views`` (None without part maps).
-
-    Counted over the pixels that show the object both in the part map and in the model's
-    render (opacity ≥ 0.5).  A pixel the render shows but the part map calls background (the
-    reconstruction's blurred halo around a thin leg) has no part label, so selecting it is
-    neither right nor wrong, just as a part pixel the render misses is neither.  (Until the
-    twentieth session of issue #14 such halo pixels counted as wrongly selected while the
-    missed ones were left out: docs/benchmarks.md has both readings.)"""
+    """IoU of the selected surface and the part's pixels over ``views`` (None without part maps),
+    counted as :func:`surface_iou` counts it."""
     record = part_of(instance_dir, part)
     if record is None:
         return None
     field = model.field_for(sel.instance)
+    return surface_iou(field, sel.instance, instance_dir, views, record["id"], lambda pts, _: sel.at(field.normalize(pts)))
+
+
+@torch.no_grad()
+def surface_iou(field, instance: int, instance_dir: Path, views: Sequence[View], part_id: int,
+                predict: Callable[[Tensor, Camera], Tensor]) -> float | None:
+    """IoU of ``predict(points, camera)`` ([H·W] bool at each view's rendered surface points
+    [H·W, 3]) and the part's pixels, over ``views``; None without part maps or pixels to count.
+
+    Counted over the pixels that show the object both in the part map and in the model's
+    render (opacity ≥ 0.5).  A pixel the render shows but the part map calls background (the
+    reconstruction's blurred halo around a thin leg) has no part label, so predicting it is
+    neither right nor wrong, just as a part pixel the render misses is neither.  (Until the
+    twentieth session of issue #14 such halo pixels counted as wrongly selected while the
+    missed ones were left out: docs/benchmarks.md has both readings.)"""
     inter = union = 0
     for v in views:
         ids = part_map(instance_dir, v)
         if ids is None:
             return None
-        pts, on = surface_points(field, v.camera, sel.instance)
+        pts, on = surface_points(field, v.camera, instance)
         labelled = on.cpu().numpy() & (ids.reshape(-1) > 0)
-        pred = sel.at(field.normalize(pts)).cpu().numpy() & labelled
-        gt = (ids.reshape(-1) == record["id"]) & labelled
+        pred = predict(pts, v.camera).cpu().numpy() & labelled
+        gt = (ids.reshape(-1) == part_id) & labelled
         inter, union = inter + int((pred & gt).sum()), union + int((pred | gt).sum())
     return inter / union if union else None
