@@ -30,3 +30,8 @@ EDIT_METHODS = ("selection", "paper")
 """How remove and edit-color use the scribbles.  selection: lift them to a 3-D selection and
 supervise the edit with it (``edit.selection``, ``edit.supervised``); paper: the paper's losses
 on the scribbled view's rays alone."""
+
+MIRROR_MODES = ("off", "views", "values")
+"""How a selection reads the instance's mirror symmetry (``edit.symmetry``): not at all, the
+scribbled views' mirror images lending their strokes, or the selection taking its own mirror
+image."""

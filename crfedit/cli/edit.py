@@ -14,7 +14,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import ADD_METHODS, EDIT_METHODS, PENALTIES, RECOLOR_RULES, STRATEGIES
+from ..names import ADD_METHODS, EDIT_METHODS, MIRROR_MODES, PENALTIES, RECOLOR_RULES, STRATEGIES
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
 
 
@@ -23,6 +23,7 @@ AddMethod = enum.Enum("AddMethod", {m: m for m in ADD_METHODS}, type=str)
 EditMethod = enum.Enum("EditMethod", {m: m for m in EDIT_METHODS}, type=str)
 Penalty = enum.Enum("Penalty", {m: m for m in PENALTIES}, type=str)
 Recolor = enum.Enum("Recolor", {m: m for m in RECOLOR_RULES}, type=str)
+MirrorMode = enum.Enum("MirrorMode", {m: m for m in MIRROR_MODES}, type=str)
 
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors).")]
@@ -41,6 +42,7 @@ KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of wha
 KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (a random sample of the rest of the view is kept as well).")]
 MethodOpt = Annotated[EditMethod, typer.Option("--method", help="selection: lift the scribbles to a 3-D selection and supervise the edit with it in every view; paper: the paper's losses on the scribbled view's rays alone.")]
 SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles).")]
+MirrorOpt = Annotated[Optional[MirrorMode], typer.Option("--mirror", help="Mirror symmetry of the selection computed from the scribbles: views (the scribbled view's mirror image lends its strokes; removals' default), values (the selection takes its own mirror image; recolours' default) or off (one side only). Nothing is mirrored where the keep strokes cover the scribble's mirror image.")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
 PreviewOpt = Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG renders of the edited instance from --views.")]
 PreviewViewsOpt = Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")]
@@ -98,12 +100,22 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
     return fg.mask, None if bg is None else bg.mask
 
 
-def _selection(path: Path | None, model, instance: int, kind: str):
+def _mirror(mirror, method) -> str | None:
+    """``--mirror``'s mode (None: the edit's default), refused with ``--method paper``."""
+    if mirror is not None and method != EditMethod.selection:
+        raise CrfError("--mirror belongs to --method selection (the paper's losses select nothing)")
+    return None if mirror is None else mirror.value
+
+
+def _selection(path: Path | None, model, instance: int, kind: str, mirror: str | None = None):
     """The selection file at ``path`` checked against the model and instance (None: none
     given); a warning when it was made ``--for`` a kind of edit that selects differently."""
+    from ..edit.selection import EDIT_KINDS, load_selection, options_for
+
     if path is None:
         return None
-    from ..edit.selection import EDIT_KINDS, load_selection, options_for
+    if mirror is not None:
+        raise CrfError("--mirror sets how the selection is computed from the scribbles; with --selection give it to `crfedit select`")
 
     sel = load_selection(path)
     sel.check_for(model, instance)
@@ -157,6 +169,7 @@ def edit_color_cmd(
     keep_json: KeepJsonOpt = None,
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
+    mirror: MirrorOpt = None,
     force: ForceOpt = False,
     preview: PreviewOpt = None,
     views: PreviewViewsOpt = "orbit:8",
@@ -182,8 +195,8 @@ def edit_color_cmd(
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
-    sel = _selection(selection, m, k, "color")
-    result = edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel)
+    sel = _selection(selection, m, k, "color", _mirror(mirror, method))
+    result = edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel, _mirror(mirror, method))
     _write(result, out, label)
     _preview(result.model, k, preview, views)
 
@@ -202,6 +215,7 @@ def remove_cmd(
     occluded: Annotated[bool, typer.Option("--occluded", help="Remove only the first surface along each scribbled ray (a part in front of others).")] = False,
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
+    mirror: MirrorOpt = None,
     force: ForceOpt = False,
     preview: PreviewOpt = None,
     views: PreviewViewsOpt = "orbit:8",
@@ -224,8 +238,8 @@ def remove_cmd(
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
-    sel = _selection(selection, m, k, "remove")
-    result = remove(m, k, camera, fg, bg, occluded, options, method.value, sel)
+    sel = _selection(selection, m, k, "remove", _mirror(mirror, method))
+    result = remove(m, k, camera, fg, bg, occluded, options, method.value, sel, _mirror(mirror, method))
     _write(result, out, label)
     _preview(result.model, k, preview, views)
 

@@ -9,7 +9,7 @@ import typer
 
 from ..errors import CrfError
 from .common import DeviceChoice, DeviceOpt, app, user_errors
-from .edit import InstanceOpt, ModelArg, PriorOpt, _check_out, _load, _one_view
+from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view
 
 
 def _mask(path: Path, model, instance: int, camera, what: str):
@@ -27,6 +27,16 @@ def _mask(path: Path, model, instance: int, camera, what: str):
     return read.mask
 
 
+def _mirror_line(info: dict) -> str:
+    """What the selection's metadata says of its mirror symmetry, in one line."""
+    if not info.get("used"):
+        return f"not used ({info['why']})"
+    plane = f"the plane normal to {'xyz'[info['axis']]} ({info['overlap']:.0%} of the cells mirror onto cells)"
+    if info["mode"] == "views":
+        return f"{plane}; the view's mirror image added {info['positives']} scribbled and {info['keep_points']} keep points"
+    return f"{plane}; the selection took its mirror image"
+
+
 @app.command("select")
 @user_errors
 def select_cmd(
@@ -40,6 +50,7 @@ def select_cmd(
     preview: Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG previews with the selection tinted.")] = None,
     views: Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")] = "orbit:8",
     kind: Annotated[str, typer.Option("--for", help="The edit the selection is for: color (also takes the cells of the scribble's chromaticity), remove or add.")] = "color",
+    mirror: MirrorOpt = None,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
@@ -51,7 +62,7 @@ def select_cmd(
         raise CrfError(f"give one --scribble per --view ({len(view)} views, {len(scribble)} scribbles)")
     if keep and len(keep) != len(view):
         raise CrfError(f"give no --keep or one per --view ({len(view)} views, {len(keep)} keep masks)")
-    options = options_for(kind)
+    options = options_for(kind, None if mirror is None else mirror.value)
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
@@ -68,6 +79,8 @@ def select_cmd(
         f"wrote {out}: {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
         f"({info['positives']} scribbled, {info['keep_points']} keep, {info['view_points']} other surface points; {info['seconds']:.2f} s)"
     )
+    if "mirror" in info:
+        typer.echo(f"mirror: {_mirror_line(info['mirror'])}")
     if preview is not None:
         preview.mkdir(parents=True, exist_ok=True)
         for i, (label, camera) in enumerate(resolve_views(views, m, k)):

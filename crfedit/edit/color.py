@@ -43,11 +43,12 @@ def edit_color(
     options: EditOptions = EditOptions(),
     method: str = "selection",
     selection: Selection | None = None,
+    mirror: str | None = None,
 ) -> EditResult:
     """Recolour the scribbled part of ``instance`` as seen from ``camera``.
 
     ``method="selection"`` (default): the part is the 3-D ``selection`` (computed from the
-    scribbles when None) and ``color`` is the colour it should *appear* under the scribble
+    scribbles when None, with the selection's ``mirror`` mode, :func:`.selection.options_for`) and ``color`` is the colour it should *appear* under the scribble
     (:mod:`.supervised`); ``"paper"``: the paper's loss on this view's rays.
     """
     started = time.perf_counter()
@@ -58,7 +59,7 @@ def edit_color(
     if method not in EDIT_METHODS:
         raise CrfError(f"--method {method}: expected one of {', '.join(EDIT_METHODS)}")
     if method == "selection":
-        return _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection)
+        return _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection, mirror)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator)
     edit = InstanceEdit(model, k, "color", options.strategy, options.penalty)
@@ -81,12 +82,12 @@ def edit_color(
     return finish(edit, "color", hyper, final, started)
 
 
-def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection) -> EditResult:
+def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection, mirror=None) -> EditResult:
     """The selection-supervised recolour: the scribbled pixels' rendered colours fix the ratio."""
     view = render_camera(model.field_for(k), camera, k)
     on = torch.from_numpy(scribble) & (view.opacity.cpu() >= MIN_OPACITY)
     if not bool(on.any()):
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
     if selection is None:
-        selection = select(model, k, [ScribbleView(camera, scribble, keep)], options_for("color"), renders=[view])
+        selection = select(model, k, [ScribbleView(camera, scribble, keep)], options_for("color", mirror), renders=[view])
     return recolor_selected(model, k, selection, [camera], view.rgb.cpu()[on], rgb, options)

@@ -101,9 +101,11 @@ def remove(
     options: EditOptions = EditOptions(),
     method: str = "selection",
     selection: Selection | None = None,
+    mirror: str | None = None,
 ) -> EditResult:
     """Remove the scribbled part of ``instance`` as seen from ``camera``: the 3-D ``selection``
-    (computed from the scribbles when None) with ``method="selection"``, or the paper's losses."""
+    (computed from the scribbles when None, with the selection's ``mirror`` mode,
+    :func:`.selection.options_for`) with ``method="selection"``, or the paper's losses."""
     started = time.perf_counter()
     options = options.validated()
     k = model.instance_index(instance)
@@ -114,7 +116,7 @@ def remove(
         if occluded:
             raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
         if selection is None:
-            selection = select(model, k, [ScribbleView(camera, scribble, keep)], options_for("remove"))
+            selection = select(model, k, [ScribbleView(camera, scribble, keep)], options_for("remove", mirror))
         return remove_selected(model, k, selection, [camera], options)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator, also_random=True)
