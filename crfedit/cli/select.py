@@ -27,16 +27,6 @@ def _mask(path: Path, model, instance: int, camera, what: str):
     return read.mask
 
 
-def _mirror_line(info: dict) -> str:
-    """What the selection's metadata says of its mirror symmetry, in one line."""
-    if not info.get("used"):
-        return f"not used ({info['why']})"
-    plane = f"the plane normal to {'xyz'[info['axis']]} ({info['overlap']:.0%} of the cells mirror onto cells)"
-    if info["mode"] == "views":
-        return f"{plane}; the view's mirror image added {info['positives']} scribbled and {info['keep_points']} keep points"
-    return f"{plane}; the selection took its mirror image"
-
-
 @app.command("select")
 @user_errors
 def select_cmd(
@@ -54,7 +44,7 @@ def select_cmd(
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
-    from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
+    from ..edit.selection import ScribbleView, mirror_summary, options_for, preview as tinted, save_selection, select
     from ..io import write_png
     from ..views import resolve_views
 
@@ -79,8 +69,8 @@ def select_cmd(
         f"wrote {out}: {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
         f"({info['positives']} scribbled, {info['keep_points']} keep, {info['view_points']} other surface points; {info['seconds']:.2f} s)"
     )
-    if "mirror" in info:
-        typer.echo(f"mirror: {_mirror_line(info['mirror'])}")
+    if mirror_summary(info) is not None:
+        typer.echo(f"mirror: {mirror_summary(info)}")
     if preview is not None:
         preview.mkdir(parents=True, exist_ok=True)
         for i, (label, camera) in enumerate(resolve_views(views, m, k)):

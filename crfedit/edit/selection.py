@@ -898,6 +898,19 @@ def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tens
     return mirror, {**meta, "used": True}
 
 
+def mirror_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of its mirror symmetry, in a line (None: not asked)."""
+    info = meta.get("mirror")
+    if info is None:
+        return None
+    if not info.get("used"):
+        return f"not used ({info['why']})"
+    plane = f"the plane normal to {'xyz'[info['axis']]} ({info['overlap']:.0%} of the cells mirror onto cells)"
+    if info["mode"] == "views":
+        return f"{plane}; the view's mirror image added {info['positives']} scribbled and {info['keep_points']} keep points"
+    return f"{plane}; the selection took its mirror image"
+
+
 @torch.no_grad()
 def select(
     model: CategoryModel, instance: int | str, views: Sequence[ScribbleView], options: SelectOptions = SelectOptions(),

@@ -28,7 +28,8 @@ async function doSelect() {
   const info = await postJson("/api/select", body);
   S.tint = true;
   $("tint").checked = true;
-  $("selection-info").textContent = `${info.selected_cells} of ${info.occupied_cells} occupied cells selected from ${info.views} view(s) (${info.seconds.toFixed(2)} s)`;
+  $("selection-info").textContent = `${info.selected_cells} of ${info.occupied_cells} occupied cells selected from ${info.views} view(s) (${info.seconds.toFixed(2)} s)`
+    + (info.mirror ? `; mirror: ${info.mirror}` : "");
   await showView();
   measure("select", start);
   clearError();
