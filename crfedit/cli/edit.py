@@ -195,8 +195,9 @@ def edit_color_cmd(
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
-    sel = _selection(selection, m, k, "color", _mirror(mirror, method))
-    result = edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel, _mirror(mirror, method))
+    mode = _mirror(mirror, method)
+    sel = _selection(selection, m, k, "color", mode)
+    result = edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel, mode)
     _write(result, out, label)
     _preview(result.model, k, preview, views)
 
@@ -238,8 +239,9 @@ def remove_cmd(
     k = m.instance_index(instance)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
-    sel = _selection(selection, m, k, "remove", _mirror(mirror, method))
-    result = remove(m, k, camera, fg, bg, occluded, options, method.value, sel, _mirror(mirror, method))
+    mode = _mirror(mirror, method)
+    sel = _selection(selection, m, k, "remove", mode)
+    result = remove(m, k, camera, fg, bg, occluded, options, method.value, sel, mode)
     _write(result, out, label)
     _preview(result.model, k, preview, views)
 
