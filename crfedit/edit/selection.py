@@ -768,22 +768,30 @@ def _strokes(v: ScribbleView, device) -> tuple[Tensor, Tensor]:
     return scribbled, kept
 
 
-def _lift(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: Sequence[RenderOutput] | None,
-          mirror: Mirror | None = None):
+def _lift_views(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: Sequence[RenderOutput] | None):
     """Positive and negative surface points of all views, plus each view's other surface points
-    (negatives too, until self-training drops those that look like the part); with ``mirror``,
-    the same three of the views' mirror images (:func:`_lift_mirrored`), else empty."""
-    pos, neg, implied, mirrored = [], [], [], []
+    (negatives too, until self-training drops those that look like the part); and each view's
+    (surface points, on-object mask), which :func:`_lift_mirrors` reads."""
+    pos, neg, implied, surfaces = [], [], [], []
     for i, v in enumerate(views):
         pts, on = surface_points(field, v.camera, k, min_opacity, None if renders is None else renders[i])
         scribbled, kept = _strokes(v, on.device)
         pos.append(pts[scribbled & on])
         neg.append(pts[kept & on])
         implied.append(pts[on & ~scribbled & ~kept])
-        if mirror is not None:
-            mirrored.append(_lift_mirrored(field, k, v, pts, on, mirror, min_opacity))
-    cat = lambda xs: torch.cat(xs) if xs else torch.zeros(0, 3, device=field.aabb.device)
-    return cat(pos), cat(neg), cat(implied), tuple(cat(list(x)) for x in zip(*mirrored)) if mirrored else (cat([]),) * 3
+        surfaces.append((pts, on))
+    return _cat_points(field, pos), _cat_points(field, neg), _cat_points(field, implied), surfaces
+
+
+def _cat_points(field, xs: Sequence[Tensor]) -> Tensor:
+    return torch.cat(list(xs)) if xs else torch.zeros(0, 3, device=field.aabb.device)
+
+
+def _lift_mirrors(field, k, views: Sequence[ScribbleView], surfaces, mirror: Mirror, min_opacity: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The three point sets of :func:`_lift_views` for the views' mirror images
+    (:func:`_lift_mirrored`; ``surfaces``: what :func:`_lift_views` returned of each view)."""
+    mirrored = [_lift_mirrored(field, k, v, pts, on, mirror, min_opacity) for v, (pts, on) in zip(views, surfaces)]
+    return tuple(_cat_points(field, list(x)) for x in zip(*mirrored))
 
 
 def _lift_mirrored(field, k, v: ScribbleView, pts: Tensor, on: Tensor, mirror: Mirror, min_opacity: float):
@@ -879,9 +887,10 @@ def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor
     return torch.where(kept, torch.zeros_like(values), values)
 
 
-def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tensor, mirrored: tuple[Tensor, ...]):
+def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tensor):
     """(``mirror``, or None when the scribbles mean one side only, :func:`.symmetry.conflict`;
-    what the selection's metadata says of it, None when ``mode`` is off)."""
+    what the selection's metadata says of it, None when ``mode`` is off).  Decided on the
+    original views' points alone, before any mirrored view is rendered."""
     if mode == "off":
         return None, None
     if mirror is None:
@@ -891,8 +900,6 @@ def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tens
     clash = max(conflict(mirror.points(field.aabb, pos), keep, cell), conflict(mirror.points(field.aabb, keep), pos, cell))
     if clash > CONFLICT:
         return None, {**meta, "used": False, "why": f"the keep strokes cover {clash:.0%} of the scribble's mirror image"}
-    if mode == "views":
-        meta.update(positives=int(len(mirrored[0])), keep_points=int(len(mirrored[1])))
     return mirror, {**meta, "used": True}
 
 
@@ -929,12 +936,13 @@ def select(
     occupied = field.occupancy[k]
     res = occupied.shape[-1]
     mirror = find_mirror(occupied) if options.mirror != "off" else None
-    pos_pts, neg_pts, cand_pts, mirrored = _lift(field, k, views, options.min_opacity, renders,
-                                                 mirror if options.mirror == "views" else None)
+    pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
     if pos_pts.shape[0] == 0:
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
-    mirror, mirror_meta = _mirror_use(field, mirror, options.mirror, pos_pts, neg_pts, mirrored)
+    mirror, mirror_meta = _mirror_use(field, mirror, options.mirror, pos_pts, neg_pts)
     if mirror is not None and options.mirror == "views":
+        mirrored = _lift_mirrors(field, k, views, surfaces, mirror, options.min_opacity)
+        mirror_meta.update(positives=int(len(mirrored[0])), keep_points=int(len(mirrored[1])))
         pos_pts, neg_pts, cand_pts = (torch.cat([a, b]) for a, b in zip((pos_pts, neg_pts, cand_pts), mirrored))
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
     centres, fused = occupancy.cell_centers(res, occupied.device)[cells], None
