@@ -1,13 +1,15 @@
 """Does a second view fix a selection?  The twins' selections corrected by a simulated user, and
 the edits made with them, scored like `crfedit eval edits`.
 
-    python benchmarks/correction.py MODEL DATA [--rounds 2] [--pick worst|random|farthest] [--seed 0] [--out FILE.md]
+    python benchmarks/correction.py MODEL DATA [--rounds 2] [--pick worst|random|farthest] [--seed 0]
+        [--errors thin|eroded] [--out FILE.md]
 
 `crfedit select` takes one set of strokes per view, so that a user who sees a wrong selection in
 the preview can correct it from another view.  Each round here plays that user, as interactive
 segmentation benchmarks do with their simulated clicks: among the twin's train views not used yet,
 it takes the one where the current selection errs on the most pixels (ground-truth part maps,
-each error region eroded by 1 px so that the blur at part boundaries does not count), draws keep
+each error region eroded by 1 px so that the blur at part boundaries does not count;
+``--errors thin`` also strokes a thin part taken or missed whole, :func:`error_regions`), draws keep
 strokes on the wrongly selected pixels and scribble strokes on the missed ones (2 strokes each, the
 dataset's stroke size; a view needs a scribble, so with nothing missed a stroke goes on the part
 where it is rightly selected), adds that view to the scribbles and selects again.  The simulated
@@ -29,7 +31,7 @@ import numpy as np
 
 from crfedit.data.synth import random_strokes
 from crfedit.edit.selection import ScribbleView, options_for, select, surface_points
-from crfedit.masks import erode
+from crfedit.masks import dilate, erode
 from crfedit.twin_scores import part_map, part_of
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
@@ -63,10 +65,31 @@ def view_order(inst, used: dict[str, object], pick: str, rng: np.random.Generato
     return free
 
 
-def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object], rng: np.random.Generator, pick: str = "worst"):
+ERRORS = ("eroded", "thin")
+
+
+def error_regions(pred: np.ndarray, gt: np.ndarray, parts: np.ndarray, rule: str = "eroded") -> tuple[np.ndarray, np.ndarray]:
+    """(wrongly selected, missed) pixels [H, W] a simulated user would stroke, from the selection
+    ``pred``, the part ``gt`` (both on the rendered object) and the view's part map ``parts``
+    (0: background).  ``rule`` ``eroded`` (the default): each error region eroded by 1 px, so
+    that the blur of the model's and the selection's edges does not count; a 2-px leg taken or
+    missed whole is then no error.  ``thin``: that, and, so that such a leg is not eroded away,
+    a wrong pixel on another part more than 1 px from the part itself, and a
+    missed pixel more than 1 px from both the selection and the other parts (not the part seen
+    through a 1-px gap of a grille, where a stroke lifts to the grille's depth)."""
+    if rule == "eroded":
+        return erode(pred & ~gt, 1), erode(gt & ~pred, 1)
+    others = (parts > 0) & ~gt
+    wrong = erode(pred & ~gt, 1) | (pred & ~gt & (parts > 0) & ~dilate(gt, 1))
+    missed = erode(gt & ~pred, 1) | (gt & ~pred & ~dilate(pred, 1) & ~dilate(others, 1))
+    return wrong, missed
+
+
+def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object], rng: np.random.Generator, pick: str = "worst",
+                    errors: str = "eroded"):
     """(view name, camera, ScribbleView or None) of one simulated correction of ``sel``, or None
     when no view is left to look at.  The ScribbleView is None where the view looked at shows no
-    error region that survives a 1-px erosion (the user checked it and found nothing to fix);
+    error region (:func:`error_regions`; the user checked it and found nothing to fix);
     ``worst`` looks only where there is one."""
     field, best = model.field_for(case.instance), None
     for i in view_order(inst, used, pick, rng):
@@ -75,15 +98,16 @@ def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object
         shape = (view.camera.height, view.camera.width)
         on = on.cpu().numpy().reshape(shape)
         pred = sel.at(field.normalize(pts)).cpu().numpy().reshape(shape) & on
-        gt = (part_map(inst.path, view) == part_id) & on
-        wrong, missed = erode(pred & ~gt, 1), erode(gt & ~pred, 1)
-        errors = int(wrong.sum() + missed.sum())
-        if (errors or pick != "worst") and (best is None or errors > best[0]):
-            best = (errors, name, view, wrong, missed, pred & gt)
+        parts = part_map(inst.path, view)
+        gt = (parts == part_id) & on
+        wrong, missed = error_regions(pred, gt, parts, errors)
+        count = int(wrong.sum() + missed.sum())
+        if (count or pick != "worst") and (best is None or count > best[0]):
+            best = (count, name, view, wrong, missed, pred & gt)
     if best is None:
         return None
-    errors, name, view, wrong, missed, right = best
-    if not errors:
+    count, name, view, wrong, missed, right = best
+    if not count:
         return name, view.camera, None
     size = view.camera.height
     step, radius = max(3.0, size / 10), max(1.0, size / 48)
@@ -96,7 +120,7 @@ def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object
     return name, view.camera, ScribbleView(view.camera, scribble, keep if keep.any() else None)
 
 
-def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pick: str = "worst") -> list[dict]:
+def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pick: str = "worst", errors: str = "eroded") -> list[dict]:
     """Per round (0: the twins' own scribbles), {id(case.scribble): Selection} for every twin."""
     out = [dict() for _ in range(rounds + 1)]
     for case in cases:
@@ -108,7 +132,7 @@ def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pic
         sel = select(model, case.instance, views, options)
         out[0][id(case.scribble)] = sel
         for r in range(1, rounds + 1):
-            found = correction_view(model, case, inst, pid, sel, used, rng, pick)
+            found = correction_view(model, case, inst, pid, sel, used, rng, pick, errors)
             if found is not None:
                 name, camera, view = found
                 used[name] = camera
@@ -126,13 +150,14 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--pick", choices=PICKS, default="worst", help="which view each correction comes from")
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated strokes (and of --pick random)")
+    ap.add_argument("--errors", choices=ERRORS, default="eroded", help="which errors the simulated user strokes (error_regions)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
-    per_round = corrected_selections(model, category, cases, args.rounds, args.seed, args.pick)
+    per_round = corrected_selections(model, category, cases, args.rounds, args.seed, args.pick, args.errors)
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; hybrid strategy, default options; "
-        f"round r: the scribbles plus r simulated corrections, each from the {args.pick} unused train view (seed {args.seed}).", "", *bench_selection.edit_table_header("round"),
+        f"round r: the scribbles plus r simulated corrections, each from the {args.pick} unused train view (seed {args.seed}, {args.errors} errors).", "", *bench_selection.edit_table_header("round"),
     ]
     per_twin = []
     for r, selections in enumerate(per_round):

@@ -117,6 +117,36 @@ def test_full_scribble_benchmark_paints_the_part_and_keeps_the_rest():
     assert not keep[2:8, 8].any() and keep[2:8, 2:8].all() and (keep == ((parts > 0) & ~dilate(parts == 2, 1))).all()
 
 
+def test_correction_benchmark_strokes_thin_errors_but_not_edge_blur():
+    """benchmarks/correction.py's simulated user, ``--errors thin``: a 2-px leg wrongly selected
+    whole, or missed whole, is an error to stroke (the default's erosion erases it); the 1-px band where the
+    selection's edge meets the part's is not, nor the part seen through a 1-px gap of a grille."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("correction", Path(__file__).parents[1] / "benchmarks" / "correction.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    parts = np.zeros((16, 16), dtype=np.uint8)
+    parts[2:8, 2:12] = 1  # the seat, the part
+    parts[8:15, 3:5] = 2  # a 2-px leg under it
+    gt = parts == 1
+    pred = gt | (parts == 2)  # the leg taken whole
+    pred[2:8, 12] = True  # and a 1-px halo beside the seat (it lies on the background)
+    wrong, missed = bench.error_regions(pred, gt, parts, "thin")
+    assert (wrong == ((parts == 2) & ~dilate(gt, 1))).all() and not missed.any()
+    assert not bench.error_regions(pred, gt, parts)[0].any()  # the default, eroded, sees nothing
+    wrong, missed = bench.error_regions(parts == 1, parts == 2, parts, "thin")  # the leg is the part: missed whole, the seat taken
+    assert (missed == ((parts == 2) & ~dilate(parts == 1, 1))).all() and wrong[3:7, 3:11].all()
+    grille = parts.copy()
+    grille[2:8, 5] = grille[2:8, 7] = 3  # slats in front of the seat, 1-px gaps between them
+    gt = grille == 1
+    pred = gt & False
+    pred[:, :5] = gt[:, :5]  # the seat's left end selected: its 1-px gap at column 6 is missed but not stroked
+    missed = bench.error_regions(pred, gt, grille, "thin")[1]
+    assert not missed[:, 6].any() and missed[3:7, 9:11].all()
+
+
 def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     """Recolours join the chromaticity-only selection (cell-wise max) unless it holds more
     than chroma_union × the cells: joined, no cell loses value; refused, nothing changes."""
