@@ -38,6 +38,7 @@ from crfedit.masks import dilate
 from crfedit.model import load_model
 from crfedit.names import ADD_METHODS
 from crfedit.renderer import render_camera
+from crfedit.report import emit_table
 
 
 def part_id(instance, name: str) -> int:
@@ -117,10 +118,7 @@ def main() -> None:
     ]
     for method, m in rows:
         lines.append(f"| {method} | {m['added']:.2f} | {m['spill']:.2f} | {m['iou']:.3f} | {m['outside']:.2f} dB | {m['seconds']:.2f} |")
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

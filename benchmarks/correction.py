@@ -33,6 +33,7 @@ from crfedit.data.synth import random_strokes
 from crfedit.edit.selection import ScribbleView, options_for, select, surface_points
 from crfedit.masks import dilate, erode
 from crfedit.twin_scores import part_map, part_of
+from crfedit.report import emit_table
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -168,10 +169,7 @@ def main() -> None:
               "|---|" + "---:|" * len(per_twin)]
     for twin in per_twin[0]:
         lines.append(f"| {twin} | " + " | ".join(f"{t[twin][0]:.2f} ({t[twin][1]:.2f})" for t in per_twin) + " |")
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ import importlib.util
 from pathlib import Path
 
 from crfedit.twin_scores import part_of
+from crfedit.report import emit_table
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -37,10 +38,7 @@ def main() -> None:
              *bench_selection.edit_table_header("selection")]
     for label, by_scribble in (("selection from the scribbles (default)", None), ("oracle selection", oracle)):
         lines.append(f"| {label} | " + bench_selection.edits_with(model, category, cases, by_scribble)[0])
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ import torch
 from crfedit.edit import EditOptions
 from crfedit.evaluation import evaluate_edits, load_category_for, load_twin_cases
 from crfedit.model import load_model
+from crfedit.report import emit_table
 
 COLUMNS = ("gap_closed", "psnr_outside", "selection_iou")
 
@@ -61,10 +62,7 @@ def main() -> None:
         mean, spread = v.mean(axis=0), v.std(axis=0)
         lines.append(f"| **mean ± sd over {len(values)}** | {kind} | | **{mean[0]:.3f}** ± {spread[0]:.3f} | "
                      f"{mean[1]:.2f} ± {spread[1]:.2f} | {mean[2]:.3f} ± {spread[2]:.3f} |")
-    text = "\n".join(lines) + "\n"
-    if args.out:
-        args.out.write_text(text)
-    print(text)
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ import torch
 
 from crfedit.edit import EditOptions
 from crfedit.evaluation import apply_twin_edit, twin_appearance, twin_selection
+from crfedit.report import emit_table
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -63,10 +64,7 @@ def main() -> None:
     for kind, values in per_kind.items():
         opt_s, whole_s = np.mean(values, axis=0)
         lines.append(f"| **mean** | {kind} | | **{opt_s:.3f}** | {whole_s:.3f} | |")
-    text = "\n".join(lines) + "\n"
-    if args.out:
-        args.out.write_text(text)
-    print(text)
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ from crfedit.evaluation import evaluate_edits, load_category_for, load_twin_case
 from crfedit.masks import dilate, erode
 from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, surface_iou
+from crfedit.report import emit_table
 
 _spec = importlib.util.spec_from_file_location("bench_edit_models", Path(__file__).with_name("edit_models.py"))
 edit_models = importlib.util.module_from_spec(_spec)
@@ -104,10 +105,7 @@ def main() -> None:
                     f"| {b[2]:.3f} | {np.mean(ious):.3f} |")
             print(line, flush=True)
             lines.append(line)
-    text = "\n".join(lines) + "\n"
-    if args.out:
-        args.out.write_text(text)
-    print(text)
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ from crfedit.edit.supervised import RecolorTarget, in_selection, selection_share
 from crfedit.metrics import score_images
 from crfedit.renderer import render_camera
 from crfedit.twin_scores import gap_closed, part_map, part_of
+from crfedit.report import emit_table
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -130,10 +131,7 @@ def main() -> None:
         edit = lambda case: evaluation.apply_twin_edit(model, case, EditOptions(strategy=strategy), appear=evaluation.twin_appearance(category, case),
                                                        selection=selections[case.spec.name]["scribbles"]).model
         row(f"the edit, `{strategy}` (fit, selection from the scribbles)", lambda case: views_of(edit(case), case))
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

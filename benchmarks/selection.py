@@ -25,6 +25,7 @@ import crfedit.evaluation as evaluation
 from crfedit.evaluation import evaluate_edits, load_twin_cases, model_width
 from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, selection_iou
+from crfedit.report import emit_table
 
 VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for), keep strokes given, recolour grows the selection)
     "default (bottleneck + colour + chromaticity + position at each cell's centre moved a half cell up the density gradient; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing (bilateral for removals), connectivity; recolours and removals join the chromaticity-only selection; recolours fill the rims; removals veto other colours)": ({}, True, False),
@@ -158,10 +159,7 @@ def main() -> None:
         oracles.append(oracle_selection(model, case, inst, record["id"]))
     else:
         row("oracle: cells labelled by the train views' ground-truth part maps (reads the answer; not a method)", oracles, "–", False)
-    text = "\n".join(lines) + "\n"
-    if args.out:
-        args.out.write_text(text)
-    print(text)
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

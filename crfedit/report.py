@@ -232,6 +232,16 @@ def markdown_section(report: BenchReport, csv_path: Path, plots: dict[str, Path]
     return "\n".join(lines)
 
 
+def emit_table(lines: Sequence[str], out: str | Path | None = None) -> None:
+    """Print a benchmark script's markdown ``lines`` and, when ``out`` is given, write them
+    there too (atomically, ending in a newline): the one way the scripts under benchmarks/
+    report."""
+    text = "\n".join(lines)
+    print(text)
+    if out is not None:
+        atomic_write_text(out, text + "\n")
+
+
 def update_markdown(path: str | Path, section: str, begin: str = BEGIN, end: str = END) -> Path:
     """Put ``section`` (markers included) between the markers of ``path``, keeping everything
     else; a page without markers gets it appended, a missing page is created."""

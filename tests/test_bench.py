@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from crfedit.bench import BenchSettings
 from crfedit.machine import machine_info
-from crfedit.report import BEGIN, CSV_COLUMNS, END, PLOT_SIZE, log_ticks, nice_ticks, plot_curves, update_markdown
+from crfedit.report import BEGIN, CSV_COLUMNS, END, PLOT_SIZE, emit_table, log_ticks, nice_ticks, plot_curves, update_markdown
 from crfedit.cli import app
 from crfedit.errors import CrfError
 
@@ -77,6 +77,15 @@ def test_tiny_bench_rewrites_only_its_markdown_section(tiny_run):
     assert "## Speed against error" in section and "torch " in section and "revision `" in section
     assert "](benchmarks/bench_train.png)" in section and "](benchmarks/bench.csv)" in section
     assert "| curve |" in section and "| fast | step = 24 |" in section
+
+
+def test_emit_table_prints_and_writes_the_lines(tmp_path, capsys):
+    """The benchmark scripts' one report: the lines printed, and written to --out with a final newline."""
+    emit_table(["| a |", "|---|"], tmp_path / "t.md")
+    assert capsys.readouterr().out == "| a |\n|---|\n"
+    assert (tmp_path / "t.md").read_text() == "| a |\n|---|\n" and list(tmp_path.iterdir()) == [tmp_path / "t.md"]
+    emit_table(["x"])
+    assert capsys.readouterr().out == "x\n"
 
 
 def test_update_markdown_creates_appends_and_replaces(tmp_path):
