@@ -935,10 +935,10 @@ def select(
     field = model.field_for(k)
     occupied = field.occupancy[k]
     res = occupied.shape[-1]
-    mirror = find_mirror(occupied) if options.mirror != "off" else None
     pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
     if pos_pts.shape[0] == 0:
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
+    mirror = find_mirror(occupied) if options.mirror != "off" else None
     mirror, mirror_meta = _mirror_use(field, mirror, options.mirror, pos_pts, neg_pts)
     if mirror is not None and options.mirror == "views":
         mirrored = _lift_mirrors(field, k, views, surfaces, mirror, options.min_opacity)
