@@ -85,6 +85,8 @@ class Config:
     """A cell stays occupied while its opacity over one step, 1-exp(-σ·step), exceeds this."""
     density_noise: float = 0.0
     """Std of noise added to raw density early in training (avoids the all-empty start)."""
+    random_background: bool = True
+    """Train over a random background colour per ray, not white (:func:`~crfedit.train.over_background`)."""
     view_reg: float = 0.0
     """Weight of the paper's view-dependence regularizer (one view per instance)."""
     checkpoint_every: int = 500
@@ -104,6 +106,7 @@ class Config:
             raise CrfError("model config is not a JSON object")
         known = {f.name for f in fields(cls)}
         data.setdefault("density_scale", 1.0)  # files written before the key existed used σ = act(raw)
+        data.setdefault("random_background", False)  # nor did they train over a random background
         unknown = sorted(set(data) - known)
         if unknown:
             raise CrfError(f"model config has unknown keys: {', '.join(unknown)}")
@@ -161,6 +164,7 @@ PRESETS: dict[str, Config] = {
         density_noise=1.0,
         density_act="exp",
         density_scale=1.0,
+        random_background=False,
     ),
 }
 

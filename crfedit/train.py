@@ -3,8 +3,9 @@
 1. The scene box and each instance's starting occupancy grid come from its training
    silhouettes (visual hull), so no sample is ever spent outside the object's hull.
 2. Each step renders a batch of random rays (3/4 from object pixels, 1/4 from background
-   pixels, which carve the hull's margin), takes the MSE to the pixels and one Adam step on
-   weights and codes.
+   pixels, which carve the hull's margin), each over a random background colour in the fast
+   preset (:func:`over_background`), takes the MSE to the pixels and one Adam step on weights
+   and codes.
 3. Every ``occ_every`` steps a few instances' grids are refreshed from the density.
 4. Checkpoints hold the optimizer, RNG, grid and buffer-size state, so ``--resume`` continues
    bit for bit.
@@ -151,6 +152,7 @@ class TrainBatch(NamedTuple):
     rgb: torch.Tensor  # [N, 3] target colour
     instance: torch.Tensor  # [N] long
     jitter: torch.Tensor | None  # [N] in [0, 1) (grid sampler); None: the renderer draws its own
+    background: torch.Tensor | None = None  # [N, 3] colour behind each ray; None: white
 
 
 BatchSource = Callable[[int, torch.Generator], TrainBatch]
@@ -159,14 +161,17 @@ BatchSource = Callable[[int, torch.Generator], TrainBatch]
 
 class BatchSampler:
     """Random training rays: ``FG_FRACTION`` of each batch from object pixels, the rest from
-    background; with ``jitter`` the sample offsets too (drawn after the rays, from the same
-    generator).  Draws happen on the generator's device: a GPU generator samples without a copy."""
+    background; with ``jitter`` the sample offsets too, and with ``random_background`` a
+    uniformly random colour behind each ray (:func:`over_background`), both drawn after the rays
+    from the same generator.  Draws happen on the generator's device: a GPU generator samples
+    without a copy."""
 
-    def __init__(self, data: TrainingRays, device: torch.device, jitter: bool = True):
+    def __init__(self, data: TrainingRays, device: torch.device, jitter: bool = True, random_background: bool = False):
         self.data = TrainingRays(*(t.to(device) for t in (data.origins, data.directions, data.rgb, data.alpha, data.instance)))
         self.fg = (data.alpha > 0).nonzero().squeeze(-1).to(device)
         self.bg = (data.alpha <= 0).nonzero().squeeze(-1).to(device)
         self.jitter = jitter
+        self.random_background = random_background
 
     def __call__(self, n: int, generator: torch.Generator) -> TrainBatch:
         n_fg = n if len(self.bg) == 0 else (0 if len(self.fg) == 0 else round(n * FG_FRACTION))
@@ -177,7 +182,23 @@ class BatchSampler:
         idx = torch.cat(pick)
         d = self.data
         jitter = torch.rand(n, generator=generator, device=generator.device).to(idx.device) if self.jitter else None
-        return TrainBatch(Rays(d.origins[idx], d.directions[idx]), d.rgb[idx], d.instance[idx], jitter)
+        rgb, background = d.rgb[idx], None
+        if self.random_background:
+            background = torch.rand(n, 3, generator=generator, device=generator.device).to(idx.device)
+            rgb = over_background(rgb, d.alpha[idx], background)
+        return TrainBatch(Rays(d.origins[idx], d.directions[idx]), rgb, d.instance[idx], jitter, background)
+
+
+def over_background(rgb_white: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """Pixels composited over white (``rgb_white`` [N, 3], straight ``alpha`` [N]) recomposited
+    over ``background`` [N, 3]: c·α + b·(1 − α) = rgb_white + (b − 1)(1 − α).
+
+    Over white alone, a white part rendered half transparent, or a white floater in front of
+    the background, costs nothing, and the model learns both; a recolour then shows the
+    background through the part, a removal leaves the floaters.  Over a random colour each
+    step, only the true coverage fits (the trick of instant-ngp's and nerfstudio's synthetic
+    scenes)."""
+    return rgb_white + (background - 1.0) * (1.0 - alpha)[:, None]
 
 
 def view_dependence_penalty(field, rays: Rays, inst: torch.Tensor, depth: torch.Tensor, opacity: torch.Tensor,
@@ -308,7 +329,7 @@ def train(
     params = [p for g in opt.param_groups for p in g["params"]]
     if batches is None:
         own = training_rays(category, "train", ranks.shard(range(len(category.instances))))
-        batches = BatchSampler(own, device, jitter=cfg.sampler == "grid")
+        batches = BatchSampler(own, device, jitter=cfg.sampler == "grid", random_background=cfg.random_background)
     n_rays = ranks.share(cfg.rays)
     weight = n_rays * ranks.world / cfg.rays  # this rank's part of the step's mean loss, times world
     meta = dict(extra_meta or {})
@@ -365,6 +386,7 @@ def train(
             out_r = render_rays(
                 field, batch.rays, batch.instance, generator=rank_generator, density_noise=noise,
                 early_stop=cfg.train_early_stop, jitter=batch.jitter, march=march,
+                background=1.0 if batch.background is None else batch.background,
             )
             loss = batch_mse(out_r.rgb, batch.rgb, out_r.complete)
             mse = loss.detach()

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    CHROMA_UNION, COLOR_THRESHOLD, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, save_selection, select,
+    CHROMA_UNION, COLOR_THRESHOLD, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, quantized, save_selection, select,
     smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
     denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE, local_shape,
 )
@@ -621,6 +621,27 @@ def test_selection_recolour_moves_the_part_not_the_rest(trained):
         moved += float((after[part] - before[part]).abs().mean()) / len(held)
         kept += float((after[rest] - before[rest]).abs().mean()) / len(held)
     assert moved > 0.1 and kept < 0.35 * moved, (moved, kept)
+
+
+def test_quantized_values_keep_each_cell_on_its_side_of_the_cuts():
+    v = torch.tensor([0.3, 0.2999, 0.5, 0.4999, 0.301, 1.2, -0.1])
+    q = quantized(v, (0.3, 0.5))
+    assert ((q * 255).round() - q * 255).abs().max() < 1e-4  # on the file's 256 levels
+    assert ((q >= 0.3) == (v >= 0.3)).all() and ((q >= 0.5) == (v >= 0.5)).all()
+    assert (v[0] * 255).round() / 255 < 0.3  # plain rounding would drop a cell at exactly 0.3
+    assert q[-2] == 1 and q[-1] == 0
+
+
+@pytest.mark.parametrize("kind", ["color", "remove"])
+def test_a_selection_read_back_is_the_one_computed(trained, tmp_path, kind):
+    """`select --out` then `--selection` must edit exactly as the one-step edit (and the page)."""
+    _, model, category = trained
+    view, fg, keep, _ = part_view(category, 1, "back")
+    sel = select(model, 1, [ScribbleView(view.camera, fg, keep)], options_for(kind))
+    save_selection(tmp_path / "s.safetensors", sel)
+    back = load_selection(tmp_path / "s.safetensors")
+    assert torch.equal(back.values, sel.values) and back.threshold == sel.threshold
+    assert sel.meta["selected_cells"] == int(back.mask.sum())
 
 
 def test_selection_file_round_trip_and_checks(trained, tmp_path):
