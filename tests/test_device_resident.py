@@ -119,21 +119,22 @@ def test_overflowing_rays_are_flagged_and_the_buffer_grows():
 
 
 def test_training_steps_equal_the_reference(tiny_chairs):
-    """Five Adam steps on the same batches, fixed-shape march against the reference march."""
+    """Five Adam steps on the same batches (each ray over its own random background colour),
+    fixed-shape march against the reference march."""
     category = load_category(tiny_chairs)
     cfg = make_config("fast", overrides=dict(rays=128, occ_res=16, grid_res=16))
     torch.manual_seed(0)
     fields = [ConditionalRadianceField(cfg, 2, crfedit.train.scene_box(category))]
     fields.append(copy.deepcopy(fields[0]))
     marches = [None, FixedMarch(fields[1])]
-    sampler = BatchSampler(training_rays(category, "train"), torch.device("cpu"))
+    sampler = BatchSampler(training_rays(category, "train"), torch.device("cpu"), random_background=True)
     opts = [make_optimizer(f, cfg) for f in fields]
     gens = [torch.Generator().manual_seed(7) for _ in fields]
     for _ in range(5):
         for field, march, opt, gen in zip(fields, marches, opts, gens):
             batch = sampler(cfg.rays, gen)
             out = render_rays(field, batch.rays, batch.instance, generator=gen, early_stop=cfg.train_early_stop,
-                              jitter=batch.jitter, march=march)
+                              jitter=batch.jitter, march=march, background=batch.background)
             opt.zero_grad()
             batch_mse(out.rgb, batch.rgb, out.complete).backward()
             opt.step()
