@@ -976,6 +976,14 @@ def select(
     veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options)
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options), cells, neighbours, occupied, scribbled, kept, options, veto)
     columns = _columns(groups, widths)
+    def alike_grid(factor: float, floor: float = 0.01) -> Tensor:
+        """[R, R, R] bool: the occupied cells whose chromaticity is the scribbled points'
+        (:func:`chroma_alike` with ``factor`` and ``floor``)."""
+        c = columns["chroma"]
+        alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+        alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], factor, floor)
+        return alike.view(res, res, res)
+
     union, saturation = None, 0.0
     if "chroma" in groups:  # HSV saturation of the scribbled points' median chromaticity
         med = f_pos[:, columns["chroma"]].median(dim=0).values
@@ -987,9 +995,7 @@ def select(
             alone = _refine(_classify(("chroma",), [WIDTHS["chroma"]], f_pos[:, c], f_keep[:, c], f_view[:, c], f_cells[:, c], options),
                             cells, neighbours, occupied, scribbled, kept, options, veto)
             if options.join_chroma > 0:  # see SelectOptions.join_chroma
-                alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-                alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], options.join_chroma)
-                alone = torch.where(alike.view(res, res, res), alone, torch.zeros_like(alone))
+                alone = torch.where(alike_grid(options.join_chroma), alone, torch.zeros_like(alone))
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
             union.update(cells=n_alone, joined=n_alone <= options.chroma_union * max(n_main, 1))
             if union["joined"]:
@@ -999,10 +1005,7 @@ def select(
         """``values`` with each cell of value in [``low``, ``high``) whose chromaticity is
         unlike the scribbled points' (:func:`chroma_alike` with ``factor`` and ``floor``)
         capped just below ``below``; the cells of ``spare`` [R, R, R] are left as they are."""
-        c = columns["chroma"]
-        alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], factor, floor)
-        unlike = (values < high) & (values >= low) & ~alike.view(res, res, res)
+        unlike = (values < high) & (values >= low) & ~alike_grid(factor, floor)
         if spare is not None:
             unlike &= ~spare
         return torch.where(unlike, values.clamp(max=below * 0.999), values)
@@ -1046,8 +1049,8 @@ def quantized(values: Tensor, cuts: Sequence[float]) -> Tensor:
     0.298, below it, so a file dropped every filled cell."""
     v = values.clamp(0, 1)
     q = (v * 255).round()
+    levels = torch.arange(256, dtype=q.dtype, device=q.device)
     for cut in cuts:
-        levels = torch.arange(256, dtype=q.dtype, device=q.device)
         up = float(levels[levels / 255.0 >= cut][0]) if cut <= 1 else 256.0  # the lowest level on or above the cut, read
         down = up - 1  # back as the file's reader does (float32), and the one below it
         q = torch.where((v >= cut) & (q / 255.0 < cut), torch.full_like(q, up), q)
