@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -12,7 +13,7 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    CHROMA_UNION, COLOR_THRESHOLD, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, quantized, save_selection, select,
+    CHROMA_UNION, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION, PALE_UNION, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, quantized, save_selection, select,
     smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
     denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE, local_shape,
 )
@@ -168,6 +169,14 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
     assert options_for("color").chroma_union == options_for("remove").chroma_union == CHROMA_UNION > 0
     assert options_for("add").chroma_union == 0
+    # a pale part's join is capped by pale_union instead (recolours'; removals never join below PALE_SATURATION)
+    pale = SelectOptions(chroma_union=1e6, pale_union=1e-6, chroma_saturation=0.0, pale_saturation=1.01)  # every part is pale
+    assert select(model, k, views, pale).meta["chroma_union"]["joined"] is False
+    vivid = dataclasses.replace(pale, pale_saturation=0.0)  # no part is pale: chroma_union decides
+    assert torch.equal(select(model, k, views, vivid).values, joined.values)
+    assert torch.equal(select(model, k, views, dataclasses.replace(pale, pale_union=1e6)).values, joined.values)
+    assert options_for("color").chroma_saturation == COLOR_SATURATION < PALE_SATURATION == options_for("remove").chroma_saturation
+    assert options_for("color").pale_union == PALE_UNION > 0 and options_for("remove").pale_union == 0
     # recolours select at the lower threshold, after the same refinement: same values, more cells
     assert options_for("color").select_threshold == COLOR_THRESHOLD < 0.5
     assert options_for("remove").select_threshold is None and options_for("add").select_threshold is None

@@ -161,6 +161,11 @@ selection IoU colour / removal twins: procedural 0.812 / 0.891 → 0.830 / 0.905
 steps) 0.539 / 0.383 → 0.615 / 0.485, real (9 500 steps) 0.588 / 0.405 → 0.714 / 0.411."""
 
 
+PALE_SATURATION = 0.3
+"""The saturation below which :attr:`SelectOptions.pale_union` caps the chromaticity join (the
+default ``chroma_saturation``: removals never join below it)."""
+
+
 @dataclass(frozen=True)
 class SelectOptions:
     """How scribbles become a selection."""
@@ -206,7 +211,16 @@ class SelectOptions:
     for five more twins: real recolours 0.562 → 0.655 of the gap (edit seed 1: 0.580 →
     0.657; a pink shell 0.24 stays below, its recolour 0.25), procedural 0.615 → 0.619,
     removals 0.479 → 0.550 (procedural) and 0.644 → 0.624 (real); 0.2 flooded a procedural
-    back (recolours 0.511)."""
+    back (recolours 0.511).  Recolours use :data:`COLOR_SATURATION`, with ``pale_union``."""
+    pale_union: float = 0.0
+    """When > 0, a part less saturated than ``pale_saturation`` (and at least
+    ``chroma_saturation``) joins only when the chromaticity-only selection holds at most this ×
+    the full features' cells, not ``chroma_union`` ×: its chromaticity is nearer the model's
+    colour noise and the hue of the chair's other parts.  Recolours use :data:`PALE_UNION`
+    (with ``chroma_saturation`` at :data:`COLOR_SATURATION`; 0: ``chroma_union`` at any
+    saturation)."""
+    pale_saturation: float = PALE_SATURATION
+    """See ``pale_union``."""
     smooth: bool = True
     """Blend each cell's value half-and-half with its occupied 3×3×3 neighbourhood's mean."""
     smooth_bandwidth: float = 0.0
@@ -277,6 +291,26 @@ full features' 0.82).  With the test, the saturated parts of the benchmark twins
 removal, four models) hold 0.51–1.99×, and 2.19–2.68× for a wooden frame scribbled on its back,
 whose legs the join rightly adds (IoU 0.59 → 0.93, gap closed 0.48 → 1.00 on the 17 000-step
 real model; at 2.5 it was refused there).  The factor sits below the one flood measured."""
+COLOR_SATURATION = 0.2
+"""A recolour's :attr:`SelectOptions.chroma_saturation`: its chromaticity join and lower cut
+(:data:`COLOR_THRESHOLD`) run for parts from this saturation, joining at most
+:data:`PALE_UNION` × the full features' cells below :data:`PALE_SATURATION`.  A pink shell
+(0.24–0.26), scribbled on its lit inside, had its shadowed outside left out: the full
+features' classifier leans on the predicted colour, and the view's unscribbled shadowed
+inside stayed a negative.  Measured on the 16-twin benchmark over the four model pairs
+(white-trained and random-background, procedural / real, training seeds 0 and 1;
+docs/benchmarks.md), recolours' gap closed, white 0.845 / 0.642 / 0.860 / 0.582 → 0.860 /
+0.695 / 0.862 / 0.633, random background 0.660 / 0.580 / 0.867 / 0.509 → 0.664 / 0.651 /
+0.884 / 0.578 (the shell 0.31 / 0.40 / 0.31 / 0.31 → 0.74 / 0.81 / 0.87 / 0.87); no twin lost
+more than 0.02.  The cut sits between the black and white shells (≤ 0.14) and the palest
+procedural back (0.21).  Only the join: 0.727 and 0.690 mean; only the lower cut:
+0.746 and 0.666.  Removals keep 0.3: at 0.2 (join capped as here) their gap closed moved
+0.620 → 0.624 and 0.758 → 0.767, four twins up and three down by 0.03–0.13."""
+PALE_UNION = 2.0
+"""A recolour's :attr:`SelectOptions.pale_union`.  A procedural back of saturation 0.25 whose
+arms share its brown: its chromaticity-only selection held 2.18 × the full features' cells
+and took the arms (gap closed 0.75 → −0.06 at :data:`CHROMA_UNION`); the pink shell's held
+1.06–1.71 ×, and the other pale parts' 0.64–1.11 ×."""
 EDIT_KINDS = ("color", "remove", "add")
 """What a selection can be made for (:func:`options_for`)."""
 
@@ -416,8 +450,9 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
     (:data:`REMOVE_FEATURES`), weigh position at :data:`REMOVE_POSITION_WEIGHT`, smooth
     bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
     chromaticity (:data:`REMOVE_VETO_CHROMA`); recolours select at a lower
-    cut (:data:`COLOR_THRESHOLD`), fill the rims (:data:`COLOR_FILL_SHARE`) and gate
-    appearance tighter (:data:`COLOR_APPEARANCE_GATE`).  Both let keep strokes win near them
+    cut (:data:`COLOR_THRESHOLD`), fill the rims (:data:`COLOR_FILL_SHARE`), gate
+    appearance tighter (:data:`COLOR_APPEARANCE_GATE`) and join pale parts too
+    (:data:`COLOR_SATURATION`, :data:`PALE_UNION`).  Both let keep strokes win near them
     (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`), and read the instance's mirror
     symmetry (:data:`REMOVE_MIRROR`, :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise."""
     if kind not in EDIT_KINDS:
@@ -430,7 +465,8 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
 
 def _kind_options(kind: str) -> SelectOptions:
     if kind == "color":
-        return SelectOptions(chroma_union=CHROMA_UNION, select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
+        return SelectOptions(chroma_union=CHROMA_UNION, chroma_saturation=COLOR_SATURATION, pale_union=PALE_UNION,
+                             select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
                              appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
                              keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR)
     if kind == "remove":
@@ -997,7 +1033,8 @@ def select(
             if options.join_chroma > 0:  # see SelectOptions.join_chroma
                 alone = torch.where(alike_grid(options.join_chroma), alone, torch.zeros_like(alone))
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
-            union.update(cells=n_alone, joined=n_alone <= options.chroma_union * max(n_main, 1))
+            cap = options.pale_union if options.pale_union > 0 and saturation < options.pale_saturation else options.chroma_union
+            union.update(cells=n_alone, joined=n_alone <= cap * max(n_main, 1))
             if union["joined"]:
                 values = torch.maximum(values, alone)
     def cap_unlike(values: Tensor, factor: float, below: float, low: float = 0.0, high: float = options.threshold,
