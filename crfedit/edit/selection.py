@@ -162,8 +162,8 @@ steps) 0.539 / 0.383 → 0.615 / 0.485, real (9 500 steps) 0.588 / 0.405 → 0.7
 
 
 PALE_SATURATION = 0.3
-"""The saturation below which :attr:`SelectOptions.pale_union` caps the chromaticity join (the
-default ``chroma_saturation``: removals never join below it)."""
+"""The saturation below which :attr:`SelectOptions.pale_union` caps the chromaticity join, and
+the default :attr:`SelectOptions.chroma_saturation` (removals never join below it)."""
 
 
 @dataclass(frozen=True)
@@ -199,7 +199,7 @@ class SelectOptions:
     """The join takes only cells whose chromaticity lies within this × the scribbled points'
     spread (+ 0.01) of theirs (:func:`chroma_alike`; 0: any cell the chromaticity-only
     selection selects).  See :data:`JOIN_CHROMA`."""
-    chroma_saturation: float = 0.3
+    chroma_saturation: float = PALE_SATURATION
     """Nor does it join (nor run) unless the scribbled points' median chromaticity has at least
     this HSV saturation (max − min) / max, a colour's, which shading does not change: the
     chromaticity of a near-grey part is mostly the model's colour noise.  Measured on the
