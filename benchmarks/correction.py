@@ -19,6 +19,8 @@ user reads the ground truth, so this measures the multi-view selection, not a me
 ``random`` (any one, drawn with ``--seed``), or ``farthest`` (the one whose viewing direction
 makes the largest angle with the nearest of the views already used: what a user who knows
 nothing of the errors would turn to).  Only ``worst`` reads the ground truth to choose.
+``same`` corrects in the scribbled view itself: the user looks at the preview of the view they
+scribbled, strokes its errors there, and the new strokes join that view's (no second view).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ bench_selection = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench_selection)
 
 
-PICKS = ("worst", "random", "farthest")
+PICKS = ("worst", "random", "farthest", "same")
 
 
 def looking(camera) -> np.ndarray:
@@ -52,7 +54,9 @@ def looking(camera) -> np.ndarray:
 def view_order(inst, used: dict[str, object], pick: str, rng: np.random.Generator) -> list[int]:
     """The unused train views of ``inst`` the user looks at, by ``pick`` (``used``: name →
     camera): one for ``random`` and ``farthest`` (the first of equals), all for ``worst``
-    (the error count decides)."""
+    (the error count decides); for ``same`` the scribbled view (the first of ``used``)."""
+    if pick == "same":
+        return [int(next(iter(used)).split(":")[1])]
     free = [i for i in range(len(inst.splits["train"])) if f"train:{i}" not in used]
     if pick == "random":
         return [free[int(rng.integers(len(free)))]] if free else []
@@ -121,6 +125,12 @@ def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object
     return name, view.camera, ScribbleView(view.camera, scribble, keep if keep.any() else None)
 
 
+def merged(first: ScribbleView, more: ScribbleView) -> ScribbleView:
+    """``first``'s view with the strokes of ``more`` (drawn on the same view) added to its own."""
+    keeps = [k for k in (first.keep, more.keep) if k is not None]
+    return ScribbleView(first.camera, first.scribble | more.scribble, np.logical_or.reduce(keeps) if keeps else None)
+
+
 def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pick: str = "worst", errors: str = "eroded") -> list[dict]:
     """Per round (0: the twins' own scribbles), {id(case.scribble): Selection} for every twin."""
     out = [dict() for _ in range(rounds + 1)]
@@ -138,7 +148,10 @@ def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pic
                 name, camera, view = found
                 used[name] = camera
                 if view is not None:
-                    views.append(view)
+                    if pick == "same":
+                        views[0] = merged(views[0], view)
+                    else:
+                        views.append(view)
                     sel = select(model, case.instance, views, options)
             out[r][id(case.scribble)] = sel
     return out
@@ -156,9 +169,10 @@ def main() -> None:
     args = ap.parse_args()
     model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
     per_round = corrected_selections(model, category, cases, args.rounds, args.seed, args.pick, args.errors)
+    where = "in the scribbled view" if args.pick == "same" else f"from the {args.pick} unused train view"
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; hybrid strategy, default options; "
-        f"round r: the scribbles plus r simulated corrections, each from the {args.pick} unused train view (seed {args.seed}, {args.errors} errors).", "", *bench_selection.edit_table_header("round"),
+        f"round r: the scribbles plus r simulated corrections, each {where} (seed {args.seed}, {args.errors} errors).", "", *bench_selection.edit_table_header("round"),
     ]
     per_twin = []
     for r, selections in enumerate(per_round):

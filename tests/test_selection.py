@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -825,3 +826,27 @@ def test_a_keep_stroke_wins_over_the_same_look_near_it(trained):
     assert bool((won.values <= plain.values + 1e-6).all())  # it only ever lowers
     assert options_for("remove").keep_ratio == REMOVE_KEEP_RATIO > 0 and options_for("color").keep_ratio == COLOR_KEEP_RATIO > 0
     assert options_for("add").keep_ratio == 0 and "keep_wins_cells" not in plain.meta
+
+
+def test_correction_benchmark_same_view_merges_strokes_into_the_scribbled_view():
+    """``--pick same``: the simulated user corrects in the view they scribbled, so the view
+    looked at is the scribbled one (even though it is used) and its new strokes join that
+    view's own, keep strokes included, rather than adding a second view."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("correction", Path(__file__).parents[1] / "benchmarks" / "correction.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    inst = SimpleNamespace(splits={"train": [None] * 5})
+    rng = np.random.default_rng(0)
+    assert bench.view_order(inst, {"train:3": None}, "same", rng) == [3]
+    assert 3 not in bench.view_order(inst, {"train:3": None}, "worst", rng)
+    a, b = np.zeros((4, 4), bool), np.zeros((4, 4), bool)
+    a[0, 0], b[1, 1] = True, True
+    first = ScribbleView("cam", a, None)
+    out = bench.merged(first, ScribbleView("cam", b, b))
+    assert out.camera == "cam" and (out.scribble == (a | b)).all() and (out.keep == b).all()
+    out = bench.merged(ScribbleView("cam", a, a), ScribbleView("cam", b, None))
+    assert (out.keep == a).all()
+    assert bench.merged(first, first).keep is None

@@ -69,6 +69,7 @@ def test_mirror_maps_cells_points_and_world_alike():
     normalize = lambda p: (p - lo) / (hi - lo) * 2 - 1
     torch.testing.assert_close(normalize(m.points(aabb, x)), m.normalized(normalize(x)))
     torch.testing.assert_close(m.points(aabb, m.points(aabb, x)), x)
+    assert m.cell(aabb) == 4.0 / 16  # the box's largest side (x: 4) over the grid's 16 cells
 
 
 def test_the_mirrored_camera_sees_the_mirror_image_flipped_left_right():

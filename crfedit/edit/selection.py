@@ -856,8 +856,7 @@ def _lift_mirrored(field, k, v: ScribbleView, pts: Tensor, on: Tensor, mirror: M
     cam = mirror_camera(v.camera, mirror, field.aabb)
     m_pts, m_on = surface_points(field, cam, k, min_opacity)
     expected = mirror.points(field.aabb, pts.view(h, w, 3).flip(1).reshape(-1, 3))
-    cell = occupancy.step_size(field.aabb, mirror.res, 1.0)
-    agree = m_on & on.view(h, w).flip(1).reshape(-1) & agreeing(m_pts, expected, cell)
+    agree = m_on & on.view(h, w).flip(1).reshape(-1) & agreeing(m_pts, expected, mirror.cell(field.aabb))
     scribbled, kept = _strokes(ScribbleView(cam, mirror_image(v.scribble), mirror_image(v.keep)), m_on.device)
     return m_pts[agree & scribbled], m_pts[agree & kept], m_pts[agree & ~scribbled & ~kept]
 
@@ -949,7 +948,7 @@ def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tens
     if mirror is None:
         return None, {"mode": mode, "used": False, "why": "the instance is not mirror-symmetric"}
     meta = {"mode": mode, "axis": mirror.axis, "shift": mirror.shift, "overlap": round(mirror.overlap, 3)}
-    cell = occupancy.step_size(field.aabb, mirror.res, 1.0)
+    cell = mirror.cell(field.aabb)
     clash = max(conflict(mirror.points(field.aabb, pos), keep, cell), conflict(mirror.points(field.aabb, keep), pos, cell))
     if clash > CONFLICT:
         return None, {**meta, "used": False, "why": f"the keep strokes cover {clash:.0%} of the scribble's mirror image"}

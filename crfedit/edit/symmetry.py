@@ -81,6 +81,11 @@ class Mirror:
         m = torch.as_tensor(self.matrix(aabb), dtype=points.dtype, device=points.device)
         return points @ m[:3, :3].T + m[:3, 3]
 
+    def cell(self, aabb: Tensor) -> float:
+        """The world side of one of the grid's cells in box ``aabb`` (its largest side / ``res``):
+        the tolerance within which a mirrored point meets its counterpart."""
+        return float((aabb[3:] - aabb[:3]).max()) / self.res
+
 
 def mirror_overlaps(occupied: Tensor, axis: int, max_shift: int) -> Tensor:
     """[2·max_shift + 1]: for shifts −max_shift … max_shift, how many occupied cells of grid
