@@ -56,7 +56,10 @@ def view_order(inst, used: dict[str, object], pick: str, rng: np.random.Generato
     camera): one for ``random`` and ``farthest`` (the first of equals), all for ``worst``
     (the error count decides); for ``same`` the scribbled view (the first of ``used``)."""
     if pick == "same":
-        return [int(next(iter(used)).split(":")[1])]
+        split, index = next(iter(used)).split(":")
+        if split != "train":
+            raise SystemExit(f"--pick same: the scribbled view {split}:{index} is not a train view")
+        return [int(index)]
     free = [i for i in range(len(inst.splits["train"])) if f"train:{i}" not in used]
     if pick == "random":
         return [free[int(rng.integers(len(free)))]] if free else []

@@ -841,6 +841,8 @@ def test_correction_benchmark_same_view_merges_strokes_into_the_scribbled_view()
     inst = SimpleNamespace(splits={"train": [None] * 5})
     rng = np.random.default_rng(0)
     assert bench.view_order(inst, {"train:3": None}, "same", rng) == [3]
+    with pytest.raises(SystemExit, match="not a train view"):
+        bench.view_order(inst, {"val:3": None}, "same", rng)
     assert 3 not in bench.view_order(inst, {"train:3": None}, "worst", rng)
     a, b = np.zeros((4, 4), bool), np.zeros((4, 4), bool)
     a[0, 0], b[1, 1] = True, True

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import occupancy
 from ..cameras import Camera
 
 MIN_OVERLAP = 0.85
@@ -84,7 +85,7 @@ class Mirror:
     def cell(self, aabb: Tensor) -> float:
         """The world side of one of the grid's cells in box ``aabb`` (its largest side / ``res``):
         the tolerance within which a mirrored point meets its counterpart."""
-        return float((aabb[3:] - aabb[:3]).max()) / self.res
+        return occupancy.step_size(aabb, self.res, 1.0)
 
 
 def mirror_overlaps(occupied: Tensor, axis: int, max_shift: int) -> Tensor:
