@@ -23,6 +23,7 @@ from .cameras import Camera
 from .config import Config
 from .errors import CrfError, ModelFileError
 from .field import ConditionalRadianceField
+from .names import did_you_mean
 from .safefile import check_tensors, fingerprint, read_header, read_safetensors, write_safetensors
 
 FORMAT = "crfedit-model"
@@ -59,7 +60,7 @@ class CategoryModel:
         if key in self.names:
             return self.names.index(key)
         shown = ", ".join(self.names[:5]) + (", …" if len(self.names) > 5 else "")
-        raise CrfError(f"unknown instance {key!r} (instances: {shown})")
+        raise CrfError(f"unknown instance {key!r} (instances: {shown}){did_you_mean(key, self.names)}")
 
     def state(self) -> dict[str, Tensor]:
         """Every tensor that defines what the model renders (no training state)."""

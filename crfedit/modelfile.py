@@ -78,6 +78,16 @@ def stored_training(path: str | os.PathLike) -> tuple[Config, int, dict]:
 MODULE_ORDER = (*MODULES, *CODE_TABLES)
 
 
+def _baked_edits(meta: dict[str, str]) -> int | None:
+    """How many edits ``crfedit edits bake`` folded in (None: not a baked model, or a record
+    that does not read as a list)."""
+    try:
+        stack = json.loads(meta.get("baked_edits", ""))
+    except json.JSONDecodeError:
+        return None
+    return len(stack) if isinstance(stack, list) else None
+
+
 def model_info(path: str | os.PathLike) -> dict:
     """What ``crfedit info`` prints, as plain JSON types."""
     from .model import load_model
@@ -119,6 +129,8 @@ def model_info(path: str | os.PathLike) -> dict:
         "scene_box": {"min": field.aabb[:3].tolist(), "max": field.aabb[3:].tolist()},
         "views": {split: {"count": int(t.focal.numel()), "size": [t.width, t.height]} for split, t in model.views.items()},
         "baked_instances": [model.names[k] for k in sorted(model.overrides)],
+        "baked_edits": _baked_edits(meta),
+        "baked_from": meta.get("baked_from"),
         "dataset_fingerprint": model.dataset_fingerprint,
         "fingerprint": model.fingerprint(),
         "step": int(meta["step"]) if meta.get("step", "").isdigit() else None,

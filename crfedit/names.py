@@ -35,3 +35,18 @@ MIRROR_MODES = ("off", "views", "values")
 """How a selection reads the instance's mirror symmetry (``edit.symmetry``): not at all, the
 scribbled views' mirror images lending their strokes, or the selection taking its own mirror
 image."""
+
+
+def did_you_mean(key: str, names: list[str] | tuple[str, ...]) -> str:
+    """A hint for an unknown name: "; did you mean 'x'?" naming the names that contain ``key`` (or
+    that ``key`` contains) or, failing that, the closest spellings; "" when nothing is near. Users
+    type the short end of long names (``chair_with_cushion`` for ``blendswap_cc_0_chair_with_cushion``)."""
+    import difflib
+
+    folded = key.strip().lower()
+    near = [n for n in names if folded and (folded in n.lower() or n.lower() in folded)] if len(folded) >= 3 else []
+    if not near:
+        near = difflib.get_close_matches(key, list(names), n=3, cutoff=0.75)
+    if not near or len(near) > 3:
+        return ""
+    return "; did you mean " + " or ".join(repr(n) for n in near) + "?"

@@ -1,7 +1,8 @@
 """Run records of a training run, beside the model file ``NAME.safetensors``:
 
 - ``NAME.run.json``: the resolved config and how the run was started (command, dataset,
-  seed, device, threads), written when training starts;
+  seed, device, threads), written when training starts; a ``--resume`` keeps that record and
+  appends how it was continued to its ``resumes`` list;
 - ``NAME.log.csv``: step, loss, train PSNR, rays/s, learning rate and elapsed seconds every
   ``every`` steps (appended to on ``--resume``);
 - ``NAME.tb/``: the same scalars as TensorBoard events, when ``tensorboard`` is installed
@@ -42,6 +43,24 @@ def _tensorboard_writer(folder: Path):
     return SummaryWriter(str(folder))
 
 
+def run_record(path: Path, run: dict, cfg: Config, resume: bool) -> dict:
+    """What ``NAME.run.json`` holds after this start: a fresh run's record, or on ``resume`` the
+    first start's record (when it reads as one) with this start appended to ``resumes``, so the
+    command that began the run is never lost."""
+    record = {**run, "config": json.loads(cfg.to_json())}
+    if not resume or not path.is_file():
+        return record
+    try:
+        first = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return record
+    if not isinstance(first, dict) or "command" not in first:
+        return record
+    resumes = first.get("resumes") if isinstance(first.get("resumes"), list) else []
+    keys = ("command", "device", "threads", "minutes", "resumed_at")
+    return {**first, "resumes": [*resumes, {k: run.get(k) for k in keys}]}
+
+
 class RunLog:
     """Writes the run records; ``on_step`` has :func:`crfedit.train.train`'s callback signature."""
 
@@ -51,7 +70,7 @@ class RunLog:
         self.paths, self.cfg, self.every = record_paths(model_path), cfg, max(1, every)
         self.budget = None if minutes is None else 60.0 * minutes
         self._lr = learning_rate
-        write_json(self.paths["run"], {**run, "config": json.loads(cfg.to_json())})
+        write_json(self.paths["run"], run_record(self.paths["run"], run, cfg, resume))
         fresh = not (resume and self.paths["log"].is_file())
         self.file = open(self.paths["log"], "w" if fresh else "a", newline="")
         self.csv = csv.writer(self.file)

@@ -120,6 +120,35 @@ def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path, monkeypatch)
     assert a.fingerprint() == b.fingerprint()
 
 
+def test_resume_keeps_the_first_start_in_the_run_record(data, tmp_path, monkeypatch):
+    """After an interrupted run is resumed, run.json still names the command that began the run
+    and lists the resume; resuming the finished run changes nothing."""
+    out = tmp_path / "m.safetensors"
+    real_train = crfedit.train.train
+
+    def interrupted_at_6(*a, on_step=None, **kw):
+        def hook(step, *rest):
+            on_step(step, *rest)
+            if step == 6:
+                raise KeyboardInterrupt
+
+        return real_train(*a, on_step=hook, **kw)
+
+    monkeypatch.setattr(crfedit.train, "train", interrupted_at_6)
+    assert invoke("train", data, "--out", out, "--steps", 12, *TINY).exit_code == 130
+    monkeypatch.setattr(crfedit.train, "train", real_train)
+    first = json.loads((tmp_path / "m.run.json").read_text())
+    result = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    record = json.loads((tmp_path / "m.run.json").read_text())
+    assert record["command"] == first["command"] and record["config"] == first["config"]
+    assert [r["resumed_at"] for r in record["resumes"]] == [6]  # (the command is sys.argv: pytest's here)
+    before = (out.read_bytes(), (tmp_path / "m.run.json").read_bytes(), (tmp_path / "m.log.csv").read_bytes())
+    again = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
+    assert again.exit_code == 0 and "is trained to step 12 of 12: nothing to resume" in again.stdout, again.output
+    assert before == (out.read_bytes(), (tmp_path / "m.run.json").read_bytes(), (tmp_path / "m.log.csv").read_bytes())
+
+
 def test_resume_errors(data, model_path, tmp_path):
     assert_user_error(invoke("train", data, "--out", tmp_path / "none.safetensors", "--resume", *TINY), "--resume", "does not exist")
     assert_user_error(invoke("train", data, "--out", model_path, "--resume", "--res", 8, *TINY), "trained at width 16")

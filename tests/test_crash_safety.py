@@ -37,7 +37,7 @@ from crfedit.train import train
 
 CLI = [sys.executable, "-m", "crfedit"]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-STEPS = 60
+STEPS = 300  # long enough (several seconds here) that every kill lands before the run ends
 EVERY = 5
 
 

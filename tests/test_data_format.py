@@ -257,3 +257,17 @@ def test_cli_info_json(tmp_path):
     info = json.loads(result.stdout)
     assert info["instances"] == 2 and info["views"] == {"train": 6, "test": 2} and info["bbox"]["source"] == "depth"
     assert info["fingerprint"] == load_category(tmp_path).fingerprint
+
+
+def test_unknown_instance_suggests_the_names_it_is_part_of():
+    """A name typed short (the end of a long mesh name) or in another case gets a suggestion;
+    a name near nothing gets none."""
+    from crfedit.names import did_you_mean
+
+    names = ["blendswap_cc_0_armchair", "blendswap_cc_0_chair_with_cushion", "chair_000", "chair_001", "chair_010"]
+    assert did_you_mean("chair_with_cushion", names) == "; did you mean 'blendswap_cc_0_chair_with_cushion'?"
+    assert did_you_mean("CHAIR_000", names) == "; did you mean 'chair_000'?"
+    assert did_you_mean("chair_00", names) == "; did you mean 'chair_000' or 'chair_001'?"
+    assert did_you_mean("chair_01", names) == "; did you mean 'chair_010'?"
+    for far in ("sofa", "chair_999", "../../etc/passwd", "ch", "chair"):  # "chair" is in five names: no guess
+        assert did_you_mean(far, names) == ""

@@ -342,6 +342,11 @@ def test_edits_show_check_bake_cli(tmp_path, model):
     baked = runner.invoke(app, ["edits", "bake", str(tmp_path / "m.safetensors"), "--edit", str(a), "--edit", str(b), "--out", str(tmp_path / "baked.safetensors")])
     assert baked.exit_code == 0, baked.output
     m2, _ = load_model(tmp_path / "baked.safetensors")
+    info = runner.invoke(app, ["info", str(tmp_path / "baked.safetensors")])
+    names = ", ".join(m2.names[k] for k in (0, 1))
+    assert f"baked edits    {names} (2 edits onto {loaded.fingerprint()})" in info.output, info.output
+    plain = runner.invoke(app, ["info", str(tmp_path / "m.safetensors")])
+    assert "baked edits    none" in plain.output
     stacked = apply_edit_files(loaded, [a, b])
     for k in range(3):
         assert torch.equal(render(m2, k), render(stacked, k))
@@ -351,3 +356,13 @@ def test_edits_show_check_bake_cli(tmp_path, model):
     assert wrong.exit_code == 2 and "made for model" in wrong.output and len(wrong.output.strip().splitlines()) == 1
     same = runner.invoke(app, ["edits", "bake", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out", str(tmp_path / "m.safetensors")])
     assert same.exit_code == 2 and "write the baked model to a new file" in same.output
+
+
+def test_edits_show_table_shortens_hyperparameters():
+    """The table rounds floats and counts camera records (``--json`` keeps them whole)."""
+    from crfedit.cli.edit import _short
+
+    assert _short(0.12549019607843137) == "0.1255" and _short(10.0) == "10"
+    assert _short([0.5, 1 / 3, 7]) == "[0.5, 0.3333, 7]"
+    assert _short([{"c2w": [[1.0]]}]) == "[1 record]" and _short([{}, {}]) == "[2 records]"
+    assert _short("selection") == "selection" and _short(True) == "True" and _short([]) == "[]"

@@ -471,7 +471,7 @@ CATALOGUE: list[Case] = [
     Case("strokes/malformed-json/edit-color",
          lambda e, t: edit_color(e, t, "--scribble-json", write(t / "s.json", "[[[1, 2]"), with_scribble=False), ("s.json", "malformed JSON")),
     Case("copy/wrong-size/add", lambda e, t: add(e, t, copy=mask_png(t, "c.png", np.full((8, 8), 255, np.uint8))),
-         ("c.png", "copy mask is 8x8 but the donor view is 16x16")),
+         ("c.png", "copy mask is 8x8 but the view is 16x16")),
     Case("copy/bad-offset/add", lambda e, t: add(e, t, offset="2;rm"), ("--offset 2;rm", "DX,DY")),
     # --- photos for fit-real ------------------------------------------------------------------------
     Case("photo/garbage/fit-real", lambda e, t: fit_real(e, t, photo=write_bytes(t / "p.png", bytes(range(256)) * 2)), ("p.png", "not a readable image")),

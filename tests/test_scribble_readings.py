@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from safetensors.torch import load_file
 from typer.testing import CliRunner
 
 from crfedit.cli import app
@@ -128,3 +130,50 @@ def test_edit_color_reports_the_reading_and_refuses_a_large_scribble(view, tiny_
     assert not (tmp_path / "big.safetensors").exists()
     forced = invoke(*base, "--scribble", tmp_path / "big.png", "--force", "--out", tmp_path / "big.safetensors")
     assert forced.exit_code == 0 and (tmp_path / "big.safetensors").is_file(), forced.output
+
+
+def test_a_json_given_as_the_image_is_read_as_strokes(view, tmp_path):
+    _, camera, _, _ = view
+    (tmp_path / "s.json").write_text('{"strokes": [[[4, 5], [11, 9]]], "radius": 1.5}')
+    got = load_mask(tmp_path / "s.json", None, camera.width, camera.height, "scribble")
+    assert got.reading == "strokes JSON"
+    assert np.array_equal(got.mask, view[3])
+
+
+def test_every_command_reads_scribble_json_the_same(view, tiny_model, tmp_path):
+    """The same ``--scribble strokes.json`` that `select` takes works for the edits (it was read as
+    an image there), and equals ``--scribble-json``."""
+    (tmp_path / "s.json").write_text('{"strokes": [[[4, 5], [11, 9]]], "radius": 1.5}')
+    base = ["remove", tiny_model, "--instance", 0, "--view", "train:0", "--steps", 2, "--device", "cpu"]
+    files = {}
+    for option in ("--scribble", "--scribble-json"):
+        files[option] = tmp_path / f"{option.strip('-')}.safetensors"
+        r = invoke(*base, option, tmp_path / "s.json", "--out", files[option])
+        assert r.exit_code == 0, r.output
+        assert f"scribble: strokes JSON, {int(view[3].sum())} pixels" in r.stdout
+    a, b = (load_file(files[o]) for o in ("--scribble", "--scribble-json"))
+    assert a.keys() == b.keys() and all(torch.equal(a[n], b[n]) for n in a)  # the metadata holds the times
+    sel = invoke("select", tiny_model, "--instance", 0, "--view", "train:0", "--scribble", tmp_path / "s.json",
+                 "--for", "remove", "--device", "cpu", "--out", tmp_path / "s.sel.safetensors")
+    assert sel.exit_code == 0, sel.output
+
+
+def test_add_reads_the_copy_mask_as_drawn(view, tiny_model, tmp_path):
+    """``add --copy`` reads its mask like a scribble: strokes painted over the donor view's render
+    copy the same part as the same strokes drawn white on black."""
+    model, camera, _, mask = view
+    donor = render_camera(model.field_for(1), camera, 1).rgb.clamp(0, 1).numpy()
+    donor = np.round(donor * 255) / 255
+    painted = donor.copy()
+    painted[mask] = PAINT
+    write_png(tmp_path / "painted.png", painted)
+    write_png(tmp_path / "wob.png", mask.astype(np.uint8) * 255)
+    base = ["add", tiny_model, "--instance", 0, "--view", "train:0", "--donor", 1, "--offset", "0,0", "--steps", 2, "--device", "cpu"]
+    outs = []
+    for name, reading in (("painted", "strokes painted over the render"), ("wob", "white on black")):
+        outs.append(tmp_path / f"{name}.safetensors")
+        r = invoke(*base, "--copy", tmp_path / f"{name}.png", "--out", outs[-1])
+        assert r.exit_code == 0, r.output
+        assert next(ln for ln in r.stdout.splitlines() if ln.startswith("copy: ")).startswith(f"copy: {reading}")
+    a, b = (load_file(o) for o in outs)
+    assert a.keys() == b.keys() and all(torch.equal(a[n], b[n]) for n in a)

@@ -36,10 +36,10 @@ PenaltyOpt = Annotated[Penalty, typer.Option("--penalty", help="Weight penalty: 
 StepsOpt = Annotated[int, typer.Option("--steps", help="Optimization steps.")]
 LrOpt = Annotated[float, typer.Option("--lr", help="Adam learning rate.")]
 RaysOpt = Annotated[int, typer.Option("--rays", help="Most rays rendered per step (scribbled + kept).")]
-ScribbleOpt = Annotated[Optional[Path], typer.Option("--scribble", metavar="PNG", help="The part to edit, at the view's size: white on black, strokes on a transparent PNG, or strokes painted over the view's render.")]
+ScribbleOpt = Annotated[Optional[Path], typer.Option("--scribble", metavar="PNG", help="The part to edit, at the view's size: white on black, strokes on a transparent PNG, strokes painted over the view's render, or a strokes JSON (.json).")]
 ScribbleJsonOpt = Annotated[Optional[Path], typer.Option("--scribble-json", help='Strokes JSON: {"strokes": [[[x, y], ...], ...], "radius": r} or a list of strokes.')]
-KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (default: a random sample of the rest of the view).")]
-KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG of what must not change (a random sample of the rest of the view is kept as well).")]
+KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or strokes .json) of what must not change (default: a random sample of the rest of the view).")]
+KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or strokes .json) of what must not change (a random sample of the rest of the view is kept as well).")]
 MethodOpt = Annotated[EditMethod, typer.Option("--method", help="selection: lift the scribbles to a 3-D selection and supervise the edit with it in every view; paper: the paper's losses on the scribbled view's rays alone.")]
 SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles).")]
 MirrorOpt = Annotated[Optional[MirrorMode], typer.Option("--mirror", help="Mirror symmetry of the selection computed from the scribbles: views (the scribbled view's mirror image lends its strokes; removals' default), values (the selection takes its own mirror image; recolours' default) or off (one side only). Nothing is mirrored where the keep strokes cover the scribble's mirror image.")]
@@ -254,7 +254,7 @@ def add_cmd(
     view: ViewOpt,
     out: OutOpt,
     donor: Annotated[str, typer.Option("--donor", help="Instance to copy a part from: a name or an index.")],
-    copy_mask: Annotated[Path, typer.Option("--copy", help="The part to copy, drawn on the donor view: a mask PNG (white on black), or strokes JSON when the name ends in .json.")],
+    copy_mask: Annotated[Path, typer.Option("--copy", help="The part to copy, drawn on the donor view: read like --scribble (white on black, strokes on a transparent PNG or over the donor view's render, or strokes JSON when the name ends in .json).")],
     offset: Annotated[str, typer.Option("--offset", help="Where to paste: DX,DY pixels right and down, e.g. 6,0 or -4,2.")],
     donor_view: Annotated[Optional[str], typer.Option("--donor-view", help="The donor view the copy mask belongs to (default: --view).")] = None,
     method: Annotated[AddMethod, typer.Option("--method", help="composite: fit the pasted image; density: match the donor's density along the pasted rays; selection (default): lift the copy mask to a 3-D selection of the donor's part and copy its density and features, moved into place, at points in 3-D.")] = AddMethod.selection,
@@ -271,11 +271,10 @@ def add_cmd(
     seed: SeedOpt = 0,
 ) -> None:
     """Add a part copied from another instance (trains F_fuse and F_dens, grows its occupancy grid)."""
-    from ..data.format import read_mask
     from ..edit import add
-    from ..edit.scribble import load_mask, strokes_json_mask
+    from ..edit.scribble import load_mask
     from ..edit.shape import parse_offset
-    from ..io import read_json
+    from ..renderer import render_camera
 
     dxdy = parse_offset(offset)
     options = _options(strategy, steps, lr, rays, seed, penalty)
@@ -284,14 +283,12 @@ def add_cmd(
     k, j = m.instance_index(instance), m.instance_index(donor)
     label, camera = _one_view(m, view, k)
     donor_camera = camera if donor_view is None else _one_view(m, donor_view, j, "--donor-view")[1]
-    if copy_mask.suffix.lower() == ".json":
-        mask = strokes_json_mask(read_json(copy_mask), donor_camera.width, donor_camera.height, str(copy_mask))
-    else:
-        mask = read_mask(copy_mask)
-    if mask.shape != (donor_camera.height, donor_camera.width):
-        raise CrfError(
-            f"{copy_mask}: copy mask is {mask.shape[1]}x{mask.shape[0]} but the donor view is {donor_camera.width}x{donor_camera.height}"
-        )
+    copied = load_mask(
+        copy_mask, None, donor_camera.width, donor_camera.height, "copy",
+        lambda: render_camera(m.field_for(j), donor_camera, j).rgb.cpu().numpy(),
+    )
+    mask = copied.mask
+    typer.echo(f"copy: {copied.reading}, {int(mask.sum())} pixels")
     bg = load_mask(keep, keep_json, camera.width, camera.height, "keep")
     bg = None if bg is None else bg.mask
     if selection is not None and method != AddMethod.selection:
@@ -330,6 +327,18 @@ def transfer_cmd(
 # ----------------------------------------------------------------------------- edits …
 
 
+def _short(value) -> str:
+    """A hyperparameter for the table: floats to 4 significant digits, a list of records (the
+    cameras) as its length; ``--json`` prints them whole."""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        return f"[{len(value)} record{'s' * (len(value) != 1)}]"
+    if isinstance(value, list):
+        return "[" + ", ".join(_short(v) for v in value) + "]"
+    return str(value)
+
+
 def _show_rows(delta, size: int) -> list[tuple[str, str]]:
     meta = delta.meta
     rows = [(key, meta.get(key, "")) for key in ("kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint")]
@@ -342,7 +351,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
             hyper = None
         if isinstance(hyper, dict):
             shown = {k: v for k, v in hyper.items() if not isinstance(v, dict)}
-            rows.append(("hyper", ", ".join(f"{k}={v}" for k, v in shown.items())))
+            rows.append(("hyper", ", ".join(f"{k}={_short(v)}" for k, v in shown.items())))
     rows.append(("size", f"{size} bytes, {len(delta.tensors)} tensors"))
     for name, t in sorted(delta.tensors.items()):
         rows.append(("tensor", f"{name} {list(t.shape)} {str(t.dtype).replace('torch.', '')}"))

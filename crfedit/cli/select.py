@@ -14,15 +14,14 @@ from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load,
 
 def _mask(path: Path, model, instance: int, camera, what: str):
     """A mask image (read as drawn: one line says how), or strokes JSON when the name ends in
-    .json, at the view's size."""
+    .json (:func:`~crfedit.edit.scribble.load_mask`), at the view's size."""
     from ..edit.scribble import load_mask
     from ..renderer import render_camera
 
     def render():
         return render_camera(model.field_for(instance), camera, instance).rgb.cpu().numpy()
 
-    is_json = path.suffix.lower() == ".json"
-    read = load_mask(None if is_json else path, path if is_json else None, camera.width, camera.height, what, render)
+    read = load_mask(path, None, camera.width, camera.height, what, render)
     typer.echo(f"{what} {path}: {read.reading}, {int(read.mask.sum())} pixels")
     return read.mask
 

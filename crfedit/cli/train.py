@@ -198,6 +198,7 @@ def train_cmd(
     from ..evaluation import held_out_split, score_model
     from ..modelfile import stored_training
     from ..runtime import resolve_device, seed_everything
+    from ..safefile import read_header
     from ..views import parse_resolution
 
     if steps is not None and steps < 1:
@@ -218,15 +219,22 @@ def train_cmd(
     if resume:
         if not out.is_file():
             raise CrfError(f"--resume: {out} does not exist (start without --resume)")
-        _, _, sizes = stored_training(out)
+        stored_cfg, done, sizes = stored_training(out)
         stored_width = (sizes.get("train") or [None])[0]
         if res is None:
             res = stored_width
         elif stored_width is not None and res != stored_width:
             raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
+        finished = done >= stored_cfg.steps
     ranks = ranks or SINGLE
     with process_group(ranks, dev):
         category = load_category(data, res=res)
+        if resume and finished:  # rewriting it would only replace its records
+            trained_on = read_header(out)[1].get("dataset_fingerprint", "")
+            if trained_on != category.fingerprint:
+                raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {trained_on})")
+            typer.echo(f"{out} is trained to step {done} of {stored_cfg.steps}: nothing to resume (the file is unchanged)")
+            return
         seed_everything(seed)  # train() draws the initial weights from torch's global generator
         model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value)
     if not ranks.main:
@@ -241,6 +249,17 @@ def train_cmd(
 
 
 # ----------------------------------------------------------------------------- info
+
+
+def _baked(meta: dict) -> str:
+    """What ``edits bake`` folded in: the instances, how many edits, onto which base model."""
+    if not meta["baked_instances"]:
+        return "none"
+    text = ", ".join(meta["baked_instances"])
+    if meta["baked_edits"] is not None:
+        text += f" ({meta['baked_edits']} edit{'s' * (meta['baked_edits'] != 1)}"
+        text += f" onto {meta['baked_from']})" if meta["baked_from"] else ")"
+    return text
 
 
 def _bytes(n: int) -> str:
@@ -292,7 +311,7 @@ def info_cmd(
         ("scene box", "[" + ", ".join(f"{x:.3f}" for x in lo) + "] .. [" + ", ".join(f"{x:.3f}" for x in hi) + "]"),
         ("views", ", ".join(f"{s} {v['count']} at {v['size'][0]}x{v['size'][1]}" for s, v in meta["views"].items()) or "none stored"),
         ("step", step),
-        ("baked edits", ", ".join(meta["baked_instances"]) or "none"),
+        ("baked edits", _baked(meta)),
         ("dataset", meta["dataset_fingerprint"] or "unknown"),
         ("fingerprint", meta["fingerprint"]),
     ]

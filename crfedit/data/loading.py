@@ -14,6 +14,7 @@ import torch
 
 from ..cameras import Camera, focal_from_angle, rays_from_camera
 from ..errors import DataError
+from ..names import did_you_mean
 from .format import (
     IMAGE_EXTENSIONS,
     SPLITS,
@@ -89,7 +90,7 @@ class Category:
                 return self.instances[index]
             raise DataError(f"instance index {index} out of range (0..{len(names) - 1})")
         shown = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
-        raise DataError(f"unknown instance {key!r} (valid: {shown}; {len(names)} in all)")
+        raise DataError(f"unknown instance {key!r} (valid: {shown}; {len(names)} in all){did_you_mean(key, names)}")
 
 
 # ----------------------------------------------------------------------------- loading

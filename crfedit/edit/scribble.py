@@ -130,15 +130,18 @@ def load_mask(
     png: Path | None, strokes: Path | None, width: int, height: int, what: str, render: Callable[[], np.ndarray] | None = None
 ) -> Scribble | None:
     """The union of a mask image (read by :func:`read_scribble`) and a strokes JSON (either may be
-    None) at the view's size; None when neither is given."""
+    None) at the view's size; None when neither is given. An "image" whose name ends in ``.json``
+    is read as strokes, so ``--scribble strokes.json`` means the same to every command."""
     mask, readings = None, []
-    if png is not None:
-        mask, reading = read_scribble(Path(png), width, height, what, render)
-        readings.append(reading)
-    if strokes is not None:
-        drawn = strokes_json_mask(read_json(Path(strokes)), width, height, str(strokes))
+    for path, is_png in ((png, True), (strokes, False)):
+        if path is None:
+            continue
+        if is_png and Path(path).suffix.lower() != ".json":
+            drawn, reading = read_scribble(Path(path), width, height, what, render)
+        else:
+            drawn, reading = strokes_json_mask(read_json(Path(path)), width, height, str(path)), "strokes JSON"
         mask = drawn if mask is None else mask | drawn
-        readings.append("strokes JSON")
+        readings.append(reading)
     return None if mask is None else Scribble(mask, " + ".join(readings))
 
 
