@@ -5,7 +5,8 @@ Tensors: ``field.*`` (weights, per-instance codes, occupancy grids, scene box), 
 (optimizer and sampler state so ``train --resume`` continues bit for bit).  Metadata (strings):
 ``format``, ``version``, ``config`` (JSON), ``instances`` (JSON list of names),
 ``dataset_fingerprint``, ``fingerprint`` (hash of the field and overrides, which edits record
-as their base), ``step`` and the command line.
+as their base), ``step``, ``elapsed`` (seconds trained) and ``minutes`` (the run's time budget,
+when it has one), which ``train --resume`` reads from the header alone, and the command line.
 """
 
 from __future__ import annotations

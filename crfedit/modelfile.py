@@ -9,6 +9,7 @@ most of the file; a recipient who only renders or edits needs none of it.
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -73,6 +74,21 @@ def stored_training(path: str | os.PathLike) -> tuple[Config, int, dict]:
     except json.JSONDecodeError:
         sizes = {}
     return cfg, step, sizes if isinstance(sizes, dict) else {}
+
+
+def stored_clock(path: str | os.PathLike) -> tuple[float | None, float | None]:
+    """(seconds trained, the run's --minutes budget) recorded in a model file's header; None where
+    the file does not say (written before these keys, or no budget)."""
+    meta = read_header(path)[1]
+
+    def number(key: str) -> float | None:
+        try:
+            value = float(meta[key])
+        except (KeyError, ValueError):
+            return None
+        return value if math.isfinite(value) and value >= 0 else None
+
+    return number("elapsed"), number("minutes")
 
 
 MODULE_ORDER = (*MODULES, *CODE_TABLES)

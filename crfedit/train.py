@@ -371,7 +371,9 @@ def train(
                 train_state["world"] = torch.tensor(ranks.world)
             if hulls is not None:
                 train_state["hull"] = hulls
-            save_model(out, model, train_state, {**meta, "step": str(step)})
+            # the header also says how far the run's clock and time budget are, for --resume
+            timing = {"elapsed": f"{elapsed:.3f}", **({"minutes": repr(float(minutes))} if minutes is not None else {})}
+            save_model(out, model, train_state, {**meta, "step": str(step), **timing})
         ranks.barrier("waiting for rank 0 to write the checkpoint")
 
     budget = None if minutes is None else 60.0 * minutes

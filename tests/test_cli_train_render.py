@@ -19,7 +19,7 @@ from crfedit.errors import CrfError
 from crfedit.evaluation import held_out_split, render_views, score_model
 from crfedit.io import read_exr, read_image
 from crfedit.model import load_model
-from crfedit.modelfile import model_info, stored_training
+from crfedit.modelfile import model_info, stored_clock, stored_training
 from crfedit.render_files import render_to_folder
 from crfedit.video import write_video
 from crfedit.views import resolve_views
@@ -147,6 +147,26 @@ def test_resume_keeps_the_first_start_in_the_run_record(data, tmp_path, monkeypa
     again = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
     assert again.exit_code == 0 and "is trained to step 12 of 12: nothing to resume" in again.stdout, again.output
     assert before == (out.read_bytes(), (tmp_path / "m.run.json").read_bytes(), (tmp_path / "m.log.csv").read_bytes())
+
+
+def test_resume_keeps_the_time_budget(data, tmp_path):
+    """A run that ended on its --minutes is finished for --resume without --minutes (the header
+    keeps the budget, so the learning-rate schedule is not restarted by steps); a larger
+    --minutes trains on."""
+    out = tmp_path / "m.safetensors"
+    assert invoke("train", data, "--out", out, "--steps", 100000, "--minutes", 0.01, *TINY).exit_code == 0
+    elapsed, minutes = stored_clock(out)
+    _, step, _ = stored_training(out)
+    assert minutes == 0.01 and elapsed >= 0.6 and 0 < step < 100000
+    before = out.read_bytes()
+    again = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
+    assert again.exit_code == 0, again.output
+    assert "with its time budget, --minutes 0.01" in again.stdout
+    assert f"has trained its --minutes 0.01 ({elapsed:.0f} s, step {step} of 100000)" in again.stdout
+    assert out.read_bytes() == before
+    more = invoke("train", data, "--out", out, "--resume", "--minutes", 0.03, "--device", "cpu")
+    assert more.exit_code == 0, more.output
+    assert stored_training(out)[1] > step and stored_clock(out)[1] == 0.03
 
 
 def test_resume_errors(data, model_path, tmp_path):

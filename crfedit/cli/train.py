@@ -196,7 +196,7 @@ def train_cmd(
     from ..data.loading import load_category
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..evaluation import held_out_split, score_model
-    from ..modelfile import stored_training
+    from ..modelfile import stored_clock, stored_training
     from ..runtime import resolve_device, seed_everything
     from ..safefile import read_header
     from ..views import parse_resolution
@@ -225,7 +225,11 @@ def train_cmd(
             res = stored_width
         elif stored_width is not None and res != stored_width:
             raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
-        finished = done >= stored_cfg.steps
+        elapsed, stored_minutes = stored_clock(out)
+        if minutes is None and stored_minutes is not None:  # the run's schedule ends on its own clock
+            minutes = stored_minutes
+            typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)")
+        finished = _finished(done, stored_cfg.steps, elapsed, minutes)
     ranks = ranks or SINGLE
     with process_group(ranks, dev):
         category = load_category(data, res=res)
@@ -233,7 +237,7 @@ def train_cmd(
             trained_on = read_header(out)[1].get("dataset_fingerprint", "")
             if trained_on != category.fingerprint:
                 raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {trained_on})")
-            typer.echo(f"{out} is trained to step {done} of {stored_cfg.steps}: nothing to resume (the file is unchanged)")
+            typer.echo(f"{out} {finished}: nothing to resume (the file is unchanged)")
             return
         seed_everything(seed)  # train() draws the initial weights from torch's global generator
         model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value)
@@ -242,13 +246,25 @@ def train_cmd(
     score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
     typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
     rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)
+    psnr = f"train PSNR {result.train_psnr:.2f} dB" if math.isfinite(result.train_psnr) else "no step run in this call"
     typer.echo(
         f"trained {len(model.names)} instances for {result.steps} steps in {result.seconds:.1f} s "
-        f"({_si(rate)} rays/s, train PSNR {result.train_psnr:.2f} dB) -> {out}"
+        f"({_si(rate)} rays/s, {psnr}) -> {out}"
     )
 
 
 # ----------------------------------------------------------------------------- info
+
+
+def _finished(step: int, steps: int, elapsed: float | None, minutes: float | None) -> str:
+    """Why a stored run has nothing left to train ("" when it has): its last step reached, or
+    its time budget spent."""
+    if step >= steps:
+        return f"is trained to step {step} of {steps}"
+    if minutes is not None and elapsed is not None and elapsed >= 60.0 * minutes:
+        return (f"has trained its --minutes {minutes:g} ({elapsed:.0f} s, step {step} of {steps}); "
+                "pass a larger --minutes to train on")
+    return ""
 
 
 def _baked(meta: dict) -> str:
