@@ -162,7 +162,7 @@ def test_resume_keeps_the_time_budget(data, tmp_path):
     again = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
     assert again.exit_code == 0, again.output
     assert "with its time budget, --minutes 0.01" in again.stdout
-    assert f"has trained its --minutes 0.01 ({elapsed:.0f} s, step {step} of 100000)" in again.stdout
+    assert f"has trained its --minutes 0.01 ({elapsed:.0f} s, step {step} of 100000): nothing to resume" in again.stdout
     assert out.read_bytes() == before
     more = invoke("train", data, "--out", out, "--resume", "--minutes", 0.03, "--device", "cpu")
     assert more.exit_code == 0, more.output

@@ -158,6 +158,17 @@ def run_training(
         log.close()
 
 
+def _finished(step: int, steps: int, elapsed: float | None, minutes: float | None) -> str:
+    """The line that says a stored run has nothing left to train ("" when it has): its last
+    step reached, or its time budget spent."""
+    if step >= steps:
+        return f"is trained to step {step} of {steps}: nothing to resume (the file is unchanged)"
+    if minutes is not None and elapsed is not None and elapsed >= 60.0 * minutes:
+        return (f"has trained its --minutes {minutes:g} ({elapsed:.0f} s, step {step} of {steps}): nothing to resume "
+                "(the file is unchanged; a larger --minutes trains on)")
+    return ""
+
+
 # ----------------------------------------------------------------------------- train
 
 
@@ -237,7 +248,7 @@ def train_cmd(
             trained_on = read_header(out)[1].get("dataset_fingerprint", "")
             if trained_on != category.fingerprint:
                 raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {trained_on})")
-            typer.echo(f"{out} {finished}: nothing to resume (the file is unchanged)")
+            typer.echo(f"{out} {finished}")
             return
         seed_everything(seed)  # train() draws the initial weights from torch's global generator
         model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value)
@@ -254,17 +265,6 @@ def train_cmd(
 
 
 # ----------------------------------------------------------------------------- info
-
-
-def _finished(step: int, steps: int, elapsed: float | None, minutes: float | None) -> str:
-    """Why a stored run has nothing left to train ("" when it has): its last step reached, or
-    its time budget spent."""
-    if step >= steps:
-        return f"is trained to step {step} of {steps}"
-    if minutes is not None and elapsed is not None and elapsed >= 60.0 * minutes:
-        return (f"has trained its --minutes {minutes:g} ({elapsed:.0f} s, step {step} of {steps}); "
-                "pass a larger --minutes to train on")
-    return ""
 
 
 def _baked(meta: dict) -> str:
