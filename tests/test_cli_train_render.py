@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -85,7 +86,25 @@ def test_train_writes_a_loadable_model(model_path, data):
     assert int(state["step"]) == 30
 
 
-def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path, monkeypatch):
+@contextlib.contextmanager
+def interrupted_at(stop: int):
+    """Within the block, training raises KeyboardInterrupt (Ctrl-C) right after step ``stop``."""
+    real_train = crfedit.train.train
+
+    def interrupted(*a, on_step=None, **kw):
+        def hook(step, *rest):
+            on_step(step, *rest)
+            if step == stop:
+                raise KeyboardInterrupt
+
+        return real_train(*a, on_step=hook, **kw)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(crfedit.train, "train", interrupted)
+        yield
+
+
+def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path):
     """Ctrl-C at step 11 writes a step-11 checkpoint; --resume must then reach exactly the
     weights, optimizer moments and sampler state of an uninterrupted run.  Occupancy refreshes
     (every 3 steps from step 3) fall on both sides of the interruption."""
@@ -93,21 +112,10 @@ def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path, monkeypatch)
     full, part = tmp_path / "full.safetensors", tmp_path / "part.safetensors"
     assert invoke("train", data, "--out", full, *args).exit_code == 0
 
-    real_train = crfedit.train.train
-
-    def interrupted_at_11(*a, on_step=None, **kw):
-        def hook(step, *rest):
-            on_step(step, *rest)
-            if step == 11:
-                raise KeyboardInterrupt
-
-        return real_train(*a, on_step=hook, **kw)
-
-    monkeypatch.setattr(crfedit.train, "train", interrupted_at_11)
-    result = invoke("train", data, "--out", part, *args)
+    with interrupted_at(11):
+        result = invoke("train", data, "--out", part, *args)
     assert result.exit_code == 130 and "interrupted: checkpoint at step 11" in result.stderr
     assert load_model(part)[0].meta["step"] == "11"
-    monkeypatch.setattr(crfedit.train, "train", real_train)
     result = invoke("train", data, "--out", part, *args, "--resume")
     assert result.exit_code == 0, result.output
 
@@ -120,23 +128,12 @@ def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path, monkeypatch)
     assert a.fingerprint() == b.fingerprint()
 
 
-def test_resume_keeps_the_first_start_in_the_run_record(data, tmp_path, monkeypatch):
+def test_resume_keeps_the_first_start_in_the_run_record(data, tmp_path):
     """After an interrupted run is resumed, run.json still names the command that began the run
     and lists the resume; resuming the finished run changes nothing."""
     out = tmp_path / "m.safetensors"
-    real_train = crfedit.train.train
-
-    def interrupted_at_6(*a, on_step=None, **kw):
-        def hook(step, *rest):
-            on_step(step, *rest)
-            if step == 6:
-                raise KeyboardInterrupt
-
-        return real_train(*a, on_step=hook, **kw)
-
-    monkeypatch.setattr(crfedit.train, "train", interrupted_at_6)
-    assert invoke("train", data, "--out", out, "--steps", 12, *TINY).exit_code == 130
-    monkeypatch.setattr(crfedit.train, "train", real_train)
+    with interrupted_at(6):
+        assert invoke("train", data, "--out", out, "--steps", 12, *TINY).exit_code == 130
     first = json.loads((tmp_path / "m.run.json").read_text())
     result = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
     assert result.exit_code == 0, result.output
