@@ -12,6 +12,7 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 from .config import Config
 from .names import CODE_TABLES, MODULES
@@ -63,9 +64,20 @@ def strip_model(path: str | os.PathLike, out: str | os.PathLike) -> dict[str, in
 # ----------------------------------------------------------------------------- summaries
 
 
-def stored_training(path: str | os.PathLike) -> tuple[Config, int, dict]:
-    """(config, step, view sizes) recorded in a model file, read from its header only: what
-    ``train --resume`` checks before loading anything."""
+class StoredRun(NamedTuple):
+    """What a model file's header says of its training run: what ``train --resume`` checks
+    before loading anything."""
+
+    cfg: Config
+    step: int
+    sizes: dict  # split -> [width, height] of the stored views
+    elapsed: float | None  # seconds trained; None: written before the key
+    minutes: float | None  # the run's --minutes budget; None: none, or written before the key
+    dataset: str  # fingerprint of the dataset it was trained on
+
+
+def stored_training(path: str | os.PathLike) -> StoredRun:
+    """The run recorded in a model file, read from its header only."""
     _, meta = read_header(path)
     cfg = Config.from_json(meta.get("config", ""))
     step = int(meta["step"]) if meta.get("step", "").isdigit() else 0
@@ -73,13 +85,6 @@ def stored_training(path: str | os.PathLike) -> tuple[Config, int, dict]:
         sizes = json.loads(meta.get("view_sizes", "{}"))
     except json.JSONDecodeError:
         sizes = {}
-    return cfg, step, sizes if isinstance(sizes, dict) else {}
-
-
-def stored_clock(path: str | os.PathLike) -> tuple[float | None, float | None]:
-    """(seconds trained, the run's --minutes budget) recorded in a model file's header; None where
-    the file does not say (written before these keys, or no budget)."""
-    meta = read_header(path)[1]
 
     def number(key: str) -> float | None:
         try:
@@ -88,7 +93,8 @@ def stored_clock(path: str | os.PathLike) -> tuple[float | None, float | None]:
             return None
         return value if math.isfinite(value) and value >= 0 else None
 
-    return number("elapsed"), number("minutes")
+    return StoredRun(cfg, step, sizes if isinstance(sizes, dict) else {}, number("elapsed"), number("minutes"),
+                     meta.get("dataset_fingerprint", ""))
 
 
 MODULE_ORDER = (*MODULES, *CODE_TABLES)

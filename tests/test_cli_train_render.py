@@ -20,7 +20,7 @@ from crfedit.errors import CrfError
 from crfedit.evaluation import held_out_split, render_views, score_model
 from crfedit.io import read_exr, read_image
 from crfedit.model import load_model
-from crfedit.modelfile import model_info, stored_clock, stored_training
+from crfedit.modelfile import model_info, stored_training
 from crfedit.render_files import render_to_folder
 from crfedit.video import write_video
 from crfedit.views import resolve_views
@@ -72,8 +72,10 @@ def test_training_end_score_is_score_model_on_val(trained, data):
 
 def test_stored_training_reads_the_header(model_path):
     model, _ = load_model(model_path)
-    cfg, step, sizes = stored_training(model_path)
+    stored = stored_training(model_path)
+    cfg, step, sizes = stored.cfg, stored.step, stored.sizes
     assert cfg == model.cfg and step == 30
+    assert stored.dataset == model.dataset_fingerprint and stored.elapsed > 0 and stored.minutes is None
     assert sizes == {split: [t.width, t.height] for split, t in model.views.items()} and sizes["train"] == [16, 16]
 
 
@@ -152,9 +154,9 @@ def test_resume_keeps_the_time_budget(data, tmp_path):
     --minutes trains on."""
     out = tmp_path / "m.safetensors"
     assert invoke("train", data, "--out", out, "--steps", 100000, "--minutes", 0.01, *TINY).exit_code == 0
-    elapsed, minutes = stored_clock(out)
-    _, step, _ = stored_training(out)
-    assert minutes == 0.01 and elapsed >= 0.6 and 0 < step < 100000
+    stored = stored_training(out)
+    elapsed, step = stored.elapsed, stored.step
+    assert stored.minutes == 0.01 and elapsed >= 0.6 and 0 < step < 100000
     before = out.read_bytes()
     again = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
     assert again.exit_code == 0, again.output
@@ -163,7 +165,7 @@ def test_resume_keeps_the_time_budget(data, tmp_path):
     assert out.read_bytes() == before
     more = invoke("train", data, "--out", out, "--resume", "--minutes", 0.03, "--device", "cpu")
     assert more.exit_code == 0, more.output
-    assert stored_training(out)[1] > step and stored_clock(out)[1] == 0.03
+    assert stored_training(out).step > step and stored_training(out).minutes == 0.03
 
 
 def test_resume_errors(data, model_path, tmp_path):

@@ -82,15 +82,23 @@ def _require_scribble(scribble: Path | None, scribble_json: Path | None, what: s
         raise CrfError(f"give the {what} as --scribble MASK.png or --scribble-json STROKES.json")
 
 
-def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camera, force: bool):
-    """(scribble mask, keep mask or None), each image read as drawn (one line says how)."""
-    from ..edit.scribble import check_coverage, load_mask
+def _view_render(model, instance: int, camera):
+    """A callable rendering the view [H, W, 3]: what a scribble painted over the render is
+    compared against (called only for that reading) and what a preview writes."""
 
     def render():
         from ..renderer import render_camera
 
         return render_camera(model.field_for(instance), camera, instance).rgb.cpu().numpy()
 
+    return render
+
+
+def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camera, force: bool):
+    """(scribble mask, keep mask or None), each image read as drawn (one line says how)."""
+    from ..edit.scribble import check_coverage, load_mask
+
+    render = _view_render(model, instance, camera)
     fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble", render)
     fraction = check_coverage(fg.mask, force)
     typer.echo(f"scribble: {fg.reading}, {int(fg.mask.sum())} pixels ({100 * fraction:.1f} % of the view)")
@@ -130,12 +138,11 @@ def _preview(model, instance: int, folder: Path | None, spec: str) -> None:
     if folder is None:
         return
     from ..io import write_png
-    from ..renderer import render_camera
     from ..views import resolve_views
 
     folder.mkdir(parents=True, exist_ok=True)
     for i, (_, camera) in enumerate(resolve_views(spec, model, instance)):
-        write_png(folder / f"{i:04d}.png", render_camera(model.field_for(instance), camera, instance).rgb.cpu().numpy())
+        write_png(folder / f"{i:04d}.png", _view_render(model, instance, camera)())
     typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
 
 
@@ -274,7 +281,6 @@ def add_cmd(
     from ..edit import add
     from ..edit.scribble import load_mask
     from ..edit.shape import parse_offset
-    from ..renderer import render_camera
 
     dxdy = parse_offset(offset)
     options = _options(strategy, steps, lr, rays, seed, penalty)
@@ -283,10 +289,7 @@ def add_cmd(
     k, j = m.instance_index(instance), m.instance_index(donor)
     label, camera = _one_view(m, view, k)
     donor_camera = camera if donor_view is None else _one_view(m, donor_view, j, "--donor-view")[1]
-    copied = load_mask(
-        copy_mask, None, donor_camera.width, donor_camera.height, "copy",
-        lambda: render_camera(m.field_for(j), donor_camera, j).rgb.cpu().numpy(),
-    )
+    copied = load_mask(copy_mask, None, donor_camera.width, donor_camera.height, "copy", _view_render(m, j, donor_camera))
     mask = copied.mask
     typer.echo(f"copy: {copied.reading}, {int(mask.sum())} pixels")
     bg = load_mask(keep, keep_json, camera.width, camera.height, "keep")

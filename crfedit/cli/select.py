@@ -9,19 +9,15 @@ import typer
 
 from ..errors import CrfError
 from .common import DeviceChoice, DeviceOpt, app, user_errors
-from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view
+from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _view_render
 
 
 def _mask(path: Path, model, instance: int, camera, what: str):
     """A mask image (read as drawn: one line says how), or strokes JSON when the name ends in
     .json (:func:`~crfedit.edit.scribble.load_mask`), at the view's size."""
     from ..edit.scribble import load_mask
-    from ..renderer import render_camera
 
-    def render():
-        return render_camera(model.field_for(instance), camera, instance).rgb.cpu().numpy()
-
-    read = load_mask(path, None, camera.width, camera.height, what, render)
+    read = load_mask(path, None, camera.width, camera.height, what, _view_render(model, instance, camera))
     typer.echo(f"{what} {path}: {read.reading}, {int(read.mask.sum())} pixels")
     return read.mask
 

@@ -133,7 +133,8 @@ def run_training(
     ranks = ranks or SINGLE
     first_step = 0
     if resume and out.is_file():
-        stored_cfg, first_step, _ = stored_training(out)
+        stored = stored_training(out)
+        stored_cfg, first_step = stored.cfg, stored.step
         if stored_cfg != cfg and ranks.main:
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps)")
         cfg = stored_cfg
@@ -207,9 +208,8 @@ def train_cmd(
     from ..data.loading import load_category
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..evaluation import held_out_split, score_model
-    from ..modelfile import stored_clock, stored_training
+    from ..modelfile import stored_training
     from ..runtime import resolve_device, seed_everything
-    from ..safefile import read_header
     from ..views import parse_resolution
 
     if steps is not None and steps < 1:
@@ -230,24 +230,22 @@ def train_cmd(
     if resume:
         if not out.is_file():
             raise CrfError(f"--resume: {out} does not exist (start without --resume)")
-        stored_cfg, done, sizes = stored_training(out)
-        stored_width = (sizes.get("train") or [None])[0]
+        stored = stored_training(out)
+        stored_width = (stored.sizes.get("train") or [None])[0]
         if res is None:
             res = stored_width
         elif stored_width is not None and res != stored_width:
             raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
-        elapsed, stored_minutes = stored_clock(out)
-        if minutes is None and stored_minutes is not None:  # the run's schedule ends on its own clock
-            minutes = stored_minutes
+        if minutes is None and stored.minutes is not None:  # the run's schedule ends on its own clock
+            minutes = stored.minutes
             typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)")
-        finished = _finished(done, stored_cfg.steps, elapsed, minutes)
+        finished = _finished(stored.step, stored.cfg.steps, stored.elapsed, minutes)
     ranks = ranks or SINGLE
     with process_group(ranks, dev):
         category = load_category(data, res=res)
         if resume and finished:  # rewriting it would only replace its records
-            trained_on = read_header(out)[1].get("dataset_fingerprint", "")
-            if trained_on != category.fingerprint:
-                raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {trained_on})")
+            if stored.dataset != category.fingerprint:
+                raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {stored.dataset})")
             typer.echo(f"{out} {finished}")
             return
         seed_everything(seed)  # train() draws the initial weights from torch's global generator
