@@ -50,6 +50,10 @@ class Config:
     bottleneck: int = 8
     rad_width: int = 64
     rad_layers: int = 1
+    part_dim: int = 16
+    """Width of F_part, a linear part-embedding head on F_fuse's output that selections read
+    (:mod:`crfedit.parts`).  Trained where the dataset has part maps and depth; 0 (also what
+    training sets when it has none): no head."""
     # --- sampling --------------------------------------------------------------------------
     sampler: str = "grid"
     """grid: march a per-instance occupancy grid; hierarchical: the paper's coarse + fine."""
@@ -89,6 +93,12 @@ class Config:
     """Train over a random background colour per ray, not white (:func:`~crfedit.train.over_background`)."""
     view_reg: float = 0.0
     """Weight of the paper's view-dependence regularizer (one view per instance)."""
+    part_weight: float = 0.05
+    """Weight of the part loss (:func:`~crfedit.parts.part_contrastive_loss`) against the MSE."""
+    part_labels: str = "not-twins"
+    """Whose part maps train F_part: ``not-twins``, every instance but the sources of the
+    dataset's ground-truth twins (``twins.json``; a dataset without twins: every instance), so
+    that an edit benchmark scores selections of parts the model was never told about; or ``all``."""
     checkpoint_every: int = 500
     eval_views: int = 5
     """Held-out views per instance scored at the end of training."""
@@ -107,6 +117,7 @@ class Config:
         known = {f.name for f in fields(cls)}
         data.setdefault("density_scale", 1.0)  # files written before the key existed used σ = act(raw)
         data.setdefault("random_background", False)  # nor did they train over a random background
+        data.setdefault("part_dim", 0)  # nor had they a part head
         unknown = sorted(set(data) - known)
         if unknown:
             raise CrfError(f"model config has unknown keys: {', '.join(unknown)}")
@@ -131,6 +142,8 @@ class Config:
             (self.steps >= 1, "steps must be ≥ 1"),
             (self.lr > 0 and self.lr_codes > 0, "learning rates must be > 0"),
             (self.occ_every >= 1 and self.checkpoint_every >= 1, "intervals must be ≥ 1"),
+            (self.part_dim >= 0 and self.part_weight >= 0, "part_dim and part_weight must be ≥ 0"),
+            (self.part_labels in PART_LABELS, f"part_labels {self.part_labels!r}: expected one of {', '.join(PART_LABELS)}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -139,6 +152,7 @@ class Config:
 
 
 ARCHS = ("ours", "separate", "single", "nerf")
+PART_LABELS = ("all", "not-twins")
 
 PRESETS: dict[str, Config] = {
     "fast": Config(),
@@ -165,6 +179,7 @@ PRESETS: dict[str, Config] = {
         density_act="exp",
         density_scale=1.0,
         random_background=False,
+        part_dim=0,
     ),
 }
 

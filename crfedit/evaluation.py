@@ -66,6 +66,16 @@ def fingerprint_warning(model: CategoryModel, category: Category) -> str | None:
     )
 
 
+def part_labels_warning(model: CategoryModel, cases: Sequence["TwinCase"]) -> str | None:
+    """A one-line warning when the model's part head was trained on the part maps of a twin's
+    source (``part_labels`` ``all``): its selections then read the answer the twin scores."""
+    if not cases or model.field.F_part is None or model.cfg.part_labels != "all":
+        return None
+    return ("the model's part head F_part was trained on the part maps of every instance, the twins' sources "
+            "among them (part_labels=all): its selections read the answer; train with --set part_labels=not-twins "
+            "to benchmark edits")
+
+
 def model_width(model: CategoryModel, split: str = "test") -> int | None:
     """The image width the model's views of ``split`` were stored at (else its training width)."""
     table = model.views.get(split) or model.views.get("train") or next(iter(model.views.values()), None)

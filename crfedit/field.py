@@ -2,7 +2,8 @@
 
     x ─┬─ encode ─┬─ F_share ──────────────┐
        │          └─ F_inst(· , shape code)─┴─(+)─ F_fuse(· , x, shape code) ─┬─ F_dens → σ
-       │                                                                      └─ bottleneck (8-d)
+       │                                                                      ├─ bottleneck (8-d)
+       │                                                                      └─ F_part → part embedding (selections only)
     d ─┴─ encode ──────────────────────────────── F_rad(bottleneck, d, color code) → rgb
 
 Parameter names start with the module names (``F_rad.``, ``F_fuse.`` …): edits select what they
@@ -270,6 +271,8 @@ class ConditionalRadianceField(FieldNet):
         default_box = torch.tensor([-0.6, -0.6, -0.6, 0.6, 0.6, 0.6])
         self.register_buffer("aabb", (aabb if aabb is not None else default_box).float().clone())
         self.register_buffer("occupancy", torch.ones(n_instances, *(cfg.occ_res,) * 3, dtype=torch.bool))
+        # not the paper's: a part embedding for selections, trained from part maps (crfedit.parts)
+        self.F_part = nn.Linear(cfg.width, cfg.part_dim) if cfg.part_dim else None
 
     @property
     def n_instances(self) -> int:
@@ -324,6 +327,10 @@ class ConditionalRadianceField(FieldNet):
         net = self if net is None else net
         s, _, idx = self.select(instance)
         return net.fuse_activations(net.fuse_inputs(x, s, idx))
+
+    def part_embedding(self, fused: Tensor) -> Tensor:
+        """F_part: the unit part embedding [M, part_dim] of F_fuse's output [M, width]."""
+        return F.normalize(self.F_part(fused), dim=-1)
 
     def features(self, x: Tensor, instance: int | Tensor, net: FieldNet | None = None) -> Tensor:
         """The bottleneck features [M, 8] at ``x`` [M, 3]: all that F_rad sees of the position,

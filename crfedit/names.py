@@ -12,7 +12,7 @@ CODE_TABLES = (SHAPE_CODES, COLOR_CODES)
 
 STRATEGIES = ("hybrid", "codes", "all")
 """What an edit trains.  hybrid: ``edit.params.TRAINED``; codes: the instance's code row only;
-all: every network weight and the instance's code rows."""
+all: every network weight that renders (not the part head F_part) and the instance's code rows."""
 ADD_METHODS = ("selection", "composite", "density")
 """How ``add`` supervises the pasted part: the donor's density and features at 3-D points of a
 selection of the part moved into place (the default), or, with the paper's one-view

@@ -4,8 +4,9 @@
    silhouettes (visual hull), so no sample is ever spent outside the object's hull.
 2. Each step renders a batch of random rays (3/4 from object pixels, 1/4 from background
    pixels, which carve the hull's margin), each over a random background colour in the fast
-   preset (:func:`over_background`), takes the MSE to the pixels and one Adam step on weights
-   and codes.
+   preset (:func:`over_background`), takes the MSE to the pixels (plus, where the dataset has
+   part maps, the part loss of :mod:`crfedit.parts` on 1 024 labelled surface points) and one
+   Adam step on weights and codes.
 3. Every ``occ_every`` steps a few instances' grids are refreshed from the density.
 4. Checkpoints hold the optimizer, RNG, grid and buffer-size state, so ``--resume`` continues
    bit for bit.
@@ -45,6 +46,7 @@ from .distributed import SINGLE, Ranks, rank_seed
 from .errors import CrfError
 from .field import ConditionalRadianceField
 from .optim import StepLog, adam_step, check_finite, check_losses
+from .parts import labelled_instances, labelled_points, part_config, part_contrastive_loss, sample_parts
 from .model import CategoryModel, ViewTable, load_model, save_model
 from .renderer import FixedMarch, render_rays
 
@@ -307,6 +309,7 @@ def train(
         next_instance = int(state.get("next_instance", torch.tensor(0)))
         restore_generator(generator, state["rng"], seed, 0, step)
     else:
+        cfg = part_config(category, cfg)
         aabb = scene_box(category)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)  # the initial weights depend on the seed alone
@@ -331,6 +334,11 @@ def train(
         own = training_rays(category, "train", ranks.shard(range(len(category.instances))))
         batches = BatchSampler(own, device, jitter=cfg.sampler == "grid", random_background=cfg.random_background)
     n_rays = ranks.share(cfg.rays)
+    parts = None  # every rank draws part points of every labelled instance (crfedit.parts)
+    if field.F_part is not None and cfg.part_weight > 0:
+        parts = labelled_points(category, labelled_instances(category, cfg.part_labels), seed=seed)
+        parts = None if parts is None else parts.to(device)
+        n_labels = 0 if parts is None else int(parts.labels.max()) + 1
     weight = n_rays * ranks.world / cfg.rays  # this rank's part of the step's mean loss, times world
     meta = dict(extra_meta or {})
     march = FixedMarch(field, compile) if cfg.sampler == "grid" and fixed_shapes else None
@@ -396,6 +404,10 @@ def train(
                 loss = loss + batch_mse(out_r.coarse_rgb, batch.rgb, None)
             if cfg.view_reg > 0:
                 loss = loss + cfg.view_reg * view_dependence_penalty(field, batch.rays, batch.instance, out_r.depth, out_r.opacity, rank_generator)
+            if parts is not None:
+                x, inst, labels = sample_parts(parts, rank_generator)
+                embedding = field.part_embedding(field.fuse_features(field.normalize(x), inst))
+                loss = loss + cfg.part_weight * part_contrastive_loss(embedding.view(*labels.shape, -1), labels, n_labels)
             loss = loss if weight == 1.0 else loss * weight
             log.record(step, torch.stack([loss.detach(), mse]))
             shared = []  # under torchrun: the step's mean loss, MSE and clock over ranks, from the gradient all-reduce

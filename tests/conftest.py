@@ -56,9 +56,10 @@ def tiny_model(tiny_chairs) -> Path:
 
 @pytest.fixture(scope="session")
 def trained_category(tmp_path_factory):
-    """``trained_category(name, synth, overrides, n_train=None, with_parts=False)`` →
-    (model file, model, category): ``synth`` written and the fast preset with ``overrides``
-    trained on its first ``n_train`` instances (all by default), seed 0; once per argument set."""
+    """``trained_category(name, synth, overrides, n_train=None, with_parts=False, with_depth=False)``
+    → (model file, model, category): ``synth`` written and the fast preset with ``overrides``
+    trained on its first ``n_train`` instances (all by default), seed 0; once per argument set.
+    The part head F_part trains only where the category is loaded with parts *and* depth."""
     from crfedit.config import make_config
     from crfedit.data import load_category
     from crfedit.data.loading import Category
@@ -68,12 +69,12 @@ def trained_category(tmp_path_factory):
 
     made: dict = {}
 
-    def make(name: str, synth, overrides: dict, n_train: int | None = None, with_parts: bool = False):
-        key = (name, synth, tuple(sorted(overrides.items())), n_train, with_parts)
+    def make(name: str, synth, overrides: dict, n_train: int | None = None, with_parts: bool = False, with_depth: bool = False):
+        key = (name, synth, tuple(sorted(overrides.items())), n_train, with_parts, with_depth)
         if key not in made:
             folder = tmp_path_factory.mktemp(name)
             write_synth_category(folder / "chairs", synth)
-            category = load_category(folder / "chairs", with_parts=with_parts)
+            category = load_category(folder / "chairs", with_parts=with_parts, with_depth=with_depth)
             trained_on = Category(category.root, category.instances[:n_train], category.fingerprint)
             path = folder / "model.safetensors"
             _, result = train(trained_on, make_config("fast", overrides=overrides), path, torch.device("cpu"), seed=0)

@@ -78,10 +78,10 @@ def fieldnet_shapes(pos: int, grid: tuple | None, d_enc: int, w: int, layers: di
 
 def test_fast_preset_names_and_shapes():
     field = ConditionalRadianceField(PRESETS["fast"], 3)
-    assert {name for name, _ in field.named_children()} == PAPER_MODULES
-    # pe_x = 4 → 3·9 = 27, feature grid 8 × 48³; pe_d = 2 → 3·5 = 15
+    assert {name for name, _ in field.named_children()} == PAPER_MODULES | {"F_part"}
+    # pe_x = 4 → 3·9 = 27, feature grid 8 × 48³; pe_d = 2 → 3·5 = 15; the part head 64 → 16
     expected = fieldnet_shapes(27, (1, 8, 48, 48, 48), 15, 64, {"share": 1, "inst": 2, "fuse": 1}, 64)
-    expected |= {"shape_codes": (3, 32), "color_codes": (3, 32)}
+    expected |= {"shape_codes": (3, 32), "color_codes": (3, 32), "F_part.weight": (16, 64), "F_part.bias": (16,)}
     assert {n: tuple(p.shape) for n, p in field.named_parameters()} == expected
     assert {n: tuple(b.shape) for n, b in field.named_buffers()} == {"aabb": (6,), "occupancy": (3, 64, 64, 64)}
     assert field.occupancy.dtype == torch.bool and field.coarse is None
@@ -212,8 +212,9 @@ def test_every_ablation_builds_and_renders(arch):
     rays = Rays(torch.tensor([[0.0, -2.0, 0.1], [2.0, 0.0, 0.0]]), torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]))
     out = render_rays(field, rays, torch.tensor([0, 2]))
     assert out.rgb.shape == (2, 3) and out.rgb.isfinite().all() and out.n_samples > 0
-    names = {n for n, _ in field.named_children()}
+    names = {n for n, _ in field.named_children()} - {"F_part"}  # the part head: not the paper's, every arch has it
     assert names == (PAPER_MODULES - {"F_inst"} if arch == "nerf" else PAPER_MODULES)
+    assert (field.F_part is None) == (field.cfg.part_dim == 0)
     assert (field.F_share.mlp is None) == (arch in ("separate", "single"))
 
 
@@ -344,9 +345,11 @@ OLD_FORMAT_KEYS = [
 ]
 
 
-def test_old_format_model_file_loads_and_renders_bit_identically():
+def test_old_format_model_file_loads_and_renders_as_it_did():
     """tests/data/old_format_model.safetensors was written by the code before F_inst/F_rad became
-    named classes (ModuleDicts then), with its render of instance 1: both still hold exactly."""
+    named classes (ModuleDicts then), with its render of instance 1: the names still load, and
+    the render is the stored one to 1e-5 (bit-identical on the AMD EPYC it was written on; an
+    Intel Xeon's float kernels differ from it by up to 4e-6, 1/1000 of an 8-bit level)."""
     from pathlib import Path
 
     from crfedit.cameras import Camera
@@ -363,5 +366,5 @@ def test_old_format_model_file_loads_and_renders_bit_identically():
     camera = Camera(stored["c2w"].numpy(), 8.0, 6, 6)
     with torch.no_grad():
         rgb = render_camera(model.field, camera, 1).rgb
-    assert torch.equal(rgb, stored["rgb"])
+    torch.testing.assert_close(rgb, stored["rgb"], rtol=0, atol=1e-5)
     assert float(stored["rgb"].std()) > 0.01  # the view does show the field

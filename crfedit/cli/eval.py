@@ -34,7 +34,7 @@ LpipsOpt = Annotated[
     Optional[Path],
     typer.Option("--lpips-weights", help="LPIPS-AlexNet weights (.safetensors); default $CRFEDIT_LPIPS_WEIGHTS; without, LPIPS is skipped."),
 ]
-StrictOpt = Annotated[bool, typer.Option("--strict", help="A dataset other than the model's training data is an error, not a warning.")]
+StrictOpt = Annotated[bool, typer.Option("--strict", help="A dataset other than the model's training data (for eval edits also a part head trained on the twins' sources) is an error, not a warning.")]
 
 
 def _json_safe(obj):
@@ -201,7 +201,7 @@ def edits_cmd(
     """
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..edit import EditOptions
-    from ..evaluation import NerfBaseline, evaluate_edits, load_twin_cases
+    from ..evaluation import NerfBaseline, evaluate_edits, load_twin_cases, part_labels_warning
     from ..runtime import resolve_device
 
     chosen = _strategies(strategies)
@@ -216,6 +216,11 @@ def edits_cmd(
     ranks = ranks or SINGLE
     m, category = _load(model, data, device, strict)
     cases = load_twin_cases(m, category)
+    warning = part_labels_warning(m, cases)
+    if warning is not None:
+        if strict:
+            raise CrfError(warning)
+        _err(f"warning: {warning}")
     nerf = NerfBaseline(nerf_steps, nerf_minutes) if nerf_baseline else None
     with process_group(ranks, m.device):
         result = evaluate_edits(

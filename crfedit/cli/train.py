@@ -123,6 +123,7 @@ def run_training(
     gcd(``log_every``, READ_EVERY) steps, so every logged row holds that step's own loss."""
     from ..distributed import SINGLE
     from ..modelfile import stored_training
+    from ..parts import part_config
     from ..runlog import RunLog, config_block, record_paths
     from ..threads import requested_threads
     from ..train import READ_EVERY, train
@@ -138,6 +139,8 @@ def run_training(
         if stored_cfg != cfg and ranks.main:
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps)")
         cfg = stored_cfg
+    else:
+        cfg = part_config(category, cfg)  # what train() will store, for the records
     if not ranks.main:
         return train(category, cfg, out, device, seed=seed, minutes=minutes, resume=resume, ranks=ranks, **options)
     run = {"command": command_line(), "dataset": str(category.root), "dataset_fingerprint": category.fingerprint,
@@ -242,7 +245,8 @@ def train_cmd(
         finished = _finished(stored.step, stored.cfg.steps, stored.elapsed, minutes)
     ranks = ranks or SINGLE
     with process_group(ranks, dev):
-        category = load_category(data, res=res)
+        labels = (stored.cfg if resume else cfg).part_dim > 0  # F_part trains from part maps and depth
+        category = load_category(data, res=res, with_depth=labels, with_parts=labels)
         if resume and finished:  # rewriting it would only replace its records
             if stored.dataset != category.fingerprint:
                 raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {stored.dataset})")
@@ -373,9 +377,10 @@ def quickstart_cmd(
 
     typer.echo(f"2/4 training the fast preset for {minutes:g} min on {dev.type}")
     model_path = out / "model.safetensors"
-    category = load_category(out / "data")
+    cfg = make_config("fast", device_type=dev.type)
+    category = load_category(out / "data", with_depth=cfg.part_dim > 0, with_parts=cfg.part_dim > 0)
     seed_everything(seed)
-    model, result = run_training(category, model_path, make_config("fast", device_type=dev.type), dev, seed, minutes, False)
+    model, result = run_training(category, model_path, cfg, dev, seed, minutes, False)
 
     typer.echo("3/4 rendering a turntable of chair 0 (orbit:24)")
     frames_dir = out / "turntable"

@@ -55,7 +55,7 @@ def trained_prefixes(field: ConditionalRadianceField, group: str, strategy: str)
     if strategy == "all":
         tops = []
         for n in names:
-            if n in CODE_TABLES:
+            if n in CODE_TABLES or n.startswith("F_part."):  # no render reads the part head
                 continue
             top = n.split(".")[0] + "."
             if top not in tops:

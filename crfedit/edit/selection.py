@@ -11,7 +11,9 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    field's own per-point features (:func:`point_features`): the 8-d bottleneck, the predicted
    colour, its chromaticity and the position, each group standardized; a removal also reads
    F_fuse's activations and the occupancy grid's local shape around the point
-   (:data:`REMOVE_FEATURES`, :func:`local_shape`).  A cell is described
+   (:data:`REMOVE_FEATURES`, :func:`local_shape`); a model trained with part maps adds its
+   part head's embedding (:mod:`crfedit.parts`) when the scribbled points agree in it
+   (:data:`PART_COHERENCE`).  A cell is described
    at its centre moved a half cell up the density gradient when that is denser
    (:func:`denser_points`): the lifted points lie on surfaces, and the centre of a cell that a
    thin part only crosses lies in empty space beside it.
@@ -110,17 +112,18 @@ GROW_LOW = 0.3
 """:meth:`Selection.grown` also takes the cells of value ≥ this connected to the selection
 (a measured diagnostic; no edit uses it, see the module docstring); a removal also empties the
 cells next to S of value ≥ this."""
-FEATURE_GROUPS = (*FEATURES, "fuse", "geometry")
+FEATURE_GROUPS = (*FEATURES, "fuse", "geometry", "part")
 """Per-point feature groups :func:`point_features` can build: ``fuse`` (F_fuse's activations,
 the model's width) and ``geometry`` (:func:`local_shape`), which removals read
-(:data:`REMOVE_FEATURES`)."""
+(:data:`REMOVE_FEATURES`), and ``part`` (the part head's unit embedding,
+:attr:`SelectOptions.part_head`)."""
 WIDTHS = {"color": 3, "chroma": 3, "position": 9, "geometry": 5}
 """Feature widths per group (the bottleneck's and F_fuse's are the model's: :func:`group_width`)."""
 
 
 def group_width(group: str, cfg) -> int:
     """Columns of feature ``group`` in :func:`point_features` for a model of config ``cfg``."""
-    return WIDTHS.get(group, cfg.width if group == "fuse" else cfg.bottleneck)
+    return WIDTHS.get(group, {"fuse": cfg.width, "part": cfg.part_dim}.get(group, cfg.bottleneck))
 
 
 @dataclass(frozen=True)
@@ -161,6 +164,24 @@ selection IoU colour / removal twins: procedural 0.812 / 0.891 → 0.830 / 0.905
 steps) 0.539 / 0.383 → 0.615 / 0.485, real (9 500 steps) 0.588 / 0.405 → 0.714 / 0.411."""
 
 
+PART_COHERENCE = 0.9
+""":attr:`SelectOptions.part_coherence`.  The part head learns each instance's parts from other
+instances' part maps; where a category's part vocabulary is shared (procedural chairs: seat,
+back, legs, arms …) it recognises the parts of a chair it was never told about, and the
+scribbled points' embeddings agree (coherence 0.90–1.00 on the procedural benchmark twins of
+two models).  Where parts are whatever a mesh's materials are (real chairs) it often does not
+(0.50–0.98; 9 of 32 twins pass),
+and reading it there cost a white shell's recolour (selection IoU 0.58 → 0.40).  Measured in
+docs/selection.md ("The part head F_part")."""
+PART_VETO = 0.5
+""":attr:`SelectOptions.part_veto`.  With :data:`PART_JOIN`, on the procedural benchmark twins
+(docs/selection.md), recolours' gap closed 0.883 → 0.904 and 0.887 → 0.905 over reading the
+head as a feature alone, removals 0.620 → 0.632 and 0.617 → 0.647 (two models)."""
+PART_JOIN = 0.8
+""":attr:`SelectOptions.part_join`.  A part's far side or hidden face that the scribbled view
+could not show (a black shell's seat scribbled from behind: recolour 0.36 → 0.80 and
+0.41 → 0.93 on two real models).  At 0.7: procedural recolours 0.910 and removals 0.636, real
+recolours 0.765 (seed-0 models)."""
 PALE_SATURATION = 0.3
 """The saturation below which :attr:`SelectOptions.pale_union` caps the chromaticity join, and
 the default :attr:`SelectOptions.chroma_saturation` (removals never join below it)."""
@@ -172,6 +193,22 @@ class SelectOptions:
 
     features: tuple[str, ...] = FEATURES
     """Feature groups describing a point (from :data:`FEATURE_GROUPS`)."""
+    part_head: bool = True
+    """Also describe points by the model's part head F_part (the ``part`` group,
+    :mod:`crfedit.parts`) when it has one and it sees the scribbled points as one part
+    (``part_coherence``)."""
+    part_coherence: float = PART_COHERENCE
+    """The part head is read only when the scribbled points' unit part embeddings agree: the
+    length of their mean, 1 when all are one vector, is at least this (:data:`PART_COHERENCE`)."""
+    part_veto: float = PART_VETO
+    """When the part head is read: an occupied cell, the scribbled cells aside, whose part
+    embedding's cosine with the scribbled points' mean embedding is below this is capped below
+    :data:`GROW_LOW` (neither selected nor a removal's skin); 0: no veto."""
+    part_join: float = PART_JOIN
+    """When the part head is read: an occupied cell whose cosine (as ``part_veto``'s) is at
+    least this joins the selection where it connects (26-neighbourhood, through such cells and
+    selected ones) to a scribbled cell, keep-stroke cells and those a keep stroke wins aside: the
+    part's far side, or its hidden face, that the scribbled view could not show; 0: no join."""
     position_weight: float = 1.0
     """Scale of the standardized position group against the others."""
     geometry_weight: float = 1.0
@@ -565,6 +602,10 @@ def point_features(
             out.append(torch.stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], dim=-1))
         elif group == "geometry":
             out.append(local_shape(field.occupancy[instance], xn))
+        elif group == "part":
+            if field.F_part is None:
+                raise CrfError("selection feature 'part': this model has no part head (its dataset had no part maps)")
+            out.append(field.part_embedding(fused))
         else:
             raise CrfError(f"selection feature {group!r}: expected one of {', '.join(FEATURE_GROUPS)}")
     return torch.cat(out, dim=-1)
@@ -955,6 +996,17 @@ def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tens
     return mirror, {**meta, "used": True}
 
 
+def part_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of the part head, in a line (None: the model has none,
+    or the selection was told not to read it)."""
+    info = meta.get("part_head")
+    if info is None:
+        return None
+    if info["used"]:
+        return f"read (the scribbled points' part embeddings agree: coherence {info['coherence']:.2f})"
+    return f"not read (coherence {info['coherence']:.2f} < {info['cut']:g}: it does not see the scribbled points as one part)"
+
+
 def mirror_summary(meta: dict) -> str | None:
     """What a selection's metadata says of its mirror symmetry, in a line (None: not asked)."""
     info = meta.get("mirror")
@@ -1002,7 +1054,13 @@ def select(
         centres, fused = denser_points(field, k, centres, options.cell_ascent / res)
     cell_pts = field.denormalize(centres)
     eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
-    groups = options.features
+    groups, part_meta = options.features, None
+    if options.part_head and field.F_part is not None and "part" not in groups:
+        e_pos = field.part_embedding(field.fuse_features(field.normalize(pos_pts), k))
+        coherence = float(e_pos.mean(dim=0).norm())
+        part_meta = {"coherence": round(coherence, 3), "cut": options.part_coherence, "used": coherence >= options.part_coherence}
+        if part_meta["used"]:
+            groups = (*groups, "part")
     feats = lambda p: point_features(field, k, p, eye, groups)
     f_pos, f_keep, f_view, f_cells = feats(pos_pts), feats(neg_pts), feats(cand_pts), point_features(field, k, cell_pts, eye, groups, fused)
     widths = [group_width(g, field.cfg) for g in groups]
@@ -1055,6 +1113,20 @@ def select(
         values = cap_unlike(values, options.band_chroma, at, low=at)
     if options.veto_chroma > 0 and "chroma" in groups and saturation >= options.chroma_saturation:  # see SelectOptions.veto_chroma
         values = cap_unlike(values, options.veto_chroma, GROW_LOW, low=GROW_LOW, high=float("inf"), floor=VETO_FLOOR, spare=scribbled)
+    if "part" in groups:  # see SelectOptions.part_veto and part_join
+        c = columns["part"]
+        alike = torch.full((res**3,), -1.0, device=occupied.device)
+        alike[cells] = f_cells[:, c] @ F.normalize(f_pos[:, c].mean(dim=0), dim=0)
+        alike = alike.view(res, res, res)
+        if options.part_veto > 0:
+            unlike = occupied & (alike < options.part_veto) & ~scribbled
+            values = torch.where(unlike, values.clamp(max=GROW_LOW * 0.999), values)
+        if options.part_join > 0:
+            like = occupied & (alike >= options.part_join) & ~kept
+            if veto is not None:
+                like.view(-1)[cells[veto]] = False
+            like &= connected_to(like | (values >= at), occupancy.dilate(scribbled, 1))
+            values = torch.where(like, values.clamp_min(at), values)
     if options.fill_share > 0:  # see SelectOptions.fill_share
         values = fill_rims(values, at, occupied, kept, options.fill_share)
     if mirror is not None and options.mirror == "values":  # see SelectOptions.mirror
@@ -1072,6 +1144,8 @@ def select(
         meta["chroma_union"] = union
     if mirror_meta is not None:
         meta["mirror"] = mirror_meta
+    if part_meta is not None:
+        meta["part_head"] = part_meta
     return Selection(values, k, model.names[k], model.fingerprint(), meta, at)
 
 
