@@ -1054,15 +1054,15 @@ def select(
         centres, fused = denser_points(field, k, centres, options.cell_ascent / res)
     cell_pts = field.denormalize(centres)
     eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
-    groups, part_meta = options.features, None
+    groups, part_meta, fused_pos = options.features, None, None
     if options.part_head and field.F_part is not None and "part" not in groups:
-        e_pos = field.part_embedding(field.fuse_features(field.normalize(pos_pts), k))
-        coherence = float(e_pos.mean(dim=0).norm())
+        fused_pos = field.fuse_features(field.normalize(pos_pts), k)  # point_features reuses it
+        coherence = float(field.part_embedding(fused_pos).mean(dim=0).norm())
         part_meta = {"coherence": round(coherence, 3), "cut": options.part_coherence, "used": coherence >= options.part_coherence}
         if part_meta["used"]:
             groups = (*groups, "part")
-    feats = lambda p: point_features(field, k, p, eye, groups)
-    f_pos, f_keep, f_view, f_cells = feats(pos_pts), feats(neg_pts), feats(cand_pts), point_features(field, k, cell_pts, eye, groups, fused)
+    feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p)
+    f_pos, f_keep, f_view, f_cells = feats(pos_pts, fused_pos), feats(neg_pts), feats(cand_pts), feats(cell_pts, fused)
     widths = [group_width(g, field.cfg) for g in groups]
     scribbled, kept = _cells_of(field, pos_pts, res), _cells_of(field, neg_pts, res)
     neighbours = neighbour_table(cells, res) if options.smooth and options.smooth_bandwidth > 0 else None
