@@ -282,10 +282,11 @@ def test_denser_points_closed_form():
     blob = _Blob([0.2, 0.0, 0.0])
     far = torch.tensor([[0.2, 0.5, 0.0], [-0.3, 0.0, 0.0]])  # 0.5 from the peak: moves 0.1 closer
     near = torch.tensor([[0.23, 0.0, 0.0]])  # 0.03 from it: a 0.1 step lands 0.07 past it, less dense
-    pts, fused = denser_points(blob, 0, torch.cat([far, near]), 0.1)
+    pts, fused, sigma = denser_points(blob, 0, torch.cat([far, near]), 0.1)
     expected = torch.tensor([[0.2, 0.4, 0.0], [-0.2, 0.0, 0.0], [0.23, 0.0, 0.0]])
     assert torch.allclose(pts, expected, atol=1e-6)
     assert torch.allclose(fused, blob.fuse_features(expected, 0), atol=1e-6)
+    assert torch.allclose(sigma, blob.sigma(blob.raw_density(blob.fuse_features(torch.cat([far, near]), 0))).reshape(-1))
 
 
 def test_fit_logistic_reaches_the_optimum():
@@ -751,12 +752,12 @@ def test_local_shape_closed_form():
     }
     for name, grid in (("line", line), ("sheet", sheet), ("block", block)):
         got = local_shape(grid, centre)
-        assert got.shape == (1, 5) and torch.allclose(got[0], torch.tensor(want[name]), atol=1e-4), (name, got)
+        assert got.shape == (1, 11) and torch.allclose(got[0, :5], torch.tensor(want[name]), atol=1e-4), (name, got)
     corner = torch.zeros(res, res, res, dtype=torch.bool)
     corner[0:2, 0, 0] = True  # a line at the grid's corner: the block's outside cells are empty
     got = local_shape(corner, torch.tensor([[0.5 / res * 2 - 1] * 3]))
     # offsets {0, 1}: variance 1/4
-    assert torch.allclose(got[0], torch.tensor([0.25 / (0.25 + eps), 0.0, eps / (0.25 + eps), 2 / 27, (0.25 + eps) ** 0.5]), atol=1e-4)
+    assert torch.allclose(got[0, :5], torch.tensor([0.25 / (0.25 + eps), 0.0, eps / (0.25 + eps), 2 / 27, (0.25 + eps) ** 0.5]), atol=1e-4)
 
 
 def test_removals_read_fuse_but_smooth_along_appearance_only():
@@ -764,7 +765,6 @@ def test_removals_read_fuse_but_smooth_along_appearance_only():
     the other groups' columns, what it is without F_fuse."""
     from crfedit.edit import selection as S
     assert options_for("remove").features == S.REMOVE_FEATURES == (*S.FEATURES, "fuse", "geometry")
-    assert options_for("remove").geometry_weight == S.REMOVE_GEOMETRY_WEIGHT < 1
     assert options_for("remove").position_weight == S.REMOVE_POSITION_WEIGHT < 1 == options_for("color").position_weight
     assert options_for("color").appearance_gate == S.COLOR_APPEARANCE_GATE < options_for("remove").appearance_gate == SelectOptions().appearance_gate
     assert options_for("color").features == options_for("add").features == S.FEATURES

@@ -39,7 +39,7 @@ def select_cmd(
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
-    from ..edit.selection import ScribbleView, mirror_summary, options_for, part_summary, preview as tinted, save_selection, select
+    from ..edit.selection import ScribbleView, mirror_summary, options_for, part_summary, preview as tinted, save_selection, select, shape_summary
     from ..io import write_png
     from ..views import resolve_views
 
@@ -68,6 +68,8 @@ def select_cmd(
         typer.echo(f"mirror: {mirror_summary(info)}")
     if part_summary(info) is not None:
         typer.echo(f"part head: {part_summary(info)}")
+    if shape_summary(info) is not None:
+        typer.echo(f"shape gate: {shape_summary(info)}")
     if preview is not None:
         preview.mkdir(parents=True, exist_ok=True)
         for i, (label, camera) in enumerate(resolve_views(views, m, k)):

@@ -10,8 +10,9 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
 2. **Describe.**  Every point — the lifted ones and every occupied cell — is described by the
    field's own per-point features (:func:`point_features`): the 8-d bottleneck, the predicted
    colour, its chromaticity and the position, each group standardized; a removal also reads
-   F_fuse's activations and the occupancy grid's local shape around the point
-   (:data:`REMOVE_FEATURES`, :func:`local_shape`); a model trained with part maps adds its
+   F_fuse's activations and the local shape and orientation of the matter around the point,
+   the density's (:data:`REMOVE_FEATURES`, :func:`local_shape`, :func:`cell_opacity`),
+   weighted above the other groups (:data:`REMOVE_GEOMETRY_WEIGHT`); a model trained with part maps adds its
    part head's embedding (:mod:`crfedit.parts`) when the scribbled points agree in it
    (:data:`PART_COHERENCE`).  A cell is described
    at its centre moved a half cell up the density gradient when that is denser
@@ -63,6 +64,11 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
     chromaticity is far from the scribbled points' are capped below it, so neither the
     selection nor the removal's skin takes a small touching part of another colour that the
     classifier scored as the target (:attr:`SelectOptions.veto_chroma`; saturated parts only).
+10b. **Removals: no odd lines through the joins.**  Of what the chromaticity join (step 7)
+    and the part head's join would add, a connected piece mostly made of lines square to the
+    scribbled points' orientation is left out (:attr:`SelectOptions.shape_gate`,
+    :func:`odd_lines`): the legs of a chair whose stretchers, of the legs' colour, are
+    scribbled.
 11. **Mirror symmetry.**  When the instance's occupancy grid has a mirror plane
     (:mod:`.symmetry`), a removal's scribbled views lend their mirror images as virtual views
     to steps 1–5 (the camera reflected, the strokes flipped left–right, kept where the mirrored
@@ -117,8 +123,10 @@ FEATURE_GROUPS = (*FEATURES, "fuse", "geometry", "part")
 the model's width) and ``geometry`` (:func:`local_shape`), which removals read
 (:data:`REMOVE_FEATURES`), and ``part`` (the part head's unit embedding,
 :attr:`SelectOptions.part_head`)."""
-WIDTHS = {"color": 3, "chroma": 3, "position": 9, "geometry": 5}
+WIDTHS = {"color": 3, "chroma": 3, "position": 9, "geometry": 11}
 """Feature widths per group (the bottleneck's and F_fuse's are the model's: :func:`group_width`)."""
+GEOMETRY_RADIUS = 1
+""":func:`local_shape`'s block: the (2r+1)³ cells around the point's cell."""
 
 
 def group_width(group: str, cfg) -> int:
@@ -213,6 +221,18 @@ class SelectOptions:
     """Scale of the standardized position group against the others."""
     geometry_weight: float = 1.0
     """Scale of the standardized ``geometry`` group (when in ``features``) against the others."""
+    shape_from: str = "density"
+    """What the ``geometry`` group's :func:`local_shape` weighs a cell by: ``density`` (its
+    :func:`cell_opacity`) or ``occupancy`` (the dilated sampling grid)."""
+    shape_radius: int = GEOMETRY_RADIUS
+    """The ``geometry`` group's block: the (2r+1)³ cells around a point's cell."""
+    shape_gate: float = 0.0
+    """When > 0 (and the ``geometry`` group is read): of the cells that the chromaticity join
+    or the part head's join would add, a connected piece (26-neighbourhood) is left out when
+    at least this share of its cells are lines at odds with the scribble
+    (:func:`odd_lines`): the legs of a chair whose stretchers, of the legs' colour, are
+    scribbled.  A joined piece of another orientation that is no line (a box's top face, or its
+    rim lying in the scribbled face) stays.  Removals use :data:`REMOVE_SHAPE_GATE`."""
     self_training: int = 3
     """Rounds that drop from the negatives the view points the classifier calls positive."""
     keep_weight: float = 3.0
@@ -401,13 +421,24 @@ procedural 0.776 → 0.777, real (17 000 steps) 0.484 → 0.563 (the armchair's 
 (:func:`local_shape`, weighted :data:`REMOVE_GEOMETRY_WEIGHT`): a frame's tube is a line of
 cells, the seat it carries a sheet, the two alike in colour and features."""
 
-REMOVE_GEOMETRY_WEIGHT = 0.25
-"""A removal's :attr:`SelectOptions.geometry_weight`.  Measured (docs/selection.md, hybrid,
-gap closed, edit seeds 0 / 1 / 2): procedural removals 0.777 / 0.775 / 0.776 → 0.782 / 0.772 /
-0.772, real (17 000 steps) 0.589 / 0.593 / 0.586 → 0.615 / 0.611 / 0.611 (the armchair's leg
-frame −0.157 → −0.059), the weaker models 0.322 → 0.324 and 0.334 → 0.343.  At weight 1 the
-real removals gained more (0.639) and the procedural ones lost (0.756); at 0.5, 0.777 and
-0.614.  A 5³ block (radius 2) instead of 3³: 0.761 and 0.631."""
+REMOVE_GEOMETRY_WEIGHT = 2.0
+"""A removal's :attr:`SelectOptions.geometry_weight`, with the shape read from the density
+(:func:`cell_opacity`) and its orientation (:func:`local_shape`).  Measured on the 16-twin
+benchmark (hybrid, gap closed, one view, the 17 000-step models of docs/benchmarks.md, seed 0
+/ seed 1), with :data:`REMOVE_SHAPE_GATE`: procedural removals 0.631 / 0.652 → 0.812 / 0.820
+(`chair_015`'s stretchers −0.46 / −0.33 → 0.93 / 0.95), real 0.799 / 0.776 → 0.885 / 0.820;
+at weight 1 (the block 5³): 0.807 / 0.758 and 0.875 / 0.873; at 0.5 (seed 0) 0.631 and
+0.813, `chair_015` still below unedited.  Read from the occupancy grid instead (weight 2, the
+gate): 0.623 and 0.791 (seed 0): the grid is dilated for sampling, so a two-cell leg reads as
+a solid (sphericity 0.8–0.9) and its orientation is lost."""
+REMOVE_SHAPE_GATE = 0.3
+"""A removal's :attr:`SelectOptions.shape_gate`.  Without it the weighted shape alone does not
+save `chair_015` (0.365 selection IoU): the chromaticity join floods the legs of the
+stretchers' colour.  Per-cell gates (each odd cell left out) kept the legs out too but
+broke a box's rims and faces out of the joins (`chair_021`'s arms 0.78 → 0.42–0.66); the gate
+by pieces keeps them (0.77).  Also measured, not adopted: joining what a second classifier
+with the shape weighted 0.25 or 0.5 selects, through the same gate: procedural removals
++0.01 (and `chair_000` on a model without the part head 0.42 → 0.73), real −0.01 to −0.08."""
 REMOVE_POSITION_WEIGHT = 0.5
 """A removal's :attr:`SelectOptions.position_weight`.  Measured on the 16-twin benchmark
 (``--twin-sources 8``; docs/selection.md, hybrid, gap closed, edit seeds 0 / 1, retrained
@@ -415,8 +446,6 @@ REMOVE_POSITION_WEIGHT = 0.5
 0.35 → 0.89: the quadratic position terms took a band of its back with the frame), procedural
 0.481 / 0.479 → 0.479 / 0.477 (outside the part −0.4 dB; `chair_000`'s arms 0.40 → 0.30);
 0.75: 0.582 and 0.481; 0.25: 0.655 and 0.479."""
-GEOMETRY_RADIUS = 1
-""":func:`local_shape`'s block: the (2r+1)³ cells around the point's cell."""
 
 REMOVE_VETO_CHROMA = 1.5
 """A removal's :attr:`SelectOptions.veto_chroma`.  The classifier scores small parts touching
@@ -508,6 +537,7 @@ def _kind_options(kind: str) -> SelectOptions:
                              keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR)
     if kind == "remove":
         return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, position_weight=REMOVE_POSITION_WEIGHT,
+                             shape_gate=REMOVE_SHAPE_GATE,
                              chroma_union=CHROMA_UNION,
                              smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA,
                              keep_ratio=REMOVE_KEEP_RATIO, mirror=REMOVE_MIRROR)
@@ -572,15 +602,16 @@ def surface_points(
 
 @torch.no_grad()
 def point_features(
-    field: ConditionalRadianceField, instance: int, points: Tensor, view_from: Tensor, groups: Sequence[str], fused: Tensor | None = None
+    field: ConditionalRadianceField, instance: int, points: Tensor, view_from: Tensor, groups: Sequence[str], fused: Tensor | None = None,
+    shape_grid: Tensor | None = None, shape_radius: int = GEOMETRY_RADIUS,
 ) -> Tensor:
     """The field's own description of world ``points`` [M, 3]: the chosen :data:`FEATURE_GROUPS`
     groups concatenated, unstandardized.  Colour is F_rad's output looking from ``view_from`` [3];
     position is the normalized point and its second-order terms (so that a linear classifier
     can select e.g. both arms but not the seat between them); ``fuse`` is F_fuse's output, of
-    which the bottleneck is a linear map; ``geometry`` the occupancy grid's local shape
-    (:func:`local_shape`).  ``fused``: F_fuse's output at the points, when the
-    caller has it."""
+    which the bottleneck is a linear map; ``geometry`` the matter's local shape
+    (:func:`local_shape` of ``shape_grid``, the instance's :func:`cell_opacity` when None).
+    ``fused``: F_fuse's output at the points, when the caller has it."""
     xn = field.normalize(points)
     fused = field.fuse_features(xn, instance) if fused is None else fused
     feat = field.bottleneck(fused)
@@ -601,7 +632,8 @@ def point_features(
             x, y, z = xn.unbind(-1)
             out.append(torch.stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], dim=-1))
         elif group == "geometry":
-            out.append(local_shape(field.occupancy[instance], xn))
+            grid = cell_opacity(field, instance, field.occupancy[instance]) if shape_grid is None else shape_grid
+            out.append(local_shape(grid, xn, shape_radius))
         elif group == "part":
             if field.F_part is None:
                 raise CrfError("selection feature 'part': this model has no part head (its dataset had no part maps)")
@@ -611,36 +643,146 @@ def point_features(
     return torch.cat(out, dim=-1)
 
 
-def local_shape(occupied: Tensor, xn: Tensor, radius: int = GEOMETRY_RADIUS) -> Tensor:
-    """The shape of the occupied cells in the (2r+1)³ block around the cell of each normalized
-    point ``xn`` [M, 3] in grid ``occupied`` [R, R, R], from the eigenvalues λ₁ ≥ λ₂ ≥ λ₃ of
-    their offsets' covariance (+ 10⁻³ I): linearity (λ₁ − λ₂)/λ₁, planarity (λ₂ − λ₃)/λ₁,
-    sphericity λ₃/λ₁, the block's occupied share, and √λ₁ / r.  [M, 5]
+class Frames(NamedTuple):
+    """The local shape of the matter around points (:func:`local_frames`), per point."""
 
-    The classic point-cloud descriptors, on the grid: a tube is a line of cells, a seat or a
-    shell a sheet, a cushion a solid; a part's colour and the field's features do not tell
-    a dark frame from the dark seat it carries, its shape does."""
-    res, side = occupied.shape[-1], occupied.shape[-1] + 2 * radius
-    padded = F.pad(occupied.to(xn.dtype), (radius,) * 6).reshape(-1)  # the box's outside is empty
+    linear: Tensor
+    """(λ₁ − λ₂)/λ₁: 1 on a line of cells.  [M]"""
+    planar: Tensor
+    """(λ₂ − λ₃)/λ₁: 1 on a sheet.  [M]"""
+    spherical: Tensor
+    """λ₃/λ₁: 1 in a solid.  [M]"""
+    share: Tensor
+    """The block's mean weight.  [M]"""
+    spread: Tensor
+    """√λ₁ / r.  [M]"""
+    direction: Tensor
+    """v₁, a line's direction (unit; its sign arbitrary).  [M, 3]"""
+    normal: Tensor
+    """v₃, a sheet's normal (unit; its sign arbitrary).  [M, 3]"""
+
+
+def local_frames(grid: Tensor, xn: Tensor, radius: int = GEOMETRY_RADIUS) -> Frames:
+    """The shape of the matter in the (2r+1)³ block of cells around the cell of each normalized
+    point ``xn`` [M, 3], each cell weighing ``grid`` [R, R, R] (a cell's opacity, or a bool
+    occupancy grid): the eigenvalues λ₁ ≥ λ₂ ≥ λ₃ and eigenvectors v₁, v₂, v₃ of the weighted
+    covariance of the cells' offsets (+ 10⁻³ I), as :class:`Frames`."""
+    res, side = grid.shape[-1], grid.shape[-1] + 2 * radius
+    padded = F.pad(grid.to(xn.dtype), (radius,) * 6).reshape(-1)  # the box's outside is empty
     ijk, _ = occupancy.cell_index(xn, res)
     ijk = ijk.clamp(0, res - 1) + radius
     r = torch.arange(-radius, radius + 1, device=xn.device)
     offsets = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), dim=-1).reshape(-1, 3)  # [K, 3]
     flat = (ijk[:, 0] * side + ijk[:, 1]) * side + ijk[:, 2]
     w = padded[flat[:, None] + ((offsets[:, 0] * side + offsets[:, 1]) * side + offsets[:, 2])[None]]  # [M, K]
-    n = w.sum(dim=1).clamp_min(1.0)
+    n = w.sum(dim=1).clamp_min(1e-6)
     d = offsets.to(xn.dtype)
     mean = w @ d / n[:, None]
     second = (w @ (d[:, :, None] * d[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3) / n[:, None, None]
     cov = second - mean[:, :, None] * mean[:, None, :] + 1e-3 * torch.eye(3, dtype=xn.dtype, device=xn.device)
-    l3, l2, l1 = torch.linalg.eigvalsh(cov).clamp_min(1e-6).unbind(-1)  # ascending
-    return torch.stack([(l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, w.mean(dim=1), l1.sqrt() / radius], dim=-1)
+    lam, vec = torch.linalg.eigh(cov)  # ascending
+    l3, l2, l1 = lam.clamp_min(1e-6).unbind(-1)
+    return Frames((l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, w.mean(dim=1), l1.sqrt() / radius, vec[:, :, 2], vec[:, :, 0])
 
 
-def denser_points(field: ConditionalRadianceField, instance: int, xn: Tensor, distance: float) -> tuple[Tensor, Tensor]:
+def local_shape(grid: Tensor, xn: Tensor, radius: int = GEOMETRY_RADIUS) -> Tensor:
+    """:func:`local_frames` as features: linearity ℓ, planarity p, sphericity, the block's mean
+    weight, √λ₁ / r, and the orientation ℓ·v₁² (a line's direction) and p·v₃² (a sheet's
+    normal), per axis (squared: the eigenvectors' signs are arbitrary).  [M, 11]
+
+    The classic point-cloud descriptors, on the grid: a tube is a line of cells, a seat or a
+    shell a sheet, a cushion a solid, and a chair's legs are vertical lines where the
+    stretchers between them are horizontal ones.  A part's colour and the field's features
+    do not tell a dark frame from the dark seat it carries, nor legs from stretchers of their
+    colour; its shape does."""
+    f = local_frames(grid, xn, radius)
+    return torch.cat([torch.stack([f.linear, f.planar, f.spherical, f.share, f.spread], dim=-1),
+                      f.linear[:, None] * f.direction**2, f.planar[:, None] * f.normal**2], dim=-1)
+
+
+SHAPE_CLASH = 0.25
+""":func:`odd_lines`: a cell and a scribbled point agree in orientation where their clash (the
+squared sine of the angle between them) is at most this: within 30°."""
+SHAPE_AGREE = 0.25
+""":func:`odd_lines`: a line is at odds with the scribble where it agrees with fewer than this
+share of the scribbled points."""
+SHAPE_LINE = 0.5
+""":func:`odd_lines`: a cell is a line where its linearity is at least this and its planarity."""
+SHAPE_GATE_POINTS = 512
+""":attr:`SelectOptions.shape_gate` compares the cells with at most this many scribbled points,
+evenly spaced (the comparison is cells × points)."""
+SHAPE_GATE_RADIUS = 2
+"""The block :func:`odd_lines` reads the orientation in: at 3³ cells half a chair's legs
+(two cells thick) read as lines, at 5³ nine in ten do."""
+
+
+def shape_agreement(cells: Frames, points: Frames, chunk: int = 8192) -> Tensor:
+    """Each cell's share of ``points`` whose orientation it agrees with, their clash at most
+    :data:`SHAPE_CLASH`.  Each counts as a line or a sheet, whichever of its linearity and
+    planarity is larger, and the clash is the squared sine of the angle between the two lines
+    or the two normals, or the squared cosine between the line and the normal: 0 where they
+    agree (a line along a line, a sheet parallel to a sheet, a line lying in a sheet such as a
+    panel's rim), 1 where they are square (a leg under a stretcher, under a seat).  [N]"""
+    p_line = (points.linear >= points.planar)[None]
+    c_line = cells.linear >= cells.planar
+    out = []
+    for lo in range(0, len(c_line), chunk):
+        cu, cn = cells.direction[lo : lo + chunk], cells.normal[lo : lo + chunk]
+        line_vs = torch.where(p_line, 1 - (cu @ points.direction.T) ** 2, (cu @ points.normal.T) ** 2)
+        sheet_vs = torch.where(p_line, (cn @ points.direction.T) ** 2, 1 - (cn @ points.normal.T) ** 2)
+        clash = torch.where(c_line[lo : lo + chunk, None], line_vs, sheet_vs)
+        out.append((clash <= SHAPE_CLASH).float().mean(dim=1))
+    return torch.cat(out) if out else cells.linear.new_zeros(0)
+
+
+def odd_lines(cells: Frames, points: Frames) -> Tensor:
+    """[N] bool: the cells that are lines (:data:`SHAPE_LINE`) and agree in orientation with
+    fewer than :data:`SHAPE_AGREE` of the scribbled ``points`` (:func:`shape_agreement`)."""
+    line = (cells.linear >= cells.planar) & (cells.linear >= SHAPE_LINE)
+    return line & (shape_agreement(cells, points) < SHAPE_AGREE)
+
+
+def gate_pieces(added: Tensor, odd: Tensor, share: float) -> Tensor:
+    """[R, R, R] bool: the cells of the connected pieces of ``added`` (26-neighbourhood) at least
+    ``share`` of whose cells are ``odd`` [R, R, R] (:attr:`SelectOptions.shape_gate`)."""
+    label = components(added).reshape(-1)
+    n = torch.bincount(label, minlength=added.numel() + 1).float()
+    bad = torch.bincount(label, weights=(odd & added).reshape(-1).float(), minlength=added.numel() + 1)
+    return added & (bad / n.clamp_min(1) >= share)[label].view(added.shape)
+
+
+SHAPE_SOURCES = ("density", "occupancy")
+"""What :attr:`SelectOptions.shape_from` may name."""
+SHAPE_FRACTION = 1 / 32
+""":func:`cell_opacity` measures a cell's opacity across this fraction of its side."""
+
+
+@torch.no_grad()
+def cell_opacity(field: ConditionalRadianceField, instance: int, occupied: Tensor, sigma: Tensor | None = None) -> Tensor:
+    """Each occupied cell's opacity across :data:`SHAPE_FRACTION` of its side, 1 − exp(−σ·h·f)
+    with σ the density at its centre (``sigma`` [C], in the order of the occupied cells, when
+    the caller has it) and h the cell's side, 0 in the empty cells.  [R, R, R]
+
+    What :func:`local_shape` weighs.  The occupancy grid is dilated for sampling (a thin leg is
+    a solid block of occupied cells, sphericity 0.8–0.9); the density is not, but an opacity
+    across a whole cell saturates to 1 in the leg's halo as in its core: across 1/32 of it
+    the weight is nearly the density itself, up to where a surface is."""
+    res = occupied.shape[-1]
+    cells = occupied.reshape(-1).nonzero().squeeze(-1)
+    if sigma is None:
+        xn = occupancy.cell_centers(res, occupied.device)[cells]
+        sigma = field.sigma(field.raw_density(field.fuse_features(xn, instance))).reshape(-1)
+    h = float((field.aabb[3:] - field.aabb[:3]).max()) / res
+    out = torch.zeros(res**3, device=occupied.device)
+    out[cells] = 1.0 - torch.exp(-sigma * h * SHAPE_FRACTION)
+    return out.view(res, res, res)
+
+
+def denser_points(field: ConditionalRadianceField, instance: int, xn: Tensor, distance: float) -> tuple[Tensor, Tensor, Tensor]:
     """Normalized points ``xn`` [N, 3], each moved ``distance`` along its density gradient where
-    the density is higher there, else left where it is; and F_fuse's output at the points
-    returned [N, width], which :func:`point_features` takes instead of computing it again.
+    the density is higher there, else left where it is; F_fuse's output at the points
+    returned [N, width], which :func:`point_features` takes instead of computing it again; and
+    the density at ``xn`` [N], which :func:`cell_opacity` takes.
 
     One gradient step (a forward and backward pass, and one forward pass to check it): a cell
     centre beside a thin part moves onto it, one inside a solid part stays put or moves within
@@ -654,14 +796,20 @@ def denser_points(field: ConditionalRadianceField, instance: int, xn: Tensor, di
     moved = xn + F.normalize(grad, dim=-1) * distance
     fused_moved = field.fuse_features(moved, instance)
     denser = (density(fused_moved) > sigma.detach())[:, None]
-    return torch.where(denser, moved, xn), torch.where(denser, fused_moved, fused.detach())
+    return torch.where(denser, moved, xn), torch.where(denser, fused_moved, fused.detach()), sigma.detach().reshape(-1)
 
 
-def _standardizer(all_feats: Tensor, widths: Sequence[int], weights: Sequence[float]):
-    """Per-dimension z-scores, each group scaled by weight/√(its width) so groups weigh alike."""
-    mean, std = all_feats.mean(dim=0), all_feats.std(dim=0).clamp_min(1e-6)
+def _standardizer(all_feats: Tensor, widths: Sequence[int], weights: Sequence[float], stats: tuple[Tensor, Tensor] | None = None):
+    """Per-dimension z-scores, each group scaled by weight/√(its width) so groups weigh alike
+    (``stats``: :func:`_feature_stats` of ``all_feats``, when the caller has them)."""
+    mean, std = _feature_stats(all_feats) if stats is None else stats
     scale = torch.cat([torch.full((w,), g / w**0.5) for w, g in zip(widths, weights)]).to(all_feats)
     return lambda f: (f - mean) / std * scale
+
+
+def _feature_stats(feats: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-dimension mean and standard deviation (at least 10⁻⁶) of ``feats`` [N, F]."""
+    return feats.mean(dim=0), feats.std(dim=0).clamp_min(1e-6)
 
 
 NEWTON_STEPS = 50
@@ -842,6 +990,40 @@ def hysteresis(values: Tensor, seeds: Tensor, high: float, low: float) -> Tensor
     return torch.where(reached, values.clamp_min(high), values.clamp(max=high * 0.999))
 
 
+def components(selected: Tensor) -> Tensor:
+    """The connected pieces (26-neighbourhood) of ``selected`` [R, R, R]: each selected cell
+    labelled with 1 + the largest flat index in its piece, every other cell with 0.  [R, R, R]
+    long
+
+    Each round takes the largest label among a cell's neighbours, then the label its label's
+    cell holds (pointer jumping), so a piece of diameter d settles in about log₂ d rounds, not
+    d; all within the selection's bounding box."""
+    out = torch.zeros(selected.shape, dtype=torch.long, device=selected.device)
+    if not bool(selected.any()):
+        return out
+    nz = selected.nonzero()
+    lo, hi = nz.min(dim=0).values, nz.max(dim=0).values + 1
+    box = selected[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+    flat = box.reshape(-1)
+    idx = torch.arange(1, flat.numel() + 1, device=box.device, dtype=torch.float32)  # exact below 2²⁴
+    label = torch.where(flat, idx, torch.zeros_like(idx))
+    while True:
+        grown = F.max_pool3d(label.view(1, 1, *box.shape), 3, stride=1, padding=1).reshape(-1)
+        grown = torch.where(flat, grown, torch.zeros_like(grown))
+        grown = torch.where(flat, grown[(grown.long() - 1).clamp_min(0)], grown)  # the label's own label
+        if bool((grown == label).all()):
+            break
+        label = grown
+    # back to flat indices of the whole grid
+    bi = (label.long() - 1).clamp_min(0)
+    dims = torch.tensor(box.shape, device=box.device)
+    ijk = torch.stack([bi // (dims[1] * dims[2]), bi // dims[2] % dims[1], bi % dims[2]], dim=-1) + lo
+    res = selected.shape[-1]
+    whole = (ijk[:, 0] * selected.shape[1] + ijk[:, 1]) * res + ijk[:, 2] + 1
+    out[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = torch.where(flat, whole, torch.zeros_like(whole)).view(box.shape)
+    return out
+
+
 def connected_to(selected: Tensor, seeds: Tensor) -> Tensor:
     """Cells of ``selected`` [R, R, R] reachable from ``seeds`` through selected cells (26-neighbourhood)."""
     reached = seeds & selected
@@ -916,14 +1098,16 @@ def _columns(groups: Sequence[str], widths: Sequence[int]) -> dict[str, Tensor]:
     return dict(zip(groups, torch.arange(sum(widths)).split(widths)))
 
 
-def _group_standardizer(groups: Sequence[str], widths: Sequence[int], f_cells: Tensor, options: SelectOptions, position_scale: float = 1.0):
+def _group_standardizer(groups: Sequence[str], widths: Sequence[int], f_cells: Tensor, options: SelectOptions, position_scale: float = 1.0,
+                        stats: tuple[Tensor, Tensor] | None = None):
     """:func:`_standardizer` over the cells' features with the groups weighted as ``options``
     say (position × ``position_scale``, for step 5b's distance)."""
     weight = {"position": options.position_weight * position_scale, "geometry": options.geometry_weight}
-    return _standardizer(f_cells, widths, [weight.get(g, 1.0) for g in groups])
+    return _standardizer(f_cells, widths, [weight.get(g, 1.0) for g in groups], stats)
 
 
-def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_view, f_cells, options: SelectOptions) -> tuple[Tensor, Tensor]:
+def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_view, f_cells, options: SelectOptions,
+              stats: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Steps 3 and 5 on the columns of ``groups``: each occupied cell's probability [N] of
     being the part, from the features of the positives, keep points, the view's other surface
     points and the cells (unstandardized, ``widths`` columns per group); and the cells'
@@ -931,7 +1115,7 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     step 6 smooths along: the self-training's appearance fit reads F_fuse too, the bilateral
     smoothing's 26 neighbour distances do not (removals' gap closed within 0.01 of reading it
     on three of four models, and 0.13 s faster on a 37 000-cell grid with a 64-wide F_fuse)."""
-    z = _group_standardizer(groups, widths, f_cells, options)
+    z = _group_standardizer(groups, widths, f_cells, options, stats=stats)
     columns = _columns(groups, widths)
     looks = torch.cat([c for g, c in columns.items() if g != "position"]) if len(groups) > 1 and "position" in groups else None
     z_pos, z_cells = z(f_pos), z(f_cells)
@@ -946,14 +1130,15 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     return pred, (z_cells[:, torch.cat(smooth)] if smooth else z_cells)
 
 
-def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_cells, options: SelectOptions) -> Tensor | None:
+def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_cells, options: SelectOptions,
+               stats: tuple[Tensor, Tensor] | None = None) -> Tensor | None:
     """Step 5b: the cells [N] a keep stroke wins (:attr:`SelectOptions.keep_ratio`), in the
     :data:`KEEP_GROUPS` columns standardized as the classifier's, position weighted
     ``keep_position_weight`` × the classifier's weight; None when off or without keep points."""
     use = [g for g in groups if g in KEEP_GROUPS]
     if options.keep_ratio <= 0 or len(f_keep) == 0 or not use:
         return None
-    z = _group_standardizer(groups, widths, f_cells, options, options.keep_position_weight)
+    z = _group_standardizer(groups, widths, f_cells, options, options.keep_position_weight, stats)
     columns = _columns(groups, widths)
     c = torch.cat([columns[g] for g in use])
     return keep_wins(z(f_cells)[:, c], z(f_pos)[:, c], z(f_keep)[:, c], options.keep_ratio)
@@ -1007,6 +1192,16 @@ def part_summary(meta: dict) -> str | None:
     return f"not read (coherence {info['coherence']:.2f} < {info['cut']:g}: it does not see the scribbled points as one part)"
 
 
+def shape_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of the shape gate, in a line (None: it did not run)."""
+    info = meta.get("shape_gate")
+    if info is None:
+        return None
+    if info["dropped"] == 0:
+        return "nothing left out of the joins"
+    return f"left {info['dropped']} cells out of the joins (pieces of lines square to the scribble)"
+
+
 def mirror_summary(meta: dict) -> str | None:
     """What a selection's metadata says of its mirror symmetry, in a line (None: not asked)."""
     info = meta.get("mirror")
@@ -1034,6 +1229,8 @@ def select(
     for i, v in enumerate(views):
         if not v.scribble.any():
             raise CrfError(f"the scribble of view {i + 1} is empty: no pixel is set")
+    if options.shape_from not in SHAPE_SOURCES:
+        raise CrfError(f"selection shape_from {options.shape_from!r}: expected one of {', '.join(SHAPE_SOURCES)}")
     if options.mirror not in MIRROR_MODES:
         raise CrfError(f"selection mirror mode {options.mirror!r}: expected one of {', '.join(MIRROR_MODES)}")
     field = model.field_for(k)
@@ -1049,9 +1246,9 @@ def select(
         mirror_meta.update(positives=int(len(mirrored[0])), keep_points=int(len(mirrored[1])))
         pos_pts, neg_pts, cand_pts = (torch.cat([a, b]) for a, b in zip((pos_pts, neg_pts, cand_pts), mirrored))
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
-    centres, fused = occupancy.cell_centers(res, occupied.device)[cells], None
+    centres, fused, sigma = occupancy.cell_centers(res, occupied.device)[cells], None, None
     if options.cell_ascent > 0:  # a half cell is 1/res in normalized units
-        centres, fused = denser_points(field, k, centres, options.cell_ascent / res)
+        centres, fused, sigma = denser_points(field, k, centres, options.cell_ascent / res)
     cell_pts = field.denormalize(centres)
     eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
     groups, part_meta, fused_pos = options.features, None, None
@@ -1061,13 +1258,32 @@ def select(
         part_meta = {"coherence": round(coherence, 3), "cut": options.part_coherence, "used": coherence >= options.part_coherence}
         if part_meta["used"]:
             groups = (*groups, "part")
-    feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p)
+    shape_grid = None
+    if "geometry" in groups:
+        shape_grid = cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied
+    feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius)
+    def gated(added: Tensor) -> Tensor:
+        """The cells of ``added`` [R, R, R] that :attr:`SelectOptions.shape_gate` leaves out
+        (:func:`gate_pieces`, :func:`odd_lines` read at the added cells only)."""
+        at_cells = added.reshape(-1)[cells]
+        odd = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+        if bool(at_cells.any()):
+            frames = lambda xn: local_frames(shape_grid, xn, SHAPE_GATE_RADIUS)
+            pos = pos_pts if len(pos_pts) <= SHAPE_GATE_POINTS else pos_pts[torch.linspace(0, len(pos_pts) - 1, SHAPE_GATE_POINTS).long()]
+            odd[cells[at_cells]] = odd_lines(frames(centres[at_cells]), frames(field.normalize(pos)))
+        drop = gate_pieces(added, odd.view(res, res, res), options.shape_gate)
+        gate_meta["dropped"] += int(drop.sum())
+        return drop
+
+    shape_gate = options.shape_gate > 0 and shape_grid is not None
+    gate_meta = {"dropped": 0}
     f_pos, f_keep, f_view, f_cells = feats(pos_pts, fused_pos), feats(neg_pts), feats(cand_pts), feats(cell_pts, fused)
     widths = [group_width(g, field.cfg) for g in groups]
     scribbled, kept = _cells_of(field, pos_pts, res), _cells_of(field, neg_pts, res)
     neighbours = neighbour_table(cells, res) if options.smooth and options.smooth_bandwidth > 0 else None
-    veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options)
-    values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options), cells, neighbours, occupied, scribbled, kept, options, veto)
+    stats = _feature_stats(f_cells)
+    veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options, stats)
+    values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats), cells, neighbours, occupied, scribbled, kept, options, veto)
     columns = _columns(groups, widths)
     def alike_grid(factor: float, floor: float = 0.01) -> Tensor:
         """[R, R, R] bool: the occupied cells whose chromaticity is the scribbled points'
@@ -1089,6 +1305,8 @@ def select(
                             cells, neighbours, occupied, scribbled, kept, options, veto)
             if options.join_chroma > 0:  # see SelectOptions.join_chroma
                 alone = torch.where(alike_grid(options.join_chroma), alone, torch.zeros_like(alone))
+            if shape_gate:  # see SelectOptions.shape_gate
+                alone = torch.where(gated((alone >= options.threshold) & (values < options.threshold)), torch.zeros_like(alone), alone)
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
             cap = options.pale_union if options.pale_union > 0 and saturation < options.pale_saturation else options.chroma_union
             union.update(cells=n_alone, joined=n_alone <= cap * max(n_main, 1))
@@ -1126,6 +1344,8 @@ def select(
             if veto is not None:
                 like.view(-1)[cells[veto]] = False
             like &= connected_to(like | (values >= at), occupancy.dilate(scribbled, 1))
+            if shape_gate:  # see SelectOptions.shape_gate
+                like &= ~gated(like & (values < at))
             values = torch.where(like, values.clamp_min(at), values)
     if options.fill_share > 0:  # see SelectOptions.fill_share
         values = fill_rims(values, at, occupied, kept, options.fill_share)
@@ -1146,6 +1366,8 @@ def select(
         meta["mirror"] = mirror_meta
     if part_meta is not None:
         meta["part_head"] = part_meta
+    if shape_gate:
+        meta["shape_gate"] = gate_meta
     return Selection(values, k, model.names[k], model.fingerprint(), meta, at)
 
 

@@ -1,0 +1,232 @@
+"""The matter's local shape and the shape gate of removals' joins (edit/selection.py):
+closed-form orientation, agreement and connected pieces, and a frame whose legs are kept out
+of a join that its stretchers' colour would make."""
+
+from __future__ import annotations
+
+from collections import deque
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from crfedit import occupancy
+from crfedit.edit import selection as S
+from crfedit.edit.selection import (
+    Frames, SHAPE_FRACTION, cell_opacity, components, gate_pieces, local_frames, local_shape, odd_lines, options_for,
+    shape_agreement,
+)
+
+RES = 16
+
+
+def centre_of(i: int, j: int, k: int, res: int = RES) -> torch.Tensor:
+    """The normalized centre of cell (i, j, k).  [1, 3]"""
+    return (torch.tensor([[i, j, k]], dtype=torch.float32) + 0.5) / res * 2 - 1
+
+
+def frames_of(line: list[bool], direction: list[list[float]], normal: list[list[float]]) -> Frames:
+    """Frames of pure lines (ℓ = 1, p = 0) or pure sheets (ℓ = 0, p = 1)."""
+    lin = torch.tensor([1.0 if x else 0.0 for x in line])
+    one = torch.ones(len(line))
+    return Frames(lin, 1 - lin, 0 * one, one, one, torch.nn.functional.normalize(torch.tensor(direction), dim=-1),
+                  torch.nn.functional.normalize(torch.tensor(normal), dim=-1))
+
+
+def test_local_shape_reads_orientation_from_weights():
+    """A line of cells along z weighs its direction on the z axis (ℓ·v₁² = (0, 0, ℓ)); a sheet in
+    the x–y plane its normal (p·v₃² = (0, 0, p)); a line along x weighted by opacities that fall
+    off across it (0.2 beside the core) is still a line along x."""
+    line = torch.zeros(RES, RES, RES)
+    line[5, 5, 3:8] = 1.0
+    f = local_shape(line, centre_of(5, 5, 5))[0]
+    assert f.shape == (11,)
+    assert torch.allclose(f[5:8], torch.tensor([0.0, 0.0, float(f[0])]), atol=1e-5) and f[0] > 0.99
+    sheet = torch.zeros(RES, RES, RES)
+    sheet[3:8, 3:8, 5] = 1.0
+    f = local_shape(sheet, centre_of(5, 5, 5))[0]
+    assert f[1] > 0.99 and torch.allclose(f[8:11], torch.tensor([0.0, 0.0, float(f[1])]), atol=1e-5)
+    soft = torch.zeros(RES, RES, RES)
+    soft[3:8, 5, 5] = 1.0
+    soft[3:8, 4, 5] = soft[3:8, 6, 5] = 0.2
+    fr = local_frames(soft, centre_of(5, 5, 5), radius=2)
+    assert float(fr.linear[0]) > float(fr.planar[0]) and abs(float(fr.direction[0, 0])) > 0.99
+
+
+def test_shape_agreement_closed_form():
+    """A line agrees with a line along it, not with one square to it; a line lying in a sheet
+    agrees with it (a panel's rim), a line along the sheet's normal does not; sheets agree when
+    parallel.  The clash of a 30° tilt (sin² = 1/4) is at the bar; 45° is past it."""
+    x, y, z = [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]
+    stretcher = frames_of([True], [x], [y])  # a line along x
+    panel = frames_of([False], [y], [x])  # a sheet with normal x
+    cells = frames_of([True, True, True, True, False, False], [x, z, y, x, x, y], [y, x, z, y, z, y])
+    # line x, line z, line y, line x (normal y), sheet normal z, sheet normal y: the two sheets hold the line x
+    assert shape_agreement(cells, stretcher).tolist() == [1.0, 0.0, 0.0, 1.0, 1.0, 1.0]
+    # vs the panel (normal x): line x square to it (along the normal), lines z and y lie in it; sheets z, y are square
+    assert shape_agreement(cells, panel).tolist() == [0.0, 1.0, 1.0, 0.0, 0.0, 0.0]
+    tilt = lambda deg: [float(np.cos(np.radians(deg))), 0.0, float(np.sin(np.radians(deg)))]
+    tilted = frames_of([True, True], [tilt(29.9), tilt(45.0)], [y, y])
+    assert shape_agreement(tilted, stretcher).tolist() == [1.0, 0.0]
+    both = frames_of([True, True], [x, z], [y, x])
+    assert shape_agreement(frames_of([True], [z], [x]), both).tolist() == [0.5]  # agrees with half the points
+
+
+def bfs_labels(grid: np.ndarray) -> np.ndarray:
+    """Reference: each cell of a 26-connected piece labelled 1 + the piece's largest flat index."""
+    out = np.zeros(grid.shape, dtype=np.int64)
+    seen = np.zeros(grid.shape, dtype=bool)
+    for start in zip(*np.nonzero(grid)):
+        if seen[start]:
+            continue
+        piece, queue = [], deque([start])
+        seen[start] = True
+        while queue:
+            c = queue.popleft()
+            piece.append(c)
+            for d in np.ndindex(3, 3, 3):
+                n = tuple(c[i] + d[i] - 1 for i in range(3))
+                if all(0 <= n[i] < grid.shape[i] for i in range(3)) and grid[n] and not seen[n]:
+                    seen[n] = True
+                    queue.append(n)
+        label = max(np.ravel_multi_index(c, grid.shape) for c in piece) + 1
+        for c in piece:
+            out[c] = label
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_components_match_breadth_first_search(seed):
+    """Connected pieces (26-neighbourhood) as a breadth-first search labels them, on a random
+    grid that is not a cube; an empty grid has none."""
+    g = torch.from_numpy(np.random.default_rng(seed).random((9, 12, 10)) < 0.3)
+    assert torch.equal(components(g), torch.from_numpy(bfs_labels(g.numpy())))
+    assert not components(torch.zeros(4, 4, 4, dtype=torch.bool)).any()
+
+
+def test_gate_pieces_drops_the_pieces_mostly_odd():
+    """Two pieces: the one 2/3 of whose cells are odd is dropped at share 0.5, the one with 1/3
+    is kept; at share 0.3 both go."""
+    added = torch.zeros(8, 8, 8, dtype=torch.bool)
+    odd = torch.zeros_like(added)
+    added[1, 1, 0:3] = True
+    odd[1, 1, 0:2] = True
+    added[5, 5, 0:3] = True
+    odd[5, 5, 0] = True
+    dropped = gate_pieces(added, odd, 0.5)
+    assert dropped[1, 1, 0:3].all() and not dropped[5, 5].any()
+    assert torch.equal(gate_pieces(added, odd, 0.3), added)
+
+
+def frame_grid() -> torch.Tensor:
+    """Opacities of a stool's frame: four legs along z (cells x, y ∈ {3, 12}, z 0–12) joined by
+    four stretchers along x or y at z = 5, and a seat slab at z = 13; each bar one cell thick,
+    a faint halo (0.05) around it as a trained density has."""
+    g = torch.zeros(RES, RES, RES)
+    for i in (3, 12):
+        for j in (3, 12):
+            g[i, j, 0:13] = 1.0
+        g[i, 3:13, 5] = 1.0  # stretchers along y
+        g[3:13, i, 5] = 1.0  # stretchers along x
+    g[3:13, 3:13, 13] = 1.0
+    halo = occupancy.dilate(g > 0, 1) & (g == 0)
+    return torch.where(halo, torch.full_like(g, 0.05), g)
+
+
+def test_shape_gate_keeps_legs_out_of_a_stretcher_join():
+    """Stretchers scribbled, the legs of their colour joined: the legs are lines square to
+    every scribbled point, so the gate drops them; a join of the seat's rim (lines lying in
+    the seat, as scribbled on its top) stays."""
+    g = frame_grid()
+    pos = torch.cat([centre_of(i, 3, 5) for i in (6, 7, 8)] + [centre_of(3, j, 5) for j in (6, 7, 8, 9)])
+    legs = torch.zeros(RES, RES, RES, dtype=torch.bool)
+    for i in (3, 12):
+        for j in (3, 12):
+            legs[i, j, 0:5] = True
+            legs[i, j, 6:13] = True
+    cells = legs.reshape(-1).nonzero().squeeze(-1)
+    xn = occupancy.centers_of_cells(cells, RES)
+    odd = torch.zeros(RES**3, dtype=torch.bool)
+    odd[cells] = odd_lines(local_frames(g, xn, 2), local_frames(g, pos, 2))
+    odd = odd.view(RES, RES, RES)
+    assert float(odd[legs].float().mean()) > 0.6
+    assert torch.equal(gate_pieces(legs, odd, options_for("remove").shape_gate), legs)
+    # the seat's top scribbled: its rim (lines along x and y in the seat's plane) is no odd line
+    seat_pos = torch.cat([centre_of(i, j, 13) for i in (6, 8) for j in (6, 8)])
+    rim = torch.zeros(RES, RES, RES, dtype=torch.bool)
+    rim[3:13, 3, 13] = rim[3:13, 12, 13] = True
+    rc = rim.reshape(-1).nonzero().squeeze(-1)
+    rim_odd = odd_lines(local_frames(g, occupancy.centers_of_cells(rc, RES), 2), local_frames(g, seat_pos, 2))
+    assert not rim_odd.any()
+
+
+class _Uniform:
+    """A field-like stand-in of constant density σ over the box [−1, 1]³."""
+
+    def __init__(self, sigma: float):
+        self.aabb = torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
+        self.s = sigma
+        self.raw_density = lambda fused: fused.squeeze(-1)
+        self.sigma = lambda raw: raw
+
+    def fuse_features(self, x, instance):
+        return torch.full((x.shape[0], 1), self.s)
+
+
+def test_cell_opacity_closed_form():
+    """1 − exp(−σ·h/32) in the occupied cells (h = 2/R, the box's side over R), 0 elsewhere; a
+    density passed in is used as given."""
+    occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
+    occupied[2:4, 2:4, 2:4] = True
+    field = _Uniform(40.0)
+    got = cell_opacity(field, 0, occupied)
+    want = 1 - np.exp(-40.0 * (2 / 8) * SHAPE_FRACTION)
+    assert torch.allclose(got[occupied], torch.tensor(want, dtype=torch.float32)) and not got[~occupied].any()
+    given = cell_opacity(field, 0, occupied, torch.full((8,), 4.0))
+    assert torch.allclose(given[occupied], torch.tensor(1 - np.exp(-4.0 * 0.25 * SHAPE_FRACTION), dtype=torch.float32))
+
+
+def test_removal_options_read_the_shape():
+    """Removals read the density's shape with a weight above the others' and gate their joins;
+    recolours and additions read no shape."""
+    o = options_for("remove")
+    assert o.shape_from == "density" and o.geometry_weight == S.REMOVE_GEOMETRY_WEIGHT > 1
+    assert o.shape_gate == S.REMOVE_SHAPE_GATE > 0
+    assert "geometry" not in options_for("color").features and "geometry" not in options_for("add").features
+
+
+def test_removal_selection_reports_the_gate_and_refuses_an_unknown_shape_source(edit_category):
+    """A removal's selection on a trained model reads the density's shape and says how many
+    joined cells the gate left out; the occupancy grid's shape is the other source, any other
+    name a one-line error."""
+    import dataclasses
+    import json as _json
+
+    from crfedit.edit.selection import ScribbleView, select
+    from crfedit.errors import CrfError
+    from crfedit.masks import dilate, erode
+
+    _, model, category = edit_category
+    k = 2
+    inst = category.instances[k]
+    pid = next(p["id"] for p in _json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
+    view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
+    fg, keep = erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1)
+    views = [ScribbleView(view.camera, fg, keep)]
+    sel = select(model, k, views, options_for("remove"))
+    assert "geometry" in sel.meta["features"] and isinstance(sel.meta["shape_gate"]["dropped"], int)
+    assert sel.meta["selected_cells"] > 0
+    occ = select(model, k, views, dataclasses.replace(options_for("remove"), shape_from="occupancy"))
+    assert occ.meta["selected_cells"] > 0
+    with pytest.raises(CrfError, match="shape_from 'voxels'"):
+        select(model, k, views, dataclasses.replace(options_for("remove"), shape_from="voxels"))
+
+
+def test_shape_summary_lines():
+    """One line for `select` and the page: nothing said when the gate did not run."""
+    from crfedit.edit.selection import shape_summary
+
+    assert shape_summary({}) is None
+    assert shape_summary({"shape_gate": {"dropped": 0}}) == "nothing left out of the joins"
+    assert shape_summary({"shape_gate": {"dropped": 412}}).startswith("left 412 cells out of the joins")
