@@ -15,7 +15,7 @@ from crfedit import occupancy
 from crfedit.edit import selection as S
 from crfedit.edit.selection import (
     Frames, SHAPE_FRACTION, cell_opacity, components, gate_pieces, local_frames, local_shape, odd_lines, options_for,
-    shape_agreement,
+    rim_lines, shape_agreement,
 )
 
 RES = 16
@@ -71,6 +71,22 @@ def test_shape_agreement_closed_form():
     assert shape_agreement(tilted, stretcher).tolist() == [1.0, 0.0]
     both = frames_of([True, True], [x, z], [y, x])
     assert shape_agreement(frames_of([True], [z], [x]), both).tolist() == [0.5]  # agrees with half the points
+
+
+def test_rim_lines_closed_form():
+    """Scribbled on a panel (sheets with normal x): a line along y or z lies in its plane and
+    is a rim, a line along x (square to it) and a sheet are not; with half the points on a
+    sheet of normal z, a line along y lies in both planes, one along z in one (a share of 1/2);
+    scribbled on lines only, nothing is a rim."""
+    x, y, z = [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]
+    panel = frames_of([False, False], [y, z], [x, x])
+    cells = frames_of([True, True, True, False], [y, z, x, y], [x, x, y, x])
+    assert rim_lines(cells, panel, 0.5).tolist() == [True, True, False, False]
+    mixed = frames_of([False, False], [y, y], [x, z])
+    assert rim_lines(cells, mixed, 0.5).tolist() == [True, True, True, False]
+    assert rim_lines(cells, mixed, 0.75).tolist() == [True, False, False, False]
+    tubes = frames_of([True, True], [x, y], [y, x])
+    assert not rim_lines(cells, tubes, 0.1).any()
 
 
 def bfs_labels(grid: np.ndarray) -> np.ndarray:
@@ -192,7 +208,8 @@ def test_removal_options_read_the_shape():
     recolours and additions read no shape."""
     o = options_for("remove")
     assert o.shape_from == "density" and o.geometry_weight == S.REMOVE_GEOMETRY_WEIGHT > 1
-    assert o.shape_gate == S.REMOVE_SHAPE_GATE > 0
+    assert o.shape_gate == S.REMOVE_SHAPE_GATE > 0 and o.rim_fill == S.REMOVE_RIM_FILL > 0
+    assert options_for("color").rim_fill == options_for("color").shape_gate == 0
     assert "geometry" not in options_for("color").features and "geometry" not in options_for("add").features
 
 
@@ -216,6 +233,7 @@ def test_removal_selection_reports_the_gate_and_refuses_an_unknown_shape_source(
     views = [ScribbleView(view.camera, fg, keep)]
     sel = select(model, k, views, options_for("remove"))
     assert "geometry" in sel.meta["features"] and isinstance(sel.meta["shape_gate"]["dropped"], int)
+    assert isinstance(sel.meta["rim_fill"]["cells"], int)
     assert sel.meta["selected_cells"] > 0
     occ = select(model, k, views, dataclasses.replace(options_for("remove"), shape_from="occupancy"))
     assert occ.meta["selected_cells"] > 0
@@ -230,3 +248,6 @@ def test_shape_summary_lines():
     assert shape_summary({}) is None
     assert shape_summary({"shape_gate": {"dropped": 0}}) == "nothing left out of the joins"
     assert shape_summary({"shape_gate": {"dropped": 412}}).startswith("left 412 cells out of the joins")
+    both = shape_summary({"shape_gate": {"dropped": 0}, "rim_fill": {"cells": 37}})
+    assert both.startswith("nothing left out of the joins; took 37 rim cells")
+    assert shape_summary({"rim_fill": {"cells": 0}}) == "no rim taken"
