@@ -29,6 +29,9 @@ from crfedit.report import emit_table
 
 VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for), keep strokes given, recolour grows the selection)
     "default (bottleneck + colour + chromaticity + position at each cell's centre moved a half cell up the density gradient; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing (bilateral for removals), connectivity; recolours and removals join the chromaticity-only selection; recolours fill the rims; removals veto other colours)": ({}, True, False),
+    "removals: the shape read from the occupancy grid, weighted 0.25, no gate, no rims (before 2026-11-26)": ({"shape_from": "occupancy", "geometry_weight": 0.25, "shape_gate": 0.0, "rim_fill": 0.0}, True, False),
+    "removals: no shape gate": ({"shape_gate": 0.0}, True, False),
+    "removals: no rims": ({"rim_fill": 0.0}, True, False),
     "the join refused above 2.5× the full features' cells (the previous default)": ({"chroma_union": 2.5}, True, False),
     "removals do not veto other colours (the revision before)": ({"veto_chroma": 0.0}, True, False),
     "recolours do not fill the rims (an earlier default)": ({"fill_share": 0.0}, True, False),
