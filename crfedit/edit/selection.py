@@ -1296,7 +1296,7 @@ def select(
     if "geometry" in groups:
         shape_grid = cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied
     feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius)
-    scribbled_frames = None
+    scribbled_frames, shape_gate, gate_meta = None, options.shape_gate > 0 and shape_grid is not None, {"dropped": 0}
     if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0):
         pos = pos_pts if len(pos_pts) <= SHAPE_GATE_POINTS else pos_pts[torch.linspace(0, len(pos_pts) - 1, SHAPE_GATE_POINTS).long()]
         scribbled_frames = local_frames(shape_grid, field.normalize(pos), SHAPE_GATE_RADIUS)
@@ -1312,8 +1312,6 @@ def select(
         gate_meta["dropped"] += int(drop.sum())
         return drop
 
-    shape_gate = options.shape_gate > 0 and shape_grid is not None
-    gate_meta = {"dropped": 0}
     f_pos, f_keep, f_view, f_cells = feats(pos_pts, fused_pos), feats(neg_pts), feats(cand_pts), feats(cell_pts, fused)
     widths = [group_width(g, field.cfg) for g in groups]
     scribbled, kept = _cells_of(field, pos_pts, res), _cells_of(field, neg_pts, res)
