@@ -753,19 +753,23 @@ def shape_agreement(cells: Frames, points: Frames, chunk: int = 8192) -> Tensor:
     return torch.cat(out) if out else cells.linear.new_zeros(0)
 
 
+def lines_of(frames: Frames) -> Tensor:
+    """[N] bool: the points on a line, linearity at least :data:`SHAPE_LINE` and the planarity."""
+    return (frames.linear >= frames.planar) & (frames.linear >= SHAPE_LINE)
+
+
 def odd_lines(cells: Frames, points: Frames) -> Tensor:
-    """[N] bool: the cells that are lines (:data:`SHAPE_LINE`) and agree in orientation with
+    """[N] bool: the cells that are lines (:func:`lines_of`) and agree in orientation with
     fewer than :data:`SHAPE_AGREE` of the scribbled ``points`` (:func:`shape_agreement`)."""
-    line = (cells.linear >= cells.planar) & (cells.linear >= SHAPE_LINE)
-    return line & (shape_agreement(cells, points) < SHAPE_AGREE)
+    return lines_of(cells) & (shape_agreement(cells, points) < SHAPE_AGREE)
 
 
 def rim_lines(cells: Frames, points: Frames, share: float) -> Tensor:
-    """[N] bool: the cells that are lines (:data:`SHAPE_LINE`) lying in the plane (within 30°,
+    """[N] bool: the cells that are lines (:func:`lines_of`) lying in the plane (within 30°,
     :data:`SHAPE_CLASH`) of at least ``share`` of the ``points`` that are sheets
     (:attr:`SelectOptions.rim_fill`); none when no point is a sheet."""
     sheets = points.planar > points.linear
-    line = (cells.linear >= cells.planar) & (cells.linear >= SHAPE_LINE)
+    line = lines_of(cells)
     if not bool(sheets.any()):
         return torch.zeros_like(line)
     inplane = ((cells.direction @ points.normal[sheets].T) ** 2 <= SHAPE_CLASH).float().mean(dim=1)
@@ -922,12 +926,16 @@ def chroma_alike(cells: Tensor, pos: Tensor, factor: float, floor: float = 0.01)
     return (cells - med).norm(dim=-1) <= factor * r + floor
 
 
+def evenly(rows: Tensor, most: int) -> Tensor:
+    """``rows`` [P, ...], or ``most`` of them evenly spaced when there are more."""
+    return rows if len(rows) <= most else rows[torch.linspace(0, len(rows) - 1, most).long()]
+
+
 def appearance_gate(cells: Tensor, pos: Tensor, factor: float, max_positives: int = 2000) -> Tensor:
     """Whether each cell's appearance [N, F] lies within ``factor`` × the positives' spacing of
     some positive [P, F] (the spacing: 95th percentile of the positives' nearest-neighbour
     distances, over at most ``max_positives`` evenly spaced positives)."""
-    if len(pos) > max_positives:
-        pos = pos[torch.linspace(0, len(pos) - 1, max_positives).long()]
+    pos = evenly(pos, max_positives)
     if len(pos) < 2:
         return torch.ones(len(cells), dtype=torch.bool, device=cells.device)
     d = torch.cdist(pos, pos)
@@ -939,8 +947,7 @@ def appearance_gate(cells: Tensor, pos: Tensor, factor: float, max_positives: in
 def nearest_distance(cells: Tensor, points: Tensor, max_points: int = 2000, chunk: int = 8192) -> Tensor:
     """Each cell's [N, F] distance to its nearest point [P, F], over at most ``max_points``
     evenly spaced points, ``chunk`` cells at a time (bounded memory on a 64³ grid).  [N]"""
-    if len(points) > max_points:
-        points = points[torch.linspace(0, len(points) - 1, max_points).long()]
+    points = evenly(points, max_points)
     return torch.cat([torch.cdist(c, points).min(dim=1).values for c in cells.split(chunk)]) if len(cells) else cells.new_zeros(0)
 
 
@@ -1298,8 +1305,7 @@ def select(
     feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius)
     scribbled_frames, shape_gate, gate_meta = None, options.shape_gate > 0 and shape_grid is not None, {"dropped": 0}
     if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0):
-        pos = pos_pts if len(pos_pts) <= SHAPE_GATE_POINTS else pos_pts[torch.linspace(0, len(pos_pts) - 1, SHAPE_GATE_POINTS).long()]
-        scribbled_frames = local_frames(shape_grid, field.normalize(pos), SHAPE_GATE_RADIUS)
+        scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
 
     def gated(added: Tensor) -> Tensor:
         """The cells of ``added`` [R, R, R] that :attr:`SelectOptions.shape_gate` leaves out
