@@ -1307,14 +1307,19 @@ def select(
     if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0):
         scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
 
+    def shape_test(where: Tensor, test) -> Tensor:
+        """[R, R, R] bool: ``test`` (:class:`Frames` [M] → [M] bool) of the occupied cells of
+        ``where`` [R, R, R], their frames read at those cells only; False elsewhere."""
+        at_cells = where.reshape(-1)[cells]
+        out = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+        if bool(at_cells.any()):
+            out[cells[at_cells]] = test(local_frames(shape_grid, centres[at_cells], SHAPE_GATE_RADIUS))
+        return out.view(res, res, res)
+
     def gated(added: Tensor) -> Tensor:
         """The cells of ``added`` [R, R, R] that :attr:`SelectOptions.shape_gate` leaves out
-        (:func:`gate_pieces`, :func:`odd_lines` read at the added cells only)."""
-        at_cells = added.reshape(-1)[cells]
-        odd = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        if bool(at_cells.any()):
-            odd[cells[at_cells]] = odd_lines(local_frames(shape_grid, centres[at_cells], SHAPE_GATE_RADIUS), scribbled_frames)
-        drop = gate_pieces(added, odd.view(res, res, res), options.shape_gate)
+        (:func:`gate_pieces` of the :func:`odd_lines` among them)."""
+        drop = gate_pieces(added, shape_test(added, lambda f: odd_lines(f, scribbled_frames)), options.shape_gate)
         gate_meta["dropped"] += int(drop.sum())
         return drop
 
@@ -1324,6 +1329,9 @@ def select(
     neighbours = neighbour_table(cells, res) if options.smooth and options.smooth_bandwidth > 0 else None
     stats = _feature_stats(f_cells)
     veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options, stats)
+    spared = kept.clone()  # keep-stroke cells and those a keep stroke wins: no join takes them
+    if veto is not None:
+        spared.view(-1)[cells[veto]] = True
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats), cells, neighbours, occupied, scribbled, kept, options, veto)
     columns = _columns(groups, widths)
     def alike_grid(factor: float, floor: float = 0.01) -> Tensor:
@@ -1381,9 +1389,7 @@ def select(
             unlike = occupied & (alike < options.part_veto) & ~scribbled
             values = torch.where(unlike, values.clamp(max=GROW_LOW * 0.999), values)
         if options.part_join > 0:
-            like = occupied & (alike >= options.part_join) & ~kept
-            if veto is not None:
-                like.view(-1)[cells[veto]] = False
+            like = occupied & (alike >= options.part_join) & ~spared
             like &= connected_to(like | (values >= at), occupancy.dilate(scribbled, 1))
             if shape_gate:  # see SelectOptions.shape_gate
                 like &= ~gated(like & (values < at))
@@ -1393,15 +1399,10 @@ def select(
         sheets = scribbled_frames.planar > scribbled_frames.linear
         if float(sheets.float().mean()) >= RIM_SHEETS:
             sel_now = values >= at
-            ring = occupancy.dilate(sel_now, 1) & occupied & ~sel_now & ~kept
-            if veto is not None:
-                ring.view(-1)[cells[veto]] = False
-            at_cells = ring.reshape(-1)[cells]
-            if bool(at_cells.any()):
-                rim = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-                rim[cells[at_cells]] = rim_lines(local_frames(shape_grid, centres[at_cells], SHAPE_GATE_RADIUS), scribbled_frames, options.rim_fill)
-                values = torch.where(rim.view(res, res, res), values.clamp_min(at), values)
-                rim_meta["cells"] = int(rim.sum())
+            ring = occupancy.dilate(sel_now, 1) & occupied & ~sel_now & ~spared
+            rim = shape_test(ring, lambda f: rim_lines(f, scribbled_frames, options.rim_fill))
+            values = torch.where(rim, values.clamp_min(at), values)
+            rim_meta["cells"] = int(rim.sum())
     if options.fill_share > 0:  # see SelectOptions.fill_share
         values = fill_rims(values, at, occupied, kept, options.fill_share)
     if mirror is not None and options.mirror == "values":  # see SelectOptions.mirror
