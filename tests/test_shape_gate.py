@@ -14,8 +14,8 @@ import torch
 from crfedit import occupancy
 from crfedit.edit import selection as S
 from crfedit.edit.selection import (
-    Frames, SHAPE_FRACTION, cell_opacity, components, gate_pieces, local_frames, local_shape, odd_lines, options_for,
-    rim_lines, shape_agreement,
+    Frames, SHAPE_FRACTION, cell_opacity, components, connected_to, gate_pieces, local_frames, local_shape, neighbour_table,
+    odd_lines, options_for, rim_lines, shape_agreement, sym3_eigen,
 )
 
 RES = 16
@@ -119,6 +119,81 @@ def test_components_match_breadth_first_search(seed):
     g = torch.from_numpy(np.random.default_rng(seed).random((9, 12, 10)) < 0.3)
     assert torch.equal(components(g), torch.from_numpy(bfs_labels(g.numpy())))
     assert not components(torch.zeros(4, 4, 4, dtype=torch.bool)).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_connected_to_is_the_pieces_holding_a_seed(seed):
+    """The cells reached from the seeds are exactly those of the breadth-first pieces that hold
+    a seed (the growth runs in the selection's bounding box, which must not cut a piece)."""
+    rng = np.random.default_rng(seed)
+    g = torch.from_numpy(rng.random((9, 12, 10)) < 0.3)
+    g[0, 0, 0] = g[8, 11, 9] = True  # the box is the whole grid: a piece may touch any face
+    seeds = torch.from_numpy(rng.random((9, 12, 10)) < 0.02)
+    labels = torch.from_numpy(bfs_labels(g.numpy()))
+    held = labels[seeds & g].unique()
+    assert torch.equal(connected_to(g, seeds), g & torch.isin(labels, held))
+    small = torch.zeros(9, 12, 10, dtype=torch.bool)
+    small[3:5, 4, 6] = small[7, 9, 2] = True  # two pieces in a corner of the grid, one seeded
+    seed = torch.zeros_like(small)
+    seed[3, 4, 6] = True
+    reached = connected_to(small, seed)
+    assert reached[3:5, 4, 6].all() and int(reached.sum()) == 2
+    assert not connected_to(torch.zeros_like(small), seed).any()
+
+
+def test_neighbour_table_halves_and_non_cubic_grids():
+    """On a grid that is not a cube, each row lists the positions of the 26 neighbours in
+    NEIGHBOUR_OFFSETS' order (−1 off the cells), and the half table is its first 13 columns,
+    whose opposites are the last 13 reversed."""
+    shape = (5, 7, 6)
+    occ = torch.from_numpy(np.random.default_rng(2).random(shape) < 0.5)
+    cells = occ.reshape(-1).nonzero().squeeze(-1)
+    pos = {int(c): i for i, c in enumerate(cells)}
+    table = neighbour_table(cells, shape)
+    for row, c in zip(table.tolist(), cells.tolist()):
+        i, j, k = np.unravel_index(c, shape)
+        for x, (a, b, d) in zip(row, S.NEIGHBOUR_OFFSETS):
+            n = (i + a, j + b, k + d)
+            inside = all(0 <= n[t] < shape[t] for t in range(3))
+            assert x == (pos.get(int(np.ravel_multi_index(n, shape)), -1) if inside else -1)
+    assert torch.equal(neighbour_table(cells, shape, half=True), table[:, :13])
+    assert all(tuple(-v for v in S.NEIGHBOUR_OFFSETS[j]) == S.NEIGHBOUR_OFFSETS[25 - j] for j in range(26))
+
+
+def test_feature_stats_are_the_sample_mean_and_deviation():
+    """The two-pass statistics the selection standardizes with are torch's (unbiased) mean and
+    standard deviation, to float32 rounding, on columns of very different offsets and scales;
+    a constant column's deviation is floored at 10⁻⁶, not 0."""
+    g = torch.Generator().manual_seed(0)
+    feats = torch.randn(5000, 6, generator=g) * torch.tensor([1e-3, 1.0, 30.0, 1.0, 5.0, 0.0]) + torch.tensor([0.0, 100.0, -4.0, 0.5, 0.0, 2.0])
+    mean, std = S._feature_stats(feats)
+    torch.testing.assert_close(mean, feats.mean(dim=0))
+    torch.testing.assert_close(std[:5], feats.std(dim=0)[:5], rtol=1e-5, atol=0)
+    assert float(std[5]) == pytest.approx(1e-6)
+
+
+def test_sym3_eigen_matches_lapack():
+    """The closed-form eigenvalues agree with torch.linalg.eigh, and the eigenvectors of the
+    largest and smallest with its (up to sign) wherever those eigenvalues are apart from the
+    middle one; a multiple of I gives z and x, a line's and a sheet's frames their axis."""
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(2000, 3, 3, generator=g, dtype=torch.float64)
+    spd = a @ a.transpose(1, 2) + 1e-3 * torch.eye(3, dtype=torch.float64)
+    lam, v1, v3 = sym3_eigen(spd)
+    want, vec = torch.linalg.eigh(spd)
+    torch.testing.assert_close(lam, want, rtol=1e-9, atol=1e-9)
+    apart1 = (want[:, 2] - want[:, 1]) > 1e-3 * want[:, 2]
+    apart3 = (want[:, 1] - want[:, 0]) > 1e-3 * want[:, 2]
+    assert float((1 - (v1 * vec[:, :, 2]).sum(-1).abs())[apart1].max()) < 1e-8
+    assert float((1 - (v3 * vec[:, :, 0]).sum(-1).abs())[apart3].max()) < 1e-8
+    special = torch.stack([2.0 * torch.eye(3), torch.diag(torch.tensor([1e-3, 0.7, 1e-3])), torch.diag(torch.tensor([0.6, 0.6, 1e-3]))])
+    lam, v1, v3 = sym3_eigen(special)
+    assert lam.dtype == torch.float32
+    torch.testing.assert_close(lam, torch.tensor([[2.0, 2.0, 2.0], [1e-3, 1e-3, 0.7], [1e-3, 0.6, 0.6]]))
+    torch.testing.assert_close(v1[0], torch.tensor([0.0, 0.0, 1.0]))
+    torch.testing.assert_close(v3[0], torch.tensor([1.0, 0.0, 0.0]))
+    torch.testing.assert_close(v1[1].abs(), torch.tensor([0.0, 1.0, 0.0]))  # a line along y
+    torch.testing.assert_close(v3[2].abs(), torch.tensor([0.0, 0.0, 1.0]))  # a sheet normal to z
 
 
 def test_gate_pieces_drops_the_pieces_mostly_odd():
