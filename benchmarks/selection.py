@@ -28,7 +28,7 @@ from crfedit.twin_scores import part_map, part_of, selection_iou
 from crfedit.report import emit_table
 
 VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for), keep strokes given, recolour grows the selection)
-    "default (bottleneck + colour + chromaticity + position at each cell's centre moved a half cell up the density gradient; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing (bilateral for removals), connectivity; recolours and removals join the chromaticity-only selection; recolours fill the rims; removals veto other colours)": ({}, True, False),
+    "default (bottleneck + colour + chromaticity + position at each cell's centre moved a half cell up the density gradient; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing (bilateral for removals), connectivity; recolours and removals join the chromaticity-only selection; recolours fill the rims; both veto other colours)": ({}, True, False),
     "removals: the shape read from the occupancy grid, weighted 0.25, no gate, no rims (before 2026-11-26)": ({"shape_from": "occupancy", "geometry_weight": 0.25, "shape_gate": 0.0, "rim_fill": 0.0}, True, False),
     "removals: no shape gate": ({"shape_gate": 0.0}, True, False),
     "removals: no rims": ({"rim_fill": 0.0}, True, False),
@@ -43,7 +43,8 @@ VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for),
     "removals smooth with the plain mean (an earlier default)": ({"smooth_bandwidth": 0.0}, True, False),
     "recolours smooth bilaterally too": ({"smooth_bandwidth": 0.7}, True, False),
     "without the chromaticity-only join": ({"chroma_union": 0.0}, True, False),
-    "the join without the saturation test": ({"chroma_saturation": 0.0}, True, False),
+    "the join without the saturation test (recolours' default since 2026-11-26)": ({"chroma_saturation": 0.0}, True, False),
+    "no pale veto (removals and recolours)": ({"pale_veto": 0.0}, True, False),
     "colour twins scored on the selection grown by hysteresis (Selection.grown; not what the edits use)": ({}, True, True),
     "no appearance gate": ({"appearance_gate": 0.0}, True, False),
     "no appearance fit in self-training": ({"appearance_self_training": False}, True, False),

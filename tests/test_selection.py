@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    CHROMA_UNION, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION, PALE_UNION, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, quantized, save_selection, select,
+    CHROMA_UNION, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, quantized, save_selection, select,
     smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
     denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE, local_shape,
 )
@@ -172,14 +172,15 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
     assert options_for("color").chroma_union == options_for("remove").chroma_union == CHROMA_UNION > 0
     assert options_for("add").chroma_union == 0
-    # a pale part's join is capped by pale_union instead (recolours'; removals never join below PALE_SATURATION)
+    # a pale part's join can be capped by pale_union instead (removals never join below PALE_SATURATION)
     pale = SelectOptions(chroma_union=1e6, pale_union=1e-6, chroma_saturation=0.0, pale_saturation=1.01)  # every part is pale
     assert select(model, k, views, pale).meta["chroma_union"]["joined"] is False
     vivid = dataclasses.replace(pale, pale_saturation=0.0)  # no part is pale: chroma_union decides
     assert torch.equal(select(model, k, views, vivid).values, joined.values)
     assert torch.equal(select(model, k, views, dataclasses.replace(pale, pale_union=1e6)).values, joined.values)
-    assert options_for("color").chroma_saturation == COLOR_SATURATION < PALE_SATURATION == options_for("remove").chroma_saturation
-    assert options_for("color").pale_union == PALE_UNION > 0 and options_for("remove").pale_union == 0
+    assert options_for("color").pale_veto_saturation == COLOR_SATURATION < PALE_SATURATION == options_for("remove").chroma_saturation
+    assert options_for("color").chroma_saturation == 0.0  # recolours join at every saturation: the vetoes keep other hues out
+    assert options_for("color").pale_union == options_for("remove").pale_union == 0  # the vetoes hold a recolour's join
     # recolours select at the lower threshold, after the same refinement: same values, more cells
     assert options_for("color").select_threshold == COLOR_THRESHOLD < 0.5
     assert options_for("remove").select_threshold is None and options_for("add").select_threshold is None
@@ -483,31 +484,41 @@ def test_chroma_alike_closed_form():
     assert chroma_alike(cells, pos, 2.0, 0.25).tolist() == [True] * 5
 
 
-def test_chroma_veto_only_caps_unlike_cells_below_the_skin(trained, monkeypatch):
-    """The removal's chromaticity veto lowers only cells of value ≥ GROW_LOW whose chromaticity
-    is unlike the scribbled points', never a scribbled cell, to just below GROW_LOW; a near-grey
-    part is not vetoed."""
+def test_chroma_veto_only_caps_unlike_cells_below_the_skin(trained):
+    """The chromaticity vetoes (a saturated part's and a near-grey part's) lower only cells of
+    value ≥ GROW_LOW whose chromaticity is unlike the scribbled points', never a scribbled
+    cell, to just below GROW_LOW; each leaves a part of the other kind as it is."""
     from crfedit.edit import selection as S
     _, model, category = trained
     k = 1
     view, fg, keep, _ = part_view(category, k, "back")
     views = [ScribbleView(view.camera, fg, keep)]
-    monkeypatch.setattr(S, "VETO_FLOOR", 0.0)  # the tests' weakly trained parts are near-grey: make the veto bite
+    # the tests' weakly trained parts are near-grey: a floor of 0 makes the vetoes bite
     plain = select(model, k, views, SelectOptions(chroma_saturation=0.0))
-    vetoed = select(model, k, views, SelectOptions(chroma_saturation=0.0, veto_chroma=1.0))
-    changed = vetoed.values != plain.values
-    assert bool(changed.any()) and bool((vetoed.values <= plain.values).all())
-    assert bool((plain.values[changed] >= S.GROW_LOW).all()) and bool((vetoed.values[changed] < S.GROW_LOW).all())
     field = model.field_for(k)
     pts, on = surface_points(field, view.camera, k)
     scribbled = pts[torch.from_numpy(fg.reshape(-1)) & on]
-    grid = torch.zeros_like(changed)
+    grid = torch.zeros_like(plain.values, dtype=torch.bool)
     ijk, inside = occupancy.cell_index(field.normalize(scribbled), grid.shape[-1])
     grid[ijk[inside, 0], ijk[inside, 1], ijk[inside, 2]] = True
-    assert not bool((changed & grid).any())
-    grey = select(model, k, views, SelectOptions(chroma_saturation=1.01, veto_chroma=1.0))  # no part is that saturated
+    for veto in (dict(veto_chroma=1.0, veto_floor=0.0), dict(pale_veto=1.0, pale_veto_floor=0.0, pale_veto_saturation=1.01)):
+        vetoed = select(model, k, views, SelectOptions(chroma_saturation=0.0, **veto))
+        changed = vetoed.values != plain.values
+        assert bool(changed.any()) and bool((vetoed.values <= plain.values).all())
+        assert bool((plain.values[changed] >= S.GROW_LOW).all()) and bool((vetoed.values[changed] < S.GROW_LOW).all())
+        assert not bool((changed & grid).any())
+    grey = select(model, k, views, SelectOptions(chroma_saturation=1.01, veto_chroma=1.0, veto_floor=0.0))  # no part is that saturated
     assert torch.equal(grey.values, select(model, k, views, SelectOptions(chroma_saturation=1.01)).values)
-    assert options_for("remove").veto_chroma == S.REMOVE_VETO_CHROMA > 0 == options_for("color").veto_chroma == options_for("add").veto_chroma
+    vivid = select(model, k, views, SelectOptions(pale_veto=1.0, pale_veto_floor=0.0, pale_veto_saturation=0.0))  # nor that grey
+    assert torch.equal(vivid.values, select(model, k, views, SelectOptions()).values)
+    assert options_for("remove").veto_chroma == S.REMOVE_VETO_CHROMA > 0 == options_for("add").veto_chroma
+    color = options_for("color")
+    assert (color.veto_chroma, color.veto_floor, color.pale_veto) == (S.COLOR_VETO_CHROMA, S.COLOR_VETO_FLOOR, S.COLOR_PALE_VETO)
+    removal = options_for("remove")
+    assert removal.veto_floor == S.VETO_FLOOR > color.veto_floor > color.pale_veto_floor == removal.pale_veto_floor > 0
+    assert removal.pale_veto == S.REMOVE_PALE_VETO > 0 == options_for("add").pale_veto
+    # the two vetoes cover every saturation: the pale one up to where the saturated one starts
+    assert removal.pale_veto_saturation == removal.chroma_saturation and color.pale_veto_saturation > color.chroma_saturation
 
 
 def test_surface_selected_closed_form():

@@ -120,6 +120,12 @@ GROW_LOW = 0.3
 """:meth:`Selection.grown` also takes the cells of value ≥ this connected to the selection
 (a measured diagnostic; no edit uses it, see the module docstring); a removal also empties the
 cells next to S of value ≥ this."""
+VETO_FLOOR = 0.08
+"""Chromaticity distance added to the veto's spread term: the scribbled points of a uniformly
+coloured part spread by 0.005–0.02, less than the part's own shading edges differ; with the
+spread alone (factor 3, floor 0.01) the veto cut those edges from the procedural removals'
+parts (gap closed 0.778 → 0.735).  Removals' :attr:`SelectOptions.veto_floor`; recolours use
+:data:`COLOR_VETO_FLOOR`."""
 FEATURE_GROUPS = (*FEATURES, "fuse", "geometry", "part")
 """Per-point feature groups :func:`point_features` can build: ``fuse`` (F_fuse's activations,
 the model's width) and ``geometry`` (:func:`local_shape`), which removals read
@@ -277,14 +283,19 @@ class SelectOptions:
     for five more twins: real recolours 0.562 → 0.655 of the gap (edit seed 1: 0.580 →
     0.657; a pink shell 0.24 stays below, its recolour 0.25), procedural 0.615 → 0.619,
     removals 0.479 → 0.550 (procedural) and 0.644 → 0.624 (real); 0.2 flooded a procedural
-    back (recolours 0.511).  Recolours use :data:`COLOR_SATURATION`, with ``pale_union``."""
+    back (recolours 0.511).  Recolours join at every saturation (0): their chromaticity
+    vetoes keep other hues out (:data:`COLOR_VETO_CHROMA`)."""
     pale_union: float = 0.0
     """When > 0, a part less saturated than ``pale_saturation`` (and at least
     ``chroma_saturation``) joins only when the chromaticity-only selection holds at most this ×
     the full features' cells, not ``chroma_union`` ×: its chromaticity is nearer the model's
-    colour noise and the hue of the chair's other parts.  Recolours use :data:`PALE_UNION`
-    (with ``chroma_saturation`` at :data:`COLOR_SATURATION`; 0: ``chroma_union`` at any
-    saturation)."""
+    colour noise and the hue of the chair's other parts (0: ``chroma_union`` at any
+    saturation, every kind's default).  Recolours used 2.0 until their chromaticity vetoes
+    (:data:`COLOR_VETO_CHROMA`): a procedural back of saturation 0.25 whose arms share its
+    brown held 2.18 × the full features' cells and took the arms (gap closed 0.75 → −0.06 at
+    :data:`CHROMA_UNION`).  With the vetoes the cap at 2.0 only held back what should join
+    (a pink café shell's shadowed outside, a dark armchair shell's other side: real
+    recolours 0.845 / 0.752 → 0.845 / 0.832); at 2.25, 2.5 and 3 as without it."""
     pale_saturation: float = PALE_SATURATION
     """See ``pale_union``."""
     smooth: bool = True
@@ -318,9 +329,20 @@ class SelectOptions:
     veto_chroma: float = 0.0
     """When > 0, each cell of value ≥ :data:`GROW_LOW`, the scribbled cells aside, whose
     chromaticity lies farther from the scribbled points' median than this × their spread +
-    :data:`VETO_FLOOR` (:func:`chroma_alike`) is capped below :data:`GROW_LOW`: neither
+    ``veto_floor`` (:func:`chroma_alike`) is capped below :data:`GROW_LOW`: neither
     selected nor taken into a removal's skin.  Only for a saturated part
-    (``chroma_saturation``, as for the join).  Removals use :data:`REMOVE_VETO_CHROMA`."""
+    (``chroma_saturation``, as for the join).  Removals use :data:`REMOVE_VETO_CHROMA`,
+    recolours :data:`COLOR_VETO_CHROMA`."""
+    veto_floor: float = VETO_FLOOR
+    """See ``veto_chroma``; recolours use :data:`COLOR_VETO_FLOOR`."""
+    pale_veto: float = 0.0
+    """``veto_chroma`` for a near-grey part (saturation below ``pale_veto_saturation``), with
+    this factor and ``pale_veto_floor``: a grey material has no hue, so a cell of a clear hue
+    is another part (0: off; recolours use :data:`COLOR_PALE_VETO`)."""
+    pale_veto_floor: float = 0.02
+    """See ``pale_veto``."""
+    pale_veto_saturation: float = 0.2
+    """See ``pale_veto``."""
     keep_ratio: float = 0.0
     """When > 0, a keep stroke wins near it: a cell whose nearest keep-stroke point is nearer
     than this × its nearest positive, in the standardized appearance and position
@@ -358,9 +380,11 @@ removal, four models) hold 0.51–1.99×, and 2.19–2.68× for a wooden frame s
 whose legs the join rightly adds (IoU 0.59 → 0.93, gap closed 0.48 → 1.00 on the 17 000-step
 real model; at 2.5 it was refused there).  The factor sits below the one flood measured."""
 COLOR_SATURATION = 0.2
-"""A recolour's :attr:`SelectOptions.chroma_saturation`: its chromaticity join and lower cut
-(:data:`COLOR_THRESHOLD`) run for parts from this saturation, joining at most
-:data:`PALE_UNION` × the full features' cells below :data:`PALE_SATURATION`.  A pink shell
+"""A recolour's :attr:`SelectOptions.pale_veto_saturation`: below it the pale veto
+(:data:`COLOR_PALE_VETO`) runs too.  Until the vetoes (2026-11-26) it was a recolour's
+:attr:`SelectOptions.chroma_saturation`: the chromaticity join and lower cut
+(:data:`COLOR_THRESHOLD`) ran for parts from this saturation, joining at most 2 × the full
+features' cells below :data:`PALE_SATURATION`; now they run at every saturation.  A pink shell
 (0.24–0.26), scribbled on its lit inside, had its shadowed outside left out: the full
 features' classifier leans on the predicted colour, and the view's unscribbled shadowed
 inside stayed a negative.  Measured on the 16-twin benchmark over the four model pairs
@@ -372,11 +396,6 @@ more than 0.02.  The cut sits between the black and white shells (≤ 0.14) and 
 procedural back (0.21).  Only the join: 0.727 and 0.690 mean; only the lower cut:
 0.746 and 0.666.  Removals keep 0.3: at 0.2 (join capped as here) their gap closed moved
 0.620 → 0.624 and 0.758 → 0.767, four twins up and three down by 0.03–0.13."""
-PALE_UNION = 2.0
-"""A recolour's :attr:`SelectOptions.pale_union`.  A procedural back of saturation 0.25 whose
-arms share its brown: its chromaticity-only selection held 2.18 × the full features' cells
-and took the arms (gap closed 0.75 → −0.06 at :data:`CHROMA_UNION`); the pink shell's held
-1.06–1.71 ×, and the other pale parts' 0.64–1.11 ×."""
 EDIT_KINDS = ("color", "remove", "add")
 """What a selection can be made for (:func:`options_for`)."""
 
@@ -476,11 +495,13 @@ Was 2.0; 1.5 on the 16-twin benchmark over two model pairs (procedural / real, t
 0 and 1, edit seed 0): 0.550 / 0.624 / 0.475 / 0.565 → 0.550 / 0.630 / 0.477 / 0.630 (the
 desk chair on the seed-1 model 0.07 → 0.56); edit seed 1: 0.549 / 0.622 / 0.476 / 0.570 →
 0.548 / 0.625 / 0.479 / 0.624; 1.25 and 1.0 gained more on one model and lost on another."""
-VETO_FLOOR = 0.08
-"""Chromaticity distance added to the veto's spread term: the scribbled points of a uniformly
-coloured part spread by 0.005–0.02, less than the part's own shading edges differ; with the
-spread alone (factor 3, floor 0.01) the veto cut those edges from the procedural removals'
-parts (gap closed 0.778 → 0.735)."""
+REMOVE_PALE_VETO = 1.0
+"""A removal's :attr:`SelectOptions.pale_veto` (floor 0.02), below the saturation its
+chromaticity veto starts at (0.3), so a removal vetoes unlike hues beside a part of any
+saturation.  Measured as :data:`COLOR_VETO_CHROMA`, removals' gap closed 0.823 / 0.830 / 0.885
+/ 0.820 → 0.822 / 0.837 / 0.882 / 0.842 (the real armchair's grey tube frame on the seed-1
+model 0.22 → 0.45); the removals' own veto at floor 0.05 instead of 0.08: 0.821 / 0.829 /
+0.880 / 0.817."""
 KEEP_GROUPS = ("bottleneck", "color", "chroma", "position")
 """The feature groups of :attr:`SelectOptions.keep_ratio`'s distance: appearance and position
 (not F_fuse's activations nor the grid's local shape, which removals' classifier also reads)."""
@@ -525,6 +546,40 @@ mirrored view's other surface points).  A recolour's classifier leans on the pre
 colour, and the mirrored view brings the far side's other lighting into its positives."""
 
 
+COLOR_VETO_CHROMA = 1.0
+"""A recolour's :attr:`SelectOptions.veto_chroma`, with :data:`COLOR_VETO_FLOOR`, at every
+saturation (a recolour's ``chroma_saturation`` is 0; a near-grey part also gets
+:data:`COLOR_PALE_VETO`).  A dark blue armchair shell scribbled on its back took the light
+grey cushions inside it, lit alike in the bottleneck features (chromaticity distance from the
+scribbled points: shell 0.017–0.024, cushions 0.076–0.079; the removals' floor 0.08 let them
+through).  Measured on the 16-twin benchmark (hybrid, one view, the 17 000-step models,
+procedural / real, training seeds 0 and 1; docs/benchmarks.md), recolours' gap closed:
+
+- before: 0.904 / 0.906 / 0.790 / 0.673;
+- this veto for saturated parts only (the join and lower cut from 0.2 as before): 0.906 /
+  0.908 / 0.803 / 0.717;
+- with the join and lower cut at every saturation and the pale veto: 0.906 / 0.908 / 0.845 /
+  0.752 (the shell 0.68 / −0.10 → 0.78 / 0.26; outside the part 29.93 / 29.24 → 30.75 /
+  30.39 dB on the real models);
+- and no pale cap on the join (``pale_union`` 0, the default): 0.906 / 0.908 / 0.845 / 0.832
+  (the shell on the seed-1 model 0.64, the café chair's pink shell 0.53 → 0.79).
+
+Factor 1.5: 0.908 / 0.907 / 0.846 / 0.739; floor 0.05: 0.900 / 0.904 / 0.839 / 0.724; one
+veto at floor 0.03 for every saturation without the pale one: 0.901 / 0.900 / 0.835 / 0.751;
+at floor 0.02: 0.901 / 0.900 / 0.843 / 0.744 (all with the cap)."""
+COLOR_VETO_FLOOR = 0.03
+""":data:`COLOR_VETO_CHROMA`'s :attr:`SelectOptions.veto_floor`."""
+COLOR_PALE_VETO = 1.0
+"""A recolour's :attr:`SelectOptions.pale_veto` (floor 0.02, below :data:`COLOR_SATURATION`).
+A white shell's selection took blotches of the beige seat cushion it holds (chromaticity
+distance 0.05 against the shell's 0.017), and the recolour darkened them.  Measured as
+:data:`COLOR_VETO_CHROMA`, with the join and the lower cut at every saturation: real
+recolours' gap closed 0.790 / 0.673 → 0.833 / 0.707 (the shell 0.31 / 0.39 → 0.63 / 0.70),
+procedural unchanged (their scribbled parts are saturated); the pale veto alone, the join
+from 0.2 as before: 0.819 / 0.673 (the shell 0.54 / 0.39: on the seed-1 model the shell's
+lit inside was missing, which only the join takes)."""
+
+
 def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
     """The selection options an edit of ``kind`` uses: recolours and removals join the
     chromaticity-only selection (:data:`CHROMA_UNION`), additions (a donor's part) do not: it
@@ -534,8 +589,9 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
     bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
     chromaticity (:data:`REMOVE_VETO_CHROMA`); recolours select at a lower
     cut (:data:`COLOR_THRESHOLD`), fill the rims (:data:`COLOR_FILL_SHARE`), gate
-    appearance tighter (:data:`COLOR_APPEARANCE_GATE`) and join pale parts too
-    (:data:`COLOR_SATURATION`, :data:`PALE_UNION`).  Both let keep strokes win near them
+    appearance tighter (:data:`COLOR_APPEARANCE_GATE`), join at every saturation and veto
+    unlike hues (:data:`COLOR_VETO_CHROMA`, :data:`COLOR_PALE_VETO`; removals
+    :data:`REMOVE_PALE_VETO` below their join's saturation).  Both let keep strokes win near them
     (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`), and read the instance's mirror
     symmetry (:data:`REMOVE_MIRROR`, :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise."""
     if kind not in EDIT_KINDS:
@@ -548,7 +604,9 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
 
 def _kind_options(kind: str) -> SelectOptions:
     if kind == "color":
-        return SelectOptions(chroma_union=CHROMA_UNION, chroma_saturation=COLOR_SATURATION, pale_union=PALE_UNION,
+        return SelectOptions(chroma_union=CHROMA_UNION, chroma_saturation=0.0,
+                             veto_chroma=COLOR_VETO_CHROMA, veto_floor=COLOR_VETO_FLOOR,
+                             pale_veto=COLOR_PALE_VETO, pale_veto_saturation=COLOR_SATURATION,
                              select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
                              appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
                              keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR)
@@ -557,6 +615,7 @@ def _kind_options(kind: str) -> SelectOptions:
                              shape_gate=REMOVE_SHAPE_GATE, rim_fill=REMOVE_RIM_FILL,
                              chroma_union=CHROMA_UNION,
                              smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA,
+                             pale_veto=REMOVE_PALE_VETO, pale_veto_saturation=PALE_SATURATION,
                              keep_ratio=REMOVE_KEEP_RATIO, mirror=REMOVE_MIRROR)
     return SelectOptions()
 
@@ -1474,7 +1533,9 @@ def select(
     elif at < options.threshold and options.band_chroma > 0 and "chroma" in groups:
         values = cap_unlike(values, options.band_chroma, at, low=at)
     if options.veto_chroma > 0 and "chroma" in groups and saturation >= options.chroma_saturation:  # see SelectOptions.veto_chroma
-        values = cap_unlike(values, options.veto_chroma, GROW_LOW, low=GROW_LOW, high=float("inf"), floor=VETO_FLOOR, spare=scribbled)
+        values = cap_unlike(values, options.veto_chroma, GROW_LOW, low=GROW_LOW, high=float("inf"), floor=options.veto_floor, spare=scribbled)
+    if options.pale_veto > 0 and "chroma" in groups and saturation < options.pale_veto_saturation:  # see SelectOptions.pale_veto
+        values = cap_unlike(values, options.pale_veto, GROW_LOW, low=GROW_LOW, high=float("inf"), floor=options.pale_veto_floor, spare=scribbled)
     if "part" in groups:  # see SelectOptions.part_veto and part_join
         c = columns["part"]
         alike = torch.full((res**3,), -1.0, device=occupied.device)
