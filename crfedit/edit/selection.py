@@ -1051,9 +1051,17 @@ def chroma_alike(cells: Tensor, pos: Tensor, factor: float, floor: float = 0.01)
     """Whether each cell's chromaticity [N, 3] lies within ``factor`` · r + ``floor`` of the
     positives' [P, 3] median chromaticity, r the 90th percentile of the positives' own
     distances to it."""
+    distance, r, _ = chroma_spread(cells, pos)
+    return distance <= factor * r + floor
+
+
+def chroma_spread(cells: Tensor, pos: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`chroma_alike`'s terms: each cell's distance [N] to the positives' median
+    chromaticity, r (the 90th percentile of the positives' own distances to it) and the median
+    [3], so that one selection tests several factors without computing them again."""
     med = pos.median(dim=0).values
     r = torch.quantile((pos - med).norm(dim=-1), 0.9) if len(pos) > 1 else torch.zeros((), device=pos.device)
-    return (cells - med).norm(dim=-1) <= factor * r + floor
+    return (cells - med).norm(dim=-1), r, med
 
 
 def evenly(rows: Tensor, most: int) -> Tensor:
@@ -1491,18 +1499,20 @@ def select(
         spared.view(-1)[cells[veto]] = True
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats), cells, neighbours, occupied, scribbled, kept, options, veto)
     columns = _columns(groups, widths)
+    union, saturation, spread = None, 0.0, None
+    if "chroma" in groups:  # the cells' chromaticity distances, once for every test below
+        spread = chroma_spread(f_cells[:, columns["chroma"]], f_pos[:, columns["chroma"]])
+        med = spread[2]  # HSV saturation of the scribbled points' median chromaticity
+        saturation = float((med.max() - med.min()) / med.max().clamp_min(1e-6))
+
     def alike_grid(factor: float, floor: float = 0.01) -> Tensor:
         """[R, R, R] bool: the occupied cells whose chromaticity is the scribbled points'
-        (:func:`chroma_alike` with ``factor`` and ``floor``)."""
-        c = columns["chroma"]
+        (:func:`chroma_alike` with ``factor`` and ``floor``, from ``spread``)."""
+        distance, r, _ = spread
         alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        alike[cells] = chroma_alike(f_cells[:, c], f_pos[:, c], factor, floor)
+        alike[cells] = distance <= factor * r + floor
         return alike.view(res, res, res)
 
-    union, saturation = None, 0.0
-    if "chroma" in groups:  # HSV saturation of the scribbled points' median chromaticity
-        med = f_pos[:, columns["chroma"]].median(dim=0).values
-        saturation = float((med.max() - med.min()) / med.max().clamp_min(1e-6))
     if options.chroma_union > 0 and "chroma" in groups and len(groups) > 1:  # see SelectOptions.chroma_union
         c = columns["chroma"]
         union = {"saturation": round(saturation, 3), "cells": None, "joined": False}
