@@ -184,6 +184,27 @@ def test_count_events_finds_host_reads():
     assert counts.host_reads == 1 and counts.item == 1 and counts.nonzero == 2
 
 
+def test_count_events_leaves_out_the_profilers_own_synchronization():
+    """Measured on an H200: the profiler issues one cudaDeviceSynchronize, under no op, when it
+    stops; a step's read syncs inside an op (here aten::copy_), and one issued by no op between
+    the steps' ops is the steps' too."""
+    from types import SimpleNamespace as E
+
+    span = lambda a, b: E(start=a, end=b)
+    copy = E(name="aten::copy_", cpu_parent=None, time_range=span(0, 10))
+    add = E(name="aten::add", cpu_parent=None, time_range=span(20, 30))
+    events = [
+        copy, add,
+        E(name="cudaStreamSynchronize", cpu_parent=copy, time_range=span(5, 6)),  # a read: the steps'
+        E(name="cudaDeviceSynchronize", cpu_parent=None, time_range=span(12, 13)),  # between ops: the steps'
+        E(name="cudaLaunchKernel", cpu_parent=add, time_range=span(21, 22)),
+        E(name="cudaDeviceSynchronize", cpu_parent=None, time_range=span(40, 41)),  # the profiler's stop
+    ]
+    counts = count_events(events, steps=2, cuda=True)
+    assert counts.synchronizations == 1.0 and counts.kernel_launches == 0.5 and counts.aten_ops == 1.0
+    assert count_events(events, steps=2).synchronizations is None
+
+
 def sha(path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 

@@ -327,7 +327,7 @@ def recolor_selected(
     edit = InstanceEdit(model, k, "color", options.strategy, options.penalty)
     device = model.device
     sel = selection.mask.to(device)
-    recolor = RecolorTarget(appear, scribbled_rgb, options.recolor)
+    recolor = RecolorTarget(appear, scribbled_rgb.to(device), options.recolor)
     rays = supervision_rays(cameras, max(8, options.rays // (len(TURNS) * len(cameras))), generator, device)
     (p,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=options.cache)
     radiance = p.stage == "radiance"
