@@ -74,6 +74,16 @@ def raw_field_at_samples(
     return raw, net.radiance_from_codes(feat, directions, color_codes, idx)
 
 
+def raw_density_at_samples(
+    net: FieldNet, field: ConditionalRadianceField, points: Tensor, directions: Tensor, instance: Tensor | int
+) -> tuple[Tensor, Tensor]:
+    """:func:`raw_field_at_samples` without the colour: raw density [M] and zeros [M, 3] (F_fuse
+    → F_dens only; no bottleneck, no F_rad).  For renders that read only depth and opacity."""
+    shape_codes, _, idx = field.select(instance)
+    raw = net.raw_density(net.fuse_activations(net.fuse_inputs(field.normalize(points), shape_codes, idx)))
+    return raw, points.new_zeros(points.shape[0], 3)
+
+
 def field_at_samples(
     net: FieldNet, field: ConditionalRadianceField, samples: PackedSamples, rays: Rays, instance: Tensor | int,
     noise: float = 0.0, generator: torch.Generator | None = None, raw_field=raw_field_at_samples,
@@ -176,6 +186,7 @@ def render_rays(
     early_stop: float | None = None,
     jitter: Tensor | None = None,  # [N] in [0, 1)
     march: FixedMarch | None = None,
+    colour: bool = True,
 ) -> RenderOutput:
     """Render a batch of rays of one or several instances (``instance`` int or [N] long).
 
@@ -183,7 +194,9 @@ def render_rays(
     deterministic.  ``early_stop`` (grid sampler) drops rays whose transmittance is below it.
     ``jitter`` (grid sampler) gives each ray's sample offset within its marching steps instead
     of drawing it from ``generator``.  ``march`` (grid sampler) marches with fixed shapes and
-    no host read (:class:`FixedMarch`); without it, the reference march.
+    no host read (:class:`FixedMarch`); without it, the reference march.  ``colour=False``
+    (grid sampler, reference march) skips the bottleneck and F_rad: depth and opacity are the
+    same bits, and rgb is the background alone.
     """
     n = rays.origins.shape[0]
     single = int(instance) if not isinstance(instance, Tensor) else None
@@ -211,7 +224,8 @@ def render_rays(
             field, sub, instance[alive], first, segment, None if jitter is None else jitter[alive], t_near[alive], t_far[alive]
         )
         if samples.ray.numel():
-            sig, col = field_at_samples(field, field, samples, sub, instance[alive] if single is None else single, density_noise, generator)
+            sig, col = field_at_samples(field, field, samples, sub, instance[alive] if single is None else single, density_noise, generator,
+                                        raw_field_at_samples if colour else raw_density_at_samples)
             comp = composite_packed(samples.ray, samples.t_starts, samples.t_ends, sig, col, len(alive), 0.0)
             t_prev = trans[alive]
             rgb = rgb.index_add(0, alive, t_prev[:, None] * comp.rgb)
@@ -286,9 +300,11 @@ def _render_hierarchical(field, rays, instance, generator, background, density_n
 
 @torch.no_grad()
 def render_camera(
-    field: ConditionalRadianceField, camera: Camera, instance: int, chunk: int = 16384, background: float = 1.0
+    field: ConditionalRadianceField, camera: Camera, instance: int, chunk: int = 16384, background: float = 1.0,
+    colour: bool = True,
 ) -> RenderOutput:
     """Render a full view, ``chunk`` rays at a time so memory stays bounded at any resolution.
+    ``colour=False``: depth and opacity only (see :func:`render_rays`).
 
     Outputs are reshaped to images: rgb [H, W, 3], depth and opacity [H, W].
     """
@@ -297,7 +313,7 @@ def render_camera(
     outs = [
         render_rays(
             field, Rays(rays.origins[i : i + chunk], rays.directions[i : i + chunk]), instance,
-            background=background, early_stop=field.cfg.early_stop,
+            background=background, early_stop=field.cfg.early_stop, colour=colour,
         )
         for i in range(0, rays.origins.shape[0], chunk)
     ]

@@ -488,6 +488,16 @@ def test_render_camera_chunking_agrees_within_float32_rounding():
         assert o.n_samples == outs[0].n_samples
 
 
+def test_render_without_colour_has_the_same_depth_and_opacity_bits():
+    """``colour=False`` (what a selection's lift reads) skips the bottleneck and F_rad only."""
+    field = wide_grid_field()
+    full, bare = render_camera(field, CAM, 1, background=0.25), render_camera(field, CAM, 1, background=0.25, colour=False)
+    assert full.opacity.max() > 0.1 and full.n_samples == bare.n_samples
+    assert torch.equal(bare.depth, full.depth) and torch.equal(bare.opacity, full.opacity)
+    assert torch.equal(bare.rgb, (1.0 - bare.opacity)[..., None].expand(-1, -1, 3) * 0.25)  # the background alone
+    assert not torch.equal(bare.rgb, full.rgb)
+
+
 def test_render_camera_shapes():
     out = render_camera(small_field(), CAM, 0, chunk=50)
     assert out.rgb.shape == (10, 12, 3) and out.depth.shape == (10, 12) and out.opacity.shape == (10, 12)

@@ -672,8 +672,8 @@ def surface_points(
     out: RenderOutput | None = None,
 ) -> tuple[Tensor, Tensor]:
     """(world points [H·W, 3], on-object mask [H·W]) at each pixel's expected surface depth,
-    from ``out`` (the view's render; rendered here when None)."""
-    out = render_camera(field, camera, instance) if out is None else out
+    from ``out`` (the view's render; rendered here when None, depth and opacity only)."""
+    out = render_camera(field, camera, instance, colour=False) if out is None else out
     rays = rays_from_camera(camera, field.aabb.device)
     opacity = out.opacity.reshape(-1)
     t = out.depth.reshape(-1) / opacity.clamp_min(1e-6)
