@@ -107,5 +107,6 @@ def fingerprint(tensors: dict[str, torch.Tensor]) -> str:
     for name in sorted(tensors):
         t = tensors[name].detach().to("cpu").contiguous()
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        if t.numel():  # the array's own buffer: no copy of the bytes (10 MB on a 24-chair model)
+            h.update(t.reshape(-1).view(torch.uint8).numpy())
     return h.hexdigest()[:16]
