@@ -510,7 +510,8 @@ def test_edit_color_command_end_to_end(trained, tmp_path):
 def test_transfer_renders_equal_render_with_swapped_codes(trained, tmp_path):
     path, model, _ = trained
     edit = tmp_path / "t.safetensors"
-    r = invoke("transfer", path, "--instance", 0, "--shape-from", 2, "--color-from", 1, "--out", edit, "--device", "cpu")
+    r = invoke("transfer", path, "--instance", 0, "--shape-from", 2, "--color-from", 1, "--out", edit, "--device", "cpu",
+               "--preview", tmp_path / "prev", "--views", "test:0")
     assert r.exit_code == 0, r.output
     assert set(read_delta(edit).tensors) == {"shape_code", "color_code", "occupancy"}
     a = invoke("render", path, "--instance", 0, "--views", "test:0", "--edit", edit, "--out", tmp_path / "a", "--device", "cpu")
@@ -518,6 +519,7 @@ def test_transfer_renders_equal_render_with_swapped_codes(trained, tmp_path):
                "--out", tmp_path / "b", "--device", "cpu")
     assert a.exit_code == 0 and b.exit_code == 0, a.output + b.output
     assert (tmp_path / "a" / "0000.png").read_bytes() == (tmp_path / "b" / "0000.png").read_bytes()
+    assert (tmp_path / "prev" / "0000.png").read_bytes() == (tmp_path / "a" / "0000.png").read_bytes()  # --preview: the edited view
     result = transfer(model, 0, shape_from=2)
     cam = held_out(trained[2], 0)[0].camera
     assert torch.equal(render(result.model, 0, cam).rgb, render(swap_codes(model, 0, shape_from=2), 0, cam).rgb)

@@ -177,3 +177,8 @@ def test_add_reads_the_copy_mask_as_drawn(view, tiny_model, tmp_path):
         assert next(ln for ln in r.stdout.splitlines() if ln.startswith("copy: ")).startswith(f"copy: {reading}")
     a, b = (load_file(o) for o in outs)
     assert a.keys() == b.keys() and all(torch.equal(a[n], b[n]) for n in a)
+    # --preview renders the edited instance, as remove's and edit-color's do
+    r = invoke(*base, "--copy", tmp_path / "wob.png", "--out", tmp_path / "p.safetensors", "--preview", tmp_path / "prev", "--views", "orbit:2")
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "prev").iterdir()) == ["0000.png", "0001.png"]
+    assert r.stdout.splitlines()[-1] == f"wrote previews of the edited chair_000 (orbit:2) to {tmp_path / 'prev'}/"

@@ -268,6 +268,8 @@ def add_cmd(
     selection: Annotated[Optional[Path], typer.Option("--selection", help="With --method selection: a selection file of the DONOR's part from `crfedit select` (default: computed from --copy).")] = None,
     keep: KeepShapeOpt = None,
     keep_json: KeepJsonOpt = None,
+    preview: PreviewOpt = None,
+    views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     penalty: PenaltyOpt = Penalty.element,
@@ -297,7 +299,9 @@ def add_cmd(
     if selection is not None and method != AddMethod.selection:
         raise CrfError("--selection belongs to --method selection")
     sel = _selection(selection, m, j, "add")
-    _write(add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel), out, label)
+    result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel)
+    _write(result, out, label)
+    _preview(result.model, k, preview, views)
 
 
 @app.command("transfer")
@@ -308,6 +312,8 @@ def transfer_cmd(
     out: OutOpt,
     shape_from: Annotated[Optional[str], typer.Option("--shape-from", help="Take the shape code (and occupancy grid) of this instance.")] = None,
     color_from: Annotated[Optional[str], typer.Option("--color-from", help="Take the colour code of this instance.")] = None,
+    preview: PreviewOpt = None,
+    views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
@@ -325,6 +331,7 @@ def transfer_cmd(
         color_from=None if color_from is None else m.instance_index(color_from),
     )
     _write(result, out, "")
+    _preview(result.model, k, preview, views)
 
 
 # ----------------------------------------------------------------------------- edits …
