@@ -283,8 +283,9 @@ def test_removal_options_read_the_shape():
     recolours and additions read no shape."""
     o = options_for("remove")
     assert o.shape_from == "density" and o.geometry_weight == S.REMOVE_GEOMETRY_WEIGHT > 1
-    assert o.shape_gate == S.REMOVE_SHAPE_GATE > 0 and o.rim_fill == S.REMOVE_RIM_FILL > 0
-    assert options_for("color").rim_fill == options_for("color").shape_gate == 0
+    assert o.shape_gate == S.REMOVE_SHAPE_GATE > 0 and o.rim_fill == S.REMOVE_RIM_FILL > 0 and o.sheet_veto == S.REMOVE_SHEET_VETO > 0
+    assert options_for("color").rim_fill == options_for("color").shape_gate == options_for("color").sheet_veto == 0
+    assert options_for("add").sheet_veto == 0
     assert "geometry" not in options_for("color").features and "geometry" not in options_for("add").features
 
 
@@ -326,6 +327,9 @@ def test_shape_summary_lines():
     both = shape_summary({"shape_gate": {"dropped": 0}, "rim_fill": {"cells": 37}})
     assert both.startswith("nothing left out of the joins; took 37 rim cells")
     assert shape_summary({"rim_fill": {"cells": 0}}) == "no rim taken"
+    sheets = shape_summary({"shape_gate": {"dropped": 0}, "sheet_veto": {"line_share": 0.875, "cells": 1963}})
+    assert sheets == "nothing left out of the joins; left 1963 sheet cells out (the scribble lies on lines: 88%)"
+    assert shape_summary({"shape_gate": {"dropped": 0}, "sheet_veto": {"line_share": 0.2, "cells": 0}}) == "nothing left out of the joins"
 
 
 @pytest.mark.parametrize("n, p, f", [(20000, 90, 11), (300, 2500, 11), (20, 20, 5), (8200, 20, 4), (30, 10, 130), (1, 1, 3)])
@@ -340,3 +344,44 @@ def test_nearest_distance_is_cdist_min_to_the_bit(n, p, f):
     used = points[torch.linspace(0, p - 1, 2000).long()] if p > 2000 else points
     ref = torch.cat([torch.cdist(c, used).min(dim=1).values for c in cells.split(8192)])
     assert torch.equal(nearest_distance(cells, points), ref)
+
+
+def test_sheet_veto_leaves_no_sheet_but_the_scribbled_cells(edit_category):
+    """With the scribble read as lines (``sheet_veto`` tiny, so any share of lines is enough),
+    no selected cell is a sheet but the scribbled cells themselves; without the veto the same
+    scribble selects sheet cells (the seat), so the test can fail."""
+    import dataclasses
+    import json as _json
+
+    from crfedit.edit import selection as S
+    from crfedit.masks import dilate, erode
+
+    _, model, category = edit_category
+    k = 2
+    inst = category.instances[k]
+    pid = next(p["id"] for p in _json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
+    view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
+    fg, keep = erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1)
+    views = [S.ScribbleView(view.camera, fg, keep)]
+    field = model.field_for(k)
+    occupied = field.occupancy[k]
+    res = occupied.shape[-1]
+    pts, on = S.surface_points(field, view.camera, k)
+    scribbled = S._cells_of(field, pts[torch.from_numpy(fg.reshape(-1)) & on], res)
+    grid = S.cell_opacity(field, k, occupied)
+
+    def sheet_cells(sel) -> torch.Tensor:
+        chosen = sel.values >= sel.threshold
+        cells = chosen.reshape(-1).nonzero().squeeze(-1)
+        out = torch.zeros(res**3, dtype=torch.bool)
+        out[cells] = S.sheets_of(S.local_frames(grid, S.occupancy.cell_centers(res)[cells], S.SHAPE_GATE_RADIUS))
+        return out.view(res, res, res)
+
+    base = dataclasses.replace(options_for("remove"), mirror="off")
+    off = S.select(model, k, views, dataclasses.replace(base, sheet_veto=0.0))
+    on_ = S.select(model, k, views, dataclasses.replace(base, sheet_veto=1e-6))
+    assert "sheet_veto" not in off.meta and on_.meta["sheet_veto"]["cells"] > 0
+    assert (sheet_cells(off) & ~scribbled).any()
+    assert not (sheet_cells(on_) & ~scribbled).any()
+    assert 0 < on_.meta["selected_cells"] < off.meta["selected_cells"]
+    assert S.shape_summary(on_.meta).startswith(("nothing left out of the joins; left ", "left "))
