@@ -79,8 +79,7 @@ def raw_density_at_samples(
 ) -> tuple[Tensor, Tensor]:
     """:func:`raw_field_at_samples` without the colour: raw density [M] and zeros [M, 3] (F_fuse
     → F_dens only; no bottleneck, no F_rad).  For renders that read only depth and opacity."""
-    shape_codes, _, idx = field.select(instance)
-    raw = net.raw_density(net.fuse_activations(net.fuse_inputs(field.normalize(points), shape_codes, idx)))
+    raw = net.raw_density(field.fuse_features(field.normalize(points), instance, net))
     return raw, points.new_zeros(points.shape[0], 3)
 
 

@@ -289,15 +289,11 @@ def test_removal_options_read_the_shape():
     assert "geometry" not in options_for("color").features and "geometry" not in options_for("add").features
 
 
-def test_removal_selection_reports_the_gate_and_refuses_an_unknown_shape_source(edit_category):
-    """A removal's selection on a trained model reads the density's shape and says how many
-    joined cells the gate left out; the occupancy grid's shape is the other source, any other
-    name a one-line error."""
-    import dataclasses
+def seat_scribble(edit_category):
+    """(model, instance 2, the train view showing most of its seat, a scribble on the seat
+    eroded by a pixel, keep strokes on the other parts) of the shared edit fixture."""
     import json as _json
 
-    from crfedit.edit.selection import ScribbleView, select
-    from crfedit.errors import CrfError
     from crfedit.masks import dilate, erode
 
     _, model, category = edit_category
@@ -305,7 +301,19 @@ def test_removal_selection_reports_the_gate_and_refuses_an_unknown_shape_source(
     inst = category.instances[k]
     pid = next(p["id"] for p in _json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
     view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
-    fg, keep = erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1)
+    return model, k, view, erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1)
+
+
+def test_removal_selection_reports_the_gate_and_refuses_an_unknown_shape_source(edit_category):
+    """A removal's selection on a trained model reads the density's shape and says how many
+    joined cells the gate left out; the occupancy grid's shape is the other source, any other
+    name a one-line error."""
+    import dataclasses
+
+    from crfedit.edit.selection import ScribbleView, select
+    from crfedit.errors import CrfError
+
+    model, k, view, fg, keep = seat_scribble(edit_category)
     views = [ScribbleView(view.camera, fg, keep)]
     sel = select(model, k, views, options_for("remove"))
     assert "geometry" in sel.meta["features"] and isinstance(sel.meta["shape_gate"]["dropped"], int)
@@ -351,17 +359,10 @@ def test_sheet_veto_leaves_no_sheet_but_the_scribbled_cells(edit_category):
     no selected cell is a sheet but the scribbled cells themselves; without the veto the same
     scribble selects sheet cells (the seat), so the test can fail."""
     import dataclasses
-    import json as _json
 
     from crfedit.edit import selection as S
-    from crfedit.masks import dilate, erode
 
-    _, model, category = edit_category
-    k = 2
-    inst = category.instances[k]
-    pid = next(p["id"] for p in _json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
-    view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
-    fg, keep = erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1)
+    model, k, view, fg, keep = seat_scribble(edit_category)
     views = [S.ScribbleView(view.camera, fg, keep)]
     field = model.field_for(k)
     occupied = field.occupancy[k]

@@ -1077,7 +1077,12 @@ def chroma_alike(cells: Tensor, pos: Tensor, factor: float, floor: float = 0.01)
     """Whether each cell's chromaticity [N, 3] lies within ``factor`` · r + ``floor`` of the
     positives' [P, 3] median chromaticity, r the 90th percentile of the positives' own
     distances to it."""
-    distance, r, _ = chroma_spread(cells, pos)
+    return within_spread(chroma_spread(cells, pos), factor, floor)
+
+
+def within_spread(spread: tuple[Tensor, Tensor, Tensor], factor: float, floor: float) -> Tensor:
+    """:func:`chroma_alike`'s test on :func:`chroma_spread`'s terms: distance ≤ ``factor`` · r + ``floor``.  [N] bool"""
+    distance, r, _ = spread
     return distance <= factor * r + floor
 
 
@@ -1559,9 +1564,8 @@ def select(
     def alike_grid(factor: float, floor: float = 0.01) -> Tensor:
         """[R, R, R] bool: the occupied cells whose chromaticity is the scribbled points'
         (:func:`chroma_alike` with ``factor`` and ``floor``, from ``spread``)."""
-        distance, r, _ = spread
         alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        alike[cells] = distance <= factor * r + floor
+        alike[cells] = within_spread(spread, factor, floor)
         return alike.view(res, res, res)
 
     if options.chroma_union > 0 and "chroma" in groups and len(groups) > 1:  # see SelectOptions.chroma_union
