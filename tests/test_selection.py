@@ -16,7 +16,7 @@ from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
     CHROMA_UNION, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, quantized, save_selection, select,
     smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
-    denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE, local_shape,
+    denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE, local_shape, CHROMA_OFFSET, COLOR_CHROMA_OFFSET,
 )
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
@@ -263,6 +263,22 @@ def test_fuse_features_are_what_density_and_bottleneck_read(trained):
     assert torch.equal(f[:, w:], field.features(xn, 1))  # the bottleneck group, bit for bit as before
     torch.testing.assert_close(field.sigma(field.F_dens(f[:, :w]).squeeze(-1)), field.density(xn, 1))
     torch.testing.assert_close(field.bottleneck(f[:, :w]), f[:, w:])
+
+
+def test_chroma_offset_sets_how_far_shading_moves_chromaticity(trained):
+    """``chroma`` is rgb / (r + g + b + offset): the recolours' smaller offset keeps a shaded
+    point's chromaticity nearer its lit one's (a shading factor s moves it by (Σ + o)/(sΣ + o))."""
+    _, model, _ = trained
+    field = model.field_for(1)
+    pts = field.denormalize(torch.rand(40, 3, generator=torch.Generator().manual_seed(2)) * 1.6 - 0.8)
+    eye = torch.tensor([0.0, 0.0, 3.0])
+    for offset in (CHROMA_OFFSET, COLOR_CHROMA_OFFSET):
+        f = point_features(field, 1, pts, eye, ("color", "chroma"), chroma_offset=offset)
+        torch.testing.assert_close(f[:, 3:], f[:, :3] / (f[:, :3].sum(dim=-1, keepdim=True) + offset))
+    rgb, shaded = torch.tensor([0.84, 0.64, 0.66]), torch.tensor([0.84, 0.64, 0.66]) * 0.43
+    drift = lambda o: float((rgb / (rgb.sum() + o) - shaded / (shaded.sum() + o)).norm())
+    assert drift(COLOR_CHROMA_OFFSET) < 0.3 * drift(CHROMA_OFFSET)
+    assert options_for("color").chroma_offset == COLOR_CHROMA_OFFSET and options_for("remove").chroma_offset == CHROMA_OFFSET
 
 
 class _Blob:

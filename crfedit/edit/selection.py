@@ -133,6 +133,8 @@ the model's width) and ``geometry`` (:func:`local_shape`), which removals read
 :attr:`SelectOptions.part_head`)."""
 WIDTHS = {"color": 3, "chroma": 3, "position": 9, "geometry": 11}
 """Feature widths per group (the bottleneck's and F_fuse's are the model's: :func:`group_width`)."""
+CHROMA_OFFSET = 0.05
+"""The :attr:`SelectOptions.chroma_offset` removals use: rgb / (r + g + b + 0.05)."""
 GEOMETRY_RADIUS = 1
 """:func:`local_shape`'s block: the (2r+1)³ cells around the point's cell."""
 
@@ -349,6 +351,10 @@ class SelectOptions:
     """See ``pale_veto``."""
     pale_veto_saturation: float = 0.2
     """See ``pale_veto``."""
+    chroma_offset: float = CHROMA_OFFSET
+    """The ``chroma`` feature is rgb / (r + g + b + this): the offset keeps a black point's
+    chromaticity finite but pulls a shaded point's towards 0 (recolours use
+    :data:`COLOR_CHROMA_OFFSET`)."""
     keep_ratio: float = 0.0
     """When > 0, a keep stroke wins near it: a cell whose nearest keep-stroke point is nearer
     than this × its nearest positive, in the standardized appearance and position
@@ -561,6 +567,18 @@ mirrored view's other surface points).  A recolour's classifier leans on the pre
 colour, and the mirrored view brings the far side's other lighting into its positives."""
 
 
+COLOR_CHROMA_OFFSET = 0.01
+"""A recolour's :attr:`SelectOptions.chroma_offset`.  At 0.05 a shell's shaded underside
+(rgb 0.36 / 0.28 / 0.28, chromaticity 0.373 / 0.285 / 0.292) was no longer the scribbled lit
+inside's chromaticity (rgb 0.84 / 0.64 / 0.66, 0.383 / 0.292 / 0.301) to the classifiers: the
+unscribbled, shaded inside stayed a negative through self-training and both classifiers drew
+their line between bright and dark pink (the underside's cells 0.03 and 0.15).  Measured on
+the 16-twin benchmark (hybrid, one view, procedural / real models, training seeds 0 and 1;
+docs/benchmarks.md), recolours' selection IoU 0.908 / 0.904 / 0.897 / 0.887 → 0.909 / 0.905
+/ 0.919 / 0.899 (the café chair's shell 0.86 → 0.98), gap closed 0.906 / 0.908 / 0.845 /
+0.832 → 0.900 / 0.900 / 0.867 / 0.834, with the edits' seed 1 0.895 / 0.905 / 0.834 / 0.827
+→ 0.903 / 0.902 / 0.865 / 0.840; 0.02: 0.905 / 0.895 / 0.864 / 0.832.  Removals keep 0.05:
+at 0.01 their gap closed 0.827 / 0.833 / 0.895 / 0.912 → 0.825 / 0.829 / 0.902 / 0.891."""
 COLOR_VETO_CHROMA = 1.0
 """A recolour's :attr:`SelectOptions.veto_chroma`, with :data:`COLOR_VETO_FLOOR`, at every
 saturation (a recolour's ``chroma_saturation`` is 0; a near-grey part also gets
@@ -624,7 +642,7 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
 def _kind_options(kind: str) -> SelectOptions:
     if kind == "color":
         return SelectOptions(chroma_union=CHROMA_UNION, chroma_saturation=0.0,
-                             veto_chroma=COLOR_VETO_CHROMA, veto_floor=COLOR_VETO_FLOOR,
+                             veto_chroma=COLOR_VETO_CHROMA, veto_floor=COLOR_VETO_FLOOR, chroma_offset=COLOR_CHROMA_OFFSET,
                              pale_veto=COLOR_PALE_VETO, pale_veto_saturation=COLOR_SATURATION,
                              select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
                              appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
@@ -698,7 +716,7 @@ def surface_points(
 @torch.no_grad()
 def point_features(
     field: ConditionalRadianceField, instance: int, points: Tensor, view_from: Tensor, groups: Sequence[str], fused: Tensor | None = None,
-    shape_grid: Tensor | None = None, shape_radius: int = GEOMETRY_RADIUS,
+    shape_grid: Tensor | None = None, shape_radius: int = GEOMETRY_RADIUS, chroma_offset: float = CHROMA_OFFSET,
 ) -> Tensor:
     """The field's own description of world ``points`` [M, 3]: the chosen :data:`FEATURE_GROUPS`
     groups concatenated, unstandardized.  Colour is F_rad's output looking from ``view_from`` [3];
@@ -706,7 +724,8 @@ def point_features(
     can select e.g. both arms but not the seat between them); ``fuse`` is F_fuse's output, of
     which the bottleneck is a linear map; ``geometry`` the matter's local shape
     (:func:`local_shape` of ``shape_grid``, the instance's :func:`cell_opacity` when None).
-    ``fused``: F_fuse's output at the points, when the caller has it."""
+    ``fused``: F_fuse's output at the points, when the caller has it; ``chroma``'s offset:
+    :attr:`SelectOptions.chroma_offset`."""
     xn = field.normalize(points)
     fused = field.fuse_features(xn, instance) if fused is None else fused
     feat = field.bottleneck(fused)
@@ -722,7 +741,7 @@ def point_features(
         elif group == "color":
             out.append(rgb)
         elif group == "chroma":  # rgb / (r + g + b): a Lambertian shading factor cancels
-            out.append(rgb / (rgb.sum(dim=-1, keepdim=True) + 0.05))
+            out.append(rgb / (rgb.sum(dim=-1, keepdim=True) + chroma_offset))
         elif group == "position":
             x, y, z = xn.unbind(-1)
             out.append(torch.stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], dim=-1))
@@ -1523,7 +1542,7 @@ def select(
     shape_grid = None
     if "geometry" in groups:
         shape_grid = cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied
-    feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius)
+    feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius, options.chroma_offset)
     scribbled_frames, shape_gate, gate_meta = None, options.shape_gate > 0 and shape_grid is not None, {"dropped": 0}
     if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0):
         scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
