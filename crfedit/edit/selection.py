@@ -625,7 +625,8 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
     (:data:`REMOVE_FEATURES`), weigh position at :data:`REMOVE_POSITION_WEIGHT`, smooth
     bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
     chromaticity (:data:`REMOVE_VETO_CHROMA`); recolours select at a lower
-    cut (:data:`COLOR_THRESHOLD`), fill the rims (:data:`COLOR_FILL_SHARE`), gate
+    cut (:data:`COLOR_THRESHOLD`), read chromaticity with a smaller offset
+    (:data:`COLOR_CHROMA_OFFSET`), fill the rims (:data:`COLOR_FILL_SHARE`), gate
     appearance tighter (:data:`COLOR_APPEARANCE_GATE`), join at every saturation and veto
     unlike hues (:data:`COLOR_VETO_CHROMA`, :data:`COLOR_PALE_VETO`; removals
     :data:`REMOVE_PALE_VETO` below their join's saturation).  Both let keep strokes win near them
