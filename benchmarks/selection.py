@@ -65,19 +65,27 @@ VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for),
 
 
 @torch.no_grad()
-def oracle_selection(model, case, inst, part_id: int) -> Selection:
+def train_surfaces(model, case, inst) -> list[tuple[torch.Tensor, torch.Tensor, np.ndarray]]:
+    """Each train view's rendered surface points [H·W, 3], on-object mask [H·W] and
+    ground-truth part ids [H·W]: what both oracles read, rendered once."""
+    field = model.field_for(case.instance)
+    return [(*surface_points(field, v.camera, case.instance), part_map(inst.path, v).reshape(-1)) for v in inst.splits["train"]]
+
+
+@torch.no_grad()
+def oracle_selection(model, case, inst, part_id: int, surfaces=None) -> Selection:
     """The best a per-cell selection can do on this model: each cell takes the majority label
     of the ground-truth part maps of the train views at the surface points the model renders
-    in it.  Its IoU on the test views is the ceiling of the cell representation (cell size,
-    rendered depth and blur), not a method: it reads the ground truth."""
+    in it (``surfaces``: :func:`train_surfaces`, rendered here when None).  Its IoU on the test views is the ceiling of
+    the cell representation (cell size, rendered depth and blur), not a method: it reads the
+    ground truth."""
     field, res = model.field_for(case.instance), model.cfg.occ_res
     hit, total = torch.zeros(res**3), torch.zeros(res**3)
-    for v in inst.splits["train"]:
-        pts, on = surface_points(field, v.camera, case.instance)
+    for pts, on, ids in train_surfaces(model, case, inst) if surfaces is None else surfaces:
         ijk, inside = occupancy.cell_index(field.normalize(pts), res)
         m = on & inside
         cell = (ijk[:, 0] * res + ijk[:, 1]) * res + ijk[:, 2]
-        gt = torch.from_numpy(part_map(inst.path, v).reshape(-1) == part_id).float()
+        gt = torch.from_numpy(ids == part_id).float()
         hit.index_add_(0, cell[m], gt[m])
         total.index_add_(0, cell[m], torch.ones(int(m.sum())))
     values = (hit / total.clamp_min(1)).view(res, res, res)
@@ -85,16 +93,14 @@ def oracle_selection(model, case, inst, part_id: int) -> Selection:
 
 
 @torch.no_grad()
-def point_oracle_iou(model, case, inst, part_id: int) -> float | None:
+def point_oracle_iou(model, case, inst, part_id: int, surfaces=None) -> float | None:
     """IoU on the test views of labelling each rendered surface point with the ground-truth part
-    of the nearest labelled surface point of the train views (reads the answer; not a method).
-    No cell size limits it: what is left is the model's rendered surface itself, whose depth
-    blurs across part boundaries and whose silhouettes differ from the part maps' at 64²."""
-    field = model.field_for(case.instance)
+    of the nearest labelled surface point of the train views (``surfaces``:
+    :func:`train_surfaces`, rendered here when None; reads the answer, not a method).  No cell size limits it: what is
+    left is the model's rendered surface itself, whose depth blurs across part boundaries and
+    whose silhouettes differ from the part maps' at 64²."""
     points, labels = [], []
-    for v in inst.splits["train"]:
-        pts, on = surface_points(field, v.camera, case.instance)
-        ids = part_map(inst.path, v).reshape(-1)
+    for pts, on, ids in train_surfaces(model, case, inst) if surfaces is None else surfaces:
         m = on.cpu().numpy() & (ids > 0)
         points.append(pts[torch.from_numpy(m)])
         labels.append(torch.from_numpy(ids[m] == part_id))
@@ -104,7 +110,7 @@ def point_oracle_iou(model, case, inst, part_id: int) -> float | None:
         best = torch.cat([torch.cdist(chunk, points).argmin(1) for chunk in pts.split(4096)])
         return labels[best]
 
-    return surface_iou(field, case.instance, inst.path, inst.splits["test"], part_id, nearest_label)
+    return surface_iou(model.field_for(case.instance), case.instance, inst.path, inst.splits["test"], part_id, nearest_label)
 
 
 def edit_table_header(first: str) -> list[str]:
@@ -157,14 +163,9 @@ def main() -> None:
         "| variant | mean IoU | colour twins | removal twins | min IoU | seconds |", "|---|---:|---:|---:|---:|---:|",
     ]
 
-    def row(name, sels, secs, grow):
-        ious = {"color": [], "remove": []}
-        for case, sel in zip(cases, sels):
-            inst = category.instance(case.spec.source)
-            changed = sel.grown() if grow and case.spec.kind == "color" else sel
-            iou = selection_iou(model, changed, inst.path, inst.splits["test"], case.spec.part)
-            if iou is not None:
-                ious[case.spec.kind].append(iou)
+    def iou_line(name, ious, secs):
+        """A table row from the twins' IoUs per kind (None: no part maps to score)."""
+        ious = {k: [x for x in v if x is not None] for k, v in ious.items()}
         every = ious["color"] + ious["remove"]
         if not every:
             return
@@ -172,6 +173,14 @@ def main() -> None:
         line = f"| {name} | {np.mean(every):.3f} | {kind('color')} | {kind('remove')} | {np.min(every):.3f} | {secs} |"
         print(line, flush=True)
         lines.append(line)
+
+    def row(name, sels, secs, grow):
+        ious = {"color": [], "remove": []}
+        for case, sel in zip(cases, sels):
+            inst = category.instance(case.spec.source)
+            changed = sel.grown() if grow and case.spec.kind == "color" else sel
+            ious[case.spec.kind].append(selection_iou(model, changed, inst.path, inst.splits["test"], case.spec.part))
+        iou_line(name, ious, secs)
 
     for name, (overrides, with_keep, grow) in list(VARIANTS.items())[: 1 if args.default_only else None]:
         sels, secs = [], []
@@ -187,16 +196,12 @@ def main() -> None:
         record = part_of(inst.path, case.spec.part)
         if record is None or part_map(inst.path, inst.splits["train"][0]) is None:
             break  # no part maps: no oracle
-        oracles.append(oracle_selection(model, case, inst, record["id"]))
-        points[case.spec.kind].append(point_oracle_iou(model, case, inst, record["id"]))
+        surfaces = train_surfaces(model, case, inst)
+        oracles.append(oracle_selection(model, case, inst, record["id"], surfaces))
+        points[case.spec.kind].append(point_oracle_iou(model, case, inst, record["id"], surfaces))
     else:
         row("oracle: cells labelled by the train views' ground-truth part maps (reads the answer; not a method)", oracles, "–", False)
-        every = points["color"] + points["remove"]
-        kind = lambda k: f"{np.mean(points[k]):.3f}" if points[k] else "–"
-        line = (f"| oracle: each test surface point labelled as its nearest labelled train surface point (reads the answer; "
-                f"no cells) | {np.mean(every):.3f} | {kind('color')} | {kind('remove')} | {np.min(every):.3f} | – |")
-        print(line, flush=True)
-        lines.append(line)
+        iou_line("oracle: each test surface point labelled as its nearest labelled train surface point (reads the answer; no cells)", points, "–")
     emit_table(lines, args.out)
 
 
