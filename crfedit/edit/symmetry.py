@@ -144,5 +144,5 @@ def conflict(mirrored: Tensor, others: Tensor, cell: float) -> float:
     ``others`` [N, 3] (0 when either is empty)."""
     if len(mirrored) == 0 or len(others) == 0:
         return 0.0
-    near = torch.cat([torch.cdist(chunk, others).min(dim=1).values for chunk in mirrored.split(4096)])
+    near = torch.cat([torch.cdist(chunk, others).amin(dim=1) for chunk in mirrored.split(4096)])
     return float((near <= TOLERANCE * cell).float().mean())
