@@ -61,7 +61,7 @@ def test_cuda_edit_matches_the_cpu_edit_and_its_delta_loads_on_the_cpu(both, tmp
         a, b = (edit_color(m, 2, view.camera, fg, (0.9, 0.1, 0.1), keep, options=opts, selection=sel) for m in (cpu, gpu))
     else:
         a, b = (remove(m, 2, view.camera, fg, keep, options=opts, selection=sel) for m in (cpu, gpu))
-    assert all(t.device.type == "cuda" and bool(torch.isfinite(t.float()).all()) for t in b.tensors.values())
+    assert all(bool(torch.isfinite(t.float()).all()) for t in b.tensors.values())  # (a delta's tensors live on the CPU)
     path = tmp_path / "gpu.safetensors"
     b.save(path)
     from_gpu = apply_edit_files(cpu, [path])

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -478,18 +479,21 @@ def write_mask(path: Path, mask: np.ndarray) -> Path:
     return path
 
 
-def test_edit_color_command_end_to_end(trained, tmp_path):
+def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     path, model, category = trained
     i, view, fg, keep, _ = scribbles(category, 1, "seat")
     fg_png, keep_png = write_mask(tmp_path / "fg.png", fg), write_mask(tmp_path / "keep.png", keep)
     out = tmp_path / "a.safetensors"
+    # the provenance is the process's own command line (CliRunner leaves sys.argv as pytest's,
+    # which a pytest-xdist worker empties): a shell's, here
+    monkeypatch.setattr(sys, "argv", ["/usr/bin/crfedit", "edit-color", "m.safetensors", "--color", "#00f"])
     r = invoke("edit-color", path, "--instance", model.names[1], "--view", f"train:{i}", "--scribble", fg_png,
                "--keep", keep_png, "--color", "#00f", "--out", out, "--device", "cpu", "--steps", 30)
     assert r.exit_code == 0, r.output
     assert r.stdout.splitlines()[0] == "scribble: white on black, 32 pixels (3.1 % of the view)"
     assert r.stdout.splitlines()[-1].startswith(f"wrote {out}: color edit of {model.names[1]}")
     d = read_delta(out)
-    assert d.meta["view"] == f"train:{i}" and d.meta["command"].startswith("crfedit ")  # sys.argv, here pytest's
+    assert d.meta["view"] == f"train:{i}" and d.meta["command"] == "crfedit edit-color m.safetensors --color #00f"
     shown = json.loads(invoke("edits", "show", out, "--json").stdout)
     assert shown["metadata"]["kind"] == "color" and shown["bytes"] == out.stat().st_size
     # a second edit on top: strokes JSON, removal, recorded parent

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import typer
 from typer.testing import CliRunner
 
 from crfedit.cli import app
@@ -38,6 +39,17 @@ def test_help_has_readable_metavars():
     text = CliRunner().invoke(app, ["train", "--help"], env={"COLUMNS": "200"}).stdout
     assert "--steps N" in text and "--set KEY=VALUE" in text
     assert "--preset <fast|paper>" in text or "--preset [fast|paper]" in text  # Typer ≥ 0.2x, or click's own format
+    # every command's usage line names its arguments plainly: Typer 0.27 and 0.29 write {MODEL}
+    # or {model} for a required argument, with or without a metavar of ours
+    usages = {}
+    def walk(command, path):
+        for name, sub in getattr(command, "commands", {}).items():
+            walk(sub, [*path, name])
+        if not hasattr(command, "commands"):
+            usages[" ".join(path)] = next(ln for ln in CliRunner().invoke(app, [*path, "--help"], env={"COLUMNS": "200"}).stdout.splitlines() if ln.startswith("Usage:"))
+    walk(typer.main.get_command(app), [])
+    assert len(usages) > 20 and usages["render"] == "Usage: crfedit render [OPTIONS] MODEL", usages.get("render")
+    assert not [u for u in usages.values() if "{" in u or "<" in u], usages
 
 
 def test_help_does_not_import_torch():

@@ -20,17 +20,19 @@ def _readable(param) -> None:
     annotation = getattr(desc, "annotation", None)
     kind = "choice" if getattr(desc, "is_choice", False) else getattr(annotation, "__name__", getattr(getattr(param, "type", None), "name", ""))
     if param.param_type_name == "argument":
-        label = param.name.upper()
+        label = param.metavar or param.name.upper()
         param.metavar = label
-        usage = label if param.required else f"[{label}]"
-        param._usage_display_name = lambda: usage + ("..." if param.nargs != 1 else "")  # Typer writes {model}
+        display = (label if param.required else f"[{label}]") + ("..." if param.nargs != 1 else "")
+        param._usage_display_name = lambda: display  # Typer 0.29 writes {model}
+        # Typer 0.27 asks make_metavar(ctx, usage=True) for the usage line instead, and writes {MODEL}
+        param.make_metavar = lambda *args, usage=False, **kwargs: display if usage else label
     elif not (getattr(param, "is_flag", False) or getattr(param, "count", False) or kind == "choice"):
         param.metavar = {"int": "N", "integer": "N", "float": "X"}.get(kind, param.name.upper().replace("_", "-"))
 
 
 def _readable_tree(command) -> None:
     for param in command.params:
-        if param.metavar is None:
+        if param.metavar is None or param.param_type_name == "argument":  # a named argument too: Typer writes {MODEL}
             _readable(param)
     for sub in getattr(command, "commands", {}).values():
         _readable_tree(sub)
