@@ -291,17 +291,13 @@ def test_removal_options_read_the_shape():
 
 def seat_scribble(edit_category):
     """(model, instance 2, the train view showing most of its seat, a scribble on the seat
-    eroded by a pixel, keep strokes on the other parts) of the shared edit fixture."""
-    import json as _json
-
-    from crfedit.masks import dilate, erode
+    eroded by a pixel, keep strokes on the other parts) of the shared edit fixture
+    (test_selection's :func:`part_view`)."""
+    from test_selection import part_view
 
     _, model, category = edit_category
-    k = 2
-    inst = category.instances[k]
-    pid = next(p["id"] for p in _json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
-    view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
-    return model, k, view, erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1)
+    view, fg, keep, _ = part_view(category, 2, "seat")
+    return model, 2, view, fg, keep
 
 
 def test_removal_selection_reports_the_gate_and_refuses_an_unknown_shape_source(edit_category):
