@@ -1,10 +1,14 @@
 """Make the README's before/after picture from a trained model and its dataset's twins.
 
-For the first color twin and the first removal twin: run the edit from the twin's scribbles
-through the CLI, render a held-out test view before and after, and put them beside the
-ground-truth twin.  Usage:
+For one colour twin and one removal twin (the dataset's first of each, or ``--color-twin`` /
+``--remove-twin``): run the edit from the twin's scribbles through the CLI with its default
+method, then show the scribbled view with the strokes drawn on it (red: the part, blue: keep),
+and, for each of ``--views`` held-out test views, the render before, after, and the
+ground-truth twin.  A recolour is given the colour the part should *appear* under the scribble
+(what `crfedit eval edits` gives it: the twin's new albedo times the mean shading there), or the
+twin's albedo when the dataset has no part maps.  Usage:
 
-    python benchmarks/figure.py MODEL DATA [--out docs/img/edit_before_after.png] [--view 0]
+    python benchmarks/figure.py MODEL DATA [--out docs/img/edit_before_after.png] [--views 0,3]
 """
 
 from __future__ import annotations
@@ -19,8 +23,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from crfedit.data.loading import load_twins
+import crfedit.evaluation as evaluation
 from crfedit.io import read_image, write_png
+from crfedit.model import load_model
 
 
 def crfedit(*args: str) -> None:
@@ -33,45 +38,69 @@ def render(model: str, instance: str, view: str, out: Path, edit: Path | None = 
     return read_image(out / "0000.png")[..., :3]
 
 
+def hex_color(rgb) -> str:
+    return "#" + "".join(f"{int(round(float(c) * 255)):02x}" for c in rgb)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model")
     ap.add_argument("data")
     ap.add_argument("--out", default="docs/img/edit_before_after.png")
-    ap.add_argument("--view", type=int, default=0, help="test view index to show")
+    ap.add_argument("--views", default="0,3", help="held-out test view indices to show, comma-separated")
+    ap.add_argument("--color-twin", help="the colour twin to show (default: the dataset's first)")
+    ap.add_argument("--remove-twin", help="the removal twin to show (default: the dataset's first)")
     ap.add_argument("--scale", type=int, default=3)
     args = ap.parse_args()
-    root = Path(args.data)
-    twins = load_twins(root)
-    rows, labels = [], []
+    views = [int(v) for v in args.views.split(",")]
+    model, _ = load_model(args.model)
+    category = evaluation.load_category_for(model, args.data)
+    cases = evaluation.load_twin_cases(model, category)
+    chosen = {"color": args.color_twin, "remove": args.remove_twin}
+    rows, labels, said = [], [], {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for kind in ("color", "remove"):
-            spec, data = next((s, d) for s, d in twins if s.kind == kind)
+            case = next(c for c in cases if c.spec.kind == kind and chosen[kind] in (None, c.spec.name))
+            spec = case.spec
             edit = tmp / f"{kind}.safetensors"
-            common = [args.model, "--instance", spec.source, "--view", spec.view, "--scribble", str(root / spec.scribble),
-                      "--keep", str(root / spec.keep), "--out", str(edit)]
-            crfedit("edit-color", *common, "--color", spec.color) if kind == "color" else crfedit("remove", *common)
-            view = f"test:{args.view}"
-            before = render(args.model, spec.source, view, tmp / f"{kind}_before")
-            after = render(args.model, spec.source, view, tmp / f"{kind}_after", edit)
-            truth = data.splits["test"][args.view].rgb
-            rows.append([before, after, truth])
-            labels.append(("before", "recolored" if kind == "color" else "part removed", "ground truth"))
+            common = [args.model, "--instance", spec.source, "--view", spec.view, "--scribble", str(category.root / spec.scribble),
+                      "--keep", str(category.root / spec.keep), "--out", str(edit)]
+            if kind == "color":
+                appear = evaluation.twin_appearance(category, case)
+                color = hex_color(appear) if appear is not None else spec.color
+                crfedit("edit-color", *common, "--color", color)
+                said[spec.name] = {"color": color, "albedo": spec.color}
+            else:
+                crfedit("remove", *common)
+                said[spec.name] = {}
+            scribbled = render(args.model, spec.source, spec.view, tmp / f"{kind}_scribbled").copy()
+            scribbled[case.keep] = (0.2, 0.35, 1.0)
+            scribbled[case.scribble] = (1.0, 0.15, 0.1)
+            row, names = [scribbled], ["scribbled view"]
+            for i in views:
+                row += [render(args.model, spec.source, f"test:{i}", tmp / f"{kind}_before{i}"),
+                        render(args.model, spec.source, f"test:{i}", tmp / f"{kind}_after{i}", edit),
+                        case.views[i].rgb[..., :3]]
+                names += [f"test view {i}: before", "recoloured" if kind == "color" else "part removed", "ground-truth twin"]
+            rows.append(row)
+            labels.append(names)
     h, w = rows[0][0].shape[:2]
-    s, pad, text_h = args.scale, 6, 16
-    canvas = Image.new("RGB", (3 * w * s + 4 * pad, len(rows) * (h * s + text_h + pad) + pad), "white")
+    s, pad, gap, text_h = args.scale, 6, 18, 16
+    columns = len(rows[0])
+    group_x = lambda c: pad + c * (w * s + pad) + (gap * ((c - 1) // 3 + 1) if c > 0 else 0)
+    canvas = Image.new("RGB", (group_x(columns - 1) + w * s + pad, len(rows) * (h * s + text_h + pad) + pad), "white")
     draw = ImageDraw.Draw(canvas)
     for r, (images, names) in enumerate(zip(rows, labels)):
         y = pad + r * (h * s + text_h + pad)
         for c, (img, name) in enumerate(zip(images, names)):
-            x = pad + c * (w * s + pad)
+            x = group_x(c)
             tile = Image.fromarray((np.clip(img, 0, 1) * 255).round().astype(np.uint8)).resize((w * s, h * s), Image.NEAREST)
             canvas.paste(tile, (x, y + text_h))
             draw.text((x + 2, y + 2), name, fill=(40, 40, 40))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     write_png(args.out, np.asarray(canvas))
-    print(json.dumps({"wrote": args.out}))
+    print(json.dumps({"wrote": args.out, "twins": said}))
 
 
 if __name__ == "__main__":
