@@ -24,6 +24,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 import crfedit.evaluation as evaluation
+from crfedit.data.synth import rgb_to_hex
 from crfedit.io import read_image, write_png
 from crfedit.model import load_model
 
@@ -36,10 +37,6 @@ def render(model: str, instance: str, view: str, out: Path, edit: Path | None = 
     extra = ["--edit", str(edit)] if edit else []
     crfedit("render", model, "--instance", instance, "--views", view, "--out", str(out), *extra)
     return read_image(out / "0000.png")[..., :3]
-
-
-def hex_color(rgb) -> str:
-    return "#" + "".join(f"{int(round(float(c) * 255)):02x}" for c in rgb)
 
 
 def main() -> None:
@@ -57,7 +54,7 @@ def main() -> None:
     category = evaluation.load_category_for(model, args.data)
     cases = evaluation.load_twin_cases(model, category)
     chosen = {"color": args.color_twin, "remove": args.remove_twin}
-    rows, labels, said = [], [], {}
+    rows, labels, said, before = [], [], {}, {}  # before: (instance, test view) → its unedited render
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for kind in ("color", "remove"):
@@ -68,7 +65,7 @@ def main() -> None:
                       "--keep", str(category.root / spec.keep), "--out", str(edit)]
             if kind == "color":
                 appear = evaluation.twin_appearance(category, case)
-                color = hex_color(appear) if appear is not None else spec.color
+                color = rgb_to_hex(appear) if appear is not None else spec.color
                 crfedit("edit-color", *common, "--color", color)
                 said[spec.name] = {"color": color, "albedo": spec.color}
             else:
@@ -79,7 +76,9 @@ def main() -> None:
             scribbled[case.scribble] = (1.0, 0.15, 0.1)
             row, names = [scribbled], ["scribbled view"]
             for i in views:
-                row += [render(args.model, spec.source, f"test:{i}", tmp / f"{kind}_before{i}"),
+                if (spec.source, i) not in before:  # the two twins often share their source
+                    before[spec.source, i] = render(args.model, spec.source, f"test:{i}", tmp / f"{kind}_before{i}")
+                row += [before[spec.source, i],
                         render(args.model, spec.source, f"test:{i}", tmp / f"{kind}_after{i}", edit),
                         case.views[i].rgb[..., :3]]
                 names += [f"test view {i}: before", "recoloured" if kind == "color" else "part removed", "ground-truth twin"]
