@@ -64,4 +64,4 @@ def test_ci_runs_readme_test_command_and_torch_is_uncapped():
     command = next(ln for ln in readme.splitlines() if ln.startswith("python3 -m venv") and "pytest" in ln)
     assert f'readme_test_command="{command}"' in (root / ".ci" / "run").read_text()
     assert "-c constraints-cpu.txt" in command and "torch==2.13.0" in (root / "constraints-cpu.txt").read_text()
-    assert '"torch>=2.3",' in (root / "pyproject.toml").read_text()
+    assert '"torch>=2.4",' in (root / "pyproject.toml").read_text()

@@ -29,7 +29,7 @@ from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..model import CategoryModel
 from ..names import CODE_TABLES, RECOLOR_RULES
-from ..optim import run_adam
+from ..optim import FusedAdam, run_adam
 from .losses import PENALTIES, add_weight_penalty_grad_, weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
 
@@ -202,7 +202,7 @@ def optimize(edit: InstanceEdit, loss_fn: Callable[[], Tensor], options: EditOpt
     ``options.on_step(step, loss)`` after each step sees ``loss_fn()``'s value.
     """
     started = time.perf_counter()
-    opt = torch.optim.Adam(list(edit.params.values()), lr=options.lr, fused=True)
+    opt = FusedAdam(edit.params.values(), lr=options.lr)
     last = run_adam(opt, loss_fn, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg))
     with torch.no_grad():
         last += options.lambda_reg * float(edit.penalty())
