@@ -13,14 +13,19 @@ import torch
 from crfedit.optim import FusedAdam
 
 
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA)])
 @pytest.mark.parametrize("eps", [1e-8, 1e-15])
-def test_fused_adam_equals_torch_adam_to_the_bit(eps):
+def test_fused_adam_equals_torch_adam_to_the_bit(eps, device):
     g = torch.Generator().manual_seed(0)
     start = [torch.randn(7, 5, generator=g), torch.randn(5, generator=g), torch.randn(3, generator=g)]
+    start = [t.to(device) for t in start]
     ours = [t.clone().requires_grad_() for t in start]
     theirs = [t.clone().requires_grad_() for t in start]
     opt_ours, opt_theirs = FusedAdam(ours, lr=0.03, eps=eps), torch.optim.Adam(theirs, lr=0.03, eps=eps, fused=True)
-    x = torch.randn(11, 7, generator=g)
+    x = torch.randn(11, 7, generator=g).to(device)
     for step in range(6):
         for params, opt in ((ours, opt_ours), (theirs, opt_theirs)):
             opt.zero_grad(set_to_none=True)
