@@ -62,8 +62,8 @@ class FusedAdam:
 
     def __init__(self, params: Iterable[Tensor], lr: float, eps: float = 1e-8, betas: tuple[float, float] = (0.9, 0.999)):
         self.params = list(params)
-        self.param_groups = [{"params": self.params, "lr": lr}]
-        self.lr, self.eps, self.betas = float(lr), float(eps), betas
+        self.param_groups = [{"params": self.params, "lr": float(lr)}]  # the one lr, as torch.optim keeps it
+        self.eps, self.betas = float(eps), betas
         self.state: dict[Tensor, tuple[Tensor, Tensor, Tensor]] = {}
 
     def zero_grad(self, set_to_none: bool = True) -> None:
@@ -88,7 +88,7 @@ class FusedAdam:
         for ps, grads, ms, vs, ts in groups.values():
             torch._foreach_add_(ts, 1)
             torch._fused_adam_(
-                ps, grads, ms, vs, [], ts, amsgrad=False, lr=self.lr, beta1=self.betas[0], beta2=self.betas[1],
+                ps, grads, ms, vs, [], ts, amsgrad=False, lr=self.param_groups[0]["lr"], beta1=self.betas[0], beta2=self.betas[1],
                 weight_decay=0.0, eps=self.eps, maximize=False, grad_scale=None, found_inf=None,
             )
 
