@@ -8,8 +8,14 @@ differences from the state the edit started from (docs/edit-format.md):
 ``F_rad.mlp.0.weight`` …   weight differences θ_after − θ_before, under their state-dict names
 ``shape_code``             [D] difference of row k of ``shape_codes``
 ``color_code``             [D] difference of row k of ``color_codes``
-``occupancy``              [R, R, R] bool: instance k's new occupancy grid itself (not a difference)
+``occupancy``              [R, R, R] int8: the grid's change, after − before: +1 a cell the edit
+                           occupied, −1 one it emptied, 0 the rest
 =========================  =====================================================================
+
+Every tensor is a change, so an edit left out of a stack takes all of its change with it: drop
+the first of two removals of one instance and the second's file empties only its own cells.
+(Format version 1 stored the new grid itself, which kept the dropped removal's cells empty; its
+files still read, and their grid still replaces the instance's.)
 
 String metadata names the edit (``kind``, ``instance``, ``modules``) and pins it to its place:
 ``base`` is the fingerprint of the model file it was made for, ``parent`` a hash of ``base`` and
@@ -42,7 +48,10 @@ from .names import COLOR_CODES, SHAPE_CODES
 from .safefile import fingerprint, read_header, read_safetensors, write_safetensors
 
 FORMAT = "crfedit-edit"
-VERSION = "1"
+VERSION = "2"
+"""The version :func:`make_delta` writes.  Version 1 stored ``occupancy`` as the new grid itself
+(bool); 2 stores its change (int8).  Both read (:data:`READ_VERSIONS`)."""
+READ_VERSIONS = ("1", "2")
 KINDS = ("color", "remove", "add", "transfer", "fit-real")
 CODE_ROWS = {"shape_code": SHAPE_CODES, "color_code": COLOR_CODES}
 """Delta tensor name → the code table (state-dict name) whose row k it changes."""
@@ -158,7 +167,7 @@ def make_delta(
 
     ``modules`` are the state-dict prefixes the edit trained (``("F_rad.", "color_codes")``);
     every tensor under them is stored (weights as differences, code tables as the difference
-    of row k, ``occupancy`` as k's new grid).  ``meta`` adds string metadata (hyper-parameters,
+    of row k, ``occupancy`` as the change of k's grid, int8 after − before).  ``meta`` adds string metadata (hyper-parameters,
     ``final_loss``, ``seconds``, ``command``); ``base``, ``parent`` and ``fingerprint`` come from
     ``before``'s stack.  For ``kind="fit-real"`` the instance is new in ``after`` (see :func:`grow`)
     and its code rows are stored as differences from zero.
@@ -186,7 +195,8 @@ def make_delta(
                 start = old[table][k] if old is not None else torch.zeros_like(new[table][k])
                 tensors[dname] = (new[table][k] - start).detach().cpu().clone()
             elif dname == GRID:
-                tensors[dname] = new[GRID][k].detach().cpu().clone()
+                start = old[GRID][k] if old is not None else torch.ones_like(new[GRID][k])  # grow()'s row
+                tensors[dname] = (new[GRID][k].to(torch.int8) - start.to(torch.int8)).cpu()
             else:
                 start = old[dname] if old is not None else before.field.state_dict()[dname]
                 tensors[dname] = (new[dname] - start).detach().cpu().clone()
@@ -224,8 +234,8 @@ def read_delta(path: str | os.PathLike) -> Delta:
     header, meta = read_header(path)
     if meta.get("format") != FORMAT:
         raise ModelFileError(f"{path}: not a crfedit edit file (format {meta.get('format', 'unknown')!r})")
-    if meta.get("version") != VERSION:
-        raise ModelFileError(f"{path}: edit format version {meta.get('version')!r} is not supported (expected {VERSION})")
+    if meta.get("version") not in READ_VERSIONS:
+        raise ModelFileError(f"{path}: edit format version {meta.get('version')!r} is not supported (expected {' or '.join(READ_VERSIONS)})")
     missing = [k for k in RESERVED if k not in meta and k != "adds_instance"]
     if missing:
         raise ModelFileError(f"{path}: bad edit metadata (missing {', '.join(missing)})")
@@ -245,13 +255,16 @@ def read_delta(path: str | os.PathLike) -> Delta:
         raise ModelFileError(f"{path}: bad edit metadata (adds_instance must name the instance of a fit-real edit, only)")
     if not header:
         raise ModelFileError(f"{path}: edit file holds no tensors")
+    grid_dtype = "BOOL" if meta["version"] == "1" else "I8"
     for name, info in header.items():
-        if info["dtype"] not in ("F32", "F64", "F16", "BF16", "BOOL"):
-            raise ModelFileError(f"{path}: tensor {name[:80]} has dtype {info['dtype']} (edits hold floats and a bool grid)")
+        if info["dtype"] not in ("F32", "F64", "F16", "BF16") and not (name == GRID and info["dtype"] == grid_dtype):
+            raise ModelFileError(f"{path}: tensor {name[:80]} has dtype {info['dtype']} (edits hold floats and an {GRID} grid of {grid_dtype})")
     tensors, meta = read_safetensors(path)
     for name, t in tensors.items():
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise ModelFileError(f"{path}: tensor {name[:80]} contains NaN or inf")
+    if GRID in tensors and tensors[GRID].dtype == torch.int8 and not bool(((tensors[GRID] >= -1) & (tensors[GRID] <= 1)).all()):
+        raise ModelFileError(f"{path}: tensor {GRID} holds values other than -1, 0 and 1 (a grid's change)")
     if delta_fingerprint(tensors, meta) != meta["fingerprint"]:
         raise ModelFileError(f"{path}: contents do not match the recorded fingerprint (file damaged?)")
     return Delta(path, tensors, meta)
@@ -260,8 +273,8 @@ def read_delta(path: str | os.PathLike) -> Delta:
 # ----------------------------------------------------------------------------- validating a stack
 
 
-def _allowed(field: ConditionalRadianceField, kind: str) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
-    """Delta tensor name → (shape, dtype) a ``kind`` edit of ``field`` may store."""
+def _allowed(field: ConditionalRadianceField, kind: str, version: str) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """Delta tensor name → (shape, dtype) a ``kind`` edit of ``field`` in format ``version`` may store."""
     out: dict[str, tuple[tuple[int, ...], torch.dtype]] = {}
     params = _parameter_names(field)
     if kind != "transfer":
@@ -269,8 +282,12 @@ def _allowed(field: ConditionalRadianceField, kind: str) -> dict[str, tuple[tupl
     for row, table in CODE_ROWS.items():
         out[row] = (tuple(params[table].shape[1:]), params[table].dtype)
     if kind in GRID_KINDS:
-        out[GRID] = (tuple(field.occupancy.shape[1:]), field.occupancy.dtype)
+        out[GRID] = (tuple(field.occupancy.shape[1:]), field.occupancy.dtype if version == "1" else torch.int8)
     return out
+
+
+def _base_error(delta: Delta, base: str) -> ModelFileError:
+    return ModelFileError(f"{delta.path}: made for model {delta.meta['base']}, not this model ({base}); edits apply only to the model they were made on")
 
 
 def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str, applied: Sequence[str]) -> ModelFileError:
@@ -293,7 +310,7 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
     return ModelFileError(
         f"{where}was made after other edits than the ones before it here (parent {parent}, "
         f"expected {chain_fingerprint(base, list(applied) + fps[:position]) or 'none'}); "
-        "pass the --edit files in the order they were made"
+        "pass the --edit files in the order they were made, or re-pin them with `crfedit edits rebase`"
     )
 
 
@@ -306,7 +323,7 @@ def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str,
     names = list(model.names)
     for i, d in enumerate(deltas):
         if d.meta["base"] != base:
-            raise ModelFileError(f"{d.path}: made for model {d.meta['base']}, not this model ({base}); edits apply only to the model they were made on")
+            raise _base_error(d, base)
         if d.meta["parent"] != chain_fingerprint(base, fps):
             raise _order_error(d, i, deltas, base, applied)
         if d.kind == "fit-real":
@@ -315,7 +332,7 @@ def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str,
             names.append(d.instance)
         elif d.instance not in names:
             raise ModelFileError(f"{d.path}: edits instance {d.instance!r}, which the model does not have")
-        allowed = _allowed(model.field, d.kind)
+        allowed = _allowed(model.field, d.kind, d.meta["version"])
         modules = tuple(d.modules)
         for name, t in d.tensors.items():
             if name not in allowed:
@@ -342,6 +359,23 @@ def rebase(delta: Delta, model: CategoryModel) -> Delta:
     meta = {**delta.meta, "base": base, "parent": parent}
     meta["fingerprint"] = delta_fingerprint(delta.tensors, meta)
     return Delta(delta.path, delta.tensors, meta)
+
+
+def restack(model: CategoryModel, deltas: Sequence[Delta]) -> list[Delta]:
+    """``deltas`` re-pinned, in the order given, onto ``model`` (:func:`rebase` each onto the ones
+    before it): to leave an edit out of the middle of a stack, reorder it, or share one edit on
+    its own.  Each keeps its change; an edit made after one that is now left out was optimized
+    on top of it, and applies without it.  Every file must be made for ``model`` (its ``base``);
+    instances and tensors are checked as :func:`apply_deltas` checks them."""
+    base, _ = stack_of(model)
+    current, out = model, []
+    for d in deltas:
+        if d.meta["base"] != base:
+            raise _base_error(d, base)
+        pinned = rebase(d, current)
+        current = apply_deltas(current, [pinned])
+        out.append(pinned)
+    return out
 
 
 # ----------------------------------------------------------------------------- applying
@@ -389,7 +423,7 @@ def apply_one(model: CategoryModel, delta: Delta) -> CategoryModel:
                 replaced[CODE_ROWS[name]] = current[CODE_ROWS[name]] = table
             elif name == GRID:
                 grid = current[GRID].clone()
-                grid[k] = t
+                grid[k] = t if t.dtype == torch.bool else (grid[k] | (t > 0)) & ~(t < 0)  # version 1: the grid itself
                 replaced[GRID] = current[GRID] = grid
             else:
                 replaced[name] = current[name] = current[name] + t

@@ -116,8 +116,10 @@ def test_delta_holds_exactly_the_touched_tensors(tmp_path, model):
     grid = delta_file(tmp_path, "g.safetensors", model, 0, "remove", {"F_dens.bias": -0.5, "occupancy": 0}, ("F_dens.", "occupancy"))
     g = read_delta(grid)
     assert set(g.tensors) == {"F_dens.weight", "F_dens.bias", "occupancy"}
-    assert g.tensors["occupancy"].dtype == torch.bool and g.tensors["occupancy"].shape == (8, 8, 8)
-    assert torch.equal(g.tensors["occupancy"], ~model.field.occupancy[0])  # the new grid itself
+    assert g.tensors["occupancy"].dtype == torch.int8 and g.tensors["occupancy"].shape == (8, 8, 8)
+    old = model.field.occupancy[0]  # the grid's change, after − before: the edit inverted the grid
+    assert torch.equal(g.tensors["occupancy"], torch.where(old, -1, 1).to(torch.int8))
+    assert read_delta(grid).meta["version"] == "2"
 
 
 def test_other_instances_bit_identical_and_input_untouched(tmp_path, model):
@@ -159,6 +161,54 @@ def test_stack_then_revert_is_bit_identical(tmp_path, model):
         assert torch.equal(render(reverted, k), original[k])
     # applying in two goes continues the same stack
     assert apply_edit_files(after_a, [b]).fingerprint() == after_ab.fingerprint()
+
+
+def grid_edit(before: CategoryModel, k: int, cells: torch.Tensor, occupied: bool, name: str, tmp_path: Path) -> Path:
+    """A removal (``occupied=False``) or addition file that only sets instance k's ``cells`` [R, R, R]."""
+    grid = dict(before.field.state_dict(), **before.overrides.get(k, {}))["occupancy"].clone()
+    grid[k] = grid[k] | cells if occupied else grid[k] & ~cells
+    after = dataclasses.replace(before, overrides={**before.overrides, k: {**before.overrides.get(k, {}), "occupancy": grid}})
+    tensors, meta = make_delta(before, after, k, "remove" if not occupied else "add", ("occupancy",))
+    save_delta(tmp_path / name, tensors, meta)
+    return tmp_path / name
+
+
+def test_dropping_an_earlier_grid_edit_gives_its_cells_back(tmp_path, model):
+    """Two removals of one instance; the first left out and the second re-pinned (as ``crfedit
+    edits rebase`` and the page's off switch do): the first removal's cells are occupied again,
+    the second's stay empty.  (Format version 1 stored the second's grid itself, which kept the
+    first's cells empty: a revert that did not revert.)"""
+    from crfedit.delta import rebase
+
+    grid0 = model.field.occupancy[0].clone()
+    low, high = torch.zeros_like(grid0), torch.zeros_like(grid0)
+    low[:, :, :4], high[:, :, 4:] = True, True
+    a = grid_edit(model, 0, low, False, "a.safetensors", tmp_path)
+    after_a = apply_edit_files(model, [a])
+    b = grid_edit(after_a, 0, high, False, "b.safetensors", tmp_path)
+    both = apply_edit_files(model, [a, b])
+    assert not bool(both.field_for(0).occupancy[0].any())  # both halves emptied
+    only_b = apply_deltas(model, [rebase(read_delta(b), model)])
+    assert torch.equal(only_b.field_for(0).occupancy[0], grid0 & ~high)
+    # an addition's cells come back empty when it is left out, the same way
+    c = grid_edit(both, 0, high & grid0, True, "c.safetensors", tmp_path)
+    assert torch.equal(apply_edit_files(model, [a, b, c]).field_for(0).occupancy[0], grid0 & high)
+
+
+def test_version_1_files_still_apply(tmp_path, model):
+    """A version-1 file stores the new grid itself (bool) and still replaces the instance's grid."""
+    v2 = grid_edit(model, 1, torch.ones_like(model.field.occupancy[1]), False, "v2.safetensors", tmp_path)
+    d = read_delta(v2)
+    new_grid = model.field.occupancy[1] & (d.tensors["occupancy"] >= 0)
+    v1 = rewrite(v2, tmp_path / "v1.safetensors", {"occupancy": new_grid}, {"version": "1"})
+    assert torch.equal(apply_edit_files(model, [v1]).field_for(1).occupancy[1], new_grid)
+    assert torch.equal(apply_edit_files(model, [v2]).field_for(1).occupancy[1], new_grid)
+    with pytest.raises(ModelFileError, match="has dtype I8"):  # a version-1 file with a change
+        read_delta(rewrite(v2, tmp_path / "mixed.safetensors", dict(d.tensors), {"version": "1"}))
+    with pytest.raises(ModelFileError, match="has dtype BOOL"):  # a version-2 file with a grid
+        read_delta(rewrite(v2, tmp_path / "mixed2.safetensors", {"occupancy": new_grid}))
+    with pytest.raises(ModelFileError, match="values other than -1, 0 and 1"):
+        read_delta(rewrite(v2, tmp_path / "two.safetensors", {"occupancy": d.tensors["occupancy"] * 2}))
 
 
 def test_wrong_order_parent_and_base_are_rejected(tmp_path, model):
@@ -305,7 +355,7 @@ def test_wrong_shapes_dtypes_and_names(tmp_path, model):
         ({**tensors, "color_code": torch.zeros(5)}, {}, "tensor color_code has shape (5,)"),
         ({**tensors, "F_share.mlp.0.bias": torch.zeros(16)}, {}, "outside the edit's modules"),
         ({**tensors, "aabb": torch.zeros(6)}, {}, "may not hold tensor 'aabb'"),
-        ({**tensors, "occupancy": torch.zeros(8, 8, 8, dtype=torch.bool)}, {"modules": '["F_rad.", "color_codes", "occupancy"]'}, "a color edit may not hold tensor 'occupancy'"),
+        ({**tensors, "occupancy": torch.zeros(8, 8, 8, dtype=torch.int8)}, {"modules": '["F_rad.", "color_codes", "occupancy"]'}, "a color edit may not hold tensor 'occupancy'"),
         ({**tensors, "F_rad.out.bias": torch.tensor([0.0, float("nan"), 0.0])}, {}, "contains NaN or inf"),
         (tensors, {"kind": "sculpt"}, "unknown edit kind 'sculpt'"),
         (tensors, {"version": "9"}, "edit format version '9' is not supported"),
@@ -356,6 +406,42 @@ def test_edits_show_check_bake_cli(tmp_path, model):
     assert wrong.exit_code == 2 and "made for model" in wrong.output and len(wrong.output.strip().splitlines()) == 1
     same = runner.invoke(app, ["edits", "bake", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out", str(tmp_path / "m.safetensors")])
     assert same.exit_code == 2 and "write the baked model to a new file" in same.output
+
+
+def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
+    """A removal, a recolour, a second removal of one instance; `edits rebase` without the first
+    writes files that check and render as the two kept changes alone, the input files untouched."""
+    save_model(tmp_path / "m.safetensors", model)
+    m, _ = load_model(tmp_path / "m.safetensors")
+    grid0 = m.field.occupancy[0].clone()
+    low, high = torch.zeros_like(grid0), torch.zeros_like(grid0)
+    low[:, :, :3], high[:, :, 5:] = True, True
+    a = grid_edit(m, 0, low, False, "a.safetensors", tmp_path)
+    b = delta_file(tmp_path, "b.safetensors", apply_edit_files(m, [a]), 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    c = grid_edit(apply_edit_files(m, [a, b]), 0, high, False, "c.safetensors", tmp_path)
+    inputs = {p: p.read_bytes() for p in (a, b, c)}
+    runner, out = CliRunner(), tmp_path / "rebased"
+    shown = runner.invoke(app, ["edits", "show", str(a)])
+    assert f"occupancy     {int((grid0 & low).sum())} cells emptied, 0 occupied" in shown.output, shown.output
+    refused = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c)])
+    assert refused.exit_code == 2 and "crfedit edits rebase" in refused.output
+    done = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)])
+    assert done.exit_code == 0, done.output
+    assert "b.safetensors: color edit of chair_0, re-pinned" in done.output and "ok: 2 edit(s)" in done.output
+    kept = apply_edit_files(m, [out / "b.safetensors", out / "c.safetensors"])
+    assert torch.equal(kept.field_for(0).occupancy[0], grid0 & ~high)  # the first removal's cells are back
+    for name in ("b.safetensors", "c.safetensors"):  # the same change, a new place
+        old, new = read_delta(tmp_path / name), read_delta(out / name)
+        assert new.fingerprint != old.fingerprint and all(torch.equal(new.tensors[n], t) for n, t in old.tensors.items())
+    assert all(p.read_bytes() == data for p, data in inputs.items())
+    again = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out-dir", str(out)])
+    assert again.exit_code == 0 and "unchanged (already in this place)" in again.output
+    into_inputs = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--out-dir", str(tmp_path)])
+    assert into_inputs.exit_code == 2 and "holds the input" in into_inputs.output and b.read_bytes() == inputs[b]
+    other = make_model(seed=3)
+    save_model(tmp_path / "other.safetensors", other)
+    wrong = runner.invoke(app, ["edits", "rebase", str(tmp_path / "other.safetensors"), "--edit", str(b), "--out-dir", str(tmp_path / "o")])
+    assert wrong.exit_code == 2 and "made for model" in wrong.output and not (tmp_path / "o").exists()
 
 
 def test_edits_show_table_shortens_hyperparameters():

@@ -612,7 +612,7 @@ def test_removal_zeroes_the_selection_and_holds_the_rest(trained):
     view, fg, keep, pid = part_view(category, k, "seat")
     sel = select(model, k, [ScribbleView(view.camera, fg, keep)])
     result = remove(model, k, view.camera, fg, keep, options=EditOptions(steps=60), selection=sel)
-    grid_before, grid_after = model.field.occupancy[k], result.tensors["occupancy"]
+    grid_before, grid_after = model.field.occupancy[k], result.model.field_for(k).occupancy[k]
     emptied = removal_cells(sel, grid_before)
     core, junction = removal_split(sel, grid_before)
     assert torch.equal(core | junction, emptied) and not bool((core & junction).any())

@@ -363,6 +363,9 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
             shown = {k: v for k, v in hyper.items() if not isinstance(v, dict)}
             rows.append(("hyper", ", ".join(f"{k}={_short(v)}" for k, v in shown.items())))
     rows.append(("size", f"{size} bytes, {len(delta.tensors)} tensors"))
+    grid = delta.tensors.get("occupancy")
+    if grid is not None and delta.meta["version"] != "1":  # version 1 stored the grid itself
+        rows.append(("occupancy", f"{int((grid < 0).sum())} cells emptied, {int((grid > 0).sum())} occupied"))
     for name, t in sorted(delta.tensors.items()):
         rows.append(("tensor", f"{name} {list(t.shape)} {str(t.dtype).replace('torch.', '')}"))
     return rows
@@ -403,6 +406,43 @@ def check_cmd(
     typer.echo(f"ok: {len(deltas)} edit(s) apply to {model} in this order")
     for i, d in enumerate(deltas, 1):
         typer.echo(printable(f"  {i}. {d.path}: {d.kind} edit of {d.instance} ({d.fingerprint})"))
+
+
+@edits_app.command("rebase")
+@user_errors
+def rebase_cmd(
+    model: ModelArg,
+    edit: Annotated[list[Path], typer.Option("--edit", help="Edit file (repeatable), in the new order; leave out the ones to drop.")],
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="Folder for the re-pinned files (made if missing), named as the inputs; never an input's own folder.")],
+) -> None:
+    """Re-pin edits to a new stack: drop one from the middle, reorder them, or share one alone.
+
+    Each file keeps its change (the same tensors); base, parent and fingerprint are recomputed
+    for its new place, so the written files pass `crfedit edits check` in the order given. An
+    edit made after one that is now left out applies its change without it, not optimized again.
+    """
+    from ..delta import read_delta, restack, save_delta
+    from ..model import load_model
+
+    names = [p.name for p in edit]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise CrfError(f"--edit: {twice[0]} is given twice (or two files share the name); --out-dir names the outputs after the inputs")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise CrfError(f"--out-dir {out_dir}: is a file, not a folder")
+    for p in edit:
+        if p.parent.resolve() == out_dir.resolve():
+            raise CrfError(f"--out-dir {out_dir}: holds the input {p} itself; write the re-pinned files to another folder")
+    m, _ = load_model(model, "cpu")
+    deltas = [read_delta(p) for p in edit]
+    pinned = restack(m, deltas)  # everything checked before anything is written
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for p, before, after in zip(edit, deltas, pinned):
+        save_delta(out_dir / p.name, after.tensors, after.meta)
+        how = "unchanged (already in this place)" if after is before else "re-pinned"
+        old_grid = " (format version 1: its grid replaces the instance's)" if after.meta["version"] == "1" and "occupancy" in after.tensors else ""
+        typer.echo(printable(f"wrote {out_dir / p.name}: {after.kind} edit of {after.instance}, {how}{old_grid}"))
+    typer.echo(f"ok: {len(pinned)} edit(s) apply to {model} in this order")
 
 
 @edits_app.command("bake")
