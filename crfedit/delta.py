@@ -349,8 +349,8 @@ def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str,
 def rebase(delta: Delta, model: CategoryModel) -> Delta:
     """``delta`` pinned to ``model``'s place instead of its own: the same tensors (the same
     change), with ``base``, ``parent`` and ``fingerprint`` recomputed from :func:`stack_of`
-    ``(model)``.  Unchanged (the very same object) when it already fits there.  ``crfedit ui``
-    uses it to toggle and reorder the edits of its stack; the result passes :func:`check_stack`
+    ``(model)``.  Unchanged (the very same object) when it already fits there (:func:`restack`
+    re-pins a whole stack); the result passes :func:`check_stack`
     wherever its instance and tensors fit the model."""
     base, stack = stack_of(model)
     parent = chain_fingerprint(base, stack)
@@ -361,12 +361,13 @@ def rebase(delta: Delta, model: CategoryModel) -> Delta:
     return Delta(delta.path, delta.tensors, meta)
 
 
-def restack(model: CategoryModel, deltas: Sequence[Delta]) -> list[Delta]:
-    """``deltas`` re-pinned, in the order given, onto ``model`` (:func:`rebase` each onto the ones
-    before it): to leave an edit out of the middle of a stack, reorder it, or share one edit on
-    its own.  Each keeps its change; an edit made after one that is now left out was optimized
-    on top of it, and applies without it.  Every file must be made for ``model`` (its ``base``);
-    instances and tensors are checked as :func:`apply_deltas` checks them."""
+def restack(model: CategoryModel, deltas: Sequence[Delta]) -> tuple[CategoryModel, list[Delta]]:
+    """(``model`` with ``deltas`` applied, the deltas re-pinned): each :func:`rebase`-d, in the
+    order given, onto the ones before it, to leave an edit out of the middle of a stack, reorder
+    it, or share one edit on its own (``crfedit edits rebase``, and ``crfedit ui``'s stack).
+    Each keeps its change; an edit made after one that is now left out was optimized on top of
+    it, and applies without it.  Every file must be made for ``model`` (its ``base``); instances
+    and tensors are checked as :func:`apply_deltas` checks them."""
     base, _ = stack_of(model)
     current, out = model, []
     for d in deltas:
@@ -375,7 +376,7 @@ def restack(model: CategoryModel, deltas: Sequence[Delta]) -> list[Delta]:
         pinned = rebase(d, current)
         current = apply_deltas(current, [pinned])
         out.append(pinned)
-    return out
+    return current, out
 
 
 # ----------------------------------------------------------------------------- applying

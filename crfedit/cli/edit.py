@@ -435,7 +435,7 @@ def rebase_cmd(
             raise CrfError(f"--out-dir {out_dir}: holds the input {p} itself; write the re-pinned files to another folder")
     m, _ = load_model(model, "cpu")
     deltas = [read_delta(p) for p in edit]
-    pinned = restack(m, deltas)  # everything checked before anything is written
+    _, pinned = restack(m, deltas)  # everything checked before anything is written
     out_dir.mkdir(parents=True, exist_ok=True)
     for p, before, after in zip(edit, deltas, pinned):
         save_delta(out_dir / p.name, after.tensors, after.meta)

@@ -2,7 +2,7 @@
 caches of rendered views, over the library API (no math here).
 
 The stack is a list of deltas, each on or off.  The model shown is the base model with the
-enabled deltas applied in order, each :func:`~crfedit.delta.rebase`-d onto the ones before it:
+enabled deltas applied in order, re-pinned onto the ones before them (:func:`~crfedit.delta.restack`):
 the same tensors (the same change), pinned to its new place, so a saved file of the stack
 passes ``crfedit edits check``.  Turning edits off and on again gives back the very same state.
 
@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ..data.loading import Category
-from ..delta import Delta, apply_deltas, bake, rebase, read_delta, save_delta
+from ..delta import Delta, apply_deltas, bake, read_delta, restack, save_delta
 from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
 from ..edit.selection import ScribbleView, Selection, mirror_summary, options_for, part_summary, preview, select, shape_summary
@@ -112,13 +112,9 @@ class UiSession:
 
     def _rebuild(self, entries: list[Entry]) -> tuple[CategoryModel, dict[int, Delta]]:
         """(model, pinned deltas by entry id) of the enabled entries applied in order."""
-        model, pinned = self.base, {}
-        for e in entries:
-            if e.enabled:
-                d = rebase(e.delta, model)
-                model = apply_deltas(model, [d])
-                pinned[e.id] = d
-        return model, pinned
+        enabled = [e for e in entries if e.enabled]
+        model, pinned = restack(self.base, [e.delta for e in enabled])
+        return model, {e.id: d for e, d in zip(enabled, pinned)}
 
     def _snapshot(self, which: str = "current") -> tuple[CategoryModel, tuple[str, ...]]:
         with self._lock:
