@@ -12,6 +12,10 @@ differences from the state the edit started from (docs/edit-format.md):
                            occupied, −1 one it emptied, 0 the rest
 =========================  =====================================================================
 
+On disk (format version 3) the grid's change is bit-packed (:func:`pack_grid_change`): one bit a
+cell for "changed" and one bit a changed cell for "occupied", 1/8 of the bytes of an int8 grid;
+:func:`read_delta` unpacks it, so a :class:`Delta` always holds the int8 change.
+
 Every tensor is a change, so an edit left out of a stack takes all of its change with it: drop
 the first of two removals of one instance and the second's file empties only its own cells.
 (Format version 1 stored the new grid itself, which kept the dropped removal's cells empty; its
@@ -38,6 +42,7 @@ import os
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -48,10 +53,11 @@ from .names import COLOR_CODES, SHAPE_CODES
 from .safefile import fingerprint, read_header, read_safetensors, write_safetensors
 
 FORMAT = "crfedit-edit"
-VERSION = "2"
+VERSION = "3"
 """The version :func:`make_delta` writes.  Version 1 stored ``occupancy`` as the new grid itself
-(bool); 2 stores its change (int8).  Both read (:data:`READ_VERSIONS`)."""
-READ_VERSIONS = ("1", "2")
+(bool); 2 stores its change (int8); 3 stores that change bit-packed.  All read
+(:data:`READ_VERSIONS`), and :func:`save_delta` writes a file in its metadata's version."""
+READ_VERSIONS = ("1", "2", "3")
 KINDS = ("color", "remove", "add", "transfer", "fit-real")
 CODE_ROWS = {"shape_code": SHAPE_CODES, "color_code": COLOR_CODES}
 """Delta tensor name → the code table (state-dict name) whose row k it changes."""
@@ -60,7 +66,11 @@ GRID_KINDS = ("remove", "add", "transfer", "fit-real")
 """Kinds that may carry a new occupancy grid (a color edit leaves density alone)."""
 IDENTITY = ("format", "version", "kind", "instance", "modules", "base", "parent", "adds_instance")
 """Metadata that, with the tensors, makes up an edit's fingerprint (timings and the command do not)."""
-RESERVED = (*IDENTITY, "fingerprint")
+PACKED = ("occupancy.changed", "occupancy.gained")
+"""Version 3's on-disk tensors for the grid's change (:func:`pack_grid_change`)."""
+PACKED_SHAPE = "occupancy_shape"
+"""Version 3's metadata key for the packed grid's shape (JSON list), read back into the tensor."""
+RESERVED = (*IDENTITY, "fingerprint", PACKED_SHAPE)
 STACK_KEYS = ("edit_base", "edit_stack", "edit_state")
 """``CategoryModel.meta`` keys through which an applied model remembers its stack."""
 
@@ -220,8 +230,63 @@ def make_delta(
 
 
 def save_delta(path: str | os.PathLike, tensors: Mapping[str, Tensor], metadata: Mapping[str, str]) -> None:
-    """Write an edit file atomically (temp file, fsync, rename): never a partial file."""
-    write_safetensors(path, dict(tensors), {k: str(v) for k, v in metadata.items()})
+    """Write an edit file atomically (temp file, fsync, rename): never a partial file.  In the
+    version its metadata names: a version-3 file's grid change is bit-packed, an older one (a
+    re-pinned file keeps its version) stores it as it is."""
+    out, meta = dict(tensors), {k: str(v) for k, v in metadata.items() if k != PACKED_SHAPE}
+    if meta.get("version") not in ("1", "2") and GRID in out:
+        packed, shape = pack_grid_change(out.pop(GRID))
+        out.update(packed)
+        meta[PACKED_SHAPE] = shape
+    write_safetensors(path, out, meta)
+
+
+def pack_grid_change(change: Tensor) -> tuple[dict[str, Tensor], str]:
+    """(tensors, shape) of version 3's on-disk form of an int8 grid change (values −1, 0, 1).
+
+    ``occupancy.changed``: uint8, one bit per cell in C order, set where the change is not 0;
+    ``occupancy.gained``: uint8, one bit per *changed* cell in the same order, set where it is +1
+    (a cell occupied) and clear where it is −1 (emptied).  Bits are packed most significant first,
+    as ``numpy.packbits`` packs them, the last byte padded with zeros.  A 64³ removal is 32 KiB
+    plus a byte per 8 cells it emptied, against 256 KiB as int8.  ``shape`` is the JSON list of
+    the grid's shape, which the bits alone do not tell.
+    """
+    flat = change.detach().to("cpu", torch.int8).reshape(-1).numpy()
+    changed = flat != 0
+    packed = {PACKED[0]: np.packbits(changed), PACKED[1]: np.packbits(flat[changed] > 0)}
+    return {k: torch.from_numpy(v) for k, v in packed.items()}, json.dumps(list(change.shape))
+
+
+def unpack_grid_change(changed: Tensor, gained: Tensor, shape: str, path: str = "edit file") -> Tensor:
+    """The int8 grid change :func:`pack_grid_change` packed; every length, the shape and the
+    padding bits are checked first (a hostile shape allocates nothing), errors one line."""
+    def bad(why: str) -> ModelFileError:
+        return ModelFileError(f"{path}: bad packed {GRID} ({why})")
+
+    try:
+        dims = json.loads(shape)
+    except (json.JSONDecodeError, TypeError):
+        dims = None
+    if not isinstance(dims, list) or len(dims) != 3 or not all(type(d) is int and d > 0 for d in dims):
+        raise bad(f"{PACKED_SHAPE} must be a JSON list of 3 positive sizes, not {str(shape)[:40]!r}")
+    n = dims[0] * dims[1] * dims[2]
+    for name, t in zip(PACKED, (changed, gained)):
+        if t.dtype != torch.uint8 or t.dim() != 1:
+            raise bad(f"{name} must be a 1-d uint8 tensor, not {list(t.shape)} {str(t.dtype).replace('torch.', '')}")
+    if changed.numel() != (n + 7) // 8:
+        raise bad(f"{PACKED[0]} has {changed.numel()} bytes, a {dims} grid needs {(n + 7) // 8}")
+    bits = np.unpackbits(changed.numpy())
+    c = int(bits[:n].sum())
+    if bits[n:].any():
+        raise bad(f"{PACKED[0]}'s padding bits are not zero")
+    if gained.numel() != (c + 7) // 8:
+        raise bad(f"{PACKED[1]} has {gained.numel()} bytes, {c} changed cells need {(c + 7) // 8}")
+    up = np.unpackbits(gained.numpy())
+    if up[c:].any():
+        raise bad(f"{PACKED[1]}'s padding bits are not zero")
+    out = np.zeros(n, dtype=np.int8)
+    out[bits[:n].astype(bool)] = np.where(up[:c].astype(bool), 1, -1)
+    return torch.from_numpy(out.reshape(dims))
 
 
 # ----------------------------------------------------------------------------- reading
@@ -235,8 +300,8 @@ def read_delta(path: str | os.PathLike) -> Delta:
     if meta.get("format") != FORMAT:
         raise ModelFileError(f"{path}: not a crfedit edit file (format {meta.get('format', 'unknown')!r})")
     if meta.get("version") not in READ_VERSIONS:
-        raise ModelFileError(f"{path}: edit format version {meta.get('version')!r} is not supported (expected {' or '.join(READ_VERSIONS)})")
-    missing = [k for k in RESERVED if k not in meta and k != "adds_instance"]
+        raise ModelFileError(f"{path}: edit format version {meta.get('version')!r} is not supported (expected {', '.join(READ_VERSIONS[:-1])} or {READ_VERSIONS[-1]})")
+    missing = [k for k in RESERVED if k not in meta and k not in ("adds_instance", PACKED_SHAPE)]
     if missing:
         raise ModelFileError(f"{path}: bad edit metadata (missing {', '.join(missing)})")
     if meta["kind"] not in KINDS:
@@ -255,11 +320,21 @@ def read_delta(path: str | os.PathLike) -> Delta:
         raise ModelFileError(f"{path}: bad edit metadata (adds_instance must name the instance of a fit-real edit, only)")
     if not header:
         raise ModelFileError(f"{path}: edit file holds no tensors")
-    grid_dtype = "BOOL" if meta["version"] == "1" else "I8"
+    packed = meta["version"] not in ("1", "2")
+    grid_dtype = {"1": "BOOL", "2": "I8"}.get(meta["version"], "U8")
+    grid_names = PACKED if packed else (GRID,)
     for name, info in header.items():
-        if info["dtype"] not in ("F32", "F64", "F16", "BF16") and not (name == GRID and info["dtype"] == grid_dtype):
-            raise ModelFileError(f"{path}: tensor {name[:80]} has dtype {info['dtype']} (edits hold floats and an {GRID} grid of {grid_dtype})")
+        if info["dtype"] not in ("F32", "F64", "F16", "BF16") and not (name in grid_names and info["dtype"] == grid_dtype):
+            what = f"a bit-packed {GRID} change ({', '.join(PACKED)}) of U8" if packed else f"an {GRID} grid of {grid_dtype}"
+            raise ModelFileError(f"{path}: tensor {name[:80]} has dtype {info['dtype']} (edits of format version {meta['version']} hold floats and {what})")
+    if packed:
+        present = [n for n in PACKED if n in header]
+        if GRID in header or len(present) == 1 or (present and PACKED_SHAPE not in meta):
+            raise ModelFileError(f"{path}: a version-{meta['version']} file stores its {GRID} change as {' and '.join(PACKED)} with {PACKED_SHAPE} metadata")
     tensors, meta = read_safetensors(path)
+    if packed and PACKED[0] in tensors:
+        tensors[GRID] = unpack_grid_change(tensors.pop(PACKED[0]), tensors.pop(PACKED[1]), meta[PACKED_SHAPE], path)
+    meta.pop(PACKED_SHAPE, None)
     for name, t in tensors.items():
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise ModelFileError(f"{path}: tensor {name[:80]} contains NaN or inf")
@@ -282,7 +357,7 @@ def _allowed(field: ConditionalRadianceField, kind: str, version: str) -> dict[s
     for row, table in CODE_ROWS.items():
         out[row] = (tuple(params[table].shape[1:]), params[table].dtype)
     if kind in GRID_KINDS:
-        out[GRID] = (tuple(field.occupancy.shape[1:]), field.occupancy.dtype if version == "1" else torch.int8)
+        out[GRID] = (tuple(field.occupancy.shape[1:]), field.occupancy.dtype if version == "1" else torch.int8)  # 3: unpacked
     return out
 
 

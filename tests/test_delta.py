@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from safetensors import safe_open
 from safetensors.torch import save_file
 from typer.testing import CliRunner
 
@@ -119,7 +120,11 @@ def test_delta_holds_exactly_the_touched_tensors(tmp_path, model):
     assert g.tensors["occupancy"].dtype == torch.int8 and g.tensors["occupancy"].shape == (8, 8, 8)
     old = model.field.occupancy[0]  # the grid's change, after − before: the edit inverted the grid
     assert torch.equal(g.tensors["occupancy"], torch.where(old, -1, 1).to(torch.int8))
-    assert read_delta(grid).meta["version"] == "2"
+    assert g.meta["version"] == "3" and "occupancy_shape" not in g.meta
+    with safe_open(str(grid), "pt") as f:  # on disk: bit-packed, 1 bit a cell + 1 bit a changed cell
+        assert sorted(f.keys()) == ["F_dens.bias", "F_dens.weight", "occupancy.changed", "occupancy.gained"]
+        assert f.get_tensor("occupancy.changed").tolist() == [255] * 64 and f.get_tensor("occupancy.gained").numel() == 64
+        assert json.loads(f.metadata()["occupancy_shape"]) == [8, 8, 8]
 
 
 def test_other_instances_bit_identical_and_input_untouched(tmp_path, model):
@@ -195,20 +200,74 @@ def test_dropping_an_earlier_grid_edit_gives_its_cells_back(tmp_path, model):
     assert torch.equal(apply_edit_files(model, [a, b, c]).field_for(0).occupancy[0], grid0 & high)
 
 
-def test_version_1_files_still_apply(tmp_path, model):
-    """A version-1 file stores the new grid itself (bool) and still replaces the instance's grid."""
-    v2 = grid_edit(model, 1, torch.ones_like(model.field.occupancy[1]), False, "v2.safetensors", tmp_path)
-    d = read_delta(v2)
+def test_version_1_and_2_files_still_apply(tmp_path, model):
+    """A version-1 file stores the new grid itself (bool) and still replaces the instance's grid;
+    a version-2 file stores the change unpacked (int8) and applies as version 3's packed one."""
+    v3 = grid_edit(model, 1, torch.ones_like(model.field.occupancy[1]), False, "v3.safetensors", tmp_path)
+    d = read_delta(v3)
     new_grid = model.field.occupancy[1] & (d.tensors["occupancy"] >= 0)
-    v1 = rewrite(v2, tmp_path / "v1.safetensors", {"occupancy": new_grid}, {"version": "1"})
-    assert torch.equal(apply_edit_files(model, [v1]).field_for(1).occupancy[1], new_grid)
-    assert torch.equal(apply_edit_files(model, [v2]).field_for(1).occupancy[1], new_grid)
+    v1 = rewrite(v3, tmp_path / "v1.safetensors", {"occupancy": new_grid}, {"version": "1"})
+    v2 = rewrite(v3, tmp_path / "v2.safetensors", dict(d.tensors), {"version": "2"})
+    assert torch.equal(read_delta(v2).tensors["occupancy"], d.tensors["occupancy"])
+    for path in (v1, v2, v3):
+        assert torch.equal(apply_edit_files(model, [path]).field_for(1).occupancy[1], new_grid)
+    # re-pinned (`edits rebase`, the page's stack), a file keeps its version and its encoding
+    for path, version in ((v1, "1"), (v2, "2")):
+        other = save_delta_back(read_delta(path), tmp_path / f"again{version}.safetensors")
+        assert read_delta(other).meta["version"] == version and other.stat().st_size == path.stat().st_size
     with pytest.raises(ModelFileError, match="has dtype I8"):  # a version-1 file with a change
         read_delta(rewrite(v2, tmp_path / "mixed.safetensors", dict(d.tensors), {"version": "1"}))
     with pytest.raises(ModelFileError, match="has dtype BOOL"):  # a version-2 file with a grid
-        read_delta(rewrite(v2, tmp_path / "mixed2.safetensors", {"occupancy": new_grid}))
+        read_delta(rewrite(v3, tmp_path / "mixed2.safetensors", {"occupancy": new_grid}, {"version": "2"}))
     with pytest.raises(ModelFileError, match="values other than -1, 0 and 1"):
-        read_delta(rewrite(v2, tmp_path / "two.safetensors", {"occupancy": d.tensors["occupancy"] * 2}))
+        read_delta(rewrite(v3, tmp_path / "two.safetensors", {"occupancy": d.tensors["occupancy"] * 2}, {"version": "2"}))
+    with pytest.raises(ModelFileError, match="has dtype I8 .*bit-packed"):  # a version-3 file with an int8 change
+        read_delta(rewrite(v3, tmp_path / "mixed3.safetensors", dict(d.tensors)))
+    from crfedit.delta import pack_grid_change
+
+    packed, dims = pack_grid_change(d.tensors["occupancy"])
+    rest = {k: v for k, v in d.tensors.items() if k != "occupancy"}
+    for i, (t, meta) in enumerate((({**rest, "occupancy.changed": packed["occupancy.changed"]}, {"occupancy_shape": dims}), ({**rest, **packed}, {}))):
+        with pytest.raises(ModelFileError, match="stores its occupancy change as occupancy.changed and occupancy.gained with occupancy_shape"):
+            read_delta(rewrite(v3, tmp_path / f"half{i}.safetensors", t, meta))
+    whole = rewrite(v3, tmp_path / "whole.safetensors", {**rest, **packed}, {"occupancy_shape": dims}, refingerprint=False)
+    assert torch.equal(read_delta(whole).tensors["occupancy"], d.tensors["occupancy"])  # written by hand, read the same
+
+
+def save_delta_back(d, path: Path) -> Path:
+    save_delta(path, d.tensors, d.meta)
+    return path
+
+
+def test_grid_change_packs_and_unpacks_exactly(tmp_path):
+    """Version 3's bit-packing round-trips every change (gains, losses, none, a size that is not a
+    multiple of 8) to the bit, at 1/8 of a byte a cell plus a bit a changed cell."""
+    from crfedit.delta import pack_grid_change, unpack_grid_change
+
+    g = torch.Generator().manual_seed(0)
+    for shape in ((8, 8, 8), (5, 3, 7), (64, 64, 64)):
+        for p in (0.0, 0.03, 0.5, 1.0):
+            change = torch.randint(0, 2, shape, generator=g).to(torch.int8) * 2 - 1
+            change[torch.rand(shape, generator=g) >= p] = 0
+            packed, dims = pack_grid_change(change)
+            n, c = change.numel(), int((change != 0).sum())
+            assert packed["occupancy.changed"].numel() == (n + 7) // 8 and packed["occupancy.gained"].numel() == (c + 7) // 8
+            back = unpack_grid_change(packed["occupancy.changed"], packed["occupancy.gained"], dims)
+            assert back.dtype == torch.int8 and torch.equal(back, change)
+    changed, gained = packed["occupancy.changed"], packed["occupancy.gained"]
+    cases = [
+        (changed[:-1], gained, "[64, 64, 64]", "has 32767 bytes, a [64, 64, 64] grid needs 32768"),
+        (changed, gained[:-1], "[64, 64, 64]", "262144 changed cells need 32768"),
+        (changed, gained, "[64, 64]", "must be a JSON list of 3 positive sizes"),
+        (changed, gained, "[100000, 100000, 100000]", "a [100000, 100000, 100000] grid needs"),  # allocates nothing
+        (changed.to(torch.int8), gained, "[64, 64, 64]", "must be a 1-d uint8 tensor"),
+        (torch.tensor([255, 1], dtype=torch.uint8), torch.zeros(2, dtype=torch.uint8), "[3, 3, 1]", "padding bits are not zero"),
+        (torch.tensor([255, 128], dtype=torch.uint8), torch.tensor([0, 1], dtype=torch.uint8), "[3, 3, 1]", "gained's padding bits are not zero"),
+    ]
+    for ch, ga, dims, message in cases:
+        with pytest.raises(ModelFileError, match=message.replace("[", r"\[").replace("]", r"\]")) as e:
+            unpack_grid_change(ch, ga, dims)
+        assert "\n" not in str(e.value)
 
 
 def test_wrong_order_parent_and_base_are_rejected(tmp_path, model):
@@ -355,7 +414,7 @@ def test_wrong_shapes_dtypes_and_names(tmp_path, model):
         ({**tensors, "color_code": torch.zeros(5)}, {}, "tensor color_code has shape (5,)"),
         ({**tensors, "F_share.mlp.0.bias": torch.zeros(16)}, {}, "outside the edit's modules"),
         ({**tensors, "aabb": torch.zeros(6)}, {}, "may not hold tensor 'aabb'"),
-        ({**tensors, "occupancy": torch.zeros(8, 8, 8, dtype=torch.int8)}, {"modules": '["F_rad.", "color_codes", "occupancy"]'}, "a color edit may not hold tensor 'occupancy'"),
+        ({**tensors, "occupancy": torch.zeros(8, 8, 8, dtype=torch.int8)}, {"modules": '["F_rad.", "color_codes", "occupancy"]', "version": "2"}, "a color edit may not hold tensor 'occupancy'"),
         ({**tensors, "F_rad.out.bias": torch.tensor([0.0, float("nan"), 0.0])}, {}, "contains NaN or inf"),
         (tensors, {"kind": "sculpt"}, "unknown edit kind 'sculpt'"),
         (tensors, {"version": "9"}, "edit format version '9' is not supported"),
@@ -422,7 +481,9 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     inputs = {p: p.read_bytes() for p in (a, b, c)}
     runner, out = CliRunner(), tmp_path / "rebased"
     shown = runner.invoke(app, ["edits", "show", str(a)])
-    assert f"occupancy     {int((grid0 & low).sum())} cells emptied, 0 occupied" in shown.output, shown.output
+    emptied = int((grid0 & low).sum())
+    assert f"occupancy     {emptied} cells emptied, 0 occupied" in shown.output, shown.output
+    assert f"tensor        occupancy [8, 8, 8] int8, stored bit-packed in {64 + (emptied + 7) // 8} bytes" in shown.output
     refused = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c)])
     assert refused.exit_code == 2 and "crfedit edits rebase" in refused.output
     done = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)])

@@ -34,7 +34,7 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data import load_category
-from crfedit.delta import apply_edit_files, delta_fingerprint, read_delta
+from crfedit.delta import apply_edit_files, delta_fingerprint, pack_grid_change, read_delta
 from crfedit.edit import transfer
 from crfedit.errors import ModelFileError
 from crfedit.io import write_exr
@@ -162,6 +162,18 @@ def delta_variant(src: Path, tmp: Path, change: Callable[[dict, dict], None], na
     tensors, meta = dict(delta.tensors), dict(delta.meta)
     change(tensors, meta)
     meta["fingerprint"] = delta_fingerprint(tensors, meta)
+    save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp / name), metadata=meta)
+    return tmp / name
+
+
+def packed_variant(src: Path, tmp: Path, change: Callable[[dict, dict], None], name: str = "evil.safetensors") -> Path:
+    """A grid edit's file rewritten with ``change`` applied to its bit-packed grid change (format
+    version 3's ``occupancy.changed`` / ``occupancy.gained`` and ``occupancy_shape``)."""
+    delta = read_delta(src)
+    tensors, meta = dict(delta.tensors), dict(delta.meta)
+    packed, meta["occupancy_shape"] = pack_grid_change(tensors.pop("occupancy"))
+    tensors.update(packed)
+    change(tensors, meta)
     save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp / name), metadata=meta)
     return tmp / name
 
@@ -429,6 +441,12 @@ CATALOGUE: list[Case] = [
     Case("edit/integer-dtype/edits-show",
          lambda e, t: (["edits", "show", delta_variant(e.delta, t, lambda ts, m: ts.update(color_code=torch.zeros(32, dtype=torch.int64)))], []),
          ("evil.safetensors", "has dtype I64")),
+    Case("edit/packed-grid-cut-short/render",
+         lambda e, t: render(e, t, "--edit", e.delta, "--edit", packed_variant(e.second, t, lambda ts, m: ts.update({"occupancy.changed": ts["occupancy.changed"][:-1]}))),
+         ("evil.safetensors", "bad packed occupancy", "occupancy.changed has")),
+    Case("edit/packed-grid-huge-shape/edits-show",
+         lambda e, t: (["edits", "show", packed_variant(e.second, t, lambda ts, m: m.update(occupancy_shape="[4096, 4096, 4096]"))], []),
+         ("evil.safetensors", "bad packed occupancy", "grid needs")),
     Case("edit/nan/transfer",
          lambda e, t: transfer_cmd(e, t, "--edit", delta_variant(e.delta, t, lambda ts, m: set_nan_first(ts, "color_code"))),
          ("evil.safetensors", "contains NaN or inf")),

@@ -367,8 +367,20 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
     if grid is not None and delta.meta["version"] != "1":  # version 1 stored the grid itself
         rows.append(("occupancy", f"{int((grid < 0).sum())} cells emptied, {int((grid > 0).sum())} occupied"))
     for name, t in sorted(delta.tensors.items()):
-        rows.append(("tensor", f"{name} {list(t.shape)} {str(t.dtype).replace('torch.', '')}"))
+        rows.append(("tensor", f"{name} {list(t.shape)} {str(t.dtype).replace('torch.', '')}{_stored(delta, name)}"))
     return rows
+
+
+def _stored(delta, name: str) -> str:
+    """How a version-3 file stores its grid change (bit-packed), for `edits show`."""
+    if name != "occupancy" or name not in delta.tensors or delta.meta["version"] in ("1", "2"):
+        return ""
+    return f", stored bit-packed in {_packed_bytes(delta.tensors[name])} bytes"
+
+
+def _packed_bytes(change) -> int:
+    """Bytes of a grid change bit-packed (``delta.pack_grid_change``): a bit a cell, a bit a changed cell."""
+    return (change.numel() + 7) // 8 + (int((change != 0).sum()) + 7) // 8
 
 
 @edits_app.command("show")
@@ -384,6 +396,8 @@ def show_cmd(
     size = edit.stat().st_size
     if as_json:
         tensors = {n: {"shape": list(t.shape), "dtype": str(t.dtype).replace("torch.", "")} for n, t in sorted(delta.tensors.items())}
+        if _stored(delta, "occupancy"):
+            tensors["occupancy"]["stored_bytes"] = _packed_bytes(delta.tensors["occupancy"])  # bit-packed on disk
         typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": delta.meta, "tensors": tensors}, indent=2))
         return
     for key, value in _show_rows(delta, size):

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..cameras import Camera
+from ..data.synth import rgb_to_hex
 from ..edit import EditOptions
 from ..edit.scribble import parse_color, strokes_json_mask
 from ..edit.supervised import turned_about_z
@@ -216,7 +217,7 @@ def parse_edit(body, model) -> EditRequest:
     color = None
     if kind == "color":
         rgb = parse_color(body.get("color", "") if isinstance(body.get("color"), str) else "")
-        color = "#" + "".join(f"{round(c * 255):02x}" for c in rgb)
+        color = rgb_to_hex(rgb)
     request = EditRequest(kind, k, options, method, view, scribbles, color)
     if request.drawn is None:
         raise CrfError(f"the view {view.label} has no 'edit here' strokes: scribble the part on it first")
