@@ -70,6 +70,12 @@ PACKED = ("occupancy.changed", "occupancy.gained")
 """Version 3's on-disk tensors for the grid's change (:func:`pack_grid_change`)."""
 PACKED_SHAPE = "occupancy_shape"
 """Version 3's metadata key for the packed grid's shape (JSON list), read back into the tensor."""
+
+
+def grid_packed(version: str) -> bool:
+    """Whether a file of format ``version`` stores its grid change bit-packed (3 on; 1 and 2 did not)."""
+    return version not in ("1", "2")
+
 RESERVED = (*IDENTITY, "fingerprint", PACKED_SHAPE)
 STACK_KEYS = ("edit_base", "edit_stack", "edit_state")
 """``CategoryModel.meta`` keys through which an applied model remembers its stack."""
@@ -234,7 +240,7 @@ def save_delta(path: str | os.PathLike, tensors: Mapping[str, Tensor], metadata:
     version its metadata names: a version-3 file's grid change is bit-packed, an older one (a
     re-pinned file keeps its version) stores it as it is."""
     out, meta = dict(tensors), {k: str(v) for k, v in metadata.items() if k != PACKED_SHAPE}
-    if meta.get("version") not in ("1", "2") and GRID in out:
+    if grid_packed(meta.get("version", VERSION)) and GRID in out:
         packed, shape = pack_grid_change(out.pop(GRID))
         out.update(packed)
         meta[PACKED_SHAPE] = shape
@@ -320,7 +326,7 @@ def read_delta(path: str | os.PathLike) -> Delta:
         raise ModelFileError(f"{path}: bad edit metadata (adds_instance must name the instance of a fit-real edit, only)")
     if not header:
         raise ModelFileError(f"{path}: edit file holds no tensors")
-    packed = meta["version"] not in ("1", "2")
+    packed = grid_packed(meta["version"])
     grid_dtype = {"1": "BOOL", "2": "I8"}.get(meta["version"], "U8")
     grid_names = PACKED if packed else (GRID,)
     for name, info in header.items():

@@ -373,14 +373,18 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
 
 def _stored(delta, name: str) -> str:
     """How a version-3 file stores its grid change (bit-packed), for `edits show`."""
-    if name != "occupancy" or name not in delta.tensors or delta.meta["version"] in ("1", "2"):
+    from ..delta import grid_packed
+
+    if name != "occupancy" or name not in delta.tensors or not grid_packed(delta.meta["version"]):
         return ""
     return f", stored bit-packed in {_packed_bytes(delta.tensors[name])} bytes"
 
 
 def _packed_bytes(change) -> int:
-    """Bytes of a grid change bit-packed (``delta.pack_grid_change``): a bit a cell, a bit a changed cell."""
-    return (change.numel() + 7) // 8 + (int((change != 0).sum()) + 7) // 8
+    """Bytes of a grid change as a version-3 file stores it."""
+    from ..delta import pack_grid_change
+
+    return sum(t.numel() for t in pack_grid_change(change)[0].values())
 
 
 @edits_app.command("show")
