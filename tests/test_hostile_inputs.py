@@ -178,6 +178,14 @@ def packed_variant(src: Path, tmp: Path, change: Callable[[dict, dict], None], n
     return tmp / name
 
 
+def selection_file(tmp: Path, tensors: dict, version: str = "1") -> Path:
+    """A hand-written selection file (``crfedit select``'s format) holding ``tensors``."""
+    meta = {"format": "crfedit-selection", "version": version, "model_fingerprint": "0" * 16, "instance": "chair_000",
+            "instance_index": "0", "threshold": "0.5", "info": "{}"}
+    save_file(tensors, str(tmp / "sel.safetensors"), metadata=meta)
+    return tmp / "sel.safetensors"
+
+
 def mask_png(tmp: Path, name: str, array: np.ndarray, mode: str | None = None) -> Path:
     """``array`` as a PNG (uint8 → 8-bit grey, uint16 → 16-bit grey, or ``mode``)."""
     (Image.fromarray(array, mode) if mode else Image.fromarray(array)).save(tmp / name)
@@ -388,7 +396,13 @@ CATALOGUE: list[Case] = [
     Case("model/overlapping-offsets/info",
          lambda e, t: (["info", raw_safetensors(t, "offs.safetensors", {"w": {"dtype": "F32", "shape": [4], "data_offsets": [0, 64]}}, bytes(16))], []),
          ("offs.safetensors", "corrupt entry for tensor 'w'")),
-    Case("model/an-edit-file/info", lambda e, t: (["info", e.delta], []), ("delta.safetensors", "not a crfedit model", "crfedit-edit")),
+    Case("model/an-edit-file/render", lambda e, t: render(e, t, model=e.delta), ("delta.safetensors", "not a crfedit model", "crfedit-edit")),
+    Case("selection/values-not-a-grid/info",
+         lambda e, t: (["info", selection_file(t, {"values": torch.zeros(4, 4, dtype=torch.uint8)})], []),
+         ("sel.safetensors", "'values' must be a uint8 [R, R, R] grid")),
+    Case("selection/unknown-version/info",
+         lambda e, t: (["info", selection_file(t, {"values": torch.zeros(4, 4, 4, dtype=torch.uint8)}, version="9")], []),
+         ("sel.safetensors", "selection format version '9' is not supported")),
     Case("model/nan-weight/render", lambda e, t: render(e, t, model=model_variant(e, t, lambda ts, m: set_nan_first(ts, "field.F_rad.mlp.0.weight"))),
          ("variant.safetensors", "contains NaN or inf")),
     Case("model/wrong-shape/remove",
@@ -961,3 +975,16 @@ def test_version_prints_and_exits_zero():
 
     proc = subprocess.run([sys.executable, "-m", "crfedit", "--version"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and proc.stdout.startswith("crfedit ") and "torch" in proc.stdout
+
+
+def test_info_on_a_selection_with_a_hand_edited_record(tmp_path: Path):
+    """`crfedit info` on a selection whose ``info`` record is not what `select` writes: the cells
+    are still counted, and the lines read from the record are left out rather than guessed."""
+    path = selection_file(tmp_path, {"values": torch.full((4, 4, 4), 200, dtype=torch.uint8)})
+    meta = {"format": "crfedit-selection", "version": "1", "model_fingerprint": "0" * 16, "instance": "chair_\x1b[31m",
+            "instance_index": "0", "threshold": "0.5", "info": json.dumps({"mirror": {"used": True}, "views": "two", "features": [1]})}
+    save_file({"values": torch.full((4, 4, 4), 200, dtype=torch.uint8)}, str(path), metadata=meta)
+    result = invoke(["info", path])
+    assert result.exit_code == 0, result.output
+    assert "cells         64 of 4^3 selected (value >= 0.5), 64 with a value above 0" in result.output
+    assert "made from     unknown" in result.output and "mirror" not in result.output and "\x1b" not in result.output

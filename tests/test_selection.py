@@ -730,6 +730,14 @@ def test_select_command_and_its_errors(trained, tmp_path):
     r = runner.invoke(app, [*args, "--for", "add", "--out", str(tmp_path / "a.safetensors")])
     assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "a.safetensors").meta
     assert "chroma_union" in load_selection(out).meta and load_selection(out).meta["for"] == "color"  # the default
+    # `crfedit info` reads a selection file: its instance, model and cells, as the file holds them
+    sel = load_selection(out)
+    shown = runner.invoke(app, ["info", str(out)])
+    assert shown.exit_code == 0, shown.output
+    assert f"instance      {model.names[1]} (index 1)" in shown.output and f"model         {model.fingerprint()}" in shown.output
+    assert f"cells         {int(sel.mask.sum())} of {model.cfg.occ_res}^3 selected (value >= 0.3), {int((sel.values > 0).sum())} with a value above 0" in shown.output, shown.output
+    as_json = json.loads(runner.invoke(app, ["info", str(out), "--json"]).output)
+    assert (as_json["selected_cells"], as_json["info"]["for"], as_json["threshold"]) == (int(sel.mask.sum()), "color", 0.3)
     edit_out = tmp_path / "e.safetensors"
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[0], "--view", f"train:{index}",
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out)])
@@ -739,6 +747,9 @@ def test_select_command_and_its_errors(trained, tmp_path):
                             "--preview", str(tmp_path / "after"), "--views", "orbit:3"])
     assert r.exit_code == 0, r.output
     assert edit_out.is_file() and len(list((tmp_path / "after").glob("*.png"))) == 3
+    shown = runner.invoke(app, ["info", str(edit_out)])  # an edit file: what `edits show` prints
+    assert shown.exit_code == 0 and shown.output == runner.invoke(app, ["edits", "show", str(edit_out)]).output
+    assert "kind          remove" in shown.output and "cells emptied" in shown.output
     # a recolour's selection takes the 0.3–0.5 band, which a removal's does not
     assert "made with crfedit select --for color; this remove edit's own selection would be --for remove" in r.output
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--steps", "1",

@@ -394,6 +394,11 @@ def show_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
 ) -> None:
     """Print an edit file's metadata and tensors."""
+    print_edit(edit, as_json)
+
+
+def print_edit(edit: Path, as_json: bool) -> None:
+    """`edits show` (and `info` on an edit file): the file's metadata and tensors, as a table or JSON."""
     from ..delta import read_delta
 
     delta = read_delta(edit)

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from .common import DeviceChoice, DeviceOpt, app, user_errors
+from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
 from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _view_render
 
 
@@ -75,3 +75,44 @@ def select_cmd(
         for i, (label, camera) in enumerate(resolve_views(views, m, k)):
             write_png(preview / f"{i:04d}.png", tinted(m, sel, camera))
         typer.echo(f"wrote previews of {views} to {preview}/")
+
+
+def print_selection(path: Path, as_json: bool) -> None:
+    """`info` on a selection file: its instance, model, cells and how it was made (table or JSON)."""
+    import json
+
+    from ..edit.selection import load_selection, mirror_summary, part_summary, shape_summary
+
+    sel = load_selection(path)
+    info = sel.meta if isinstance(sel.meta, dict) else {}
+    res = sel.values.shape[0]
+    selected, nonzero = int(sel.mask.sum()), int((sel.values > 0).sum())
+    if as_json:
+        typer.echo(json.dumps({
+            "file": str(path), "bytes": path.stat().st_size, "format": "crfedit-selection", "instance": sel.instance_name,
+            "instance_index": sel.instance, "model_fingerprint": sel.model_fingerprint, "grid": res,
+            "threshold": sel.threshold, "selected_cells": selected, "nonzero_cells": nonzero, "info": info,
+        }, indent=2))
+        return
+    counts = [f"{info[key]} {what}" for key, what in (("views", "view(s)"), ("positives", "scribbled points"), ("keep_points", "keep points"))
+              if type(info.get(key)) is int]
+    features = info.get("features")
+    rows = [
+        ("selection", f"{path} ({path.stat().st_size} bytes)"),
+        ("instance", f"{sel.instance_name} (index {sel.instance})"),
+        ("model", sel.model_fingerprint or "(none)"),
+        ("for", info.get("for", "unknown")),
+        ("cells", f"{selected} of {res}^3 selected (value >= {sel.threshold:g}), {nonzero} with a value above 0"),
+        ("made from", ", ".join(counts) or "unknown"),
+    ]
+    if isinstance(features, list):
+        rows.append(("features", ", ".join(map(str, features))))
+    for label, summary in (("mirror", mirror_summary), ("part head", part_summary), ("shape gate", shape_summary)):
+        try:
+            line = summary(info)
+        except (KeyError, TypeError, ValueError, IndexError):  # a hand-edited record: say nothing rather than guess
+            line = None
+        if line is not None:
+            rows.append((label, line))
+    for key, value in rows:
+        typer.echo(printable(f"{key:<13} {value}"))

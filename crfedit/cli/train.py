@@ -291,12 +291,24 @@ def _bytes(n: int) -> str:
 @app.command("info")
 @user_errors
 def info_cmd(
-    model: Annotated[Path, typer.Argument(help="Model file (.safetensors) written by crfedit train.")],
+    model: Annotated[Path, typer.Argument(help="A crfedit file (.safetensors): a model, an edit file or a selection.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
 ) -> None:
-    """Summarize a model: preset, instances, parameters and bytes per module, occupancy, fingerprints."""
+    """Summarize a crfedit file: a model (preset, instances, parameters and bytes per module,
+    occupancy, fingerprints), an edit file (as `crfedit edits show`) or a selection (its
+    instance, model, cells and how it was made)."""
     from ..modelfile import model_info
+    from ..safefile import read_header
 
+    kind = read_header(model)[1].get("format")
+    if kind == "crfedit-edit":
+        from .edit import print_edit
+
+        return print_edit(model, as_json)
+    if kind == "crfedit-selection":
+        from .select import print_selection
+
+        return print_selection(model, as_json)
     meta = model_info(model)
     if as_json:
         typer.echo(json.dumps(meta, indent=2))
