@@ -484,6 +484,7 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     emptied = int((grid0 & low).sum())
     assert f"occupancy     {emptied} cells emptied, 0 occupied" in shown.output, shown.output
     assert f"tensor        occupancy [8, 8, 8] int8, stored bit-packed in {64 + (emptied + 7) // 8} bytes" in shown.output
+    assert f"size          {a.stat().st_size} bytes, 1 tensor, edit format version 3" in shown.output
     refused = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c)])
     assert refused.exit_code == 2 and "crfedit edits rebase" in refused.output
     done = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)])

@@ -155,9 +155,9 @@ def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, pe
 def _write(result, out: Path, label: str) -> None:
     result.save(out, command=command_line(), **({"view": label} if label else {}))
     meta = result.meta
-    size = out.stat().st_size
+    size, n = out.stat().st_size, len(result.tensors)
     typer.echo(
-        f"wrote {out}: {meta['kind']} edit of {meta['instance']}, {len(result.tensors)} tensors, "
+        f"wrote {out}: {meta['kind']} edit of {meta['instance']}, {n} tensor{'s' * (n != 1)}, "
         f"{size / 1024:.1f} KiB, final loss {result.final_loss:.4g}, {result.seconds:.2f} s"
     )
 
@@ -362,7 +362,8 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
         if isinstance(hyper, dict):
             shown = {k: v for k, v in hyper.items() if not isinstance(v, dict)}
             rows.append(("hyper", ", ".join(f"{k}={_short(v)}" for k, v in shown.items())))
-    rows.append(("size", f"{size} bytes, {len(delta.tensors)} tensors"))
+    n = len(delta.tensors)
+    rows.append(("size", f"{size} bytes, {n} tensor{'s' * (n != 1)}, edit format version {meta['version']}"))
     grid = delta.tensors.get("occupancy")
     if grid is not None and delta.meta["version"] != "1":  # version 1 stored the grid itself
         rows.append(("occupancy", f"{int((grid < 0).sum())} cells emptied, {int((grid > 0).sum())} occupied"))
