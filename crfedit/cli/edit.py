@@ -368,24 +368,19 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
     if grid is not None and delta.meta["version"] != "1":  # version 1 stored the grid itself
         rows.append(("occupancy", f"{int((grid < 0).sum())} cells emptied, {int((grid > 0).sum())} occupied"))
     for name, t in sorted(delta.tensors.items()):
-        rows.append(("tensor", f"{name} {list(t.shape)} {str(t.dtype).replace('torch.', '')}{_stored(delta, name)}"))
+        stored = _packed_bytes(delta) if name == "occupancy" else None
+        how = "" if stored is None else f", stored bit-packed in {stored} bytes"
+        rows.append(("tensor", f"{name} {list(t.shape)} {str(t.dtype).replace('torch.', '')}{how}"))
     return rows
 
 
-def _stored(delta, name: str) -> str:
-    """How a version-3 file stores its grid change (bit-packed), for `edits show`."""
-    from ..delta import grid_packed
+def _packed_bytes(delta) -> int | None:
+    """Bytes of the file's grid change, where it is stored bit-packed (version 3); else None."""
+    from ..delta import GRID, grid_packed, pack_grid_change
 
-    if name != "occupancy" or name not in delta.tensors or not grid_packed(delta.meta["version"]):
-        return ""
-    return f", stored bit-packed in {_packed_bytes(delta.tensors[name])} bytes"
-
-
-def _packed_bytes(change) -> int:
-    """Bytes of a grid change as a version-3 file stores it."""
-    from ..delta import pack_grid_change
-
-    return sum(t.numel() for t in pack_grid_change(change)[0].values())
+    if GRID not in delta.tensors or not grid_packed(delta.meta["version"]):
+        return None
+    return sum(t.numel() for t in pack_grid_change(delta.tensors[GRID])[0].values())
 
 
 @edits_app.command("show")
@@ -406,8 +401,9 @@ def print_edit(edit: Path, as_json: bool) -> None:
     size = edit.stat().st_size
     if as_json:
         tensors = {n: {"shape": list(t.shape), "dtype": str(t.dtype).replace("torch.", "")} for n, t in sorted(delta.tensors.items())}
-        if _stored(delta, "occupancy"):
-            tensors["occupancy"]["stored_bytes"] = _packed_bytes(delta.tensors["occupancy"])  # bit-packed on disk
+        stored = _packed_bytes(delta)
+        if stored is not None:
+            tensors["occupancy"]["stored_bytes"] = stored  # bit-packed on disk
         typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": delta.meta, "tensors": tensors}, indent=2))
         return
     for key, value in _show_rows(delta, size):

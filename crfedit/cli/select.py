@@ -81,7 +81,7 @@ def print_selection(path: Path, as_json: bool) -> None:
     """`info` on a selection file: its instance, model, cells and how it was made (table or JSON)."""
     import json
 
-    from ..edit.selection import load_selection, mirror_summary, part_summary, shape_summary
+    from ..edit.selection import FORMAT, load_selection, mirror_summary, part_summary, shape_summary
 
     sel = load_selection(path)
     info = sel.meta if isinstance(sel.meta, dict) else {}
@@ -89,7 +89,7 @@ def print_selection(path: Path, as_json: bool) -> None:
     selected, nonzero = int(sel.mask.sum()), int((sel.values > 0).sum())
     if as_json:
         typer.echo(json.dumps({
-            "file": str(path), "bytes": path.stat().st_size, "format": "crfedit-selection", "instance": sel.instance_name,
+            "file": str(path), "bytes": path.stat().st_size, "format": FORMAT, "instance": sel.instance_name,
             "instance_index": sel.instance, "model_fingerprint": sel.model_fingerprint, "grid": res,
             "threshold": sel.threshold, "selected_cells": selected, "nonzero_cells": nonzero, "info": info,
         }, indent=2))

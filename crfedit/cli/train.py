@@ -300,15 +300,20 @@ def info_cmd(
     from ..modelfile import model_info
     from ..safefile import read_header
 
+    from ..delta import FORMAT as EDIT_FORMAT
+    from ..model import FORMAT as MODEL_FORMAT
+
     kind = read_header(model)[1].get("format")
-    if kind == "crfedit-edit":
+    if kind == EDIT_FORMAT:
         from .edit import print_edit
 
         return print_edit(model, as_json)
-    if kind == "crfedit-selection":
+    if kind != MODEL_FORMAT:  # a selection, or model_info's one-line error
+        from ..edit.selection import FORMAT as SELECTION_FORMAT
         from .select import print_selection
 
-        return print_selection(model, as_json)
+        if kind == SELECTION_FORMAT:
+            return print_selection(model, as_json)
     meta = model_info(model)
     if as_json:
         typer.echo(json.dumps(meta, indent=2))
