@@ -70,15 +70,14 @@ PACKED = ("occupancy.changed", "occupancy.gained")
 """Version 3's on-disk tensors for the grid's change (:func:`pack_grid_change`)."""
 PACKED_SHAPE = "occupancy_shape"
 """Version 3's metadata key for the packed grid's shape (JSON list), read back into the tensor."""
+RESERVED = (*IDENTITY, "fingerprint", PACKED_SHAPE)
+STACK_KEYS = ("edit_base", "edit_stack", "edit_state")
+"""``CategoryModel.meta`` keys through which an applied model remembers its stack."""
 
 
 def grid_packed(version: str) -> bool:
     """Whether a file of format ``version`` stores its grid change bit-packed (3 on; 1 and 2 did not)."""
     return version not in ("1", "2")
-
-RESERVED = (*IDENTITY, "fingerprint", PACKED_SHAPE)
-STACK_KEYS = ("edit_base", "edit_stack", "edit_state")
-"""``CategoryModel.meta`` keys through which an applied model remembers its stack."""
 
 
 @dataclass(frozen=True)

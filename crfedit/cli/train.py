@@ -297,11 +297,10 @@ def info_cmd(
     """Summarize a crfedit file: a model (preset, instances, parameters and bytes per module,
     occupancy, fingerprints), an edit file (as `crfedit edits show`) or a selection (its
     instance, model, cells and how it was made)."""
-    from ..modelfile import model_info
-    from ..safefile import read_header
-
     from ..delta import FORMAT as EDIT_FORMAT
     from ..model import FORMAT as MODEL_FORMAT
+    from ..modelfile import model_info
+    from ..safefile import read_header
 
     kind = read_header(model)[1].get("format")
     if kind == EDIT_FORMAT:
