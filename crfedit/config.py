@@ -14,6 +14,11 @@ from dataclasses import dataclass, fields
 
 from .errors import CrfError
 
+MAX_GRID_SIDE = 512
+"""Largest occupancy grid side (``occ_res``) a model may have and a file may declare: a packed
+grid is checked against its declared shape before it is unpacked, and this bounds what
+unpacking allocates (a few bytes a cell, 0.4 GB at 512³)."""
+
 
 @dataclass(frozen=True)
 class Config:
@@ -135,7 +140,7 @@ class Config:
             (self.width > 0 and self.rad_width > 0 and self.bottleneck > 0, "widths must be positive"),
             (min(self.share_layers, self.inst_layers, self.fuse_layers, self.rad_layers) >= 1, "layer counts must be ≥ 1"),
             (self.pe_x >= 0 and self.pe_d >= 0 and self.grid_res >= 0, "encoding sizes must be ≥ 0"),
-            (self.occ_res >= 2, "occ_res must be ≥ 2"),
+            (2 <= self.occ_res <= MAX_GRID_SIDE, f"occ_res must be from 2 to {MAX_GRID_SIDE}"),
             (self.steps_per_cell > 0, "steps_per_cell must be > 0"),
             (self.n_coarse >= 1 and self.n_fine >= 0, "n_coarse must be ≥ 1 and n_fine ≥ 0"),
             (self.rays >= 1, "rays must be ≥ 1"),
@@ -194,7 +199,8 @@ def _coerce(name: str, value: str, current):
             raise ValueError
         return type(current)(value)
     except ValueError:
-        raise CrfError(f"--set {name}={value}: expected a {type(current).__name__}") from None
+        kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(current), f"a {type(current).__name__}")
+        raise CrfError(f"--set {name}={value}: expected {kind}") from None
 
 
 DEVICE_DEFAULTS: dict[tuple[str, str], dict[str, object]] = {

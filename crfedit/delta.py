@@ -50,7 +50,7 @@ from .errors import ModelFileError, NonFiniteError
 from .field import ConditionalRadianceField
 from .model import CategoryModel
 from .names import COLOR_CODES, SHAPE_CODES
-from .safefile import fingerprint, read_header, read_safetensors, write_safetensors
+from .safefile import fingerprint, grid_shape, pack_bits, read_header, read_safetensors, unpack_bits, write_safetensors
 
 FORMAT = "crfedit-edit"
 VERSION = "3"
@@ -258,8 +258,7 @@ def pack_grid_change(change: Tensor) -> tuple[dict[str, Tensor], str]:
     """
     flat = change.detach().to("cpu", torch.int8).reshape(-1).numpy()
     changed = flat != 0
-    packed = {PACKED[0]: np.packbits(changed), PACKED[1]: np.packbits(flat[changed] > 0)}
-    return {k: torch.from_numpy(v) for k, v in packed.items()}, json.dumps(list(change.shape))
+    return {PACKED[0]: pack_bits(changed), PACKED[1]: pack_bits(flat[changed] > 0)}, json.dumps(list(change.shape))
 
 
 def unpack_grid_change(changed: Tensor, gained: Tensor, shape: str, path: str = "edit file") -> Tensor:
@@ -268,29 +267,12 @@ def unpack_grid_change(changed: Tensor, gained: Tensor, shape: str, path: str = 
     def bad(why: str) -> ModelFileError:
         return ModelFileError(f"{path}: bad packed {GRID} ({why})")
 
-    try:
-        dims = json.loads(shape)
-    except (json.JSONDecodeError, TypeError):
-        dims = None
-    if not isinstance(dims, list) or len(dims) != 3 or not all(type(d) is int and d > 0 for d in dims):
-        raise bad(f"{PACKED_SHAPE} must be a JSON list of 3 positive sizes, not {str(shape)[:40]!r}")
+    dims = grid_shape(shape, bad)
     n = dims[0] * dims[1] * dims[2]
-    for name, t in zip(PACKED, (changed, gained)):
-        if t.dtype != torch.uint8 or t.dim() != 1:
-            raise bad(f"{name} must be a 1-d uint8 tensor, not {list(t.shape)} {str(t.dtype).replace('torch.', '')}")
-    if changed.numel() != (n + 7) // 8:
-        raise bad(f"{PACKED[0]} has {changed.numel()} bytes, a {dims} grid needs {(n + 7) // 8}")
-    bits = np.unpackbits(changed.numpy())
-    c = int(bits[:n].sum())
-    if bits[n:].any():
-        raise bad(f"{PACKED[0]}'s padding bits are not zero")
-    if gained.numel() != (c + 7) // 8:
-        raise bad(f"{PACKED[1]} has {gained.numel()} bytes, {c} changed cells need {(c + 7) // 8}")
-    up = np.unpackbits(gained.numpy())
-    if up[c:].any():
-        raise bad(f"{PACKED[1]}'s padding bits are not zero")
+    where = unpack_bits(changed, n, PACKED[0], bad, "cells")
+    up = unpack_bits(gained, int(where.sum()), PACKED[1], bad, "changed cells")
     out = np.zeros(n, dtype=np.int8)
-    out[bits[:n].astype(bool)] = np.where(up[:c].astype(bool), 1, -1)
+    out[where] = np.where(up, 1, -1)
     return torch.from_numpy(out.reshape(dims))
 
 

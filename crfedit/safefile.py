@@ -12,10 +12,12 @@ import os
 import struct
 from pathlib import Path
 
+import numpy as np
 import torch
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
+from .config import MAX_GRID_SIDE
 from .errors import ModelFileError
 from .io import atomic_write_bytes
 
@@ -110,3 +112,36 @@ def fingerprint(tensors: dict[str, torch.Tensor]) -> str:
         if t.numel():  # the array's own buffer: no copy of the bytes (10 MB on a 24-chair model)
             h.update(t.reshape(-1).view(torch.uint8).numpy())
     return h.hexdigest()[:16]
+
+
+# ----------------------------------------------------------------------------- bit-packed grids
+
+
+def grid_shape(text: str, bad) -> list[int]:
+    """The JSON shape of a packed grid, 3 sizes in [1, MAX_GRID_SIDE]; ``bad(why)`` makes the error."""
+    try:
+        dims = json.loads(text)
+    except (json.JSONDecodeError, TypeError):
+        dims = None
+    if not isinstance(dims, list) or len(dims) != 3 or not all(type(d) is int and 0 < d <= MAX_GRID_SIDE for d in dims):
+        raise bad(f"its shape must be a JSON list of 3 sizes from 1 to {MAX_GRID_SIDE}, not {str(text)[:40]!r}")
+    return dims
+
+
+def pack_bits(mask: np.ndarray) -> torch.Tensor:
+    """A bool vector as uint8, one bit per entry, most significant first (``numpy.packbits``),
+    the last byte padded with zero bits."""
+    return torch.from_numpy(np.packbits(mask.astype(bool, copy=False)))
+
+
+def unpack_bits(packed: torch.Tensor, n: int, name: str, bad, unit: str = "entries") -> np.ndarray:
+    """The ``n`` bools :func:`pack_bits` packed into ``packed``; its dtype, length and zero
+    padding are checked first (nothing is unpacked from a tensor of the wrong length)."""
+    if packed.dtype != torch.uint8 or packed.dim() != 1:
+        raise bad(f"{name} must be a 1-d uint8 tensor, not {list(packed.shape)} {str(packed.dtype).replace('torch.', '')}")
+    if packed.numel() != (n + 7) // 8:
+        raise bad(f"{name} has {packed.numel()} bytes, {n} {unit} need {(n + 7) // 8}")
+    bits = np.unpackbits(packed.numpy())
+    if bits[n:].any():
+        raise bad(f"{name}'s padding bits are not zero")
+    return bits[:n].astype(bool)

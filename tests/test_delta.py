@@ -256,10 +256,11 @@ def test_grid_change_packs_and_unpacks_exactly(tmp_path):
             assert back.dtype == torch.int8 and torch.equal(back, change)
     changed, gained = packed["occupancy.changed"], packed["occupancy.gained"]
     cases = [
-        (changed[:-1], gained, "[64, 64, 64]", "has 32767 bytes, a [64, 64, 64] grid needs 32768"),
+        (changed[:-1], gained, "[64, 64, 64]", "has 32767 bytes, 262144 cells need 32768"),
         (changed, gained[:-1], "[64, 64, 64]", "262144 changed cells need 32768"),
-        (changed, gained, "[64, 64]", "must be a JSON list of 3 positive sizes"),
-        (changed, gained, "[100000, 100000, 100000]", "a [100000, 100000, 100000] grid needs"),  # allocates nothing
+        (changed, gained, "[64, 64]", "must be a JSON list of 3 sizes from 1 to 512"),
+        (changed, gained, "[100000, 100000, 100000]", "3 sizes from 1 to 512, not '[100000"),  # allocates nothing
+        (changed, gained, "[512, 512, 512]", "134217728 cells need 16777216"),  # nor does a shape the bits do not fill
         (changed.to(torch.int8), gained, "[64, 64, 64]", "must be a 1-d uint8 tensor"),
         (torch.tensor([255, 1], dtype=torch.uint8), torch.zeros(2, dtype=torch.uint8), "[3, 3, 1]", "padding bits are not zero"),
         (torch.tensor([255, 128], dtype=torch.uint8), torch.tensor([0, 1], dtype=torch.uint8), "[3, 3, 1]", "gained's padding bits are not zero"),

@@ -178,10 +178,10 @@ def packed_variant(src: Path, tmp: Path, change: Callable[[dict, dict], None], n
     return tmp / name
 
 
-def selection_file(tmp: Path, tensors: dict, version: str = "1") -> Path:
+def selection_file(tmp: Path, tensors: dict, version: str = "1", **extra: str) -> Path:
     """A hand-written selection file (``crfedit select``'s format) holding ``tensors``."""
     meta = {"format": "crfedit-selection", "version": version, "model_fingerprint": "0" * 16, "instance": "chair_000",
-            "instance_index": "0", "threshold": "0.5", "info": "{}"}
+            "instance_index": "0", "threshold": "0.5", "info": "{}", **extra}
     save_file(tensors, str(tmp / "sel.safetensors"), metadata=meta)
     return tmp / "sel.safetensors"
 
@@ -403,6 +403,14 @@ CATALOGUE: list[Case] = [
     Case("selection/unknown-version/info",
          lambda e, t: (["info", selection_file(t, {"values": torch.zeros(4, 4, 4, dtype=torch.uint8)}, version="9")], []),
          ("sel.safetensors", "selection format version '9' is not supported")),
+    Case("selection/sparse-huge-shape/info",
+         lambda e, t: (["info", selection_file(t, {"nonzero": torch.zeros(8, dtype=torch.uint8), "levels": torch.zeros(0, dtype=torch.uint8)},
+                                               version="2", shape="[100000, 100000, 100000]")], []),
+         ("sel.safetensors", "bad selection grid", "3 sizes from 1 to 512")),
+    Case("selection/sparse-mask-cut-short/info",
+         lambda e, t: (["info", selection_file(t, {"nonzero": torch.zeros(7, dtype=torch.uint8), "levels": torch.zeros(0, dtype=torch.uint8)},
+                                               version="2", shape="[4, 4, 4]")], []),
+         ("sel.safetensors", "bad selection grid", "nonzero has 7 bytes, 64 cells need 8")),
     Case("model/nan-weight/render", lambda e, t: render(e, t, model=model_variant(e, t, lambda ts, m: set_nan_first(ts, "field.F_rad.mlp.0.weight"))),
          ("variant.safetensors", "contains NaN or inf")),
     Case("model/wrong-shape/remove",
@@ -460,7 +468,7 @@ CATALOGUE: list[Case] = [
          ("evil.safetensors", "bad packed occupancy", "occupancy.changed has")),
     Case("edit/packed-grid-huge-shape/edits-show",
          lambda e, t: (["edits", "show", packed_variant(e.second, t, lambda ts, m: m.update(occupancy_shape="[4096, 4096, 4096]"))], []),
-         ("evil.safetensors", "bad packed occupancy", "grid needs")),
+         ("evil.safetensors", "bad packed occupancy", "sizes from 1 to 512")),
     Case("edit/nan/transfer",
          lambda e, t: transfer_cmd(e, t, "--edit", delta_variant(e.delta, t, lambda ts, m: set_nan_first(ts, "color_code"))),
          ("evil.safetensors", "contains NaN or inf")),
@@ -557,7 +565,8 @@ CATALOGUE: list[Case] = [
     Case("number/minutes-0/train", lambda e, t: train_cmd(e, t, "--minutes", "0"), ("--minutes 0",)),
     Case("number/minutes-nan/quickstart", lambda e, t: (["quickstart", "--out", t / "q", "--minutes", "nan", *CPU], [t / "q"]), ("--minutes nan",)),
     Case("number/set-steps-negative/train", lambda e, t: train_cmd(e, t, "--set", "steps=-3"), ("steps must be ≥ 1",)),
-    Case("number/set-not-a-number/train", lambda e, t: train_cmd(e, t, "--set", "rays=abc"), ("--set rays=abc", "expected a int")),
+    Case("number/set-occ-res-too-large/train", lambda e, t: train_cmd(e, t, "--set", "occ_res=4096"), ("occ_res must be from 2 to 512",)),
+    Case("number/set-not-a-number/train", lambda e, t: train_cmd(e, t, "--set", "rays=abc"), ("--set rays=abc", "expected an integer")),
     Case("number/set-unknown-key/train", lambda e, t: train_cmd(e, t, "--set", "__class__=x"), ("--set __class__=x", "KEY=VALUE")),
     Case("number/max-views-0/eval-recon", lambda e, t: (["eval", "recon", e.model, e.data, "--max-views", "0", *CPU], []), ("--max-views 0",)),
     # --- output paths --------------------------------------------------------------------------------

@@ -702,6 +702,54 @@ def test_selection_file_round_trip_and_checks(trained, tmp_path):
     assert img.shape == (RES, RES, 3) and np.isfinite(img).all()
 
 
+def test_selection_file_is_sparse_and_version_1_still_reads(tmp_path):
+    """Version 2 stores a bit per cell and a byte per cell with a value, and reads back to the
+    same tensor; a version-1 file (the whole grid as uint8) of the same values reads alike."""
+    from safetensors.torch import save_file
+
+    g = torch.Generator().manual_seed(0)
+    q = torch.randint(1, 256, (64, 64, 64), generator=g).to(torch.uint8)
+    q[torch.rand(q.shape, generator=g) >= 0.05] = 0  # 5 % of the cells hold a value
+    sel = Selection(q.float() / 255.0, 1, "chair_001", "f" * 16, {"for": "color"}, 0.3)
+    save_selection(tmp_path / "v2.safetensors", sel)
+    back = load_selection(tmp_path / "v2.safetensors")
+    assert torch.equal(back.values, sel.values) and back.threshold == 0.3 and back.meta == {"for": "color"}
+    n = int((q > 0).sum())
+    assert (tmp_path / "v2.safetensors").stat().st_size < 64**3 // 8 + n + 1024  # mask + levels + header
+    meta = {"format": "crfedit-selection", "version": "1", "model_fingerprint": "f" * 16, "instance": "chair_001",
+            "instance_index": "1", "threshold": "0.3", "info": "{}"}
+    save_file({"values": q}, str(tmp_path / "v1.safetensors"), metadata=meta)
+    assert torch.equal(load_selection(tmp_path / "v1.safetensors").values, sel.values)
+    empty = Selection(torch.zeros(8, 8, 8), 0, "chair_000", "f" * 16, {}, 0.5)  # no cell: an empty levels tensor
+    save_selection(tmp_path / "e.safetensors", empty)
+    assert torch.equal(load_selection(tmp_path / "e.safetensors").values, empty.values)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda t, m: t.update(levels=t["levels"][:-1]), "levels must be 2 uint8 values, one per set bit of nonzero"),
+    (lambda t, m: t.update(nonzero=t["nonzero"][:-1]), "nonzero has 63 bytes, 512 cells need 64"),
+    (lambda t, m: t.update(levels=torch.tensor([9, 0], dtype=torch.uint8)), "levels holds a 0 where nonzero says"),
+    (lambda t, m: m.update(shape="[8, 8, 4]"), "the grid must be a cube"),
+    (lambda t, m: m.update(shape="[4096, 4096, 4096]"), "3 sizes from 1 to 512"),
+    (lambda t, m: m.pop("shape"), "holds the tensors nonzero and levels and the metadata key shape"),
+    (lambda t, m: t.update(values=torch.zeros(8, 8, 8, dtype=torch.uint8)), "holds the tensors nonzero and levels"),
+])
+def test_a_malformed_sparse_selection_is_refused(tmp_path, change, message):
+    from safetensors.torch import load_file, save_file
+
+    from crfedit.safefile import read_header
+
+    values = torch.zeros(8, 8, 8)
+    values[1, 2, 3], values[4, 4, 4] = 0.5, 1.0
+    save_selection(tmp_path / "s.safetensors", Selection(values, 0, "chair_000", "f" * 16, {}, 0.5))
+    tensors, meta = load_file(str(tmp_path / "s.safetensors")), dict(read_header(tmp_path / "s.safetensors")[1])
+    change(tensors, meta)
+    save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=meta)
+    with pytest.raises(CrfError, match="bad selection grid") as e:
+        load_selection(tmp_path / "bad.safetensors")
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
 def test_scribble_on_the_background_only_is_refused(trained):
     _, model, category = trained
     view, fg, keep, _ = part_view(category, 1, "back")

@@ -82,14 +82,16 @@ def print_selection(path: Path, as_json: bool) -> None:
     import json
 
     from ..edit.selection import FORMAT, load_selection, mirror_summary, part_summary, shape_summary
+    from ..safefile import read_header
 
     sel = load_selection(path)
+    version = read_header(path)[1]["version"]
     info = sel.meta if isinstance(sel.meta, dict) else {}
     res = sel.values.shape[0]
     selected, nonzero = int(sel.mask.sum()), int((sel.values > 0).sum())
     if as_json:
         typer.echo(json.dumps({
-            "file": str(path), "bytes": path.stat().st_size, "format": FORMAT, "instance": sel.instance_name,
+            "file": str(path), "bytes": path.stat().st_size, "format": FORMAT, "version": version, "instance": sel.instance_name,
             "instance_index": sel.instance, "model_fingerprint": sel.model_fingerprint, "grid": res,
             "threshold": sel.threshold, "selected_cells": selected, "nonzero_cells": nonzero, "info": info,
         }, indent=2))
@@ -98,7 +100,7 @@ def print_selection(path: Path, as_json: bool) -> None:
               if type(info.get(key)) is int]
     features = info.get("features")
     rows = [
-        ("selection", f"{path} ({path.stat().st_size} bytes)"),
+        ("selection", f"{path} ({path.stat().st_size} bytes, format version {version})"),
         ("instance", f"{sel.instance_name} (index {sel.instance})"),
         ("model", sel.model_fingerprint or "(none)"),
         ("for", info.get("for", "unknown")),

@@ -107,11 +107,15 @@ from ..field import ConditionalRadianceField
 from ..model import CategoryModel
 from ..names import MIRROR_MODES
 from ..renderer import RenderOutput, render_camera
-from ..safefile import read_safetensors, write_safetensors
+from ..safefile import grid_shape, pack_bits, read_safetensors, unpack_bits, write_safetensors
 from .symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 
 FORMAT = "crfedit-selection"
-VERSION = "1"
+VERSION = "2"
+READ_VERSIONS = ("1", "2")
+"""Version 1 stored ``values`` as uint8 [R, R, R]; version 2 stores only the cells with a value
+(``nonzero`` bit-packed, ``levels`` uint8), a fifth of the size.  Both read."""
+SPARSE = ("nonzero", "levels")
 MIN_OPACITY = 0.5
 """A pixel shows the object (and has a surface point) where its rendered opacity is at least this."""
 FEATURES = ("bottleneck", "color", "chroma", "position")
@@ -1481,15 +1485,18 @@ def shape_summary(meta: dict) -> str | None:
     gate, rims = meta.get("shape_gate"), meta.get("rim_fill")
     if gate is None and rims is None:
         return None
+    def cells(n: int, what: str) -> str:
+        return f"{n} {what}cell{'' if n == 1 else 's'}"
+
     said = []
     if gate is not None:
         said.append("nothing left out of the joins" if gate["dropped"] == 0
-                    else f"left {gate['dropped']} cells out of the joins (pieces of lines square to the scribble)")
+                    else f"left {cells(gate['dropped'], '')} out of the joins (pieces of lines square to the scribble)")
     sheets = meta.get("sheet_veto")
     if sheets is not None and sheets["cells"] > 0:
-        said.append(f"left {sheets['cells']} sheet cells out (the scribble lies on lines: {sheets['line_share']:.0%})")
+        said.append(f"left {cells(sheets['cells'], 'sheet ')} out (the scribble lies on lines: {sheets['line_share']:.0%})")
     if rims is not None and rims["cells"] > 0:
-        said.append(f"took {rims['cells']} rim cells (lines lying in the scribbled panel's plane)")
+        said.append(f"took {cells(rims['cells'], 'rim ')} (lines lying in the scribbled panel's plane)")
     return "; ".join(said) if said else "no rim taken"
 
 
@@ -1714,26 +1721,57 @@ def quantized(values: Tensor, cuts: Sequence[float]) -> Tensor:
 
 
 def save_selection(path: str | Path, sel: Selection) -> None:
-    """Write ``sel`` atomically as safetensors: ``values`` uint8 [R, R, R] (value·255) and string metadata."""
-    q = (sel.values * 255).round().to(torch.uint8).cpu().contiguous()
+    """Write ``sel`` atomically as safetensors (version 2), sparse: ``nonzero`` uint8, one bit per
+    cell of the [R, R, R] grid in C order (most significant first, as ``numpy.packbits``), set
+    where the value is above 0; ``levels`` uint8, value·255 of each such cell in the same order;
+    and string metadata, ``shape`` the grid's JSON shape.  A 64³ grid's mask is 32 KiB plus a
+    byte per cell with a value, against 256 KiB for the whole grid as uint8 (version 1)."""
+    q = (sel.values * 255).round().to(torch.uint8).cpu().contiguous().numpy()
+    nonzero = q.reshape(-1) != 0
     meta = {
         "format": FORMAT, "version": VERSION, "model_fingerprint": sel.model_fingerprint,
         "instance": sel.instance_name, "instance_index": str(sel.instance), "threshold": repr(sel.threshold),
-        "info": json.dumps(sel.meta, sort_keys=True),
+        "shape": json.dumps(list(q.shape)), "info": json.dumps(sel.meta, sort_keys=True),
     }
-    write_safetensors(Path(path), {"values": q}, meta)
+    tensors = {SPARSE[0]: pack_bits(nonzero), SPARSE[1]: torch.from_numpy(q.reshape(-1)[nonzero])}
+    write_safetensors(Path(path), tensors, meta)
+
+
+def grid_values(path: str | Path, tensors: dict[str, Tensor], meta: dict[str, str]) -> Tensor:
+    """The uint8 [R, R, R] grid a selection file holds, in either version; every shape, length
+    and padding bit is checked (a declared shape the file does not fill allocates nothing)."""
+    def bad(why: str) -> CrfError:
+        return CrfError(f"{path}: bad selection grid ({why})")
+
+    if meta.get("version") == "1":
+        values = tensors.get("values")
+        if values is None or values.dtype != torch.uint8 or values.dim() != 3 or len(set(values.shape)) != 1:
+            raise CrfError(f"{path}: 'values' must be a uint8 [R, R, R] grid")
+        return values
+    if set(tensors) != set(SPARSE) or "shape" not in meta:
+        raise bad(f"a version-2 file holds the tensors {' and '.join(SPARSE)} and the metadata key shape")
+    dims = grid_shape(meta["shape"], bad)
+    if len(set(dims)) != 1:
+        raise bad(f"the grid must be a cube, not {dims}")
+    nonzero = unpack_bits(tensors[SPARSE[0]], dims[0] ** 3, SPARSE[0], bad, "cells")
+    levels = tensors[SPARSE[1]]
+    if levels.dtype != torch.uint8 or levels.dim() != 1 or levels.numel() != int(nonzero.sum()):
+        raise bad(f"{SPARSE[1]} must be {int(nonzero.sum())} uint8 values, one per set bit of {SPARSE[0]}, not {list(levels.shape)} {str(levels.dtype).replace('torch.', '')}")
+    if levels.numel() and int(levels.min()) == 0:
+        raise bad(f"{SPARSE[1]} holds a 0 where {SPARSE[0]} says the cell has a value")
+    out = np.zeros(dims[0] ** 3, dtype=np.uint8)
+    out[nonzero] = levels.numpy()
+    return torch.from_numpy(out.reshape(dims))
 
 
 def load_selection(path: str | Path) -> Selection:
-    """Read a selection file (safetensors only; nothing in it is executed)."""
+    """Read a selection file, version 1 or 2 (safetensors only; nothing in it is executed)."""
     tensors, meta = read_safetensors(Path(path))
     if meta.get("format") != FORMAT:
         raise CrfError(f"{path}: not a crfedit selection file (format {meta.get('format')!r})")
-    if meta.get("version") != VERSION:
-        raise CrfError(f"{path}: selection format version {meta.get('version')!r} is not supported (expected {VERSION})")
-    values = tensors.get("values")
-    if values is None or values.dtype != torch.uint8 or values.dim() != 3 or len(set(values.shape)) != 1:
-        raise CrfError(f"{path}: 'values' must be a uint8 [R, R, R] grid")
+    if meta.get("version") not in READ_VERSIONS:
+        raise CrfError(f"{path}: selection format version {meta.get('version')!r} is not supported (expected {' or '.join(READ_VERSIONS)})")
+    values = grid_values(path, tensors, meta)
     try:
         info = json.loads(meta.get("info", "{}"))
         threshold = float(meta.get("threshold", "0.5"))
