@@ -47,7 +47,7 @@ from .field import ConditionalRadianceField
 from .io import read_image
 from .metrics import mse_to_psnr
 from .model import CategoryModel
-from .optim import run_adam
+from .optim import FusedAdam, run_adam
 from .renderer import render_camera, render_rays
 
 JOINT: dict[str, tuple[str, ...]] = {
@@ -304,7 +304,7 @@ def _run_stage(
         return loss if penalty is None else loss + penalty()
 
     report = None if on_step is None else (lambda step, _: on_step(stage, step, steps, photometric[0], mse_to_psnr(photometric[0])))
-    run_adam(torch.optim.Adam(groups), loss_fn, steps, f"fit-real's {stage} stage", report)
+    run_adam(FusedAdam(groups), loss_fn, steps, f"fit-real's {stage} stage", report)
 
 
 # ----------------------------------------------------------------------------- fitting

@@ -51,18 +51,26 @@ def check_losses(rows: list[tuple[int, list[float]]], what: str, consequence: st
 
 
 class FusedAdam:
-    """Adam (β = 0.9, 0.999; no weight decay) over a list of tensors, one fused kernel per step:
-    the arithmetic of ``torch.optim.Adam(params, lr, eps=eps, fused=True)``, to the bit (tested).
+    """Adam (β = 0.9, 0.999; no weight decay) over a list of tensors, or of parameter groups
+    (``{"params": [...], "lr": ...}``, each its own learning rate), one fused kernel per step and
+    group: the arithmetic of ``torch.optim.Adam(params, lr, eps=eps, fused=True)``, to the bit
+    (tested).
 
     Why not torch.optim: its first use in a process imports ``torch._dynamo`` (its methods are
-    wrapped to keep the compiler out), 0.75 s on this project's CPU, which every
-    ``crfedit edit-color`` / ``remove`` / ``add`` process paid inside an edit of 0.15–0.5 s.
-    Training keeps torch.optim (one import per run, and its state dict for ``--resume``).
-    Parameters without a gradient after a backward pass are skipped, as torch.optim does."""
+    wrapped to keep the compiler out), 0.75–0.9 s on this project's CPU, which every
+    ``crfedit edit-color`` / ``remove`` / ``add`` / ``fit-real`` process paid inside an edit of
+    0.15–0.5 s (a fit of 15–30 s).  Training keeps torch.optim (one import per run of minutes,
+    and its state dict for ``--resume``).  Parameters without a gradient after a backward pass
+    are skipped, as torch.optim does."""
 
-    def __init__(self, params: Iterable[Tensor], lr: float, eps: float = 1e-8, betas: tuple[float, float] = (0.9, 0.999)):
-        self.params = list(params)
-        self.param_groups = [{"params": self.params, "lr": float(lr)}]  # the one lr, as torch.optim keeps it
+    def __init__(self, params: Iterable[Tensor] | Iterable[dict], lr: float | None = None, eps: float = 1e-8,
+                 betas: tuple[float, float] = (0.9, 0.999)):
+        given = list(params)
+        if given and isinstance(given[0], dict):
+            self.param_groups = [{"params": list(g["params"]), "lr": float(g.get("lr", lr))} for g in given]
+        else:
+            self.param_groups = [{"params": given, "lr": float(lr)}]
+        self.params = [p for g in self.param_groups for p in g["params"]]
         self.eps, self.betas = float(eps), betas
         self.state: dict[Tensor, tuple[Tensor, Tensor, Tensor]] = {}
 
@@ -75,22 +83,22 @@ class FusedAdam:
 
     @torch.no_grad()
     def step(self) -> None:
-        groups: dict[tuple, list[list[Tensor]]] = {}
-        for p in self.params:
-            if p.grad is None:
-                continue
-            if p not in self.state:  # fused Adam keeps its step count as a float32 tensor
-                self.state[p] = (torch.zeros_like(p), torch.zeros_like(p), torch.zeros((), dtype=torch.float32, device=p.device))
-            m, v, t = self.state[p]
-            lists = groups.setdefault((p.device, p.dtype), [[], [], [], [], []])
-            for out, x in zip(lists, (p, p.grad, m, v, t)):
-                out.append(x)
-        for ps, grads, ms, vs, ts in groups.values():
-            torch._foreach_add_(ts, 1)
-            torch._fused_adam_(
-                ps, grads, ms, vs, [], ts, amsgrad=False, lr=self.param_groups[0]["lr"], beta1=self.betas[0], beta2=self.betas[1],
-                weight_decay=0.0, eps=self.eps, maximize=False, grad_scale=None, found_inf=None,
-            )
+        for group in self.param_groups:
+            lists: dict[tuple, list[list[Tensor]]] = {}
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                if p not in self.state:  # fused Adam keeps its step count as a float32 tensor
+                    self.state[p] = (torch.zeros_like(p), torch.zeros_like(p), torch.zeros((), dtype=torch.float32, device=p.device))
+                m, v, t = self.state[p]
+                for out, x in zip(lists.setdefault((p.device, p.dtype), [[], [], [], [], []]), (p, p.grad, m, v, t)):
+                    out.append(x)
+            for ps, grads, ms, vs, ts in lists.values():
+                torch._foreach_add_(ts, 1)
+                torch._fused_adam_(
+                    ps, grads, ms, vs, [], ts, amsgrad=False, lr=group["lr"], beta1=self.betas[0], beta2=self.betas[1],
+                    weight_decay=0.0, eps=self.eps, maximize=False, grad_scale=None, found_inf=None,
+                )
 
 
 def adam_step(opt: torch.optim.Optimizer | FusedAdam, loss: Tensor, before_step: Callable[[], None] | None = None) -> None:

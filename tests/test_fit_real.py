@@ -259,6 +259,31 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     assert invoke("edits", "check", path, "--edit", out, "--edit", moved).exit_code == 0
 
 
+def test_fit_real_does_not_import_the_compiler(setup, tmp_path):
+    """`crfedit fit-real` in a fresh interpreter leaves torch._dynamo unimported (torch.optim's
+    first use imports it: 0.75–0.9 s of a 15–30 s fit)."""
+    import subprocess
+    import sys
+
+    path, _, held = setup
+    probe = "import sys, torch; print('torch._dynamo' in sys.modules)"
+    if subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True).stdout.strip() != "False":
+        pytest.skip("this torch imports torch._dynamo with torch itself")
+    args = [str(path), str(held.path / "train" / "r_000.png"), "--pose", "train:0", "--out", str(tmp_path / "f.safetensors"),
+            "--steps-codes", "3", "--steps-joint", "2", "--device", "cpu"]
+    script = f"""
+import sys
+from typer.testing import CliRunner
+from crfedit.cli import app
+result = CliRunner().invoke(app, ["fit-real", *{args!r}])
+assert result.exit_code == 0, result.output
+print('torch._dynamo' in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "False" and (tmp_path / "f.safetensors").is_file()
+
+
 def test_fit_real_command_errors_write_nothing(setup, tmp_path):
     path, _, held = setup
     photo = tmp_path / "p.png"

@@ -40,6 +40,23 @@ def test_fused_adam_equals_torch_adam_to_the_bit(eps, device):
     assert [float(s[2]) for s in opt_ours.state.values()] == [6.0, 6.0, 3.0]
 
 
+def test_fused_adam_groups_equal_torch_adam_groups_to_the_bit():
+    """Parameter groups with their own learning rates (fit-real's codes and weights)."""
+    g = torch.Generator().manual_seed(1)
+    start = [torch.randn(4, 3, generator=g), torch.randn(3, generator=g), torch.randn(6, generator=g)]
+    ours, theirs = [[t.clone().requires_grad_() for t in start] for _ in range(2)]
+    opt_ours = FusedAdam([{"params": ours[:2], "lr": 0.05}, {"params": ours[2:], "lr": 1e-3}])
+    opt_theirs = torch.optim.Adam([{"params": theirs[:2], "lr": 0.05}, {"params": theirs[2:], "lr": 1e-3}], fused=True)
+    x = torch.randn(5, 4, generator=g)
+    for step in range(5):
+        for (w, b, c), opt in ((ours, opt_ours), (theirs, opt_theirs)):
+            opt.zero_grad(set_to_none=True)
+            (((x @ w + b).tanh() ** 2).mean() + (c.sin() ** 2).sum()).backward()
+            opt.step()
+    assert all(torch.equal(a, t) for a, t in zip(ours, theirs))
+    assert not torch.equal(ours[2], start[2]) and (ours[2] - start[2]).abs().max() < 0.01  # the small lr moved it a little
+
+
 def test_an_edit_does_not_import_the_compiler(edit_category):
     """A colour edit and a removal in a fresh interpreter leave torch._dynamo unimported."""
     path, _, category = edit_category
