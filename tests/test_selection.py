@@ -733,6 +733,7 @@ def test_selection_file_is_sparse_and_version_1_still_reads(tmp_path):
     (lambda t, m: m.update(shape="[4096, 4096, 4096]"), "3 sizes from 1 to 512"),
     (lambda t, m: m.pop("shape"), "holds the tensors nonzero and levels and the metadata key shape"),
     (lambda t, m: t.update(values=torch.zeros(8, 8, 8, dtype=torch.uint8)), "holds the tensors nonzero and levels"),
+    (lambda t, m: [t.clear(), t.update(values=torch.zeros(513, 513, 513, dtype=torch.uint8)), m.update(version="1")], "its side is 513, at most 512"),
 ])
 def test_a_malformed_sparse_selection_is_refused(tmp_path, change, message):
     from safetensors.torch import load_file, save_file

@@ -102,6 +102,7 @@ from torch import Tensor
 
 from .. import occupancy
 from ..cameras import Camera, rays_from_camera
+from ..config import MAX_GRID_SIDE
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..model import CategoryModel
@@ -1747,6 +1748,8 @@ def grid_values(path: str | Path, tensors: dict[str, Tensor], meta: dict[str, st
         values = tensors.get("values")
         if values is None or values.dtype != torch.uint8 or values.dim() != 3 or len(set(values.shape)) != 1:
             raise CrfError(f"{path}: 'values' must be a uint8 [R, R, R] grid")
+        if values.shape[0] > MAX_GRID_SIDE:
+            raise bad(f"its side is {values.shape[0]}, at most {MAX_GRID_SIDE}")
         return values
     if set(tensors) != set(SPARSE) or "shape" not in meta:
         raise bad(f"a version-2 file holds the tensors {' and '.join(SPARSE)} and the metadata key shape")
