@@ -592,6 +592,10 @@ CATALOGUE: list[Case] = [
     Case("out/under-a-file/eval-ablation",
          lambda e, t: (["eval", "ablation", e.data, "--steps", "1", "--models", under_a_file(t, "models"), *CPU], []),
          ("plain.txt",)),
+    Case("out/preview-a-file/remove", lambda e, t: remove(e, t, "--preview", write(t / "p.png", "x")), ("--preview", "p.png: is a file")),
+    Case("spec/preview-views-gibberish/edit-color",
+         lambda e, t: (lambda built: (built[0], [*built[1], t / "prev"]))(edit_color(e, t, "--preview", t / "prev", "--views", "bogus")),
+         ("view spec 'bogus'",)),
     Case("out/video-bad-suffix/render", lambda e, t: render(e, t, "--video", t / "v.mp5"), ("--video", "must end in .mp4 or .gif")),
     # --- datasets --------------------------------------------------------------------------------------
     Case("data/nan-depth/dataset-info", lambda e, t: (["dataset", "info", nan_depth(e, t)], []), ("r_000_depth.exr", "depth has NaN pixels")),

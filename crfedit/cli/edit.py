@@ -133,15 +133,26 @@ def _selection(path: Path | None, model, instance: int, kind: str, mirror: str |
     return sel
 
 
-def _preview(model, instance: int, folder: Path | None, spec: str) -> None:
-    """Render the edited instance from the views ``spec`` into ``folder`` (nothing when None)."""
+def _preview_views(model, instance: int, folder: Path | None, spec: str):
+    """The preview's (label, camera) list, resolved before any work so that a bad ``--preview``
+    or ``--views`` stops the command before it writes anything (None: no preview)."""
+    if folder is None:
+        return None
+    if folder.exists() and not folder.is_dir():
+        raise CrfError(f"--preview {folder}: is a file; give a folder for the preview PNGs")
+    from ..views import resolve_views
+
+    return resolve_views(spec, model, instance)
+
+
+def _preview(model, instance: int, folder: Path | None, views, spec: str) -> None:
+    """Render the edited instance from ``views`` (:func:`_preview_views`) into ``folder``."""
     if folder is None:
         return
     from ..io import write_png
-    from ..views import resolve_views
 
     folder.mkdir(parents=True, exist_ok=True)
-    for i, (_, camera) in enumerate(resolve_views(spec, model, instance)):
+    for i, (_, camera) in enumerate(views):
         write_png(folder / f"{i:04d}.png", _view_render(model, instance, camera)())
     typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
 
@@ -200,13 +211,14 @@ def edit_color_cmd(
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
+    shown = _preview_views(m, k, preview, views)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
     mode = _mirror(mirror, method)
     sel = _selection(selection, m, k, "color", mode)
     result = edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel, mode)
     _write(result, out, label)
-    _preview(result.model, k, preview, views)
+    _preview(result.model, k, preview, shown, views)
 
 
 @app.command("remove")
@@ -244,13 +256,14 @@ def remove_cmd(
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
+    shown = _preview_views(m, k, preview, views)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
     mode = _mirror(mirror, method)
     sel = _selection(selection, m, k, "remove", mode)
     result = remove(m, k, camera, fg, bg, occluded, options, method.value, sel, mode)
     _write(result, out, label)
-    _preview(result.model, k, preview, views)
+    _preview(result.model, k, preview, shown, views)
 
 
 @app.command("add")
@@ -289,6 +302,7 @@ def add_cmd(
     _check_out(out, model)
     m = _load(model, edit, device)
     k, j = m.instance_index(instance), m.instance_index(donor)
+    shown = _preview_views(m, k, preview, views)
     label, camera = _one_view(m, view, k)
     donor_camera = camera if donor_view is None else _one_view(m, donor_view, j, "--donor-view")[1]
     copied = load_mask(copy_mask, None, donor_camera.width, donor_camera.height, "copy", _view_render(m, j, donor_camera))
@@ -301,7 +315,7 @@ def add_cmd(
     sel = _selection(selection, m, j, "add")
     result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel)
     _write(result, out, label)
-    _preview(result.model, k, preview, views)
+    _preview(result.model, k, preview, shown, views)
 
 
 @app.command("transfer")
@@ -325,13 +339,14 @@ def transfer_cmd(
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
+    shown = _preview_views(m, k, preview, views)
     result = transfer(
         m, k,
         shape_from=None if shape_from is None else m.instance_index(shape_from),
         color_from=None if color_from is None else m.instance_index(color_from),
     )
     _write(result, out, "")
-    _preview(result.model, k, preview, views)
+    _preview(result.model, k, preview, shown, views)
 
 
 # ----------------------------------------------------------------------------- edits …

@@ -9,7 +9,7 @@ import typer
 
 from ..errors import CrfError
 from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
-from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _view_render
+from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _preview_views, _view_render
 
 
 def _mask(path: Path, model, instance: int, camera, what: str):
@@ -41,7 +41,6 @@ def select_cmd(
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
     from ..edit.selection import ScribbleView, mirror_summary, options_for, part_summary, preview as tinted, save_selection, select, shape_summary
     from ..io import write_png
-    from ..views import resolve_views
 
     if len(scribble) != len(view):
         raise CrfError(f"give one --scribble per --view ({len(view)} views, {len(scribble)} scribbles)")
@@ -51,6 +50,7 @@ def select_cmd(
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
+    shown = _preview_views(m, k, preview, views)
     scribbles = []
     for i, spec in enumerate(view):
         _, camera = _one_view(m, spec, k)
@@ -72,7 +72,7 @@ def select_cmd(
         typer.echo(f"shape gate: {shape_summary(info)}")
     if preview is not None:
         preview.mkdir(parents=True, exist_ok=True)
-        for i, (label, camera) in enumerate(resolve_views(views, m, k)):
+        for i, (label, camera) in enumerate(shown):
             write_png(preview / f"{i:04d}.png", tinted(m, sel, camera))
         typer.echo(f"wrote previews of {views} to {preview}/")
 
