@@ -50,7 +50,7 @@ from .errors import ModelFileError, NonFiniteError
 from .field import ConditionalRadianceField
 from .model import CategoryModel
 from .names import COLOR_CODES, SHAPE_CODES
-from .safefile import fingerprint, grid_shape, pack_bits, read_header, read_safetensors, unpack_bits, write_safetensors
+from .safefile import fingerprint, grid_shape, other_kind, pack_bits, read_header, read_safetensors, unpack_bits, write_safetensors
 
 FORMAT = "crfedit-edit"
 VERSION = "3"
@@ -285,7 +285,7 @@ def read_delta(path: str | os.PathLike) -> Delta:
     path = str(path)
     header, meta = read_header(path)
     if meta.get("format") != FORMAT:
-        raise ModelFileError(f"{path}: not a crfedit edit file (format {meta.get('format', 'unknown')!r})")
+        raise ModelFileError(f"{path}: not a crfedit edit file (format {meta.get('format', 'unknown')!r}){other_kind(meta.get('format'))}")
     if meta.get("version") not in READ_VERSIONS:
         raise ModelFileError(f"{path}: edit format version {meta.get('version')!r} is not supported (expected {', '.join(READ_VERSIONS[:-1])} or {READ_VERSIONS[-1]})")
     missing = [k for k in RESERVED if k not in meta and k not in ("adds_instance", PACKED_SHAPE)]

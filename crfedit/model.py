@@ -25,7 +25,7 @@ from .config import Config
 from .errors import CrfError, ModelFileError
 from .field import ConditionalRadianceField
 from .names import did_you_mean
-from .safefile import check_tensors, fingerprint, read_header, read_safetensors, write_safetensors
+from .safefile import check_tensors, fingerprint, other_kind, read_header, read_safetensors, write_safetensors
 
 FORMAT = "crfedit-model"
 VERSION = "1"
@@ -151,7 +151,7 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> t
     header, meta = read_header(path)
     if meta.get("format") != FORMAT:
         kind = meta.get("format", "unknown")
-        raise ModelFileError(f"{path}: not a crfedit model (format {kind!r})")
+        raise ModelFileError(f"{path}: not a crfedit model (format {kind!r}){other_kind(kind)}")
     if meta.get("version") != VERSION:
         raise ModelFileError(f"{path}: model format version {meta.get('version')!r} is not supported (expected {VERSION})")
     try:

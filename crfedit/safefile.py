@@ -114,6 +114,16 @@ def fingerprint(tensors: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()[:16]
 
 
+def other_kind(fmt: object) -> str:
+    """What a crfedit file of format ``fmt`` is and where it goes, for an error that found it in
+    the wrong place ("" for a format that is not crfedit's)."""
+    return {
+        "crfedit-model": "; it is a model, which commands take as their MODEL argument",
+        "crfedit-edit": "; it is an edit file, which commands take as --edit",
+        "crfedit-selection": "; it is a selection (crfedit select --out), which edit-color, remove and add take as --selection",
+    }.get(fmt if isinstance(fmt, str) else "", "")
+
+
 # ----------------------------------------------------------------------------- bit-packed grids
 
 

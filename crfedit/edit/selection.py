@@ -108,7 +108,7 @@ from ..field import ConditionalRadianceField
 from ..model import CategoryModel
 from ..names import MIRROR_MODES
 from ..renderer import RenderOutput, render_camera
-from ..safefile import grid_shape, pack_bits, read_safetensors, unpack_bits, write_safetensors
+from ..safefile import grid_shape, other_kind, pack_bits, read_safetensors, unpack_bits, write_safetensors
 from .symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 
 FORMAT = "crfedit-selection"
@@ -1771,7 +1771,7 @@ def load_selection(path: str | Path) -> Selection:
     """Read a selection file, version 1 or 2 (safetensors only; nothing in it is executed)."""
     tensors, meta = read_safetensors(Path(path))
     if meta.get("format") != FORMAT:
-        raise CrfError(f"{path}: not a crfedit selection file (format {meta.get('format')!r})")
+        raise CrfError(f"{path}: not a crfedit selection file (format {meta.get('format')!r}){other_kind(meta.get('format'))}")
     if meta.get("version") not in READ_VERSIONS:
         raise CrfError(f"{path}: selection format version {meta.get('version')!r} is not supported (expected {' or '.join(READ_VERSIONS)})")
     values = grid_values(path, tensors, meta)
