@@ -115,7 +115,8 @@ FORMAT = "crfedit-selection"
 VERSION = "2"
 READ_VERSIONS = ("1", "2")
 """Version 1 stored ``values`` as uint8 [R, R, R]; version 2 stores only the cells with a value
-(``nonzero`` bit-packed, ``levels`` uint8), a fifth of the size.  Both read."""
+(``nonzero`` bit-packed, ``levels`` uint8): 39–50 KB against 263 KB for the benchmark twins'
+64³ selections.  Both read."""
 SPARSE = ("nonzero", "levels")
 MIN_OPACITY = 0.5
 """A pixel shows the object (and has a surface point) where its rendered opacity is at least this."""
@@ -1486,6 +1487,7 @@ def shape_summary(meta: dict) -> str | None:
     gate, rims = meta.get("shape_gate"), meta.get("rim_fill")
     if gate is None and rims is None:
         return None
+
     def cells(n: int, what: str) -> str:
         return f"{n} {what}cell{'' if n == 1 else 's'}"
 
