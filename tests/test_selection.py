@@ -772,6 +772,7 @@ def test_select_command_and_its_errors(trained, tmp_path):
     r = runner.invoke(app, [*args, "--out", str(out), "--preview", str(tmp_path / "prev"), "--views", "orbit:2"])
     assert r.exit_code == 0, r.output
     assert out.is_file() and sorted(p.name for p in (tmp_path / "prev").iterdir()) == ["0000.png", "0001.png"]
+    assert f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): " in r.output
     r = runner.invoke(app, [*args, "--keep", str(tmp_path / "fg.png"), "--keep", str(tmp_path / "fg.png"), "--out", str(tmp_path / "x.safetensors")])
     assert r.exit_code == 2 and "one per --view" in r.output and not (tmp_path / "x.safetensors").exists()
     r = runner.invoke(app, [*args, "--for", "paint", "--out", str(tmp_path / "x.safetensors")])

@@ -61,7 +61,7 @@ def select_cmd(
     save_selection(out, sel)
     info = sel.meta
     typer.echo(
-        f"wrote {out}: {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
+        f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
         f"({info['positives']} scribbled, {info['keep_points']} keep, {info['view_points']} other surface points; {info['seconds']:.2f} s)"
     )
     if mirror_summary(info) is not None:
