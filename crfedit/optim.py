@@ -70,12 +70,11 @@ class FusedAdam:
             self.param_groups = [{"params": list(g["params"]), "lr": float(g.get("lr", lr))} for g in given]
         else:
             self.param_groups = [{"params": given, "lr": float(lr)}]
-        self.params = [p for g in self.param_groups for p in g["params"]]
         self.eps, self.betas = float(eps), betas
         self.state: dict[Tensor, tuple[Tensor, Tensor, Tensor]] = {}
 
     def zero_grad(self, set_to_none: bool = True) -> None:
-        for p in self.params:
+        for p in [q for g in self.param_groups for q in g["params"]]:  # the groups' params, as torch.optim keeps them
             if set_to_none:
                 p.grad = None
             elif p.grad is not None:
