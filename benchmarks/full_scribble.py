@@ -29,7 +29,8 @@ import numpy as np
 import torch
 
 from crfedit.edit import EditOptions
-from crfedit.edit.selection import FEATURES, fit_logistic, point_features, surface_points
+from crfedit.edit.selection import FEATURES, point_features, surface_points
+from crfedit.edit.selection.classify import fit_logistic
 from crfedit.evaluation import evaluate_edits, load_category_for, load_twin_cases
 from crfedit.masks import dilate, erode
 from crfedit.model import load_model

@@ -14,10 +14,17 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    CHROMA_UNION, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION, ScribbleView, Selection, SelectOptions, appearance_gate, options_for, chroma_alike, classifier, hysteresis, load_selection, preview, quantized, save_selection, select,
-    smooth_over_occupied, connected_to, surface_points, bilateral_smooth, neighbour_table, point_features, group_width,
-    denser_points, fit_logistic, fill_rims, COLOR_FILL_SHARE, local_shape, CHROMA_OFFSET, COLOR_CHROMA_OFFSET,
+    ScribbleView, SelectOptions, Selection, load_selection, options_for, point_features, preview, save_selection, select, surface_points,
 )
+from crfedit.edit.selection.classify import appearance_gate, chroma_alike, classifier, fit_logistic
+from crfedit.edit.selection.features import denser_points, group_width, local_shape
+from crfedit.edit.selection.options import (
+    CHROMA_OFFSET, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
+)
+from crfedit.edit.selection.refine import (
+    bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
+)
+from crfedit.edit.selection.store import quantized
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
     JUNCTION_SHARE, SKIN_SHARE, PointTargets, RecolorTarget, removal_cells, removal_split, removed_at, sample_share, surface_selected,
@@ -504,7 +511,7 @@ def test_chroma_veto_only_caps_unlike_cells_below_the_skin(trained):
     """The chromaticity vetoes (a saturated part's and a near-grey part's) lower only cells of
     value ≥ GROW_LOW whose chromaticity is unlike the scribbled points', never a scribbled
     cell, to just below GROW_LOW; each leaves a part of the other kind as it is."""
-    from crfedit.edit import selection as S
+    from crfedit.edit.selection import options as S
     _, model, category = trained
     k = 1
     view, fg, keep, _ = part_view(category, k, "back")
@@ -851,7 +858,7 @@ def test_local_shape_closed_form():
 def test_removals_read_fuse_but_smooth_along_appearance_only():
     """A removal's classifier reads F_fuse's activations; the bilateral smoothing's appearance is
     the other groups' columns, what it is without F_fuse."""
-    from crfedit.edit import selection as S
+    from crfedit.edit.selection import options as S, pipeline
     assert options_for("remove").features == S.REMOVE_FEATURES == (*S.FEATURES, "fuse", "geometry")
     assert options_for("remove").position_weight == S.REMOVE_POSITION_WEIGHT < 1 == options_for("color").position_weight
     assert options_for("color").appearance_gate == S.COLOR_APPEARANCE_GATE < options_for("remove").appearance_gate == SelectOptions().appearance_gate
@@ -863,13 +870,13 @@ def test_removals_read_fuse_but_smooth_along_appearance_only():
     pos[:, -fuse:] += 3.0  # only F_fuse tells the positives from the view's other points
     keep = torch.zeros(0, sum(widths) + fuse)
     o = SelectOptions(appearance_gate=0.0)
-    with_fuse, looks = S._classify((*base, "fuse"), widths + [fuse], pos, keep, view, cells, o)
-    without, looks0 = S._classify(base, widths, pos[:, :-fuse], keep[:, :-fuse], view[:, :-fuse], cells[:, :-fuse], o)
+    with_fuse, looks = pipeline._classify((*base, "fuse"), widths + [fuse], pos, keep, view, cells, o)
+    without, looks0 = pipeline._classify(base, widths, pos[:, :-fuse], keep[:, :-fuse], view[:, :-fuse], cells[:, :-fuse], o)
     assert looks.shape == (300, 14)
     torch.testing.assert_close(looks, looks0)
     shifted = cells.clone()
     shifted[:, -fuse:] += 3.0
-    assert float(S._classify((*base, "fuse"), widths + [fuse], pos, keep, view, shifted, o)[0].mean()) > 0.9
+    assert float(pipeline._classify((*base, "fuse"), widths + [fuse], pos, keep, view, shifted, o)[0].mean()) > 0.9
     assert float(with_fuse.mean()) < 0.2 < float(without.mean())
 
 
@@ -877,7 +884,7 @@ def test_keep_wins_closed_form():
     """1-D: a positive at 0 and a keep point at 10.  With ratio 1 the split is halfway (5);
     with ratio 0.5 a cell must be within half its distance to the positive of the keep point
     (beyond 20/3); no keep point, no veto; chunking does not change the distances."""
-    from crfedit.edit.selection import keep_wins, nearest_distance
+    from crfedit.edit.selection.classify import keep_wins, nearest_distance
     pos, keep = torch.tensor([[0.0]]), torch.tensor([[10.0]])
     cells = torch.tensor([[4.0], [6.0], [6.5], [7.0], [-3.0]])
     assert keep_wins(cells, pos, keep, 1.0).tolist() == [False, True, True, True, False]
@@ -894,7 +901,7 @@ def test_a_keep_stroke_wins_over_the_same_look_near_it(trained):
     With keep_ratio (position weighing 10 in its distance, 1000 × 0.01, so it splits by
     place) the kept end's cells score 0 and it leaves the selection, while the scribbled end
     stays; recolours and removals use it, additions do not."""
-    from crfedit.edit.selection import COLOR_KEEP_RATIO, REMOVE_KEEP_RATIO
+    from crfedit.edit.selection.options import COLOR_KEEP_RATIO, REMOVE_KEEP_RATIO
     _, model, category = trained
     k = 2
     view, fg, _, _ = part_view(category, k, "seat")

@@ -5,18 +5,17 @@ of a join that its stretchers' colour would make."""
 from __future__ import annotations
 
 from collections import deque
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
 from crfedit import occupancy
-from crfedit.edit import selection as S
-from crfedit.edit.selection import (
-    Frames, SHAPE_FRACTION, cell_opacity, components, connected_to, gate_pieces, local_frames, local_shape, neighbour_table,
-    odd_lines, options_for, rim_lines, shape_agreement, sym3_eigen,
-)
+from crfedit.edit.selection import classify, options as S, pipeline
+from crfedit.edit.selection import options_for
+from crfedit.edit.selection.features import Frames, SHAPE_FRACTION, cell_opacity, local_frames, local_shape, sym3_eigen
+from crfedit.edit.selection.refine import NEIGHBOUR_OFFSETS, components, connected_to, neighbour_table
+from crfedit.edit.selection.shapes import SHAPE_GATE_RADIUS, gate_pieces, odd_lines, rim_lines, shape_agreement, sheets_of
 
 RES = 16
 
@@ -152,12 +151,12 @@ def test_neighbour_table_halves_and_non_cubic_grids():
     table = neighbour_table(cells, shape)
     for row, c in zip(table.tolist(), cells.tolist()):
         i, j, k = np.unravel_index(c, shape)
-        for x, (a, b, d) in zip(row, S.NEIGHBOUR_OFFSETS):
+        for x, (a, b, d) in zip(row, NEIGHBOUR_OFFSETS):
             n = (i + a, j + b, k + d)
             inside = all(0 <= n[t] < shape[t] for t in range(3))
             assert x == (pos.get(int(np.ravel_multi_index(n, shape)), -1) if inside else -1)
     assert torch.equal(neighbour_table(cells, shape, half=True), table[:, :13])
-    assert all(tuple(-v for v in S.NEIGHBOUR_OFFSETS[j]) == S.NEIGHBOUR_OFFSETS[25 - j] for j in range(26))
+    assert all(tuple(-v for v in NEIGHBOUR_OFFSETS[j]) == NEIGHBOUR_OFFSETS[25 - j] for j in range(26))
 
 
 def test_feature_stats_are_the_sample_mean_and_deviation():
@@ -166,7 +165,7 @@ def test_feature_stats_are_the_sample_mean_and_deviation():
     a constant column's deviation is floored at 10⁻⁶, not 0."""
     g = torch.Generator().manual_seed(0)
     feats = torch.randn(5000, 6, generator=g) * torch.tensor([1e-3, 1.0, 30.0, 1.0, 5.0, 0.0]) + torch.tensor([0.0, 100.0, -4.0, 0.5, 0.0, 2.0])
-    mean, std = S._feature_stats(feats)
+    mean, std = classify.feature_stats(feats)
     torch.testing.assert_close(mean, feats.mean(dim=0))
     torch.testing.assert_close(std[:5], feats.std(dim=0)[:5], rtol=1e-5, atol=0)
     assert float(std[5]) == pytest.approx(1e-6)
@@ -343,7 +342,7 @@ def test_nearest_distance_is_cdist_min_to_the_bit(n, p, f):
     """Without a root per pair, the same bits as ``cdist(...).min(dim=1)`` on both of cdist's
     paths (past 25 rows a padded product, below them the direct one; 8200 cells make a last
     chunk of 8), over at most 2000 evenly spaced points."""
-    from crfedit.edit.selection import nearest_distance
+    from crfedit.edit.selection.classify import nearest_distance
 
     g = torch.Generator().manual_seed(n + p)
     cells, points = torch.randn(n, f, generator=g), 1.5 * torch.randn(p, f, generator=g)
@@ -358,29 +357,29 @@ def test_sheet_veto_leaves_no_sheet_but_the_scribbled_cells(edit_category):
     scribble selects sheet cells (the seat), so the test can fail."""
     import dataclasses
 
-    from crfedit.edit import selection as S
+    from crfedit.edit.selection import ScribbleView, select, shape_summary, surface_points
 
     model, k, view, fg, keep = seat_scribble(edit_category)
-    views = [S.ScribbleView(view.camera, fg, keep)]
+    views = [ScribbleView(view.camera, fg, keep)]
     field = model.field_for(k)
     occupied = field.occupancy[k]
     res = occupied.shape[-1]
-    pts, on = S.surface_points(field, view.camera, k)
-    scribbled = S._cells_of(field, pts[torch.from_numpy(fg.reshape(-1)) & on], res)
-    grid = S.cell_opacity(field, k, occupied)
+    pts, on = surface_points(field, view.camera, k)
+    scribbled = pipeline._cells_of(field, pts[torch.from_numpy(fg.reshape(-1)) & on], res)
+    grid = cell_opacity(field, k, occupied)
 
     def sheet_cells(sel) -> torch.Tensor:
         chosen = sel.values >= sel.threshold
         cells = chosen.reshape(-1).nonzero().squeeze(-1)
         out = torch.zeros(res**3, dtype=torch.bool)
-        out[cells] = S.sheets_of(S.local_frames(grid, S.occupancy.cell_centers(res)[cells], S.SHAPE_GATE_RADIUS))
+        out[cells] = sheets_of(local_frames(grid, occupancy.cell_centers(res)[cells], SHAPE_GATE_RADIUS))
         return out.view(res, res, res)
 
     base = dataclasses.replace(options_for("remove"), mirror="off")
-    off = S.select(model, k, views, dataclasses.replace(base, sheet_veto=0.0))
-    on_ = S.select(model, k, views, dataclasses.replace(base, sheet_veto=1e-6))
+    off = select(model, k, views, dataclasses.replace(base, sheet_veto=0.0))
+    on_ = select(model, k, views, dataclasses.replace(base, sheet_veto=1e-6))
     assert "sheet_veto" not in off.meta and on_.meta["sheet_veto"]["cells"] > 0
     assert (sheet_cells(off) & ~scribbled).any()
     assert not (sheet_cells(on_) & ~scribbled).any()
     assert 0 < on_.meta["selected_cells"] < off.meta["selected_cells"]
-    assert S.shape_summary(on_.meta).startswith(("nothing left out of the joins; left ", "left "))
+    assert shape_summary(on_.meta).startswith(("nothing left out of the joins; left ", "left "))

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from crfedit import occupancy
 from crfedit.cameras import Camera, look_at, rays_from_camera
 from crfedit.cli import app
-from crfedit.edit import selection as S
+from crfedit.edit.selection import pipeline as S
 from crfedit.edit.selection import ScribbleView, SelectOptions, load_selection, options_for, select, surface_points
 from crfedit.edit.symmetry import Mirror, conflict, find_mirror, mirror_camera, mirror_image, mirror_overlaps
 from crfedit.errors import CrfError

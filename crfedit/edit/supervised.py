@@ -45,7 +45,8 @@ from ..rendering import composite_dense
 from .cache import cache_stage, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
 from .losses import mse
-from .selection import GROW_LOW, Selection, surrounded_by
+from .selection import GROW_LOW, Selection
+from .selection.refine import surrounded_by
 
 TURNS = (0.0, 90.0, 180.0, 270.0)
 """Supervision views: each scribbled camera turned about the world's up (Z) axis by these angles."""

@@ -1,0 +1,110 @@
+"""A selection's input and result: one view's scribbles (:class:`ScribbleView`) and the soft
+per-cell selection (:class:`Selection`), with one-line summaries of what its metadata says."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ... import occupancy
+from ...cameras import Camera
+from ...errors import CrfError
+from ...model import CategoryModel
+from .options import GROW_LOW
+from .refine import hysteresis
+
+
+@dataclass(frozen=True)
+class ScribbleView:
+    """One view's scribbles: the part to edit (``scribble``) and what must not change (``keep``)."""
+
+    camera: Camera
+    scribble: np.ndarray  # [H, W] bool
+    keep: np.ndarray | None = None  # [H, W] bool
+
+
+@dataclass
+class Selection:
+    """A soft per-cell selection of one instance: ``values`` [R, R, R] in [0, 1]."""
+
+    values: Tensor
+    instance: int
+    instance_name: str
+    model_fingerprint: str
+    meta: dict
+    threshold: float = 0.5
+
+    @property
+    def mask(self) -> Tensor:
+        """Selected cells [R, R, R] bool."""
+        return self.values >= self.threshold
+
+    def at(self, xn: Tensor) -> Tensor:
+        """Whether normalized points [..., 3] lie in a selected cell (outside the box: False)."""
+        inst = torch.zeros(xn.shape[:-1], dtype=torch.long, device=xn.device)
+        return occupancy.lookup(self.mask[None].to(xn.device), inst, xn)
+
+    def grown(self, low: float = GROW_LOW) -> "Selection":
+        """This selection plus every cell of value ≥ ``low`` connected to it (26-neighbourhood):
+        hysteresis.  Measured for recolours and not used by them (see the module docstring)."""
+        values = hysteresis(self.values, self.mask, self.threshold, low)
+        return Selection(values, self.instance, self.instance_name, self.model_fingerprint, self.meta, self.threshold)
+
+    def check_for(self, model: CategoryModel, instance: int) -> None:
+        """A one-line error unless this selection was made for ``model``'s ``instance``."""
+        if self.model_fingerprint != model.fingerprint():
+            raise CrfError(f"the selection was made for another model (fingerprint {self.model_fingerprint[:12]}…, this model {model.fingerprint()[:12]}…)")
+        if self.instance_name != model.names[instance]:
+            raise CrfError(f"the selection is of instance {self.instance_name!r}, not {model.names[instance]!r}")
+        if tuple(self.values.shape) != (model.cfg.occ_res,) * 3:
+            raise CrfError(f"the selection grid is {self.values.shape[0]}³ but the model's occupancy grid is {model.cfg.occ_res}³")
+        if not bool(self.mask.any()):
+            raise CrfError("the selection is empty: no cell is selected")
+
+
+def part_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of the part head, in a line (None: the model has none,
+    or the selection was told not to read it)."""
+    info = meta.get("part_head")
+    if info is None:
+        return None
+    if info["used"]:
+        return f"read (the scribbled points' part embeddings agree: coherence {info['coherence']:.2f})"
+    return f"not read (coherence {info['coherence']:.2f} < {info['cut']:g}: it does not see the scribbled points as one part)"
+
+
+def shape_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of the shape gate and the rims, in a line (None: neither ran)."""
+    gate, rims = meta.get("shape_gate"), meta.get("rim_fill")
+    if gate is None and rims is None:
+        return None
+
+    def cells(n: int, what: str) -> str:
+        return f"{n} {what}cell{'' if n == 1 else 's'}"
+
+    said = []
+    if gate is not None:
+        said.append("nothing left out of the joins" if gate["dropped"] == 0
+                    else f"left {cells(gate['dropped'], '')} out of the joins (pieces of lines square to the scribble)")
+    sheets = meta.get("sheet_veto")
+    if sheets is not None and sheets["cells"] > 0:
+        said.append(f"left {cells(sheets['cells'], 'sheet ')} out (the scribble lies on lines: {sheets['line_share']:.0%})")
+    if rims is not None and rims["cells"] > 0:
+        said.append(f"took {cells(rims['cells'], 'rim ')} (lines lying in the scribbled panel's plane)")
+    return "; ".join(said) if said else "no rim taken"
+
+
+def mirror_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of its mirror symmetry, in a line (None: not asked)."""
+    info = meta.get("mirror")
+    if info is None:
+        return None
+    if not info.get("used"):
+        return f"not used ({info['why']})"
+    plane = f"the plane normal to {'xyz'[info['axis']]} ({info['overlap']:.0%} of the cells mirror onto cells)"
+    if info["mode"] == "views":
+        return f"{plane}; the view's mirror image added {info['positives']} scribbled and {info['keep_points']} keep points"
+    return f"{plane}; the selection took its mirror image"

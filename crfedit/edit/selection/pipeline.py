@@ -1,0 +1,354 @@
+""":func:`select`: the steps of the package docstring, from scribbled views to a
+:class:`~.base.Selection`."""
+
+from __future__ import annotations
+
+import time
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ... import occupancy
+from ...errors import CrfError
+from ...model import CategoryModel
+from ...names import MIRROR_MODES
+from ...renderer import RenderOutput
+from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
+from .base import ScribbleView, Selection
+from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, standardizer, within_spread
+from .features import SHAPE_SOURCES, cell_opacity, denser_points, group_width, local_frames, point_features, surface_points
+from .options import GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS
+from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
+from .shapes import RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
+from .store import quantized
+
+
+def _strokes(v: ScribbleView, device) -> tuple[Tensor, Tensor]:
+    """A view's scribbled and keep pixels [H·W] (a pixel both scribbled and kept is scribbled)."""
+    scribbled = torch.from_numpy(v.scribble.reshape(-1)).to(device)
+    kept = torch.zeros_like(scribbled) if v.keep is None else torch.from_numpy(v.keep.reshape(-1)).to(device) & ~scribbled
+    return scribbled, kept
+
+
+def _lift_views(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: Sequence[RenderOutput] | None):
+    """Positive and negative surface points of all views, plus each view's other surface points
+    (negatives too, until self-training drops those that look like the part); and each view's
+    (surface points, on-object mask), which :func:`_lift_mirrors` reads."""
+    pos, neg, implied, surfaces = [], [], [], []
+    for i, v in enumerate(views):
+        pts, on = surface_points(field, v.camera, k, min_opacity, None if renders is None else renders[i])
+        scribbled, kept = _strokes(v, on.device)
+        pos.append(pts[scribbled & on])
+        neg.append(pts[kept & on])
+        implied.append(pts[on & ~scribbled & ~kept])
+        surfaces.append((pts, on))
+    return _cat_points(field, pos), _cat_points(field, neg), _cat_points(field, implied), surfaces
+
+
+def _cat_points(field, xs: Sequence[Tensor]) -> Tensor:
+    return torch.cat(list(xs)) if xs else torch.zeros(0, 3, device=field.aabb.device)
+
+
+def _lift_mirrors(field, k, views: Sequence[ScribbleView], surfaces, mirror: Mirror, min_opacity: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The three point sets of :func:`_lift_views` for the views' mirror images
+    (:func:`_lift_mirrored`; ``surfaces``: what :func:`_lift_views` returned of each view)."""
+    mirrored = [_lift_mirrored(field, k, v, pts, on, mirror, min_opacity) for v, (pts, on) in zip(views, surfaces)]
+    return tuple(_cat_points(field, list(x)) for x in zip(*mirrored))
+
+
+def _lift_mirrored(field, k, v: ScribbleView, pts: Tensor, on: Tensor, mirror: Mirror, min_opacity: float):
+    """The scribbles of view ``v`` (its surface points ``pts`` and on-object mask ``on``, [H·W])
+    seen in a mirror: the view from the reflected camera, whose image is the original's flipped
+    left–right where the instance is symmetric.  Its scribbled, keep and other surface points,
+    kept where its surface agrees with the original's mirror image (:func:`.symmetry.agreeing`)."""
+    h, w = v.camera.height, v.camera.width
+    cam = mirror_camera(v.camera, mirror, field.aabb)
+    m_pts, m_on = surface_points(field, cam, k, min_opacity)
+    expected = mirror.points(field.aabb, pts.view(h, w, 3).flip(1).reshape(-1, 3))
+    agree = m_on & on.view(h, w).flip(1).reshape(-1) & agreeing(m_pts, expected, mirror.cell(field.aabb))
+    scribbled, kept = _strokes(ScribbleView(cam, mirror_image(v.scribble), mirror_image(v.keep)), m_on.device)
+    return m_pts[agree & scribbled], m_pts[agree & kept], m_pts[agree & ~scribbled & ~kept]
+
+
+def _cells_of(field, points: Tensor, res: int) -> Tensor:
+    """[R, R, R] bool: the cells holding any of world ``points`` [M, 3]."""
+    grid = torch.zeros(res, res, res, dtype=torch.bool, device=points.device)
+    ijk, inside = occupancy.cell_index(field.normalize(points), res)
+    ijk = ijk[inside]
+    grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    return grid
+
+
+def _columns(groups: Sequence[str], widths: Sequence[int]) -> dict[str, Tensor]:
+    """Each feature group's column indices in :func:`point_features`' output (``widths`` per group)."""
+    return dict(zip(groups, torch.arange(sum(widths)).split(widths)))
+
+
+def _group_standardizer(groups: Sequence[str], widths: Sequence[int], f_cells: Tensor, options: SelectOptions, position_scale: float = 1.0,
+                        stats: tuple[Tensor, Tensor] | None = None, columns: Tensor | None = None):
+    """:func:`standardizer` over the cells' features with the groups weighted as ``options``
+    say (position × ``position_scale``, for step 5b's distance)."""
+    weight = {"position": options.position_weight * position_scale, "geometry": options.geometry_weight}
+    return standardizer(f_cells, widths, [weight.get(g, 1.0) for g in groups], stats, columns)
+
+
+def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_view, f_cells, options: SelectOptions,
+              stats: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """Steps 3 and 5 on the columns of ``groups``: each occupied cell's probability [N] of
+    being the part, from the features of the positives, keep points, the view's other surface
+    points and the cells (unstandardized, ``widths`` columns per group); and the cells'
+    standardized appearance [N, F] (every group but position and F_fuse's activations), which
+    step 6 smooths along: the self-training's appearance fit reads F_fuse too, the bilateral
+    smoothing's 26 neighbour distances do not (removals' gap closed within 0.01 of reading it
+    on three of four models, and 0.13 s faster on a 37 000-cell grid with a 64-wide F_fuse)."""
+    z = _group_standardizer(groups, widths, f_cells, options, stats=stats)
+    columns = _columns(groups, widths)
+    looks = torch.cat([c for g, c in columns.items() if g != "position"]) if len(groups) > 1 and "position" in groups else None
+    z_pos, z_cells = z(f_pos), z(f_cells)
+    clf = classifier(z_pos, z(f_keep), z(f_view), options.self_training, options.keep_weight,
+                     looks if options.appearance_self_training else None)
+    pred = clf(z_cells)
+    gated = [c for g, c in columns.items() if g in ("bottleneck", "chroma")]
+    if options.appearance_gate > 0 and gated:
+        gated = torch.cat(gated)
+        pred = pred * appearance_gate(z_cells[:, gated], z_pos[:, gated], options.appearance_gate)
+    smooth = [c for g, c in columns.items() if g not in ("position", "fuse")]
+    return pred, (z_cells[:, torch.cat(smooth)] if smooth else z_cells)
+
+
+def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_cells, options: SelectOptions,
+               stats: tuple[Tensor, Tensor] | None = None) -> Tensor | None:
+    """Step 5b: the cells [N] a keep stroke wins (:attr:`SelectOptions.keep_ratio`), in the
+    :data:`KEEP_GROUPS` columns standardized as the classifier's, position weighted
+    ``keep_position_weight`` × the classifier's weight; None when off or without keep points."""
+    use = [g for g in groups if g in KEEP_GROUPS]
+    if options.keep_ratio <= 0 or len(f_keep) == 0 or not use:
+        return None
+    columns = _columns(groups, widths)
+    z = _group_standardizer(groups, widths, f_cells, options, options.keep_position_weight, stats, torch.cat([columns[g] for g in use]))
+    return keep_wins(z(f_cells), z(f_pos), z(f_keep), options.keep_ratio)
+
+
+def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor | None, occupied: Tensor, scribbled: Tensor,
+            kept: Tensor, options: SelectOptions, veto: Tensor | None = None) -> Tensor:
+    """Step 6: the cells' probabilities (``classified``: from :func:`_classify`, with their
+    appearance; cells: flat indices of ``occupied``, ``neighbours`` their :func:`neighbour_table`,
+    given when the smoothing is bilateral) as a grid [R, R, R], 0 where ``veto`` [N] (step 5b),
+    smoothed, connected to the ``scribbled`` cells, 0 in the ``kept`` cells."""
+    pred, looks = classified
+    if veto is not None:
+        pred = torch.where(veto, torch.zeros_like(pred), pred)
+    if neighbours is not None:  # half the cell's own value: a thin part must survive its neighbours
+        pred = bilateral_smooth(pred, looks, neighbours, options.smooth_bandwidth, options.smooth_rounds)
+    values = torch.zeros(occupied.numel(), device=occupied.device)
+    values[cells] = pred
+    values = values.view(occupied.shape)
+    if options.smooth and neighbours is None:
+        values = 0.5 * (values + smooth_over_occupied(values, occupied))
+    if options.connected:
+        values = hysteresis(values, occupancy.dilate(scribbled, 1), options.threshold, options.threshold)
+    return torch.where(kept, torch.zeros_like(values), values)
+
+
+def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tensor):
+    """(``mirror``, or None when the scribbles mean one side only, :func:`.symmetry.conflict`;
+    what the selection's metadata says of it, None when ``mode`` is off).  Decided on the
+    original views' points alone, before any mirrored view is rendered."""
+    if mode == "off":
+        return None, None
+    if mirror is None:
+        return None, {"mode": mode, "used": False, "why": "the instance is not mirror-symmetric"}
+    meta = {"mode": mode, "axis": mirror.axis, "shift": mirror.shift, "overlap": round(mirror.overlap, 3)}
+    cell = mirror.cell(field.aabb)
+    clash = max(conflict(mirror.points(field.aabb, pos), keep, cell), conflict(mirror.points(field.aabb, keep), pos, cell))
+    if clash > CONFLICT:
+        return None, {**meta, "used": False, "why": f"the keep strokes cover {clash:.0%} of the scribble's mirror image"}
+    return mirror, {**meta, "used": True}
+
+
+@torch.no_grad()
+def select(
+    model: CategoryModel, instance: int | str, views: Sequence[ScribbleView], options: SelectOptions = SelectOptions(),
+    renders: Sequence[RenderOutput] | None = None,
+) -> Selection:
+    """The 3-D selection the scribbles of ``views`` mean (see the module docstring).
+    ``renders`` are the views' renders of the instance when the caller has them already."""
+    started = time.perf_counter()
+    k = model.instance_index(instance)
+    if not views:
+        raise CrfError("select: give at least one view with a scribble")
+    for i, v in enumerate(views):
+        if not v.scribble.any():
+            raise CrfError(f"the scribble of view {i + 1} is empty: no pixel is set")
+    if options.shape_from not in SHAPE_SOURCES:
+        raise CrfError(f"selection shape_from {options.shape_from!r}: expected one of {', '.join(SHAPE_SOURCES)}")
+    if options.mirror not in MIRROR_MODES:
+        raise CrfError(f"selection mirror mode {options.mirror!r}: expected one of {', '.join(MIRROR_MODES)}")
+    field = model.field_for(k)
+    occupied = field.occupancy[k]
+    res = occupied.shape[-1]
+    pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
+    if pos_pts.shape[0] == 0:
+        raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
+    mirror = find_mirror(occupied) if options.mirror != "off" else None
+    mirror, mirror_meta = _mirror_use(field, mirror, options.mirror, pos_pts, neg_pts)
+    if mirror is not None and options.mirror == "views":
+        mirrored = _lift_mirrors(field, k, views, surfaces, mirror, options.min_opacity)
+        mirror_meta.update(positives=int(len(mirrored[0])), keep_points=int(len(mirrored[1])))
+        pos_pts, neg_pts, cand_pts = (torch.cat([a, b]) for a, b in zip((pos_pts, neg_pts, cand_pts), mirrored))
+    cells = occupied.reshape(-1).nonzero().squeeze(-1)
+    centres, fused, sigma = occupancy.cell_centers(res, occupied.device)[cells], None, None
+    if options.cell_ascent > 0:  # a half cell is 1/res in normalized units
+        centres, fused, sigma = denser_points(field, k, centres, options.cell_ascent / res)
+    cell_pts = field.denormalize(centres)
+    eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
+    groups, part_meta, fused_pos = options.features, None, None
+    if options.part_head and field.F_part is not None and "part" not in groups:
+        fused_pos = field.fuse_features(field.normalize(pos_pts), k)  # point_features reuses it
+        coherence = float(field.part_embedding(fused_pos).mean(dim=0).norm())
+        part_meta = {"coherence": round(coherence, 3), "cut": options.part_coherence, "used": coherence >= options.part_coherence}
+        if part_meta["used"]:
+            groups = (*groups, "part")
+    shape_grid = None
+    if "geometry" in groups:
+        shape_grid = cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied
+    feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius, options.chroma_offset)
+    scribbled_frames, shape_gate, gate_meta = None, options.shape_gate > 0 and shape_grid is not None, {"dropped": 0}
+    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0):
+        scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
+
+    def shape_test(where: Tensor, test) -> Tensor:
+        """[R, R, R] bool: ``test`` (:class:`Frames` [M] → [M] bool) of the occupied cells of
+        ``where`` [R, R, R], their frames read at those cells only; False elsewhere."""
+        at_cells = where.reshape(-1)[cells]
+        out = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+        if bool(at_cells.any()):
+            out[cells[at_cells]] = test(local_frames(shape_grid, centres[at_cells], SHAPE_GATE_RADIUS))
+        return out.view(res, res, res)
+
+    def gated(added: Tensor) -> Tensor:
+        """The cells of ``added`` [R, R, R] that :attr:`SelectOptions.shape_gate` leaves out
+        (:func:`gate_pieces` of the :func:`odd_lines` among them)."""
+        drop = gate_pieces(added, shape_test(added, lambda f: odd_lines(f, scribbled_frames)), options.shape_gate)
+        gate_meta["dropped"] += int(drop.sum())
+        return drop
+
+    f_pos, f_keep, f_view, f_cells = feats(pos_pts, fused_pos), feats(neg_pts), feats(cand_pts), feats(cell_pts, fused)
+    widths = [group_width(g, field.cfg) for g in groups]
+    scribbled, kept = _cells_of(field, pos_pts, res), _cells_of(field, neg_pts, res)
+    neighbours = neighbour_table(cells, res) if options.smooth and options.smooth_bandwidth > 0 else None
+    stats = feature_stats(f_cells)
+    veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options, stats)
+    spared = kept.clone()  # keep-stroke cells and those a keep stroke wins: no join takes them
+    if veto is not None:
+        spared.view(-1)[cells[veto]] = True
+    values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats), cells, neighbours, occupied, scribbled, kept, options, veto)
+    columns = _columns(groups, widths)
+    union, saturation, spread = None, 0.0, None
+    if "chroma" in groups:  # the cells' chromaticity distances, once for every test below
+        spread = chroma_spread(f_cells[:, columns["chroma"]], f_pos[:, columns["chroma"]])
+        med = spread[2]  # HSV saturation of the scribbled points' median chromaticity
+        saturation = float((med.max() - med.min()) / med.max().clamp_min(1e-6))
+
+    def alike_grid(factor: float, floor: float = 0.01) -> Tensor:
+        """[R, R, R] bool: the occupied cells whose chromaticity is the scribbled points'
+        (:func:`chroma_alike` with ``factor`` and ``floor``, from ``spread``)."""
+        alike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+        alike[cells] = within_spread(spread, factor, floor)
+        return alike.view(res, res, res)
+
+    if options.chroma_union > 0 and "chroma" in groups and len(groups) > 1:  # see SelectOptions.chroma_union
+        c = columns["chroma"]
+        union = {"saturation": round(saturation, 3), "cells": None, "joined": False}
+        if saturation >= options.chroma_saturation:
+            alone = _refine(_classify(("chroma",), [WIDTHS["chroma"]], f_pos[:, c], f_keep[:, c], f_view[:, c], f_cells[:, c], options,
+                                      (stats[0][c], stats[1][c])),
+                            cells, neighbours, occupied, scribbled, kept, options, veto)
+            if options.join_chroma > 0:  # see SelectOptions.join_chroma
+                alone = torch.where(alike_grid(options.join_chroma), alone, torch.zeros_like(alone))
+            if shape_gate:  # see SelectOptions.shape_gate
+                alone = torch.where(gated((alone >= options.threshold) & (values < options.threshold)), torch.zeros_like(alone), alone)
+            n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
+            cap = options.pale_union if options.pale_union > 0 and saturation < options.pale_saturation else options.chroma_union
+            union.update(cells=n_alone, joined=n_alone <= cap * max(n_main, 1))
+            if union["joined"]:
+                values = torch.maximum(values, alone)
+    def cap_unlike(values: Tensor, factor: float, below: float, low: float = 0.0, high: float = options.threshold,
+                   floor: float = 0.01, spare: Tensor | None = None) -> Tensor:
+        """``values`` with each cell of value in [``low``, ``high``) whose chromaticity is
+        unlike the scribbled points' (:func:`chroma_alike` with ``factor`` and ``floor``)
+        capped just below ``below``; the cells of ``spare`` [R, R, R] are left as they are."""
+        unlike = (values < high) & (values >= low) & ~alike_grid(factor, floor)
+        if spare is not None:
+            unlike &= ~spare
+        return torch.where(unlike, values.clamp(max=below * 0.999), values)
+
+    if options.skin_chroma > 0 and "chroma" in groups:  # see SelectOptions.skin_chroma
+        values = cap_unlike(values, options.skin_chroma, GROW_LOW)
+    at = options.threshold if options.select_threshold is None else options.select_threshold
+    if at < options.threshold and saturation < options.chroma_saturation:  # see SelectOptions.band_chroma
+        at = options.threshold
+    elif at < options.threshold and options.band_chroma > 0 and "chroma" in groups:
+        values = cap_unlike(values, options.band_chroma, at, low=at)
+    if options.veto_chroma > 0 and "chroma" in groups and saturation >= options.chroma_saturation:  # see SelectOptions.veto_chroma
+        values = cap_unlike(values, options.veto_chroma, GROW_LOW, low=GROW_LOW, high=float("inf"), floor=options.veto_floor, spare=scribbled)
+    if options.pale_veto > 0 and "chroma" in groups and saturation < options.pale_veto_saturation:  # see SelectOptions.pale_veto
+        values = cap_unlike(values, options.pale_veto, GROW_LOW, low=GROW_LOW, high=float("inf"), floor=options.pale_veto_floor, spare=scribbled)
+    if "part" in groups:  # see SelectOptions.part_veto and part_join
+        c = columns["part"]
+        alike = torch.full((res**3,), -1.0, device=occupied.device)
+        alike[cells] = f_cells[:, c] @ F.normalize(f_pos[:, c].mean(dim=0), dim=0)
+        alike = alike.view(res, res, res)
+        if options.part_veto > 0:
+            unlike = occupied & (alike < options.part_veto) & ~scribbled
+            values = torch.where(unlike, values.clamp(max=GROW_LOW * 0.999), values)
+        if options.part_join > 0:
+            like = occupied & (alike >= options.part_join) & ~spared
+            like &= connected_to(like | (values >= at), occupancy.dilate(scribbled, 1))
+            if shape_gate:  # see SelectOptions.shape_gate
+                like &= ~gated(like & (values < at))
+            values = torch.where(like, values.clamp_min(at), values)
+    if options.sheet_veto > 0 and scribbled_frames is not None:  # see SelectOptions.sheet_veto
+        sheet_meta = {"line_share": round(float(lines_of(scribbled_frames).float().mean()), 3), "cells": 0}
+        if sheet_meta["line_share"] >= options.sheet_veto:
+            sheet = shape_test((values >= GROW_LOW) & ~scribbled, sheets_of)
+            values = torch.where(sheet, values.clamp(max=GROW_LOW * 0.999), values)
+            sheet_meta["cells"] = int(sheet.sum())
+    if options.rim_fill > 0 and shape_grid is not None:  # see SelectOptions.rim_fill
+        rim_meta = {"cells": 0}
+        sheets = scribbled_frames.planar > scribbled_frames.linear
+        if float(sheets.float().mean()) >= RIM_SHEETS:
+            sel_now = values >= at
+            ring = occupancy.dilate(sel_now, 1) & occupied & ~sel_now & ~spared
+            rim = shape_test(ring, lambda f: rim_lines(f, scribbled_frames, options.rim_fill))
+            values = torch.where(rim, values.clamp_min(at), values)
+            rim_meta["cells"] = int(rim.sum())
+    if options.fill_share > 0:  # see SelectOptions.fill_share
+        values = fill_rims(values, at, occupied, kept, options.fill_share)
+    if mirror is not None and options.mirror == "values":  # see SelectOptions.mirror
+        both = occupied & mirror.grid(occupied)
+        values = torch.where(both & ~kept, torch.maximum(values, mirror.grid(values)), values)
+    values = quantized(values, (at, options.threshold, GROW_LOW))
+    meta = {
+        "positives": int(pos_pts.shape[0]), "keep_points": int(neg_pts.shape[0]), "view_points": int(cand_pts.shape[0]),
+        "views": len(views), "features": list(groups), "occupied_cells": int(cells.numel()),
+        "selected_cells": int((values >= at).sum()), "seconds": round(time.perf_counter() - started, 4),
+    }
+    if veto is not None:
+        meta["keep_wins_cells"] = int(veto.sum())
+    if union is not None:
+        meta["chroma_union"] = union
+    if mirror_meta is not None:
+        meta["mirror"] = mirror_meta
+    if part_meta is not None:
+        meta["part_head"] = part_meta
+    if shape_gate:
+        meta["shape_gate"] = gate_meta
+    if options.sheet_veto > 0 and scribbled_frames is not None:
+        meta["sheet_veto"] = sheet_meta
+    if options.rim_fill > 0 and shape_grid is not None:
+        meta["rim_fill"] = rim_meta
+    return Selection(values, k, model.names[k], model.fingerprint(), meta, at)

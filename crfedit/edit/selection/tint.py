@@ -1,0 +1,28 @@
+"""Preview: the instance rendered with the selected surface tinted."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ...cameras import Camera
+from ...model import CategoryModel
+from ...renderer import render_camera
+from .base import Selection
+from .features import surface_points
+
+TINT = (1.0, 0.15, 0.1)
+"""Colour blended over the selected surface in a preview."""
+
+
+@torch.no_grad()
+def preview(model: CategoryModel, sel: Selection, camera: Camera, strength: float = 0.6) -> np.ndarray:
+    """The instance's render from ``camera`` [H, W, 3] with the selected surface tinted, so the
+    user sees what an edit will change before any weight moves."""
+    field = model.field_for(sel.instance)
+    out = render_camera(field, camera, sel.instance)
+    pts, on = surface_points(field, camera, sel.instance, out=out)
+    hit = (sel.at(field.normalize(pts)) & on).reshape(camera.height, camera.width, 1)
+    tint = torch.tensor(TINT, device=out.rgb.device)
+    rgb = torch.where(hit, (1 - strength) * out.rgb + strength * tint, out.rgb)
+    return rgb.clamp(0, 1).cpu().numpy()
