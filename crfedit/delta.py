@@ -50,9 +50,9 @@ from .errors import ModelFileError, NonFiniteError
 from .field import ConditionalRadianceField
 from .model import CategoryModel
 from .names import COLOR_CODES, SHAPE_CODES
-from .safefile import fingerprint, grid_shape, other_kind, pack_bits, read_header, read_safetensors, unpack_bits, write_safetensors
+from .safefile import EDIT_FORMAT, fingerprint, grid_shape, other_kind, pack_bits, read_header, read_safetensors, unpack_bits, write_safetensors
 
-FORMAT = "crfedit-edit"
+FORMAT = EDIT_FORMAT
 VERSION = "3"
 """The version :func:`make_delta` writes.  Version 1 stored ``occupancy`` as the new grid itself
 (bool); 2 stores its change (int8); 3 stores that change bit-packed.  All read

@@ -25,9 +25,9 @@ from .config import Config
 from .errors import CrfError, ModelFileError
 from .field import ConditionalRadianceField
 from .names import did_you_mean
-from .safefile import check_tensors, fingerprint, other_kind, read_header, read_safetensors, write_safetensors
+from .safefile import MODEL_FORMAT, check_tensors, fingerprint, other_kind, read_header, read_safetensors, write_safetensors
 
-FORMAT = "crfedit-model"
+FORMAT = MODEL_FORMAT
 VERSION = "1"
 
 

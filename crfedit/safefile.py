@@ -114,13 +114,21 @@ def fingerprint(tensors: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()[:16]
 
 
+MODEL_FORMAT = "crfedit-model"
+EDIT_FORMAT = "crfedit-edit"
+SELECTION_FORMAT = "crfedit-selection"
+"""The ``format`` metadata of crfedit's three kinds of file, here so that each kind's module
+(:mod:`.model`, :mod:`.delta`, :mod:`.edit.selection.store`) and :func:`other_kind` name them
+from one place."""
+
+
 def other_kind(fmt: object) -> str:
     """What a crfedit file of format ``fmt`` is and where it goes, for an error that found it in
     the wrong place ("" for a format that is not crfedit's)."""
     return {
-        "crfedit-model": "; it is a model, which commands take as their MODEL argument",
-        "crfedit-edit": "; it is an edit file, which commands take as --edit",
-        "crfedit-selection": "; it is a selection (crfedit select --out), which edit-color, remove and add take as --selection",
+        MODEL_FORMAT: "; it is a model, which commands take as their MODEL argument",
+        EDIT_FORMAT: "; it is an edit file, which commands take as --edit",
+        SELECTION_FORMAT: "; it is a selection (crfedit select --out), which edit-color, remove and add take as --selection",
     }.get(fmt if isinstance(fmt, str) else "", "")
 
 

@@ -13,10 +13,10 @@ from torch import Tensor
 
 from ...config import MAX_GRID_SIDE
 from ...errors import CrfError
-from ...safefile import grid_shape, other_kind, pack_bits, read_safetensors, unpack_bits, write_safetensors
+from ...safefile import SELECTION_FORMAT, grid_shape, other_kind, pack_bits, read_safetensors, unpack_bits, write_safetensors
 from .base import Selection
 
-FORMAT = "crfedit-selection"
+FORMAT = SELECTION_FORMAT
 VERSION = "2"
 READ_VERSIONS = ("1", "2")
 """Version 1 stored ``values`` as uint8 [R, R, R]; version 2 stores only the cells with a value
