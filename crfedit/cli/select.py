@@ -77,15 +77,14 @@ def select_cmd(
         typer.echo(f"wrote previews of {views} to {preview}/")
 
 
-def print_selection(path: Path, as_json: bool) -> None:
-    """`info` on a selection file: its instance, model, cells and how it was made (table or JSON)."""
+def print_selection(path: Path, as_json: bool, version: str) -> None:
+    """`info` on a selection file of format ``version`` (from the header `info` read): its
+    instance, model, cells and how it was made (table or JSON)."""
     import json
 
     from ..edit.selection import FORMAT, load_selection, mirror_summary, part_summary, shape_summary
-    from ..safefile import read_header
 
     sel = load_selection(path)
-    version = read_header(path)[1]["version"]
     info = sel.meta if isinstance(sel.meta, dict) else {}
     res = sel.values.shape[0]
     selected, nonzero = int(sel.mask.sum()), int((sel.values > 0).sum())

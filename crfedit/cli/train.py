@@ -297,22 +297,19 @@ def info_cmd(
     """Summarize a crfedit file: a model (preset, instances, parameters and bytes per module,
     occupancy, fingerprints), an edit file (as `crfedit edits show`) or a selection (its
     instance, model, cells and how it was made)."""
-    from ..delta import FORMAT as EDIT_FORMAT
-    from ..model import FORMAT as MODEL_FORMAT
     from ..modelfile import model_info
-    from ..safefile import read_header
+    from ..safefile import EDIT_FORMAT, SELECTION_FORMAT, read_header
 
-    kind = read_header(model)[1].get("format")
+    header = read_header(model)[1]
+    kind = header.get("format")
     if kind == EDIT_FORMAT:
         from .edit import print_edit
 
         return print_edit(model, as_json)
-    if kind != MODEL_FORMAT:  # a selection, or model_info's one-line error
-        from ..edit.selection import FORMAT as SELECTION_FORMAT
+    if kind == SELECTION_FORMAT:
         from .select import print_selection
 
-        if kind == SELECTION_FORMAT:
-            return print_selection(model, as_json)
+        return print_selection(model, as_json, header.get("version"))
     meta = model_info(model)
     if as_json:
         typer.echo(json.dumps(meta, indent=2))
