@@ -10,7 +10,7 @@ from that view.  It reads the ground truth, so it measures how far one view can 
 selection and the edits, not a method.
 
 A third column isolates the features from the rest of the selection: a logistic regression
-(:func:`~crfedit.edit.selection.fit_logistic`, default feature groups: bottleneck, colour,
+(:func:`~crfedit.edit.selection.classify.fit_logistic`, default feature groups: bottleneck, colour,
 chromaticity, position) fitted on the fully labelled view's rendered surface points and
 evaluated at the test views' rendered surface points, over the pixels the part map and the
 render both show as object (:func:`~crfedit.twin_scores.surface_iou`, as ``selection_iou``),
