@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, fields
 
 from .errors import CrfError
@@ -96,6 +97,10 @@ class Config:
     """Std of noise added to raw density early in training (avoids the all-empty start)."""
     random_background: bool = True
     """Train over a random background colour per ray, not white (:func:`~crfedit.train.over_background`)."""
+    distortion: float = 0.0
+    """Weight of mip-NeRF 360's distortion loss (:func:`~crfedit.rendering.distortion_dense`),
+    which pulls each ray's weight into one short stretch: sharper surfaces, fewer floaters
+    (grid sampler only; 0: off)."""
     view_reg: float = 0.0
     """Weight of the paper's view-dependence regularizer (one view per instance)."""
     part_weight: float = 0.05
@@ -148,6 +153,8 @@ class Config:
             (self.lr > 0 and self.lr_codes > 0, "learning rates must be > 0"),
             (self.occ_every >= 1 and self.checkpoint_every >= 1, "intervals must be ≥ 1"),
             (self.part_dim >= 0 and self.part_weight >= 0, "part_dim and part_weight must be ≥ 0"),
+            (self.distortion >= 0 and math.isfinite(self.distortion), "distortion must be ≥ 0"),
+            (self.distortion == 0 or self.sampler == "grid", "distortion needs sampler grid"),
             (self.part_labels in PART_LABELS, f"part_labels {self.part_labels!r}: expected one of {', '.join(PART_LABELS)}"),
         ]
         for ok, message in checks:

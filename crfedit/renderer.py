@@ -28,7 +28,7 @@ from torch import Tensor
 from . import occupancy
 from .cameras import Camera, Rays, rays_from_camera
 from .field import ConditionalRadianceField, FieldNet
-from .rendering import composite_packed, composite_packed_as_dense
+from .rendering import Distortion, composite_packed, composite_packed_as_dense, distortion_packed
 from .sampling import (
     PackedSamples,
     fine_samples_from_coarse,
@@ -51,6 +51,7 @@ class RenderOutput:
     n_samples: int | Tensor  # field evaluations spent ([] long tensor from a FixedMarch: not read back)
     coarse_rgb: Tensor | None = None  # [N, 3] hierarchical sampler only
     complete: Tensor | None = None  # [N] bool (FixedMarch): every sample of the ray had a slot
+    distortion: Tensor | None = None  # [N] the distortion loss of each ray (grid sampler, when asked)
 
 
 def instance_tensor(instance: Tensor | int, n: int, device: torch.device) -> Tensor:
@@ -186,6 +187,7 @@ def render_rays(
     jitter: Tensor | None = None,  # [N] in [0, 1)
     march: FixedMarch | None = None,
     colour: bool = True,
+    distortion: bool = False,
 ) -> RenderOutput:
     """Render a batch of rays of one or several instances (``instance`` int or [N] long).
 
@@ -195,17 +197,20 @@ def render_rays(
     of drawing it from ``generator``.  ``march`` (grid sampler) marches with fixed shapes and
     no host read (:class:`FixedMarch`); without it, the reference march.  ``colour=False``
     (grid sampler, reference march) skips the bottleneck and F_rad: depth and opacity are the
-    same bits, and rgb is the background alone.
+    same bits, and rgb is the background alone.  ``distortion`` (grid sampler) also returns each
+    ray's distortion loss (:func:`~crfedit.rendering.distortion_packed`), a training regularizer.
     """
     n = rays.origins.shape[0]
     single = int(instance) if not isinstance(instance, Tensor) else None
     instance = instance_tensor(instance, n, rays.origins.device)
     if field.cfg.sampler == "hierarchical":
+        if distortion:
+            raise ValueError("the distortion loss needs the grid sampler")
         return _render_hierarchical(field, rays, instance, generator, background, density_noise, single)
     if jitter is None and generator is not None:
         jitter = torch.rand(n, generator=generator, device=generator.device).to(rays.origins.device)
     if march is not None:
-        return _render_fixed(field, rays, instance, march, jitter, generator, background, density_noise, early_stop, single)
+        return _render_fixed(field, rays, instance, march, jitter, generator, background, density_noise, early_stop, single, distortion)
     t_near, t_far, hit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)
     s = occupancy.step_size(field.aabb, field.cfg.occ_res, field.cfg.steps_per_cell)
     total = math.ceil(float((t_far - t_near).max()) / s) if n and bool(hit.any()) else 0
@@ -214,7 +219,7 @@ def render_rays(
     depth = torch.zeros(n, device=rays.origins.device)
     trans = torch.ones(n, device=rays.origins.device)
     alive = torch.arange(n, device=rays.origins.device)[hit]
-    n_samples = 0
+    n_samples, dist = 0, None
     for first in range(0, total, max(segment, 1)):
         if alive.numel() == 0:
             break
@@ -227,6 +232,9 @@ def render_rays(
                                         raw_field_at_samples if colour else raw_density_at_samples)
             comp = composite_packed(samples.ray, samples.t_starts, samples.t_ends, sig, col, len(alive), 0.0)
             t_prev = trans[alive]
+            if distortion:  # the rays' own indices: alive is ascending, so they stay sorted
+                ray, near = alive[samples.ray], t_near[alive][samples.ray]
+                dist = distortion_packed(ray, samples.t_starts - near, samples.t_ends - near, t_prev[samples.ray] * comp.weights, n, None, dist)
             rgb = rgb.index_add(0, alive, t_prev[:, None] * comp.rgb)
             depth = depth.index_add(0, alive, t_prev * comp.depth)
             trans = trans.index_put((alive,), t_prev * (1.0 - comp.opacity))
@@ -235,10 +243,12 @@ def render_rays(
             alive = alive[trans[alive] > early_stop]
     opacity = 1.0 - trans
     rgb = rgb + trans[:, None] * background
-    return RenderOutput(rgb, depth, opacity, n_samples)
+    if distortion and dist is None:
+        dist = Distortion(*(torch.zeros(n, device=rays.origins.device) for _ in range(3)))
+    return RenderOutput(rgb, depth, opacity, n_samples, distortion=None if dist is None else dist.loss)
 
 
-def _render_fixed(field, rays, instance, march, jitter, generator, background, density_noise, early_stop, single) -> RenderOutput:
+def _render_fixed(field, rays, instance, march, jitter, generator, background, density_noise, early_stop, single, distortion=False) -> RenderOutput:
     """:func:`render_rays`' grid march with fixed shapes: every ray marches every segment of
     ``march`` (terminated rays masked out), each segment's samples packed into its buffer."""
     n, device = rays.origins.shape[0], rays.origins.device
@@ -247,7 +257,7 @@ def _render_fixed(field, rays, instance, march, jitter, generator, background, d
     depth = torch.zeros(n, device=device)
     trans = torch.ones(n, device=device)
     complete = torch.ones(n, dtype=torch.bool, device=device)
-    counts, n_samples = [], 0
+    counts, n_samples, dist = [], 0, None
     for k, (first, count) in enumerate(march.segments):
         starts, t_mid, keep = march_steps(field, rays, instance, first, count, march.step, jitter, t_near, t_far)
         keep = keep & alive[:, None]
@@ -266,6 +276,9 @@ def _render_fixed(field, rays, instance, march, jitter, generator, background, d
             field, field, samples, rays, instance if single is None else single, density_noise, generator, march.raw_field
         )
         comp = composite_packed(pack.ray, t0, t1, sig, col, n, 0.0, pack.first)
+        if distortion:
+            near = t_near[pack.ray]
+            dist = distortion_packed(pack.ray, t0 - near, t1 - near, trans[pack.ray] * comp.weights, n, pack.first, dist)
         rgb = rgb + trans[:, None] * comp.rgb
         depth = depth + trans * comp.depth
         trans = trans * (1.0 - comp.opacity)
@@ -276,7 +289,7 @@ def _render_fixed(field, rays, instance, march, jitter, generator, background, d
             alive = alive & (trans > early_stop)
     march.observe(torch.stack(counts), (~complete).sum())
     rgb = rgb + trans[:, None] * background
-    return RenderOutput(rgb, depth, 1.0 - trans, n_samples, complete=complete)
+    return RenderOutput(rgb, depth, 1.0 - trans, n_samples, complete=complete, distortion=None if dist is None else dist.loss)
 
 
 def _render_hierarchical(field, rays, instance, generator, background, density_noise, single=None) -> RenderOutput:

@@ -229,6 +229,14 @@ def batch_mse(rgb: torch.Tensor, target: torch.Tensor, complete: torch.Tensor | 
     return (((rgb - target) ** 2).mean(dim=-1) * used).sum() / used.sum().clamp_min(1.0)
 
 
+def batch_mean(per_ray: torch.Tensor, complete: torch.Tensor | None) -> torch.Tensor:
+    """The mean of a per-ray loss [N] over the complete rays (as :func:`batch_mse`)."""
+    if complete is None:
+        return per_ray.mean()
+    used = complete.to(per_ray.dtype)
+    return (per_ray * used).sum() / used.sum().clamp_min(1.0)
+
+
 def refresh_occupancy(field, hulls, ema, instances, generator, ranks: Ranks = SINGLE, cells=None, step=None) -> None:
     """Refresh the grids of ``instances`` from the density (candidates = visual hull).
 
@@ -396,12 +404,14 @@ def train(
             out_r = render_rays(
                 field, batch.rays, batch.instance, generator=rank_generator, density_noise=noise,
                 early_stop=cfg.train_early_stop, jitter=batch.jitter, march=march,
-                background=1.0 if batch.background is None else batch.background,
+                background=1.0 if batch.background is None else batch.background, distortion=cfg.distortion > 0,
             )
             loss = batch_mse(out_r.rgb, batch.rgb, out_r.complete)
             mse = loss.detach()
             if out_r.coarse_rgb is not None:
                 loss = loss + batch_mse(out_r.coarse_rgb, batch.rgb, None)
+            if cfg.distortion > 0:
+                loss = loss + cfg.distortion * batch_mean(out_r.distortion, out_r.complete)
             if cfg.view_reg > 0:
                 loss = loss + cfg.view_reg * view_dependence_penalty(field, batch.rays, batch.instance, out_r.depth, out_r.opacity, rank_generator)
             if parts is not None:

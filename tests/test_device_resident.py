@@ -27,7 +27,7 @@ from crfedit.opcount import count_events, profile_training
 from crfedit.optim import run_adam
 from crfedit.renderer import FixedMarch, render_rays
 from crfedit.sampling import pack_mask
-from crfedit.train import BatchSampler, batch_mse, make_optimizer, train
+from crfedit.train import BatchSampler, batch_mean, batch_mse, make_optimizer, train
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 HAS_COMPILER = shutil.which("g++") is not None or shutil.which("c++") is not None
@@ -118,11 +118,21 @@ def test_overflowing_rays_are_flagged_and_the_buffer_grows():
     assert render_rays(field, rays, inst, early_stop=1e-3, jitter=jitter, march=march).complete.all()
 
 
-def test_training_steps_equal_the_reference(tiny_chairs):
+def test_fixed_march_distortion_equals_the_reference():
+    field = field_with_surfaces()
+    rays, inst, jitter = ray_batch()
+    ref = render_rays(field, rays, inst, early_stop=1e-3, jitter=jitter, distortion=True)
+    out = render_rays(field, rays, inst, early_stop=1e-3, jitter=jitter, march=FixedMarch(field), distortion=True)
+    assert float(ref.distortion.detach().max()) > 0
+    torch.testing.assert_close(out.distortion, ref.distortion, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("distortion", [0.0, 0.05])
+def test_training_steps_equal_the_reference(tiny_chairs, distortion):
     """Five Adam steps on the same batches (each ray over its own random background colour),
-    fixed-shape march against the reference march."""
+    fixed-shape march against the reference march; with the distortion loss too."""
     category = load_category(tiny_chairs)
-    cfg = make_config("fast", overrides=dict(rays=128, occ_res=16, grid_res=16))
+    cfg = make_config("fast", overrides=dict(rays=128, occ_res=16, grid_res=16, distortion=distortion))
     torch.manual_seed(0)
     fields = [ConditionalRadianceField(cfg, 2, crfedit.train.scene_box(category))]
     fields.append(copy.deepcopy(fields[0]))
@@ -134,9 +144,12 @@ def test_training_steps_equal_the_reference(tiny_chairs):
         for field, march, opt, gen in zip(fields, marches, opts, gens):
             batch = sampler(cfg.rays, gen)
             out = render_rays(field, batch.rays, batch.instance, generator=gen, early_stop=cfg.train_early_stop,
-                              jitter=batch.jitter, march=march, background=batch.background)
+                              jitter=batch.jitter, march=march, background=batch.background, distortion=distortion > 0)
             opt.zero_grad()
-            batch_mse(out.rgb, batch.rgb, out.complete).backward()
+            loss = batch_mse(out.rgb, batch.rgb, out.complete)
+            if distortion > 0:
+                loss = loss + distortion * batch_mean(out.distortion, out.complete)
+            loss.backward()
             opt.step()
     for (name, a), b in zip(fields[0].named_parameters(), fields[1].parameters()):
         torch.testing.assert_close(b, a, rtol=1e-4, atol=2e-5, msg=name)

@@ -21,6 +21,8 @@ from crfedit.rendering import (
     composite_dense,
     composite_packed,
     composite_packed_as_dense,
+    distortion_dense,
+    distortion_packed,
     exclusive_cumsum,
     exclusive_cumsum_packed,
     optical_depth_from_density,
@@ -442,6 +444,78 @@ def test_composite_packed_gradcheck():
     rgb = rgb.requires_grad_()
     f = lambda s, c: composite_packed(ray, t0, t1, s, c, len(counts), 1.0)[:3]
     assert torch.autograd.gradcheck(f, (sig, rgb))
+
+
+def brute_distortion(t0, t1, w):
+    """The distortion loss by its definition, every pair: Σᵢⱼ wᵢwⱼ|mᵢ − mⱼ| + ⅓ Σᵢ wᵢ²δᵢ."""
+    m = 0.5 * (t0 + t1)
+    return (w[..., :, None] * w[..., None, :] * (m[..., :, None] - m[..., None, :]).abs()).sum((-1, -2)) + (w * w * (t1 - t0)).sum(-1) / 3
+
+
+def test_distortion_hand_cases():
+    # all the weight in one interval of length δ: w²δ/3
+    t0, t1 = intervals([0.0, 0.3, 0.5, 1.0])
+    w = torch.tensor([[0.0, 0.8, 0.0]], dtype=F64)
+    torch.testing.assert_close(distortion_dense(t0, t1, w), torch.tensor([0.64 * 0.2 / 3], dtype=F64))
+    # two halves at midpoints 0.15 and 0.75: 2·(½)(½)·0.6 + ⅓(¼·0.3 + ¼·0.5)
+    w = torch.tensor([[0.5, 0.0, 0.5]], dtype=F64)
+    torch.testing.assert_close(distortion_dense(t0, t1, w), torch.tensor([0.3 + (0.25 * 0.3 + 0.25 * 0.5) / 3], dtype=F64))
+    # a ray of no weight costs nothing, and the loss does not depend on where the ray starts
+    assert distortion_dense(t0, t1, torch.zeros(1, 3, dtype=F64)) == 0
+    w = torch.tensor([[0.2, 0.3, 0.4]], dtype=F64)
+    torch.testing.assert_close(distortion_dense(t0 + 7.0, t1 + 7.0, w), distortion_dense(t0, t1, w))
+
+
+def test_distortion_dense_equals_every_pair():
+    g = torch.Generator().manual_seed(3)
+    t = torch.sort(torch.rand(5, 12, generator=g, dtype=F64), dim=-1).values
+    t0, t1 = t[:, :-1], t[:, 1:]
+    w = torch.rand(5, 11, generator=g, dtype=F64) / 11
+    torch.testing.assert_close(distortion_dense(t0, t1, w), brute_distortion(t0, t1, w), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("split", [0, 2, 5])
+def test_distortion_packed_in_stretches_equals_dense(split):
+    """Packed, and packed in two stretches with the first's result carried into the second,
+    equal every pair of the whole ray (the empty ray costs 0)."""
+    ray, counts, t0, t1, sig, _ = ragged(dtype=F64)
+    w = composite_packed(ray, t0, t1, sig, torch.zeros(len(ray), 3, dtype=F64), len(counts)).weights
+    d0, d1, dw = dense_of(counts, t0, t1, w)
+    expected = brute_distortion(d0, torch.where(dw > 0, d1, d0), dw)
+    col = torch.cat([torch.arange(int(c)) for c in counts])
+    a, b = col < split, col >= split
+    first = distortion_packed(ray[a], t0[a], t1[a], w[a], len(counts))
+    both = distortion_packed(ray[b], t0[b], t1[b], w[b], len(counts), None, first)
+    torch.testing.assert_close(both.loss, expected, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(distortion_packed(ray, t0, t1, w, len(counts)).loss, expected, rtol=1e-10, atol=1e-12)
+    assert both.loss[2] == 0
+    torch.testing.assert_close(both.weight, torch.zeros(len(counts), dtype=F64).index_add(0, ray, w))
+
+
+def test_distortion_packed_gradcheck():
+    ray, counts, t0, t1, _, _ = ragged(dtype=F64)
+    w = (torch.rand(len(ray), generator=torch.Generator().manual_seed(1), dtype=F64) * 0.3).requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: distortion_packed(ray, t0, t1, x, len(counts)).loss, (w,))
+
+
+def test_distortion_of_a_segmented_render_equals_one_march():
+    """The grid march in segments carries the loss across them: the same as one segment."""
+    field = small_field(dens_bias=0.5, density_scale=1.0)
+    rays = rays_from_camera(CAM)
+    one = render_rays(field, rays, 0, early_stop=None, distortion=True)
+    segmented = render_rays(field, rays, 0, early_stop=0.0, distortion=True)
+    assert one.distortion.shape == (len(rays.origins),) and float(one.distortion.detach().max()) > 0
+    torch.testing.assert_close(segmented.distortion, one.distortion, rtol=1e-5, atol=1e-7)
+    assert render_rays(field, rays, 0).distortion is None  # not asked: not computed
+
+
+def test_a_sharper_surface_has_less_distortion():
+    """The same opacity reached in a shorter stretch: lower loss (what the regularizer rewards)."""
+    soft = render_rays(small_field(dens_bias=0.5, density_scale=1.0), rays_from_camera(CAM), 0, distortion=True)
+    sharp = render_rays(small_field(dens_bias=0.5, density_scale=50.0), rays_from_camera(CAM), 0, distortion=True)
+    hit = (soft.opacity > 0.3) & (sharp.opacity > 0.3)
+    assert int(hit.sum()) > 10
+    assert bool((sharp.distortion[hit] / sharp.opacity[hit] ** 2 < soft.distortion[hit] / soft.opacity[hit] ** 2).all())
 
 
 def test_early_termination_matches_full_march():
