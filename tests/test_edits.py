@@ -18,7 +18,6 @@ from typer.testing import CliRunner
 from crfedit.cameras import Rays, rays_from_camera
 from crfedit.cli import app
 from crfedit.config import PRESETS
-from crfedit.data.synth import SynthConfig
 from crfedit.delta import apply_edit_files, read_delta
 from crfedit.edit import CODES, TRAINED, EditOptions, add, edit_color, remove, swap_codes, trained_prefixes, transfer
 from crfedit.edit.cache import ViewCache, edit_passes

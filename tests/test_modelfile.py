@@ -15,7 +15,7 @@ from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.io import write_png
 from crfedit.model import load_model
-from crfedit.modelfile import SIZE_KINDS, size_breakdown, strip_model
+from crfedit.modelfile import SIZE_KINDS, size_breakdown
 from crfedit.renderer import render_camera
 from crfedit.safefile import read_header
 from crfedit.train import train

@@ -202,7 +202,6 @@ def edits_cmd(
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..edit import EditOptions
     from ..evaluation import NerfBaseline, evaluate_edits, load_twin_cases, part_labels_warning
-    from ..runtime import resolve_device
 
     chosen = _strategies(strategies)
     options = EditOptions(steps=steps, rays=rays, lr=lr, seed=seed, penalty=penalty, recolor=recolor).validated()
