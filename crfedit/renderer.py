@@ -28,7 +28,7 @@ from torch import Tensor
 from . import occupancy
 from .cameras import Camera, Rays, rays_from_camera
 from .field import ConditionalRadianceField, FieldNet
-from .rendering import Distortion, composite_packed, composite_packed_as_dense, distortion_packed
+from .rendering import composite_packed, composite_packed_as_dense, distortion_packed
 from .sampling import (
     PackedSamples,
     fine_samples_from_coarse,
@@ -233,7 +233,8 @@ def render_rays(
             comp = composite_packed(samples.ray, samples.t_starts, samples.t_ends, sig, col, len(alive), 0.0)
             t_prev = trans[alive]
             if distortion:  # the rays' own indices: alive is ascending, so they stay sorted
-                ray, near = alive[samples.ray], t_near[alive][samples.ray]
+                ray = alive[samples.ray]
+                near = t_near[ray]
                 dist = distortion_packed(ray, samples.t_starts - near, samples.t_ends - near, t_prev[samples.ray] * comp.weights, n, None, dist)
             rgb = rgb.index_add(0, alive, t_prev[:, None] * comp.rgb)
             depth = depth.index_add(0, alive, t_prev * comp.depth)
@@ -243,9 +244,8 @@ def render_rays(
             alive = alive[trans[alive] > early_stop]
     opacity = 1.0 - trans
     rgb = rgb + trans[:, None] * background
-    if distortion and dist is None:
-        dist = Distortion(*(torch.zeros(n, device=rays.origins.device) for _ in range(3)))
-    return RenderOutput(rgb, depth, opacity, n_samples, distortion=None if dist is None else dist.loss)
+    loss = None if not distortion else torch.zeros(n, device=rays.origins.device) if dist is None else dist.loss  # no sample: no loss
+    return RenderOutput(rgb, depth, opacity, n_samples, distortion=loss)
 
 
 def _render_fixed(field, rays, instance, march, jitter, generator, background, density_noise, early_stop, single, distortion=False) -> RenderOutput:

@@ -225,12 +225,12 @@ def batch_mse(rgb: torch.Tensor, target: torch.Tensor, complete: torch.Tensor | 
     (a ray whose samples overflowed a march buffer was rendered without some of them)."""
     if complete is None:
         return torch.mean((rgb - target) ** 2)
-    used = complete.to(rgb.dtype)
-    return (((rgb - target) ** 2).mean(dim=-1) * used).sum() / used.sum().clamp_min(1.0)
+    return batch_mean(((rgb - target) ** 2).mean(dim=-1), complete)
 
 
 def batch_mean(per_ray: torch.Tensor, complete: torch.Tensor | None) -> torch.Tensor:
-    """The mean of a per-ray loss [N] over the complete rays (as :func:`batch_mse`)."""
+    """The mean of a per-ray loss [N]; with ``complete`` [N] bool, over the complete rays only
+    (:func:`batch_mse`, the distortion loss)."""
     if complete is None:
         return per_ray.mean()
     used = complete.to(per_ray.dtype)
