@@ -9,17 +9,13 @@ import math
 import pytest
 import torch
 from PIL import Image
-from typer.testing import CliRunner
 
 from crfedit.bench import BenchSettings
 from crfedit.machine import machine_info
 from crfedit.report import BEGIN, CSV_COLUMNS, END, PLOT_SIZE, emit_table, log_ticks, nice_ticks, plot_curves, update_markdown
-from crfedit.cli import app
 from crfedit.errors import CrfError
 
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
+from cli_helpers import invoke
 
 
 @pytest.fixture(scope="module")

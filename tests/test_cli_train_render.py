@@ -11,10 +11,8 @@ import numpy as np
 from crfedit.preview import depth_preview, turbo
 import pytest
 import torch
-from typer.testing import CliRunner
 
 import crfedit.train
-from crfedit.cli import app
 from crfedit.data.loading import load_category
 from crfedit.errors import CrfError
 from crfedit.evaluation import held_out_split, render_views, score_model
@@ -25,20 +23,9 @@ from crfedit.render_files import render_to_folder
 from crfedit.video import write_video
 from crfedit.views import resolve_views
 
+from cli_helpers import assert_user_error, invoke
+
 TINY = ["--device", "cpu", "--set", "rays=256", "--set", "occ_res=16", "--set", "grid_res=16"]
-
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
-
-
-def assert_user_error(result, *fragments: str) -> None:
-    """Exit 2 with one line ``error: ...`` on stderr that contains every fragment, no traceback."""
-    assert result.exit_code == 2, result.output
-    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1, result.stderr
-    assert "Traceback" not in result.output
-    for fragment in fragments:
-        assert fragment in result.stderr, result.stderr
 
 
 @pytest.fixture(scope="module")

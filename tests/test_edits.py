@@ -13,10 +13,8 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
-from typer.testing import CliRunner
 
 from crfedit.cameras import Rays, rays_from_camera
-from crfedit.cli import app
 from crfedit.config import PRESETS
 from crfedit.delta import apply_edit_files, read_delta
 from crfedit.edit import CODES, TRAINED, EditOptions, add, edit_color, remove, swap_codes, trained_prefixes, transfer
@@ -30,6 +28,8 @@ from crfedit.errors import CrfError, NonFiniteError
 from crfedit.field import ConditionalRadianceField
 from crfedit.model import CategoryModel, load_model
 from crfedit.renderer import render_camera, render_rays
+
+from cli_helpers import assert_user_error, invoke
 
 RES = 32
 
@@ -461,17 +461,6 @@ def test_strokes_rasterize_at_the_view_resolution():
 
 
 # ----------------------------------------------------------------------------- commands
-
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
-
-
-def assert_user_error(result, *fragments: str) -> None:
-    assert result.exit_code == 2, result.output
-    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1, result.stderr
-    for fragment in fragments:
-        assert fragment in result.stderr, result.stderr
 
 
 def write_mask(path: Path, mask: np.ndarray) -> Path:

@@ -12,10 +12,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from typer.testing import CliRunner
 
 from crfedit.ablation import ABLATION_ARCHS, PARAM_TOLERANCE, ablation_configs, matched_width, network_parameters, run_ablation
-from crfedit.cli import app
 from crfedit.config import ARCHS, make_config
 from crfedit.data.loading import load_category
 from crfedit.data.synth import SynthConfig, write_synth_category
@@ -40,6 +38,8 @@ from crfedit.field import ConditionalRadianceField
 from crfedit.model import CategoryModel, load_model
 from crfedit.train import train
 
+from cli_helpers import assert_user_error, invoke
+
 TINY = dict(steps=40, rays=256, occ_res=16, grid_res=16, checkpoint_every=10**9)
 
 
@@ -60,17 +60,6 @@ def model_path(data) -> Path:
     path = data.parent / "model.safetensors"
     train(load_category(data), make_config("fast", TINY), path, torch.device("cpu"), seed=0)
     return path
-
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
-
-
-def assert_user_error(result, *fragments: str) -> None:
-    assert result.exit_code == 2, result.output
-    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1, result.stderr
-    for fragment in fragments:
-        assert fragment in result.stderr, result.stderr
 
 
 # ----------------------------------------------------------------------------- eval recon

@@ -13,11 +13,9 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
-from typer.testing import CliRunner
 
 from crfedit import occupancy
 from crfedit.cameras import Camera, look_at, spherical_eye
-from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data.synth import SynthConfig
 from crfedit.delta import apply_edit_files, read_delta
@@ -37,6 +35,8 @@ from crfedit.field import ConditionalRadianceField
 from crfedit.metrics import psnr
 from crfedit.model import CategoryModel, load_model
 from crfedit.renderer import render_camera
+
+from cli_helpers import assert_user_error, invoke
 
 RES = 24
 HELD_OUT = 3
@@ -60,18 +60,6 @@ def photo_of(view):
 def mean_psnr(model, k: int, views) -> float:
     field = model.field_for(k)
     return float(np.mean([float(psnr(render_camera(field, v.camera, k).rgb, torch.from_numpy(v.rgb))) for v in views]))
-
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
-
-
-def assert_user_error(result, *fragments: str) -> None:
-    assert result.exit_code == 2, result.output
-    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1, result.stderr
-    assert "Traceback" not in result.output
-    for fragment in fragments:
-        assert fragment in result.stderr, result.stderr
 
 
 FAST = FitOptions(steps_codes=150, steps_joint=30)

@@ -29,9 +29,7 @@ import pytest
 import torch
 from PIL import Image
 from safetensors.torch import save_file
-from typer.testing import CliRunner
 
-from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.delta import apply_edit_files, delta_fingerprint, pack_grid_change, read_delta
@@ -41,6 +39,8 @@ from crfedit.io import write_exr
 from crfedit.model import load_model
 from crfedit.safefile import MAX_HEADER_BYTES, read_header, read_safetensors
 from crfedit.train import train
+
+from cli_helpers import assert_user_error, invoke
 
 CPU = ["--device", "cpu"]
 FAST_EDIT = ["--steps", "1", "--rays", "64", *CPU]
@@ -652,27 +652,12 @@ def leftovers(*folders: Path) -> list[Path]:
     return sorted(p for folder in folders for p in folder.rglob(".*.tmp"))
 
 
-def assert_user_error(result, *fragments: str) -> str:
-    """Exit 2, one ``error: ...`` line on stderr containing every fragment, no traceback."""
-    assert result.exit_code == 2, (result.exit_code, result.output, repr(result.exception))
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
-    assert "Traceback" not in result.output and "Traceback" not in result.stderr
-    for fragment in fragments:
-        assert fragment in lines[0], (fragment, lines[0])
-    return lines[0]
-
-
-def invoke(argv) -> object:
-    return CliRunner().invoke(app, [str(a) for a in argv])
-
-
 @pytest.mark.parametrize("case", [c.param() for c in CATALOGUE])
 def test_hostile_input(case: Case, env: Env, tmp_path: Path):
     argv, targets = case.build(env, tmp_path)
     inputs = [a for a in argv if isinstance(a, Path) and a.exists()] + [env.root, env.data, env.model]
     before = digest(inputs)
-    result = invoke(argv)
+    result = invoke(*argv)
     assert_user_error(result, *case.expect)
     assert digest(inputs) == before, "an input changed"
     assert leftovers(tmp_path, env.root, env.data.parent) == []
@@ -695,7 +680,7 @@ def test_bench_output_under_a_file(env: Env, tmp_path: Path, monkeypatch):
 
     monkeypatch.setattr(crfedit.bench, "run_bench", lambda category, settings, *a, **k: crfedit.bench.BenchReport([], {}, settings, "data"))
     csv_path = under_a_file(tmp_path, "bench.csv")
-    result = invoke(["bench", env.data, "--csv", csv_path, "--md", tmp_path / "bench.md", *CPU])
+    result = invoke("bench", env.data, "--csv", csv_path, "--md", tmp_path / "bench.md", *CPU)
     assert_user_error(result, "plain.txt")
     assert leftovers(tmp_path) == [] and not (tmp_path / "bench.md").exists()
 
@@ -710,7 +695,7 @@ def test_unparseable_option_values_are_typer_usage_errors(env: Env, tmp_path: Pa
     """Values Typer cannot parse never reach crfedit: exit 2 and Typer's own usage message
     naming the option (usage, a hint, ``Error: Invalid value for ...``), no traceback."""
     argv, _ = build(env, tmp_path)
-    result = invoke(argv)
+    result = invoke(*argv)
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert f"Invalid value for '{option}'" in result.stderr
     assert list(tmp_path.iterdir()) == []
@@ -726,7 +711,7 @@ def test_read_only_output_folder(env: Env, tmp_path: Path):
     try:
         argv, targets = edit_color(env, tmp_path, out=folder / "e.safetensors")
         before = digest([env.model, env.scribble])
-        assert_user_error(invoke(argv), "not writable")
+        assert_user_error(invoke(*argv), "not writable")
         assert digest([env.model, env.scribble]) == before
         assert list(folder.iterdir()) == [] and not targets[0].exists()
     finally:
@@ -906,7 +891,7 @@ def test_edit_metadata_paths_and_code_are_never_opened_or_run(env: Env, tmp_path
     rec.assert_metadata_stayed_data()
     assert applied.names == model.names
 
-    invoke(["edits", "show", env.delta])  # warm up the command's lazy imports
+    invoke("edits", "show", env.delta)  # warm up the command's lazy imports
     for argv, code in [
         (["edits", "show", valid], 0),
         (["edits", "show", "--json", pathlike], 0),
@@ -914,11 +899,11 @@ def test_edit_metadata_paths_and_code_are_never_opened_or_run(env: Env, tmp_path
         (["edits", "check", env.model, "--edit", pathlike], 2),
     ]:
         with Recorder() as rec:
-            result = invoke(argv)
+            result = invoke(*argv)
         assert result.exit_code == code, result.output
         assert {p for p in rec.opened() if not python_own(p)} <= {str(env.model), str(valid), str(pathlike)}, argv
         rec.assert_metadata_stayed_data()
-    shown = invoke(["edits", "show", "--json", pathlike])
+    shown = invoke("edits", "show", "--json", pathlike)
     assert json.loads(shown.stdout)["metadata"]["instance"] == "../../etc/passwd"
     assert not (REPO / "PWNED").exists() and not (tmp_path / "PWNED").exists()
 
@@ -927,10 +912,10 @@ def test_model_metadata_paths_are_names_not_files(env: Env, tmp_path: Path):
     """A model whose instance names are paths renders under those names; the only files it
     opens are the model and what it writes into --out."""
     model = model_variant(env, tmp_path, lambda ts, m: m.update(instances=json.dumps(["../../etc/passwd", "/etc/shadow"]), **HOSTILE_META))
-    invoke(["render", env.model, "--instance", "0", "--views", "test:0", "--out", tmp_path / "warm", *CPU])
+    invoke("render", env.model, "--instance", "0", "--views", "test:0", "--out", tmp_path / "warm", *CPU)
     out = tmp_path / "frames"
     with Recorder() as rec:
-        result = invoke(["render", model, "--instance", "../../etc/passwd", "--views", "test:0", "--out", out, *CPU])
+        result = invoke("render", model, "--instance", "../../etc/passwd", "--views", "test:0", "--out", out, *CPU)
     assert result.exit_code == 0, result.output
     opened = {p for p in rec.opened() if not python_own(p)}
     assert str(model) in opened and all(p == str(model) or p == str(out) or p.startswith(str(out) + os.sep) for p in opened), opened
@@ -938,7 +923,7 @@ def test_model_metadata_paths_are_names_not_files(env: Env, tmp_path: Path):
     assert [p for p in rec.opened() if any(m in p for m in MARKERS)] == []
     assert [c for c in rec.compiled() if any(m in c for m in (*MARKERS, "__import__", "system("))] == []
     assert json.loads((out / "views.json").read_text())["instance"] == "../../etc/passwd"
-    info = invoke(["info", "--json", model])
+    info = invoke("info", "--json", model)
     assert info.exit_code == 0 and json.loads(info.stdout)["names"] == ["../../etc/passwd", "/etc/shadow"]
 
 
@@ -948,21 +933,21 @@ ESC = "\x1b]0;owned\x07\x1b[2J"
 
 def test_edits_show_does_not_print_terminal_control_characters(env: Env, tmp_path: Path):
     hostile = delta_variant(env.delta, tmp_path, lambda ts, m: m.update(command=f"crfedit {ESC}", view=ESC))
-    result = invoke(["edits", "show", hostile])
+    result = invoke("edits", "show", hostile)
     assert result.exit_code == 0
     assert "\x1b" not in result.stdout and "\x07" not in result.stdout
 
 
 def test_info_does_not_print_terminal_control_characters(env: Env, tmp_path: Path):
     model = model_variant(env, tmp_path, lambda ts, m: m.update(instances=json.dumps([f"chair{ESC}", "chair_001"])))
-    result = invoke(["info", model])
+    result = invoke("info", model)
     assert result.exit_code == 0
     assert "\x1b" not in result.stdout and "\x07" not in result.stdout
 
 
 def test_error_lines_do_not_carry_terminal_control_characters(env: Env, tmp_path: Path):
     hostile = delta_variant(env.delta, tmp_path, lambda ts, m: m.update(base=f"0123{ESC}"))
-    result = invoke(render(env, tmp_path, "--edit", hostile)[0])
+    result = invoke(*render(env, tmp_path, "--edit", hostile)[0])
     assert_user_error(result, "made for model")
     assert "\x1b" not in result.stderr and "\x07" not in result.stderr
 
@@ -1003,7 +988,7 @@ def test_info_on_a_selection_with_a_hand_edited_record(tmp_path: Path):
     meta = {"format": "crfedit-selection", "version": "1", "model_fingerprint": "0" * 16, "instance": "chair_\x1b[31m",
             "instance_index": "0", "threshold": "0.5", "info": json.dumps({"mirror": {"used": True}, "views": "two", "features": [1]})}
     save_file({"values": torch.full((4, 4, 4), 200, dtype=torch.uint8)}, str(path), metadata=meta)
-    result = invoke(["info", path])
+    result = invoke("info", path)
     assert result.exit_code == 0, result.output
     assert "cells         64 of 4^3 selected (value >= 0.5), 64 with a value above 0" in result.output
     assert "made from     unknown" in result.output and "mirror" not in result.output and "\x1b" not in result.output

@@ -8,9 +8,7 @@ import json
 import numpy as np
 import torch
 import pytest
-from typer.testing import CliRunner
 
-from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.io import write_png
@@ -20,11 +18,7 @@ from crfedit.renderer import render_camera
 from crfedit.safefile import read_header
 from crfedit.train import train
 
-
-
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
+from cli_helpers import invoke
 
 
 def test_size_breakdown_adds_up_and_names_the_training_state(tiny_model):

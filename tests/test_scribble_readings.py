@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
-from typer.testing import CliRunner
 
-from crfedit.cli import app
 from crfedit.masks import strokes_mask
 from crfedit.edit.scribble import check_coverage, load_mask, read_scribble
 from crfedit.errors import CrfError
 from crfedit.io import write_png
 from crfedit.model import load_model
 from crfedit.renderer import render_camera
+
+from cli_helpers import invoke
 
 PAINT = np.array([1.0, 0.0, 1.0])  # magenta: far from the chairs' colours and the white background
 
@@ -106,10 +106,6 @@ def test_coverage_limit():
     with pytest.raises(CrfError, match=r"covers 56.2 % of the view .* --force"):
         check_coverage(more)
     assert check_coverage(more, force=True) == 0.5625
-
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
 
 
 def test_edit_color_reports_the_reading_and_refuses_a_large_scribble(view, tiny_model, tmp_path):

@@ -5,19 +5,15 @@ from __future__ import annotations
 
 import pytest
 import torch
-from typer.testing import CliRunner
 
-from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.model import load_model
 from crfedit.train import train
 
+from cli_helpers import invoke
+
 TINY = ["--steps", "3", "--set", "rays=64", "--device", "cpu"]
-
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
 
 
 def test_ctrl_c_before_the_first_checkpoint_writes_one(tiny_chairs, tmp_path):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import enum
 import json
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, NamedTuple, Optional
 
 import typer
 
@@ -157,6 +157,35 @@ def _preview(model, instance: int, folder: Path | None, views, spec: str) -> Non
     typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
 
 
+class _Scribbled(NamedTuple):
+    """What `edit-color` and `remove` prepare before they edit (:func:`_scribbled`)."""
+
+    model: object
+    instance: int
+    shown: list | None  # the preview's views (:func:`_preview_views`)
+    label: str
+    camera: object
+    scribble: object  # [H, W] bool
+    keep: object  # [H, W] bool or None
+    mirror: str | None
+    selection: object  # a checked Selection, or None
+
+
+def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: str, masks: tuple, force: bool, method,
+               mirror, selection: Path | None, kind: str, preview: Path | None, views: str) -> _Scribbled:
+    """Load the model with its ``--edit`` files and read, in this order (so that the first bad
+    option is the one named): the instance, the preview's views, the scribbled view, its masks
+    (``masks``: scribble, scribble JSON, keep, keep JSON), the mirror mode and the ``--selection``
+    file made for a ``kind`` edit."""
+    m = _load(model, edits, device)
+    k = m.instance_index(instance)
+    shown = _preview_views(m, k, preview, views)
+    label, camera = _one_view(m, view, k)
+    fg, bg = _masks(*masks, m, k, camera, force)
+    mode = _mirror(mirror, method)
+    return _Scribbled(m, k, shown, label, camera, fg, bg, mode, _selection(selection, m, k, kind, mode))
+
+
 def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty, recolor: Recolor = Recolor.shading):
     from ..edit import EditOptions
 
@@ -209,16 +238,10 @@ def edit_color_cmd(
     _require_scribble(scribble, scribble_json, "part to recolour")
     options = _options(strategy, steps, lr, rays, seed, penalty, recolor)
     _check_out(out, model)
-    m = _load(model, edit, device)
-    k = m.instance_index(instance)
-    shown = _preview_views(m, k, preview, views)
-    label, camera = _one_view(m, view, k)
-    fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
-    mode = _mirror(mirror, method)
-    sel = _selection(selection, m, k, "color", mode)
-    result = edit_color(m, k, camera, fg, rgb, bg, options, method.value, sel, mode)
-    _write(result, out, label)
-    _preview(result.model, k, preview, shown, views)
+    p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "color", preview, views)
+    result = edit_color(p.model, p.instance, p.camera, p.scribble, rgb, p.keep, options, method.value, p.selection, p.mirror)
+    _write(result, out, p.label)
+    _preview(result.model, p.instance, preview, p.shown, views)
 
 
 @app.command("remove")
@@ -254,16 +277,10 @@ def remove_cmd(
     _require_scribble(scribble, scribble_json, "part to remove")
     options = _options(strategy, steps, lr, rays, seed, penalty)
     _check_out(out, model)
-    m = _load(model, edit, device)
-    k = m.instance_index(instance)
-    shown = _preview_views(m, k, preview, views)
-    label, camera = _one_view(m, view, k)
-    fg, bg = _masks(scribble, scribble_json, keep, keep_json, m, k, camera, force)
-    mode = _mirror(mirror, method)
-    sel = _selection(selection, m, k, "remove", mode)
-    result = remove(m, k, camera, fg, bg, occluded, options, method.value, sel, mode)
-    _write(result, out, label)
-    _preview(result.model, k, preview, shown, views)
+    p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "remove", preview, views)
+    result = remove(p.model, p.instance, p.camera, p.scribble, p.keep, occluded, options, method.value, p.selection, p.mirror)
+    _write(result, out, p.label)
+    _preview(result.model, p.instance, preview, p.shown, views)
 
 
 @app.command("add")

@@ -74,12 +74,11 @@ def edit_color(
 
     final = optimize(edit, loss_fn, options, "colour edit")
     hyper = {
-        "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
-        "seed": options.seed, "lambda_reg": options.lambda_reg, "color": list(rgb),
+        "rays": options.rays, "color": list(rgb),
         "scribble_rays": fg.numel(), "keep_rays": bg.numel(), "keep": "strokes" if keep is not None else "random",
         "cached_samples": render.n_cached, "stage": render.stage, "camera": camera_meta(camera),
     }
-    return finish(edit, "color", hyper, final, started)
+    return finish(edit, "color", options, hyper, final, started)
 
 
 def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection, mirror=None) -> EditResult:

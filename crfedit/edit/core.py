@@ -213,16 +213,20 @@ def optimize(edit: InstanceEdit, loss_fn: Callable[[], Tensor], options: EditOpt
 def finish(
     edit: InstanceEdit,
     kind: str,
+    options: "EditOptions",
     hyper: Mapping[str, object],
     final_loss: float,
     started: float,
     extra: Mapping[str, Tensor] | None = None,
     extra_modules: Sequence[str] = (),
 ) -> EditResult:
-    """Record the edit as a delta and return the model that delta reproduces."""
+    """Record the edit as a delta and return the model that delta reproduces; its
+    hyper-parameters are ``hyper`` and the ones every edit has (strategy, steps, learning
+    rate, seed, penalty and its weight)."""
     after = edit.after(extra)
     seconds = time.perf_counter() - started
-    hyper = {**hyper, "penalty": edit.per}
+    hyper = {"strategy": options.strategy, "steps": options.steps, "lr": options.lr, "seed": options.seed,
+             "lambda_reg": options.lambda_reg, **hyper, "penalty": edit.per}
     meta = {
         "hyperparameters": json.dumps(hyper, sort_keys=True),
         "final_loss": repr(final_loss),

@@ -155,13 +155,12 @@ def remove(
     final = optimize(edit, loss_fn, options, "removal")
     extra, extra_modules = occupancy_after(edit, candidates, generator)
     hyper = {
-        "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
-        "seed": options.seed, "lambda_reg": options.lambda_reg, "lambda_dens": options.lambda_dens,
+        "rays": options.rays, "lambda_dens": options.lambda_dens,
         "lambda_surface": options.lambda_surface, "occluded": occluded, "scribble_rays": n_fg, "keep_rays": bg.numel(),
         "keep": "strokes+random" if keep is not None else "random", "stage": passes[-1].stage,
         "cached_samples": sum(p.n_cached for p in passes), "camera": camera_meta(camera),
     }
-    return finish(edit, "remove", hyper, final, started, extra, extra_modules)
+    return finish(edit, "remove", options, hyper, final, started, extra, extra_modules)
 
 
 def parse_offset(text: str) -> tuple[int, int]:
@@ -314,11 +313,10 @@ def add(
     final = optimize(edit, loss_fn, options, "add edit")
     extra, extra_modules = occupancy_after(edit, candidates, generator)
     hyper = {
-        "strategy": options.strategy, "steps": options.steps, "lr": options.lr, "rays": options.rays,
-        "seed": options.seed, "lambda_reg": options.lambda_reg, "lambda_surface": options.lambda_surface,
+        "rays": options.rays, "lambda_surface": options.lambda_surface,
         "lambda_match": options.lambda_match, "method": method, "donor": model.names[j],
         "offset": [dx, dy], "pasted_rays": n_fg, "keep_rays": bg.numel(), "stage": passes[-1].stage,
         "cached_samples": sum(p.n_cached for p in passes), "camera": camera_meta(camera),
         "donor_camera": camera_meta(donor_camera),
     }
-    return finish(edit, "add", hyper, final, started, extra, extra_modules)
+    return finish(edit, "add", options, hyper, final, started, extra, extra_modules)

@@ -204,13 +204,12 @@ def remove_selected(
     final = optimize(edit, loss_fn, options, "removal")
     extra, modules = edit.occupancy_delta(grid & ~core)
     hyper = {
-        "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
-        "rays": int(rays.origins.shape[0]), "points": int(pts.shape[0]), "seed": options.seed,
-        "lambda_reg": options.lambda_reg, "selected_cells": int((core | junction).sum()),
+        "method": "selection", "rays": int(rays.origins.shape[0]), "points": int(pts.shape[0]),
+        "selected_cells": int((core | junction).sum()),
         "junction_cells": int(junction.sum()), "stage": passes[-1].stage,
         "cameras": [camera_meta(c) for c in cameras],
     }
-    return finish(edit, "remove", hyper, final, started, extra, modules)
+    return finish(edit, "remove", options, hyper, final, started, extra, modules)
 
 
 def surface_selected(sel: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: int) -> Tensor:
@@ -380,12 +379,11 @@ def recolor_selected(
 
     final = optimize(edit, loss_fn, options, "colour edit")
     hyper = {
-        "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
-        "rays": int(rays.origins.shape[0]), "seed": options.seed, "lambda_reg": options.lambda_reg,
-        "appear": [float(c) for c in appear], "recolor_rule": recolor.rule, "ratio": [round(float(r), 4) for r in recolor.appear / recolor.mean],
+        "method": "selection", "rays": int(rays.origins.shape[0]), "appear": [float(c) for c in appear],
+        "recolor_rule": recolor.rule, "ratio": [round(float(r), 4) for r in recolor.appear / recolor.mean],
         "selected_samples": round(float(share.sum()), 1), "cached_samples": p.n_cached, "stage": p.stage, "cameras": [camera_meta(c) for c in cameras],
     }
-    return finish(edit, "color", hyper, final, started)
+    return finish(edit, "color", options, hyper, final, started)
 
 
 def paste_translation(field, selection_mask: Tensor, camera: Camera, offset: tuple[int, int]) -> Tensor:
@@ -474,9 +472,8 @@ def add_selected(
     final = optimize(edit, loss_fn, options, "add edit")
     extra, modules = occupancy_after(edit, union, generator)
     hyper = {
-        "method": "selection", "strategy": options.strategy, "steps": options.steps, "lr": options.lr,
-        "points": int(pts.shape[0]), "seed": options.seed, "lambda_reg": options.lambda_reg,
-        "donor": model.names[donor], "offset": list(offset), "translation": [round(float(v), 6) for v in shift],
+        "method": "selection", "points": int(pts.shape[0]), "donor": model.names[donor], "offset": list(offset),
+        "translation": [round(float(v), 6) for v in shift],
         "selected_cells": int(source.sum()), "pasted_cells": int(pasted.sum()), "camera": camera_meta(camera),
     }
-    return finish(edit, "add", hyper, final, started, extra, modules)
+    return finish(edit, "add", options, hyper, final, started, extra, modules)
