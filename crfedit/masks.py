@@ -13,27 +13,24 @@ import numpy as np
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """Binary dilation by a (2r+1)² square; outside the image counts as off."""
-    if radius <= 0:
-        return mask.copy()
-    h, w = mask.shape
-    padded = np.pad(mask, radius)
-    out = np.zeros_like(mask)
-    for dy in range(2 * radius + 1):
-        for dx in range(2 * radius + 1):
-            out |= padded[dy : dy + h, dx : dx + w]
-    return out
+    return _square(mask, radius, np.zeros_like, np.bitwise_or)
 
 
 def erode(mask: np.ndarray, radius: int) -> np.ndarray:
     """Binary erosion by a (2r+1)² square; outside the image counts as off."""
+    return _square(mask, radius, np.ones_like, np.bitwise_and)
+
+
+def _square(mask: np.ndarray, radius: int, start, combine) -> np.ndarray:
+    """``combine`` (in place) of the mask shifted to every offset of a (2r+1)² square, from ``start``."""
     if radius <= 0:
         return mask.copy()
     h, w = mask.shape
     padded = np.pad(mask, radius)
-    out = np.ones_like(mask)
+    out = start(mask)
     for dy in range(2 * radius + 1):
         for dx in range(2 * radius + 1):
-            out &= padded[dy : dy + h, dx : dx + w]
+            combine(out, padded[dy : dy + h, dx : dx + w], out=out)
     return out
 
 
