@@ -213,7 +213,7 @@ def optimize(edit: InstanceEdit, loss_fn: Callable[[], Tensor], options: EditOpt
 def finish(
     edit: InstanceEdit,
     kind: str,
-    options: "EditOptions",
+    options: EditOptions,
     hyper: Mapping[str, object],
     final_loss: float,
     started: float,
