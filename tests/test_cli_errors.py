@@ -11,11 +11,12 @@ from pathlib import Path
 
 import pytest
 import typer
-from typer.testing import CliRunner
 
 import crfedit.data.synth as synth
-from crfedit.cli import app, main
+from crfedit.cli import main
 from crfedit.data.synth import SynthConfig, write_synth_category
+
+from cli_helpers import invoke
 
 SYNTH = ["dataset", "synth", "--instances", "1", "--views", "3", "--res", "8", "--no-twins"]
 
@@ -88,7 +89,7 @@ def test_debug_traceback_in_a_real_process():
 def test_os_errors_read_as_user_errors(monkeypatch, tmp_path, code, words):
     out = tmp_path / "ds"
     monkeypatch.setattr(synth, "write_synth_category", raiser(OSError(code, "strerror", str(out))))
-    result = CliRunner().invoke(app, [*SYNTH[:2], str(out), *SYNTH[2:]])
+    result = invoke(*SYNTH[:2], out, *SYNTH[2:])
     assert result.exit_code == 2 and result.stderr == f"error: {out}: {words}\n", result.output
     assert not out.exists()
 

@@ -11,10 +11,8 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
-from typer.testing import CliRunner
 
 from crfedit.cameras import Camera, focal_from_angle, look_at, rays_from_camera, spherical_eye
-from crfedit.cli import app
 from crfedit.data import (
     Frame,
     TwinSpec,
@@ -29,6 +27,8 @@ from crfedit.data import (
 )
 from crfedit.errors import DataError
 from crfedit.io import write_exr
+
+from cli_helpers import assert_user_error, invoke
 
 RES = 8
 
@@ -244,15 +244,12 @@ def test_unknown_instance_lists_valid_names(tmp_path):
 def test_cli_bad_dataset_exits_2_with_one_line(tmp_path, case):
     make_category(tmp_path)
     BAD_INPUTS[case][0](tmp_path)
-    result = CliRunner().invoke(app, ["dataset", "info", str(tmp_path)])
-    assert result.exit_code == 2
-    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1
-    assert "Traceback" not in result.output and "Traceback" not in result.stderr
+    assert_user_error(invoke("dataset", "info", tmp_path), str(tmp_path))
 
 
 def test_cli_info_json(tmp_path):
     make_category(tmp_path)
-    result = CliRunner().invoke(app, ["dataset", "info", str(tmp_path), "--json"])
+    result = invoke("dataset", "info", tmp_path, "--json")
     assert result.exit_code == 0, result.output
     info = json.loads(result.stdout)
     assert info["instances"] == 2 and info["views"] == {"train": 6, "test": 2} and info["bbox"]["source"] == "depth"

@@ -6,9 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from typer.testing import CliRunner
 
-from crfedit.cli import app
 from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.renderer import ray_distance
@@ -16,6 +14,8 @@ from crfedit.export import extract_mesh, vertex_colors
 from crfedit.model import load_model
 from crfedit.renderer import render_camera
 from crfedit.train import train
+
+from cli_helpers import assert_user_error, invoke
 
 pytest.importorskip("mcubes", reason="mesh export needs PyMCubes (pip install -e '.[export]')")
 trimesh = pytest.importorskip("trimesh", reason="mesh export writes with trimesh (pip install -e '.[export]')")
@@ -76,10 +76,9 @@ def test_mesh_is_bounded_closed_and_coloured_like_the_render(model_path):
 @pytest.mark.parametrize("suffix", [".ply", ".obj"])
 def test_export_mesh_command_writes_vertex_colours(model_path, tmp_path, suffix):
     out = tmp_path / f"chair{suffix}"
-    r = CliRunner().invoke(app, ["export", "mesh", str(model_path), "--instance", "chair_000", "--out", str(out),
-                                 "--res", "32", "--device", "cpu"])
+    r = invoke("export", "mesh", model_path, "--instance", "chair_000", "--out", out, "--res", "32", "--device", "cpu")
     assert r.exit_code == 0 and "vertices" in r.stdout, r.output
     loaded = trimesh.load(out, process=False)
     assert len(loaded.faces) > 50 and loaded.visual.vertex_colors.shape[0] == len(loaded.vertices)
-    bad = CliRunner().invoke(app, ["export", "mesh", str(model_path), "--instance", "0", "--out", str(tmp_path / "c.txt")])
-    assert bad.exit_code == 2 and ".ply" in bad.stderr and not (tmp_path / "c.txt").exists()
+    assert_user_error(invoke("export", "mesh", model_path, "--instance", "0", "--out", tmp_path / "c.txt"), ".ply")
+    assert not (tmp_path / "c.txt").exists()

@@ -13,10 +13,7 @@ import pytest
 pytest.importorskip("trimesh")
 pytest.importorskip("embreex")
 
-from typer.testing import CliRunner  # noqa: E402
-
 from crfedit.cameras import Camera, focal_from_angle, look_at  # noqa: E402
-from crfedit.cli import app  # noqa: E402
 from crfedit.data.loading import load_category, load_twins, read_twin_specs  # noqa: E402
 from crfedit.data.mesh_io import albedo_table, load_normalized, load_part_mesh, normalize_mesh, part_colors  # noqa: E402
 from crfedit.data.meshes import (  # noqa: E402
@@ -36,6 +33,8 @@ from crfedit.data.meshes import (  # noqa: E402
 )
 from crfedit.data.sh3f import extract_model, find_chairs, list_models, model_stem, read_properties  # noqa: E402
 from crfedit.errors import CrfError, DataError  # noqa: E402
+
+from cli_helpers import assert_user_error, invoke  # noqa: E402
 
 L = np.array([0.4, -0.3, 0.85]) / np.linalg.norm([0.4, -0.3, 0.85])
 SEAT_KD, POST_KD = (0.8, 0.2, 0.1), (0.1, 0.3, 0.9)
@@ -276,9 +275,7 @@ def test_broken_and_empty_meshes_are_one_line_errors(tmp_path):
         (tmp_path / "notes.txt").write_text("hi")
         load_part_mesh(tmp_path / "notes.txt")
 
-    result = CliRunner().invoke(app, ["dataset", "from-meshes", str(tmp_path / "out"), str(broken)])
-    assert result.exit_code == 2
-    assert result.stderr.startswith("error: ") and "broken.ply" in result.stderr and result.stderr.count("\n") == 1
+    assert_user_error(invoke("dataset", "from-meshes", tmp_path / "out", broken), "broken.ply")
     assert not (tmp_path / "out").exists()  # meshes are checked before anything is written
 
 
@@ -309,7 +306,7 @@ def test_instance_names_are_sanitized_and_unique():
 def test_cli_from_meshes(boxes, tmp_path):
     out = tmp_path / "cli"
     args = ["dataset", "from-meshes", str(out), str(boxes), "--views", "4", "--res", "16", "--palette", "mtl", "--no-twins"]
-    result = CliRunner().invoke(app, args)
+    result = invoke(*args)
     assert result.exit_code == 0, result.output
     assert "wrote 1 meshes (2 parts) x 4 views at 16x16 + 0 twins" in result.stdout
     assert (out / "instances.txt").read_text() == "two_boxes\n"

@@ -10,11 +10,11 @@ import shutil
 import numpy as np
 import pytest
 from PIL import Image
-from typer.testing import CliRunner
 
-from crfedit.cli import app
 from crfedit.data import load_category
 from crfedit.errors import DataError
+
+from cli_helpers import invoke
 
 
 def to_nerfstudio(instance_dir, out, with_mask: bool = False, listed: bool = False):
@@ -71,8 +71,7 @@ def test_a_folder_of_scenes_is_a_category_with_masks_and_default_split(tiny_chai
     assert views["train"][0].rgb.shape == (8, 8, 3)
     full = load_category(tmp_path / "cat").instances[0].splits["train"][0]
     assert set(np.unique(full.alpha)) <= {0.0, 1.0} and full.alpha.any() and not full.alpha.all()
-    r = CliRunner().invoke(app, ["train", str(tmp_path / "cat"), "--out", str(tmp_path / "m.safetensors"),
-                                 "--steps", "2", "--set", "rays=64", "--device", "cpu"])
+    r = invoke("train", tmp_path / "cat", "--out", tmp_path / "m.safetensors", "--steps", "2", "--set", "rays=64", "--device", "cpu")
     assert r.exit_code == 0 and "trained 2 instances" in r.stdout, r.output
 
 

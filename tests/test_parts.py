@@ -25,6 +25,8 @@ from crfedit.parts import (
     labelled_instances, labelled_points, part_config, part_contrastive_loss, sample_parts,
 )
 
+from cli_helpers import invoke
+
 
 def test_part_contrastive_loss_closed_form():
     """Two parts on orthogonal unit embeddings: each point's logits are 1/τ (its own centre) and
@@ -188,9 +190,6 @@ def test_a_selection_reads_the_part_head_where_the_scribble_is_one_part(headed):
 
 def test_select_prints_whether_it_read_the_part_head(headed, tiny_model, tmp_path):
     from PIL import Image
-    from typer.testing import CliRunner
-
-    from crfedit.cli import app
 
     path, model, category = headed
     inst = category.instances[1]
@@ -198,17 +197,17 @@ def test_select_prints_whether_it_read_the_part_head(headed, tiny_model, tmp_pat
     index, view = max(enumerate(inst.splits["train"]), key=lambda iv: int(erode(iv[1].parts == pid, 1).sum()))
     Image.fromarray((erode(view.parts == pid, 1) * 255).astype(np.uint8)).save(tmp_path / "fg.png")
     args = ["--instance", inst.name, "--view", f"train:{index}", "--scribble", str(tmp_path / "fg.png")]
-    r = CliRunner().invoke(app, ["select", str(path), *args, "--out", str(tmp_path / "s.safetensors")])
+    r = invoke("select", path, *args, "--out", tmp_path / "s.safetensors")
     assert r.exit_code == 0, r.output
     assert "part head: read (the scribbled points' part embeddings agree: coherence " in r.stdout
     assert "shape gate" not in r.stdout  # a recolour's selection reads no shape
-    r = CliRunner().invoke(app, ["select", str(path), *args, "--for", "remove", "--out", str(tmp_path / "r.safetensors")])
+    r = invoke("select", path, *args, "--for", "remove", "--out", tmp_path / "r.safetensors")
     assert r.exit_code == 0, r.output
     assert "shape gate: " in r.stdout and ("nothing left out" in r.stdout or "out of the joins" in r.stdout)
     # a model without a head (trained without part maps) prints no such line
     assert load_model(tiny_model)[0].field.F_part is None
     Image.fromarray(np.full((16, 16), 255, np.uint8)).save(tmp_path / "all.png")
-    r = CliRunner().invoke(app, ["select", str(tiny_model), "--instance", "0", "--view", "train:0", "--scribble",
-                                 str(tmp_path / "all.png"), "--out", str(tmp_path / "t.safetensors")])
+    r = invoke("select", tiny_model, "--instance", "0", "--view", "train:0", "--scribble", tmp_path / "all.png",
+               "--out", tmp_path / "t.safetensors")
     assert r.exit_code == 0, r.output
     assert "wrote " in r.stdout and "part head" not in r.stdout

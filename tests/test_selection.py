@@ -34,6 +34,8 @@ from crfedit.errors import CrfError
 from crfedit.masks import dilate, erode
 from crfedit.renderer import render_camera
 
+from cli_helpers import assert_user_error
+
 RES = 32
 
 
@@ -781,9 +783,11 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert out.is_file() and sorted(p.name for p in (tmp_path / "prev").iterdir()) == ["0000.png", "0001.png"]
     assert f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): " in r.output
     r = runner.invoke(app, [*args, "--keep", str(tmp_path / "fg.png"), "--keep", str(tmp_path / "fg.png"), "--out", str(tmp_path / "x.safetensors")])
-    assert r.exit_code == 2 and "one per --view" in r.output and not (tmp_path / "x.safetensors").exists()
+    assert_user_error(r, "one per --view")
+    assert not (tmp_path / "x.safetensors").exists()
     r = runner.invoke(app, [*args, "--for", "paint", "--out", str(tmp_path / "x.safetensors")])
-    assert r.exit_code == 2 and "a selection for 'paint'" in r.output and not (tmp_path / "x.safetensors").exists()
+    assert_user_error(r, "a selection for 'paint'")
+    assert not (tmp_path / "x.safetensors").exists()
     r = runner.invoke(app, [*args, "--for", "add", "--out", str(tmp_path / "a.safetensors")])
     assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "a.safetensors").meta
     assert "chroma_union" in load_selection(out).meta and load_selection(out).meta["for"] == "color"  # the default

@@ -34,6 +34,8 @@ from crfedit.renderer import render_camera  # noqa: E402
 from crfedit.ui.server import MAX_BODY, run_in_thread  # noqa: E402
 from crfedit.ui.session import open_session  # noqa: E402
 
+from cli_helpers import assert_user_error, invoke  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -456,24 +458,16 @@ def test_edits_given_with_edit_start_the_stack(scene, tmp_path):
 
 
 def test_ui_command_without_the_extra_names_the_install(monkeypatch, scene):
-    from typer.testing import CliRunner
-
-    from crfedit.cli import app
-
     monkeypatch.setitem(sys.modules, "aiohttp", None)
-    result = CliRunner().invoke(app, ["ui", str(scene[0])])
-    assert result.exit_code == 2 and "pip install 'crfedit[ui]'" in result.output
+    assert_user_error(invoke("ui", scene[0]), "pip install 'crfedit[ui]'")
 
 
 def test_ui_command_warns_when_bound_beyond_this_machine(monkeypatch, scene, tmp_path):
-    from typer.testing import CliRunner
-
     import crfedit.ui.server as server
-    from crfedit.cli import app
 
     seen = {}
     monkeypatch.setattr(server, "serve", lambda session, host, port, on_ready: (seen.update(host=host), on_ready("http://x/?token=t")))
-    result = CliRunner().invoke(app, ["ui", str(scene[0]), "--host", "0.0.0.0", "--workdir", str(tmp_path / "w")])
+    result = invoke("ui", scene[0], "--host", "0.0.0.0", "--workdir", tmp_path / "w")
     assert result.exit_code == 0, result.output
     assert "reachable from other machines" in result.output and "open http://x/?token=t" in result.output
     assert seen["host"] == "0.0.0.0" and not (tmp_path / "w").exists()
