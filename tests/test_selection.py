@@ -782,6 +782,8 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert r.exit_code == 0, r.output
     assert out.is_file() and sorted(p.name for p in (tmp_path / "prev").iterdir()) == ["0000.png", "0001.png"]
     assert f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): " in r.output
+    edge_points = load_selection(out).meta["stroke_centres"]["edge_points"]  # the seat's strokes have centres
+    assert edge_points > 0 and f"strokes: their centres lifted ({edge_points} edge points left out" in r.output
     r = runner.invoke(app, [*args, "--keep", str(tmp_path / "fg.png"), "--keep", str(tmp_path / "fg.png"), "--out", str(tmp_path / "x.safetensors")])
     assert_user_error(r, "one per --view")
     assert not (tmp_path / "x.safetensors").exists()
@@ -795,6 +797,7 @@ def test_select_command_and_its_errors(trained, tmp_path):
     sel = load_selection(out)
     shown = runner.invoke(app, ["info", str(out)])
     assert shown.exit_code == 0, shown.output
+    assert f"strokes       their centres lifted ({edge_points} edge points" in shown.output
     assert f"instance      {model.names[1]} (index 1)" in shown.output and f"model         {model.fingerprint()}" in shown.output
     assert f"cells         {int(sel.mask.sum())} of {model.cfg.occ_res}^3 selected (value >= 0.3), {int((sel.values > 0).sum())} with a value above 0" in shown.output, shown.output
     as_json = json.loads(runner.invoke(app, ["info", str(out), "--json"]).output)
@@ -953,3 +956,30 @@ def test_correction_benchmark_same_view_merges_strokes_into_the_scribbled_view()
     out = bench.merged(ScribbleView("cam", a, a), ScribbleView("cam", b, None))
     assert (out.keep == a).all()
     assert bench.merged(first, first).keep is None
+
+
+def test_a_stroke_wider_than_its_part_lifts_its_centre(trained):
+    """A brush 2 px wider than the seat's strokes: recolours and removals lift the 1-px erosion
+    of the scribble (what the user aimed), bit-identical to scribbling that erosion alone; a
+    stroke one pixel wide has no centre, and is lifted whole."""
+    _, model, category = trained
+    k = 2
+    view, fg, keep, _ = part_view(category, k, "seat")
+    wide = dilate(fg, 2)
+    _, on = surface_points(model.field_for(k), view.camera, k)
+    on = on.view(wide.shape).numpy()
+    for kind in ("color", "remove"):
+        options = options_for(kind)
+        assert options.stroke_centres and not SelectOptions().stroke_centres  # additions lift every pixel
+        whole = dataclasses.replace(options, stroke_centres=False)
+        sel = select(model, k, [ScribbleView(view.camera, wide, keep & ~wide)], options)
+        aimed = select(model, k, [ScribbleView(view.camera, erode(wide, 1), keep & ~wide)], whole)
+        assert torch.equal(sel.values, aimed.values)
+        assert sel.meta["stroke_centres"] == {"edge_points": int((wide & on).sum() - (erode(wide, 1) & on).sum())} != {"edge_points": 0}
+        assert sel.meta["positives"] == aimed.meta["positives"] and "stroke_centres" not in aimed.meta
+    line = np.zeros_like(fg)
+    rows, cols = np.nonzero(fg)
+    line[rows[0], cols.min():cols.max() + 1] = True  # one row across the seat: erosion leaves nothing
+    sel = select(model, k, [ScribbleView(view.camera, line, None)], options_for("remove"))
+    same = select(model, k, [ScribbleView(view.camera, line, None)], dataclasses.replace(options_for("remove"), stroke_centres=False))
+    assert torch.equal(sel.values, same.values) and sel.meta["stroke_centres"] == {"edge_points": 0}

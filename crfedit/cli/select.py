@@ -39,7 +39,7 @@ def select_cmd(
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
-    from ..edit.selection import ScribbleView, mirror_summary, options_for, part_summary, preview as tinted, save_selection, select, shape_summary
+    from ..edit.selection import ScribbleView, mirror_summary, options_for, part_summary, preview as tinted, save_selection, select, shape_summary, stroke_summary
     from ..io import write_png
 
     if len(scribble) != len(view):
@@ -64,6 +64,8 @@ def select_cmd(
         f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
         f"({info['positives']} scribbled, {info['keep_points']} keep, {info['view_points']} other surface points; {info['seconds']:.2f} s)"
     )
+    if stroke_summary(info) is not None:
+        typer.echo(f"strokes: {stroke_summary(info)}")
     if mirror_summary(info) is not None:
         typer.echo(f"mirror: {mirror_summary(info)}")
     if part_summary(info) is not None:
@@ -82,7 +84,7 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
     instance, model, cells and how it was made (table or JSON)."""
     import json
 
-    from ..edit.selection import FORMAT, load_selection, mirror_summary, part_summary, shape_summary
+    from ..edit.selection import FORMAT, load_selection, mirror_summary, part_summary, shape_summary, stroke_summary
 
     sel = load_selection(path)
     info = sel.meta if isinstance(sel.meta, dict) else {}
@@ -108,7 +110,7 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
     ]
     if isinstance(features, list):
         rows.append(("features", ", ".join(map(str, features))))
-    for label, summary in (("mirror", mirror_summary), ("part head", part_summary), ("shape gate", shape_summary)):
+    for label, summary in (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("shape gate", shape_summary)):
         try:
             line = summary(info)
         except (KeyError, TypeError, ValueError, IndexError):  # a hand-edited record: say nothing rather than guess

@@ -7,6 +7,8 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
 
 1. **Lift.**  Each scribbled pixel on the object becomes a surface point at the rendered
    expected depth (a *positive*); each keep-stroke pixel on the object a *negative*.
+   Recolours and removals lift each scribble's centre, its 1-px erosion, when that keeps a
+   fifth of it (:data:`STROKE_CENTRES`): a brush wider than a thin part strays off it.
 2. **Describe.**  Every point — the lifted ones and every occupied cell — is described by the
    field's own per-point features (:func:`point_features`): the 8-d bottleneck, the predicted
    colour, its chromaticity and the position, each group standardized; a removal also reads
@@ -96,7 +98,7 @@ The package follows these steps, one concept per module:
 - :mod:`.store`: the selection file; :mod:`.tint`: the tinted preview.
 """
 
-from .base import ScribbleView, Selection, mirror_summary, part_summary, shape_summary
+from .base import ScribbleView, Selection, mirror_summary, part_summary, shape_summary, stroke_summary
 from .features import point_features, surface_points
 from .options import EDIT_KINDS, FEATURES, GROW_LOW, MIN_OPACITY, SelectOptions, options_for
 from .pipeline import select
@@ -105,6 +107,6 @@ from .tint import preview
 
 __all__ = [
     "EDIT_KINDS", "FEATURES", "FORMAT", "GROW_LOW", "MIN_OPACITY", "ScribbleView", "SelectOptions", "Selection", "load_selection",
-    "mirror_summary", "options_for", "part_summary", "point_features", "preview", "save_selection", "select", "shape_summary",
+    "mirror_summary", "options_for", "part_summary", "point_features", "preview", "save_selection", "select", "shape_summary", "stroke_summary",
     "surface_points",
 ]

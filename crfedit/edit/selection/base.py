@@ -97,6 +97,18 @@ def shape_summary(meta: dict) -> str | None:
     return "; ".join(said) if said else "no rim taken"
 
 
+def stroke_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of :attr:`~.options.SelectOptions.stroke_centres`, in a
+    line (None: it lifted every scribbled pixel, as asked)."""
+    info = meta.get("stroke_centres")
+    if info is None:
+        return None
+    n = info["edge_points"]
+    if n == 0:
+        return "lifted whole (no stroke had a centre to trust: one or two pixels wide)"
+    return f"their centres lifted ({n} edge point{'' if n == 1 else 's'} left out: a brush strays off a thin part)"
+
+
 def mirror_summary(meta: dict) -> str | None:
     """What a selection's metadata says of its mirror symmetry, in a line (None: not asked)."""
     info = meta.get("mirror")

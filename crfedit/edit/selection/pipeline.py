@@ -15,12 +15,13 @@ from ... import occupancy
 from ...errors import CrfError
 from ...model import CategoryModel
 from ...names import MIRROR_MODES
-from ...renderer import RenderOutput
+from ...masks import erode
+from ...renderer import RenderOutput, render_camera
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, standardizer, within_spread
 from .features import SHAPE_SOURCES, cell_opacity, denser_points, group_width, local_frames, point_features, surface_points
-from .options import GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS
+from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS
 from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
 from .shapes import RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
@@ -31,6 +32,23 @@ def _strokes(v: ScribbleView, device) -> tuple[Tensor, Tensor]:
     scribbled = torch.from_numpy(v.scribble.reshape(-1)).to(device)
     kept = torch.zeros_like(scribbled) if v.keep is None else torch.from_numpy(v.keep.reshape(-1)).to(device) & ~scribbled
     return scribbled, kept
+
+
+def _stroke_centres(field, k, views: Sequence[ScribbleView], renders: Sequence[RenderOutput], min_opacity: float) -> tuple[list[ScribbleView], int]:
+    """(``views`` with each scribble cut to its 1-px erosion where that keeps at least
+    :data:`CENTRE_SHARE` of its scribbled surface points and 4, the scribbled surface points
+    left out), :attr:`SelectOptions.stroke_centres`."""
+    out, dropped = [], 0
+    for v, render in zip(views, renders):
+        on = surface_points(field, v.camera, k, min_opacity, render)[1].view(v.camera.height, v.camera.width).cpu().numpy()
+        centre = erode(v.scribble, 1)
+        n_all, n_centre = int((v.scribble & on).sum()), int((centre & on).sum())
+        if n_centre < max(4, CENTRE_SHARE * n_all):
+            out.append(v)
+            continue
+        out.append(ScribbleView(v.camera, centre, v.keep))
+        dropped += n_all - n_centre
+    return out, dropped
 
 
 def _lift_views(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: Sequence[RenderOutput] | None):
@@ -190,6 +208,11 @@ def select(
     field = model.field_for(k)
     occupied = field.occupancy[k]
     res = occupied.shape[-1]
+    centre_meta = None
+    if options.stroke_centres:  # see SelectOptions.stroke_centres
+        renders = [render_camera(field, v.camera, k, colour=False) for v in views] if renders is None else renders
+        views, dropped = _stroke_centres(field, k, views, renders, options.min_opacity)
+        centre_meta = {"edge_points": dropped}
     pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
     if pos_pts.shape[0] == 0:
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
@@ -339,6 +362,8 @@ def select(
     }
     if veto is not None:
         meta["keep_wins_cells"] = int(veto.sum())
+    if centre_meta is not None:
+        meta["stroke_centres"] = centre_meta
     if union is not None:
         meta["chroma_union"] = union
     if mirror_meta is not None:
