@@ -1,16 +1,18 @@
 """Selections from sloppy scribbles: the twins' scribbles drawn with a wider brush, or aimed
 a pixel off.
 
-    python benchmarks/sloppy_scribbles.py MODEL DATA [--brush grow1,grow2,shift1,shift1grow1] [--out FILE.md]
+    python benchmarks/sloppy_scribbles.py MODEL DATA [--brush grow1,grow2,shift1,shift1grow1,keep5] [--out FILE.md]
 
 The benchmark's scribbles lie inside each part, eroded by up to 2 px; a user's brush does not
 stay inside a 1–2 px tube at 64². Each twin's scribble is changed as ``--brush`` says: ``growN``
 dilates it by N px (a square brush N px wider on every side), ``shiftN`` moves it N px to the
-right, ``shiftNgrowM`` does both. The keep strokes lose what the changed scribble covers, and
-the selection is made again with the edit kind's default options. Printed per change: mean
+right, ``shiftNgrowM`` does both; ``keepN`` dilates the keep strokes instead (they lie at least 4 px
+off the part, so ``keep5`` strays a pixel onto it). The keep strokes lose what the changed
+scribble covers, and the selection is made again with the edit kind's default options. Printed per change: mean
 selection IoU on the source's test views, per kind, and where the scribbled pixels land in the
 scribbled view's ground truth (on the part, on another part, on the background: a background
-pixel is lifted only where the model draws some opacity).
+pixel is lifted only where the model draws some opacity), and how many keep pixels land on the
+part.
 """
 
 from __future__ import annotations
@@ -47,13 +49,26 @@ def sloppy(scribble: np.ndarray, change: str) -> np.ndarray:
     ``shiftNgrowM``; a shift moves it right, what leaves the image is lost)."""
     m = re.fullmatch(r"(?:shift(\d+))?(?:grow(\d+))?", change)
     if m is None:
-        raise SystemExit(f"--brush {change!r}: expected growN, shiftN or shiftNgrowM")
+        raise SystemExit(f"--brush {change!r}: expected growN, shiftN, shiftNgrowM or keepN")
     out = scribble
     if m.group(1):
         n = int(m.group(1))
         out = np.zeros_like(scribble)
         out[:, n:] = scribble[:, : scribble.shape[1] - n]
     return dilate(out, int(m.group(2))) if m.group(2) else out
+
+
+def sloppy_strokes(scribble: np.ndarray, keep: np.ndarray | None, change: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(scribble, keep strokes) changed as ``change`` says: ``keepN`` dilates the keep strokes
+    by N px, anything else changes the scribble (:func:`sloppy`); the keep strokes lose what
+    the scribble covers."""
+    m = re.fullmatch(r"keep(\d+)", change)
+    if m is not None:
+        fg = scribble
+        keep = None if keep is None else dilate(keep, int(m.group(1)))
+    else:
+        fg = sloppy(scribble, change)
+    return fg, None if keep is None else keep & ~fg
 
 
 def main() -> None:
@@ -68,19 +83,18 @@ def main() -> None:
     model, category, cases = load_twin_benchmark(args.model, args.data)
     changes = [""] + [c for c in args.brush.split(",") if c]
     for c in changes:
-        sloppy(np.zeros((2, 2), bool), c)  # a bad --brush fails before any selection
+        sloppy_strokes(np.zeros((2, 2), bool), np.zeros((2, 2), bool), c)  # a bad --brush fails before any selection
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; IoU on each source's test views"
         f"{'; every scribbled pixel lifted (--whole-strokes)' if args.whole_strokes else ''}.", "",
-        "| scribble | colour IoU | removal IoU | min IoU | scribbled pixels: on the part / other parts / background | seconds |",
-        "|---|---:|---:|---:|---|---:|",
+        "| scribble | colour IoU | removal IoU | min IoU | scribbled pixels: on the part / other parts / background | keep pixels on the part | seconds |",
+        "|---|---:|---:|---:|---|---:|---:|",
     ]
     per_twin = {}
     for change in changes:
-        ious, land, secs = {"color": [], "remove": []}, np.zeros(3, int), []
+        ious, land, kept_on, secs = {"color": [], "remove": []}, np.zeros(3, int), 0, []
         for case in cases:
-            fg = sloppy(case.scribble, change)
-            keep = case.keep & ~fg
+            fg, keep = sloppy_strokes(case.scribble, case.keep, change)
             t = time.perf_counter()
             options = options_for(case.spec.kind)
             if args.whole_strokes:
@@ -95,10 +109,13 @@ def main() -> None:
             spots = landing(category, case, fg)
             if spots is not None:
                 land += spots
+            spots = None if keep is None else landing(category, case, keep)
+            if spots is not None:
+                kept_on += spots[0]
         every = ious["color"] + ious["remove"]
         mean = lambda xs: f"{np.mean(xs):.3f}" if xs else "–"
         line = (f"| {change or 'as drawn'} | {mean(ious['color'])} | {mean(ious['remove'])} | {np.min(every) if every else float('nan'):.3f} "
-                f"| {land[0]} / {land[1]} / {land[2]} | {np.mean(secs):.2f} |")
+                f"| {land[0]} / {land[1]} / {land[2]} | {kept_on} | {np.mean(secs):.2f} |")
         print(line, flush=True)
         lines.append(line)
     lines += ["", "| twin | " + " | ".join(c or "as drawn" for c in changes) + " |", "|---|" + "---:|" * len(changes)]

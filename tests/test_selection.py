@@ -19,11 +19,12 @@ from crfedit.edit.selection import (
 from crfedit.edit.selection.classify import appearance_gate, chroma_alike, classifier, fit_logistic
 from crfedit.edit.selection.features import denser_points, group_width, local_shape
 from crfedit.edit.selection.options import (
-    CHROMA_OFFSET, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
+    CENTRE_SHARE, CHROMA_OFFSET, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
 )
 from crfedit.edit.selection.refine import (
     bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
 )
+from crfedit.edit.selection.base import stroke_summary
 from crfedit.edit.selection.store import quantized
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
@@ -960,26 +961,64 @@ def test_correction_benchmark_same_view_merges_strokes_into_the_scribbled_view()
 
 def test_a_stroke_wider_than_its_part_lifts_its_centre(trained):
     """A brush 2 px wider than the seat's strokes: recolours and removals lift the 1-px erosion
-    of the scribble (what the user aimed), bit-identical to scribbling that erosion alone; a
-    stroke one pixel wide has no centre, and is lifted whole."""
+    of the scribble (what the user aimed), bit-identical to scribbling that erosion alone, and
+    the keep strokes' by the same rule; a stroke one pixel wide has no centre, and is lifted
+    whole."""
     _, model, category = trained
     k = 2
     view, fg, keep, _ = part_view(category, k, "seat")
     wide = dilate(fg, 2)
     _, on = surface_points(model.field_for(k), view.camera, k)
     on = on.view(wide.shape).numpy()
+
+    def centre(m):  # the 1-px erosion where it keeps a fifth of the strokes' surface points and 4
+        c = erode(m, 1)
+        return c if (c & on).sum() >= max(4, CENTRE_SHARE * (m & on).sum()) else m
+
+    edge = lambda m: int((m & on).sum() - (centre(m) & on).sum())
     for kind in ("color", "remove"):
         options = options_for(kind)
         assert options.stroke_centres and not SelectOptions().stroke_centres  # additions lift every pixel
         whole = dataclasses.replace(options, stroke_centres=False)
         sel = select(model, k, [ScribbleView(view.camera, wide, keep & ~wide)], options)
-        aimed = select(model, k, [ScribbleView(view.camera, erode(wide, 1), keep & ~wide)], whole)
+        aimed = select(model, k, [ScribbleView(view.camera, erode(wide, 1), centre(keep & ~wide))], whole)
         assert torch.equal(sel.values, aimed.values)
-        assert sel.meta["stroke_centres"] == {"edge_points": int((wide & on).sum() - (erode(wide, 1) & on).sum())} != {"edge_points": 0}
+        assert sel.meta["stroke_centres"] == {"edge_points": edge(wide), "keep_edge_points": edge(keep & ~wide)}
+        assert sel.meta["stroke_centres"]["edge_points"] > 0
         assert sel.meta["positives"] == aimed.meta["positives"] and "stroke_centres" not in aimed.meta
     line = np.zeros_like(fg)
     rows, cols = np.nonzero(fg)
     line[rows[0], cols.min():cols.max() + 1] = True  # one row across the seat: erosion leaves nothing
     sel = select(model, k, [ScribbleView(view.camera, line, None)], options_for("remove"))
     same = select(model, k, [ScribbleView(view.camera, line, None)], dataclasses.replace(options_for("remove"), stroke_centres=False))
-    assert torch.equal(sel.values, same.values) and sel.meta["stroke_centres"] == {"edge_points": 0}
+    assert torch.equal(sel.values, same.values) and sel.meta["stroke_centres"] == {"edge_points": 0, "keep_edge_points": 0}
+
+
+def test_keep_strokes_drawn_onto_the_part_lift_their_centres(trained):
+    """Keep strokes drawn a pixel onto the seat put negatives on it, and lifting every kept
+    pixel loses part of the seat; a removal lifts the keep strokes' centres, and selects the
+    seat as well as from keep strokes that stop at its edge."""
+    _, model, category = trained
+    k = 0
+    view, fg, keep, pid = part_view(category, k, "seat")
+    onto = dilate(keep, 2) & ~fg
+    assert (onto & (view.parts == pid)).sum() >= 10 and not (dilate(keep, 1) & (view.parts == pid)).any()
+    tests = category.instances[k].splits["test"]
+    options = options_for("remove")
+    sel = select(model, k, [ScribbleView(view.camera, fg, onto)], options)
+    assert sel.meta["stroke_centres"]["keep_edge_points"] > 0
+    iou = lambda strokes, o: selection_iou(model, select(model, k, [ScribbleView(view.camera, fg, strokes)], o), k, tests, pid)
+    careful = iou(dilate(keep, 1) & ~fg, options)
+    assert careful > 0.8
+    assert selection_iou(model, sel, k, tests, pid) >= careful - 0.01
+    assert iou(onto, dataclasses.replace(options, stroke_centres=False)) < careful - 0.1
+
+
+def test_the_strokes_line_says_what_each_rule_left_out():
+    assert stroke_summary({}) is None
+    lost = "left out: a brush strays off a thin part)"
+    assert stroke_summary({"stroke_centres": {"edge_points": 3}}) == f"their centres lifted (3 edge points {lost}"  # before keep strokes' centres
+    assert stroke_summary({"stroke_centres": {"edge_points": 1, "keep_edge_points": 5}}) == (
+        f"their centres lifted (1 edge point {lost}; 5 edge points of the keep strokes left out")
+    whole = stroke_summary({"stroke_centres": {"edge_points": 0, "keep_edge_points": 1}})
+    assert whole.startswith("lifted whole (") and whole.endswith("; 1 edge point of the keep strokes left out")

@@ -103,10 +103,12 @@ def stroke_summary(meta: dict) -> str | None:
     info = meta.get("stroke_centres")
     if info is None:
         return None
-    n = info["edge_points"]
+    n, n_keep = info["edge_points"], info.get("keep_edge_points", 0)  # selections before 2026-11-26 cut only the scribble
+    points = lambda m: f"{m} edge point{'' if m == 1 else 's'}"
+    keep = f"; {points(n_keep)} of the keep strokes left out" if n_keep else ""
     if n == 0:
-        return "lifted whole (no stroke had a centre to trust: one or two pixels wide)"
-    return f"their centres lifted ({n} edge point{'' if n == 1 else 's'} left out: a brush strays off a thin part)"
+        return f"lifted whole (no stroke had a centre to trust: one or two pixels wide){keep}"
+    return f"their centres lifted ({points(n)} left out: a brush strays off a thin part){keep}"
 
 
 def mirror_summary(meta: dict) -> str | None:

@@ -12,9 +12,9 @@ from ...names import MIRROR_MODES
 MIN_OPACITY = 0.5
 """A pixel shows the object (and has a surface point) where its rendered opacity is at least this."""
 CENTRE_SHARE = 0.2
-""":attr:`SelectOptions.stroke_centres` keeps a view's whole scribble when its 1-px erosion
-holds less than this share of the scribbled surface points (or fewer than 4): strokes one or
-two pixels wide have no centre to trust."""
+""":attr:`SelectOptions.stroke_centres` keeps a view's whole scribble (or keep strokes) when
+its 1-px erosion holds less than this share of their surface points (or fewer than 4): strokes
+one or two pixels wide have no centre to trust."""
 STROKE_CENTRES = True
 """Recolours' and removals' :attr:`SelectOptions.stroke_centres`.  On the benchmark twins'
 scribbles, which lie inside their parts, the four models' mean IoUs move by at most 0.004;
@@ -225,10 +225,12 @@ class SelectOptions:
     """A pixel counts as on the object when its rendered opacity is at least this."""
     stroke_centres: bool = False
     """Lift each scribble's centre only: its 1-px erosion, where that keeps at least
-    :data:`CENTRE_SHARE` of the scribbled surface points (:func:`.pipeline._stroke_centres`).
-    A brush wider than a thin part strays onto the parts beside it and the background, and a
-    few positives on a neighbouring part pull the classifier there; the user aims the stroke's
-    centre.  Recolours and removals use it (:data:`STROKE_CENTRES`; off: every scribbled pixel)."""
+    :data:`CENTRE_SHARE` of the scribbled surface points (:func:`.pipeline._stroke_centres`);
+    each view's keep strokes the same way.  A brush wider than a thin part strays onto the
+    parts beside it and the background, and a few positives on a neighbouring part pull the
+    classifier there; a keep stroke drawn up to the part's edge strays onto the part, and
+    negatives on it cut the part in two.  The user aims the stroke's centre.  Recolours and
+    removals use it (:data:`STROKE_CENTRES`; off: every scribbled and kept pixel)."""
     cell_ascent: float = CELL_ASCENT
     """A cell is described at its centre moved this many half cells up the density gradient,
     where the density is higher there (:func:`denser_points`; 0: at the centre)."""

@@ -34,21 +34,29 @@ def _strokes(v: ScribbleView, device) -> tuple[Tensor, Tensor]:
     return scribbled, kept
 
 
-def _stroke_centres(field, k, views: Sequence[ScribbleView], renders: Sequence[RenderOutput], min_opacity: float) -> tuple[list[ScribbleView], int]:
-    """(``views`` with each scribble cut to its 1-px erosion where that keeps at least
-    :data:`CENTRE_SHARE` of its scribbled surface points and 4, the scribbled surface points
-    left out), :attr:`SelectOptions.stroke_centres`."""
-    out, dropped = [], 0
+def _stroke_centres(field, k, views: Sequence[ScribbleView], renders: Sequence[RenderOutput], min_opacity: float) -> tuple[list[ScribbleView], int, int]:
+    """(``views`` with each scribble and each view's keep strokes cut to their centres
+    (:func:`_centre`), the scribbled and the keep surface points left out),
+    :attr:`SelectOptions.stroke_centres`."""
+    out, dropped, dropped_keep = [], 0, 0
     for v, render in zip(views, renders):
         on = surface_points(field, v.camera, k, min_opacity, render)[1].view(v.camera.height, v.camera.width).cpu().numpy()
-        centre = erode(v.scribble, 1)
-        n_all, n_centre = int((v.scribble & on).sum()), int((centre & on).sum())
-        if n_centre < max(4, CENTRE_SHARE * n_all):
-            out.append(v)
-            continue
-        out.append(ScribbleView(v.camera, centre, v.keep))
-        dropped += n_all - n_centre
-    return out, dropped
+        scribble, n = _centre(v.scribble, on)
+        keep, n_keep = (None, 0) if v.keep is None else _centre(v.keep & ~v.scribble, on)
+        out.append(ScribbleView(v.camera, scribble, keep))
+        dropped, dropped_keep = dropped + n, dropped_keep + n_keep
+    return out, dropped, dropped_keep
+
+
+def _centre(strokes: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, int]:
+    """(``strokes`` [H, W] cut to their 1-px erosion where that keeps at least
+    :data:`CENTRE_SHARE` of their surface points (``on``: the view's on-object mask) and 4,
+    else as they are; the surface points left out)."""
+    centre = erode(strokes, 1)
+    n_all, n_centre = int((strokes & on).sum()), int((centre & on).sum())
+    if n_centre < max(4, CENTRE_SHARE * n_all):
+        return strokes, 0
+    return centre, n_all - n_centre
 
 
 def _lift_views(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: Sequence[RenderOutput] | None):
@@ -211,8 +219,8 @@ def select(
     centre_meta = None
     if options.stroke_centres:  # see SelectOptions.stroke_centres
         renders = [render_camera(field, v.camera, k, colour=False) for v in views] if renders is None else renders
-        views, dropped = _stroke_centres(field, k, views, renders, options.min_opacity)
-        centre_meta = {"edge_points": dropped}
+        views, dropped, dropped_keep = _stroke_centres(field, k, views, renders, options.min_opacity)
+        centre_meta = {"edge_points": dropped, "keep_edge_points": dropped_keep}
     pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
     if pos_pts.shape[0] == 0:
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
