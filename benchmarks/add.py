@@ -1,11 +1,13 @@
 """Adding a part: how well each `add --method` puts a donor's part into another chair, in views
 it was not edited from.
 
-    python benchmarks/add.py MODEL DATA [--pairs 2:6,3:5,9:7,11:21] [--part arms] [--out FILE.md]
+    python benchmarks/add.py MODEL DATA [--pairs 2:6,3:5,9:7,11:21] [--part arms] [--grow N] [--whole-strokes] [--out FILE.md]
 
 For each pair TARGET:DONOR the donor's part (default: the arms) is copied from the donor's train
 view where it shows most, at offset 0,0, into the target seen from the same camera (so it lands
-where the donor has it).  Scored on the donor's test views, whose part maps say where the part
+where the donor has it); ``--grow N`` draws the copy strokes N px wider than the part, as a
+user's brush does, and ``--whole-strokes`` lifts every copied pixel rather than the strokes'
+centres (the default before 2026-11-26, selection method only).  Scored on the donor's test views, whose part maps say where the part
 is: the expected silhouette is the target's own (before the edit) united with the donor part's
 pixels.
 
@@ -24,6 +26,7 @@ the pasted part takes the target's colour code, as in the paper.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -33,6 +36,7 @@ import torch
 
 from crfedit.data.loading import load_category
 from crfedit.edit import EditOptions, add
+from crfedit.edit.selection import ScribbleView, options_for, select
 from crfedit.evaluation import model_width
 from crfedit.masks import dilate
 from crfedit.model import load_model
@@ -56,13 +60,16 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
 
 
-def score_pair(model, category, k: int, j: int, part: str, method: str, options: EditOptions) -> dict:
+def score_pair(model, category, k: int, j: int, part: str, method: str, options: EditOptions, grow: int = 0, whole_strokes: bool = False) -> dict:
     donor = category.instances[j]
     pid = part_id(donor, part)
     view = max(donor.splits["train"], key=lambda v: int((v.parts == pid).sum()))
-    mask = view.parts == pid
+    mask = dilate(view.parts == pid, grow) if grow else view.parts == pid
     t0 = time.perf_counter()
-    result = add(model, k, view.camera, j, mask, (0, 0), view.camera, method, options=options)
+    selection = None
+    if whole_strokes and method == "selection":
+        selection = select(model, j, [ScribbleView(view.camera, mask)], dataclasses.replace(options_for("add"), stroke_centres=False))
+    result = add(model, k, view.camera, j, mask, (0, 0), view.camera, method, options=options, selection=selection)
     seconds = time.perf_counter() - t0
     added = spill = part_px = 0
     inter = union = 0
@@ -95,6 +102,8 @@ def main() -> None:
     ap.add_argument("--pairs", default="2:6,3:5,9:7,11:21", help="TARGET:DONOR instance indices, comma-separated")
     ap.add_argument("--part", default="arms")
     ap.add_argument("--methods", default=",".join(ADD_METHODS))
+    ap.add_argument("--grow", type=int, default=0, help="copy strokes this many pixels wider than the part (a square brush)")
+    ap.add_argument("--whole-strokes", action="store_true", help="lift every copied pixel, not the strokes' centres")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -103,7 +112,7 @@ def main() -> None:
     pairs = [tuple(int(x) for x in p.split(":")) for p in args.pairs.split(",")]
     rows = []
     for method in args.methods.split(","):
-        scores = [score_pair(model, category, k, j, args.part, method, EditOptions()) for k, j in pairs]
+        scores = [score_pair(model, category, k, j, args.part, method, EditOptions(), args.grow, args.whole_strokes) for k, j in pairs]
         for (k, j), s in zip(pairs, scores):
             print(f"{method:10s} {model.names[k]} <- {model.names[j]}: added {s['added']:.2f} spill {s['spill']:.2f} "
                   f"IoU {s['iou']:.3f} outside {s['outside']:.2f} dB  {s['seconds']:.2f} s", flush=True)
@@ -111,7 +120,9 @@ def main() -> None:
         rows.append((method, mean))
     names = ", ".join(f"{model.names[k]} ← {model.names[j]}" for k, j in pairs)
     lines = [
-        f"Model `{args.model}`, data `{args.data}`; the {args.part} of {names}, offset 0,0; "
+        f"Model `{args.model}`, data `{args.data}`; the {args.part} of {names}, offset 0,0"
+        f"{f', copy strokes {args.grow} px wider than the part' if args.grow else ''}"
+        f"{'; every copied pixel lifted (--whole-strokes)' if args.whole_strokes else ''}; "
         f"scored on the donors' test views. Means over the {len(pairs)} pairs.", "",
         "| add --method | added | spill | silhouette IoU | outside | seconds |",
         "|---|---:|---:|---:|---:|---:|",

@@ -16,11 +16,16 @@ CENTRE_SHARE = 0.2
 its 1-px erosion holds less than this share of their surface points (or fewer than 4): strokes
 one or two pixels wide have no centre to trust."""
 STROKE_CENTRES = True
-"""Recolours' and removals' :attr:`SelectOptions.stroke_centres`.  On the benchmark twins'
+"""Every edit kind's :attr:`SelectOptions.stroke_centres`.  On the benchmark twins'
 scribbles, which lie inside their parts, the four models' mean IoUs move by at most 0.004;
 drawn 1 px wider, the removals keep 0.689–0.907 where every pixel gave 0.621–0.853, and the
 procedural recolours drawn 2 px wider keep 0.904–0.910 where they fell to 0.834–0.844
-(docs/benchmarks.md, forty-third session, `benchmarks/sloppy_scribbles.py`)."""
+(docs/benchmarks.md, forty-third session, `benchmarks/sloppy_scribbles.py`).  The keep
+strokes' centres: as drawn no mean IoU moves by more than 0.001; drawn 4 px wider, onto the
+part, the removals keep 0.724–0.908 where every kept pixel gave 0.590–0.794.  Additions
+(`benchmarks/add.py`, the two procedural models): copy strokes 1 px wider than the donor's
+part spill 0.14 / 0.16 where every pixel spilled 0.21 / 0.18, and the rest of the chair is
+34.59 / 35.28 dB where it was 31.24 / 32.99 dB (forty-fourth session)."""
 FEATURES = ("bottleneck", "color", "chroma", "position")
 """The feature groups a selection uses by default."""
 GROW_LOW = 0.3
@@ -229,8 +234,9 @@ class SelectOptions:
     each view's keep strokes the same way.  A brush wider than a thin part strays onto the
     parts beside it and the background, and a few positives on a neighbouring part pull the
     classifier there; a keep stroke drawn up to the part's edge strays onto the part, and
-    negatives on it cut the part in two.  The user aims the stroke's centre.  Recolours and
-    removals use it (:data:`STROKE_CENTRES`; off: every scribbled and kept pixel)."""
+    negatives on it cut the part in two.  The user aims the stroke's centre.  Every edit kind
+    uses it (:data:`STROKE_CENTRES`); off, as here by default, every scribbled and kept pixel is
+    lifted."""
     cell_ascent: float = CELL_ASCENT
     """A cell is described at its centre moved this many half cells up the density gradient,
     where the density is higher there (:func:`denser_points`; 0: at the centre)."""
@@ -530,9 +536,9 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
     appearance tighter (:data:`COLOR_APPEARANCE_GATE`), join at every saturation and veto
     unlike hues (:data:`COLOR_VETO_CHROMA`, :data:`COLOR_PALE_VETO`; removals
     :data:`REMOVE_PALE_VETO` below their join's saturation).  Both let keep strokes win near them
-    (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`), lift their strokes' centres
-    (:data:`STROKE_CENTRES`), and read the instance's mirror symmetry (:data:`REMOVE_MIRROR`,
-    :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise."""
+    (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`) and read the instance's mirror
+    symmetry (:data:`REMOVE_MIRROR`, :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise.
+    All three lift their strokes' centres (:data:`STROKE_CENTRES`)."""
     if kind not in EDIT_KINDS:
         raise CrfError(f"a selection for {kind!r}: expected one of {', '.join(EDIT_KINDS)}")
     if mirror is not None and mirror not in MIRROR_MODES:
@@ -556,4 +562,4 @@ def _kind_options(kind: str) -> SelectOptions:
                              smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA,
                              pale_veto=REMOVE_PALE_VETO, pale_veto_saturation=PALE_SATURATION,
                              keep_ratio=REMOVE_KEEP_RATIO, mirror=REMOVE_MIRROR, stroke_centres=STROKE_CENTRES)
-    return SelectOptions()
+    return SelectOptions(stroke_centres=STROKE_CENTRES)
