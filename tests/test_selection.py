@@ -19,7 +19,7 @@ from crfedit.edit.selection import (
 from crfedit.edit.selection.classify import appearance_gate, chroma_alike, classifier, fit_logistic
 from crfedit.edit.selection.features import denser_points, group_width, local_shape
 from crfedit.edit.selection.options import (
-    CENTRE_SHARE, CHROMA_OFFSET, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
+    CENTRE_SHARE, CHROMA_OFFSET, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
 )
 from crfedit.edit.selection.refine import (
     bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
@@ -1022,3 +1022,34 @@ def test_the_strokes_line_says_what_each_rule_left_out():
         f"their centres lifted (1 edge point {lost}; 5 edge points of the keep strokes left out")
     whole = stroke_summary({"stroke_centres": {"edge_points": 0, "keep_edge_points": 1}})
     assert whole.startswith("lifted whole (") and whole.endswith("; 1 edge point of the keep strokes left out")
+    snapped = "7 pixels beside the scribble snapped onto the object (it lay mostly off it)"
+    assert stroke_summary({"stroke_snap": {"added_pixels": 7}}) == snapped
+    assert stroke_summary({"stroke_snap": {"added_pixels": 7}, "stroke_centres": {"edge_points": 3}}) == f"{snapped}; their centres lifted (3 edge points {lost}"
+    assert stroke_summary({"stroke_snap": {"added_pixels": 0}, "stroke_centres": {"edge_points": 3}}) == f"their centres lifted (3 edge points {lost}"
+
+
+def test_a_stroke_beside_a_thin_part_snaps_onto_it(trained):
+    """A stroke drawn on the background one pixel beside the legs lifts nothing: every pixel
+    lifted as drawn, it is refused. Recolours and removals snap a scribble that lies mostly off
+    the object onto the object pixels next to it, and select the legs as well as a stroke on
+    them does; a scribble on the object is left as it is."""
+    _, model, category = trained
+    k = 0
+    view, _, keep, pid = part_view(category, k, "legs")
+    legs = view.parts == pid
+    _, on = surface_points(model.field_for(k), view.camera, k)
+    on = on.view(legs.shape).numpy()
+    beside = dilate(legs, 1) & ~(view.parts > 0) & ~on
+    assert beside.sum() >= 10 and not (beside & on).any()
+    keep = keep & ~dilate(legs, 2)
+    tests = category.instances[k].splits["test"]
+    for kind in ("color", "remove"):
+        options = options_for(kind)
+        assert options.stroke_snap == STROKE_SNAP > 0 and SelectOptions().stroke_snap == 0
+        with pytest.raises(CrfError, match="background only"):
+            select(model, k, [ScribbleView(view.camera, beside, keep)], dataclasses.replace(options, stroke_snap=0.0))
+        sel = select(model, k, [ScribbleView(view.camera, beside, keep)], options)
+        assert sel.meta["stroke_snap"]["added_pixels"] > 0 and "snapped onto the object" in stroke_summary(sel.meta)
+        on_legs = select(model, k, [ScribbleView(view.camera, legs & on, keep)], options)
+        assert on_legs.meta["stroke_snap"] == {"added_pixels": 0}
+        assert selection_iou(model, sel, k, tests, pid) >= selection_iou(model, on_legs, k, tests, pid) - 0.05

@@ -98,11 +98,18 @@ def shape_summary(meta: dict) -> str | None:
 
 
 def stroke_summary(meta: dict) -> str | None:
-    """What a selection's metadata says of :attr:`~.options.SelectOptions.stroke_centres`, in a
-    line (None: it lifted every scribbled pixel, as asked)."""
-    info = meta.get("stroke_centres")
+    """What a selection's metadata says of :attr:`~.options.SelectOptions.stroke_snap` and
+    :attr:`~.options.SelectOptions.stroke_centres`, in a line (None: it lifted every scribbled
+    pixel, as asked)."""
+    info, snap = meta.get("stroke_centres"), meta.get("stroke_snap")
+    snapped = f"{snap['added_pixels']} pixels beside the scribble snapped onto the object (it lay mostly off it)" if snap and snap["added_pixels"] else None
     if info is None:
-        return None
+        return snapped
+    said = _centres_summary(info)
+    return f"{snapped}; {said}" if snapped else said
+
+
+def _centres_summary(info: dict) -> str:
     n, n_keep = info["edge_points"], info.get("keep_edge_points", 0)  # selections before 2026-11-26 cut only the scribble
     points = lambda m: f"{m} edge point{'' if m == 1 else 's'}"
     keep = f"; {points(n_keep)} of the keep strokes left out" if n_keep else ""

@@ -26,6 +26,12 @@ part, the removals keep 0.724–0.908 where every kept pixel gave 0.590–0.794.
 (`benchmarks/add.py`, the two procedural models): copy strokes 1 px wider than the donor's
 part spill 0.14 / 0.16 where every pixel spilled 0.21 / 0.18, and the rest of the chair is
 34.59 / 35.28 dB where it was 31.24 / 32.99 dB (forty-fourth session)."""
+STROKE_SNAP = 0.7
+"""Recolours' and removals' :attr:`SelectOptions.stroke_snap`.  Each twin's scribble moved 1 px
+(`benchmarks/sloppy_scribbles.py --brush shift1`): the real removals' mean IoU 0.481 → 0.726
+and 0.536 → 0.699 (a tube's stroke a pixel beside it lies on the background, and lifts to a
+point or two); every other brush change and the procedural twins within 0.003
+(docs/benchmarks.md, forty-fourth session)."""
 FEATURES = ("bottleneck", "color", "chroma", "position")
 """The feature groups a selection uses by default."""
 GROW_LOW = 0.3
@@ -237,6 +243,13 @@ class SelectOptions:
     negatives on it cut the part in two.  The user aims the stroke's centre.  Every edit kind
     uses it (:data:`STROKE_CENTRES`); off, as here by default, every scribbled and kept pixel is
     lifted."""
+    stroke_snap: float = 0.0
+    """Snap a view's scribble onto the object when less than this share of its pixels show the
+    object (0: never): the on-object pixels next to its off-object pixels, and not kept, are
+    scribbled too (:func:`.pipeline._snapped_strokes`), before :attr:`stroke_centres`.  A
+    stroke aimed a pixel beside a 1-px tube lies on the background, which is not lifted, and
+    leaves the selection a point or two to grow from.  Recolours and removals use it
+    (:data:`STROKE_SNAP`)."""
     cell_ascent: float = CELL_ASCENT
     """A cell is described at its centre moved this many half cells up the density gradient,
     where the density is higher there (:func:`denser_points`; 0: at the centre)."""
@@ -536,8 +549,9 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
     appearance tighter (:data:`COLOR_APPEARANCE_GATE`), join at every saturation and veto
     unlike hues (:data:`COLOR_VETO_CHROMA`, :data:`COLOR_PALE_VETO`; removals
     :data:`REMOVE_PALE_VETO` below their join's saturation).  Both let keep strokes win near them
-    (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`) and read the instance's mirror
-    symmetry (:data:`REMOVE_MIRROR`, :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise.
+    (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`), snap a scribble that lies mostly off
+    the object onto it (:data:`STROKE_SNAP`), and read the instance's mirror symmetry
+    (:data:`REMOVE_MIRROR`, :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise.
     All three lift their strokes' centres (:data:`STROKE_CENTRES`)."""
     if kind not in EDIT_KINDS:
         raise CrfError(f"a selection for {kind!r}: expected one of {', '.join(EDIT_KINDS)}")
@@ -554,12 +568,14 @@ def _kind_options(kind: str) -> SelectOptions:
                              pale_veto=COLOR_PALE_VETO, pale_veto_saturation=COLOR_SATURATION,
                              select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
                              appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
-                             keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR, stroke_centres=STROKE_CENTRES)
+                             keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR, stroke_centres=STROKE_CENTRES,
+                             stroke_snap=STROKE_SNAP)
     if kind == "remove":
         return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, position_weight=REMOVE_POSITION_WEIGHT,
                              shape_gate=REMOVE_SHAPE_GATE, sheet_veto=REMOVE_SHEET_VETO, rim_fill=REMOVE_RIM_FILL,
                              chroma_union=CHROMA_UNION,
                              smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA,
                              pale_veto=REMOVE_PALE_VETO, pale_veto_saturation=PALE_SATURATION,
-                             keep_ratio=REMOVE_KEEP_RATIO, mirror=REMOVE_MIRROR, stroke_centres=STROKE_CENTRES)
+                             keep_ratio=REMOVE_KEEP_RATIO, mirror=REMOVE_MIRROR, stroke_centres=STROKE_CENTRES,
+                             stroke_snap=STROKE_SNAP)
     return SelectOptions(stroke_centres=STROKE_CENTRES)

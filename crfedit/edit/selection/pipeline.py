@@ -15,7 +15,7 @@ from ... import occupancy
 from ...errors import CrfError
 from ...model import CategoryModel
 from ...names import MIRROR_MODES
-from ...masks import erode
+from ...masks import dilate, erode
 from ...renderer import RenderOutput, render_camera
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 from .base import ScribbleView, Selection
@@ -34,13 +34,36 @@ def _strokes(v: ScribbleView, device) -> tuple[Tensor, Tensor]:
     return scribbled, kept
 
 
+def _on_object(field, k, v: ScribbleView, render: RenderOutput, min_opacity: float) -> np.ndarray:
+    """[H, W] bool: the pixels of view ``v`` that show the object (and lift to a surface point)."""
+    return surface_points(field, v.camera, k, min_opacity, render)[1].view(v.camera.height, v.camera.width).cpu().numpy()
+
+
+def _snapped_strokes(field, k, views: Sequence[ScribbleView], renders: Sequence[RenderOutput], min_opacity: float, share: float) -> tuple[list[ScribbleView], int]:
+    """(``views`` with each scribble that has less than ``share`` of its pixels on the object
+    snapped onto it: the on-object pixels next to its off-object pixels, and not kept, are
+    added; the pixels added), :attr:`SelectOptions.stroke_snap`."""
+    out, added = [], 0
+    for v, render in zip(views, renders):
+        on = _on_object(field, k, v, render, min_opacity)
+        if (v.scribble & on).sum() >= share * v.scribble.sum():
+            out.append(v)
+            continue
+        near = dilate(v.scribble & ~on, 1) & on & ~v.scribble
+        if v.keep is not None:
+            near &= ~v.keep
+        out.append(ScribbleView(v.camera, v.scribble | near, v.keep))
+        added += int(near.sum())
+    return out, added
+
+
 def _stroke_centres(field, k, views: Sequence[ScribbleView], renders: Sequence[RenderOutput], min_opacity: float) -> tuple[list[ScribbleView], int, int]:
     """(``views`` with each scribble and each view's keep strokes cut to their centres
     (:func:`_centre`), the scribbled and the keep surface points left out),
     :attr:`SelectOptions.stroke_centres`."""
     out, dropped, dropped_keep = [], 0, 0
     for v, render in zip(views, renders):
-        on = surface_points(field, v.camera, k, min_opacity, render)[1].view(v.camera.height, v.camera.width).cpu().numpy()
+        on = _on_object(field, k, v, render, min_opacity)
         scribble, n = _centre(v.scribble, on)
         keep, n_keep = (None, 0) if v.keep is None else _centre(v.keep & ~v.scribble, on)
         out.append(ScribbleView(v.camera, scribble, keep))
@@ -216,9 +239,13 @@ def select(
     field = model.field_for(k)
     occupied = field.occupancy[k]
     res = occupied.shape[-1]
-    centre_meta = None
-    if options.stroke_centres:  # see SelectOptions.stroke_centres
+    centre_meta = snap_meta = None
+    if options.stroke_centres or options.stroke_snap > 0:
         renders = [render_camera(field, v.camera, k, colour=False) for v in views] if renders is None else renders
+    if options.stroke_snap > 0:  # see SelectOptions.stroke_snap
+        views, added = _snapped_strokes(field, k, views, renders, options.min_opacity, options.stroke_snap)
+        snap_meta = {"added_pixels": added}
+    if options.stroke_centres:  # see SelectOptions.stroke_centres
         views, dropped, dropped_keep = _stroke_centres(field, k, views, renders, options.min_opacity)
         centre_meta = {"edge_points": dropped, "keep_edge_points": dropped_keep}
     pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
@@ -372,6 +399,8 @@ def select(
         meta["keep_wins_cells"] = int(veto.sum())
     if centre_meta is not None:
         meta["stroke_centres"] = centre_meta
+    if snap_meta is not None:
+        meta["stroke_snap"] = snap_meta
     if union is not None:
         meta["chroma_union"] = union
     if mirror_meta is not None:
