@@ -7,8 +7,10 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
 
 1. **Lift.**  Each scribbled pixel on the object becomes a surface point at the rendered
    expected depth (a *positive*); each keep-stroke pixel on the object a *negative*.
-   Recolours and removals lift each scribble's centre, its 1-px erosion, when that keeps a
-   fifth of it (:data:`STROKE_CENTRES`): a brush wider than a thin part strays off it.
+   Every edit kind lifts each scribble's and keep stroke's centre, its 1-px erosion, when
+   that keeps a fifth of it (:data:`STROKE_CENTRES`): a brush wider than a thin part strays
+   off it.  Recolours and removals first snap a scribble that lies mostly off the object onto
+   the object pixels beside it (:data:`STROKE_SNAP`): a stroke a pixel beside a tube.
 2. **Describe.**  Every point — the lifted ones and every occupied cell — is described by the
    field's own per-point features (:func:`point_features`): the 8-d bottleneck, the predicted
    colour, its chromaticity and the position, each group standardized; a removal also reads

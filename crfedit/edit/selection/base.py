@@ -102,7 +102,8 @@ def stroke_summary(meta: dict) -> str | None:
     :attr:`~.options.SelectOptions.stroke_centres`, in a line (None: it lifted every scribbled
     pixel, as asked)."""
     info, snap = meta.get("stroke_centres"), meta.get("stroke_snap")
-    snapped = f"{snap['added_pixels']} pixels beside the scribble snapped onto the object (it lay mostly off it)" if snap and snap["added_pixels"] else None
+    n = snap["added_pixels"] if snap else 0
+    snapped = f"{n} pixel{'' if n == 1 else 's'} beside the scribble snapped onto the object (it lay mostly off it)" if n else None
     if info is None:
         return snapped
     said = _centres_summary(info)
