@@ -39,13 +39,13 @@ def _on_object(field, k, v: ScribbleView, render: RenderOutput, min_opacity: flo
     return surface_points(field, v.camera, k, min_opacity, render)[1].view(v.camera.height, v.camera.width).cpu().numpy()
 
 
-def _snapped_strokes(field, k, views: Sequence[ScribbleView], renders: Sequence[RenderOutput], min_opacity: float, share: float) -> tuple[list[ScribbleView], int]:
+def _snapped_strokes(views: Sequence[ScribbleView], on_object: Sequence[np.ndarray], share: float) -> tuple[list[ScribbleView], int]:
     """(``views`` with each scribble that has less than ``share`` of its pixels on the object
-    snapped onto it: the on-object pixels next to its off-object pixels, and not kept, are
-    added; the pixels added), :attr:`SelectOptions.stroke_snap`."""
+    (``on_object``: each view's :func:`_on_object`) snapped onto it: the on-object pixels next
+    to its off-object pixels, and not kept, are added; the pixels added),
+    :attr:`SelectOptions.stroke_snap`."""
     out, added = [], 0
-    for v, render in zip(views, renders):
-        on = _on_object(field, k, v, render, min_opacity)
+    for v, on in zip(views, on_object):
         if (v.scribble & on).sum() >= share * v.scribble.sum():
             out.append(v)
             continue
@@ -57,13 +57,12 @@ def _snapped_strokes(field, k, views: Sequence[ScribbleView], renders: Sequence[
     return out, added
 
 
-def _stroke_centres(field, k, views: Sequence[ScribbleView], renders: Sequence[RenderOutput], min_opacity: float) -> tuple[list[ScribbleView], int, int]:
+def _stroke_centres(views: Sequence[ScribbleView], on_object: Sequence[np.ndarray]) -> tuple[list[ScribbleView], int, int]:
     """(``views`` with each scribble and each view's keep strokes cut to their centres
-    (:func:`_centre`), the scribbled and the keep surface points left out),
-    :attr:`SelectOptions.stroke_centres`."""
+    (:func:`_centre`; ``on_object``: each view's :func:`_on_object`), the scribbled and the keep
+    surface points left out), :attr:`SelectOptions.stroke_centres`."""
     out, dropped, dropped_keep = [], 0, 0
-    for v, render in zip(views, renders):
-        on = _on_object(field, k, v, render, min_opacity)
+    for v, on in zip(views, on_object):
         scribble, n = _centre(v.scribble, on)
         keep, n_keep = (None, 0) if v.keep is None else _centre(v.keep & ~v.scribble, on)
         out.append(ScribbleView(v.camera, scribble, keep))
@@ -240,13 +239,14 @@ def select(
     occupied = field.occupancy[k]
     res = occupied.shape[-1]
     centre_meta = snap_meta = None
-    if options.stroke_centres or options.stroke_snap > 0:
+    if options.stroke_centres or options.stroke_snap > 0:  # both read each view's on-object pixels
         renders = [render_camera(field, v.camera, k, colour=False) for v in views] if renders is None else renders
+        on_object = [_on_object(field, k, v, r, options.min_opacity) for v, r in zip(views, renders)]
     if options.stroke_snap > 0:  # see SelectOptions.stroke_snap
-        views, added = _snapped_strokes(field, k, views, renders, options.min_opacity, options.stroke_snap)
+        views, added = _snapped_strokes(views, on_object, options.stroke_snap)
         snap_meta = {"added_pixels": added}
     if options.stroke_centres:  # see SelectOptions.stroke_centres
-        views, dropped, dropped_keep = _stroke_centres(field, k, views, renders, options.min_opacity)
+        views, dropped, dropped_keep = _stroke_centres(views, on_object)
         centre_meta = {"edge_points": dropped, "keep_edge_points": dropped_keep}
     pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
     if pos_pts.shape[0] == 0:
