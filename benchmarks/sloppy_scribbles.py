@@ -1,7 +1,7 @@
 """Selections from sloppy scribbles: the twins' scribbles drawn with a wider brush, or aimed
 a pixel off.
 
-    python benchmarks/sloppy_scribbles.py MODEL DATA [--brush grow1,grow2,shift1,shift1grow1,keep5] [--out FILE.md]
+    python benchmarks/sloppy_scribbles.py MODEL DATA [--brush grow1,grow2,shift1,shift1grow1,keep5] [--whole-strokes] [--no-snap] [--out FILE.md]
 
 The benchmark's scribbles lie inside each part, eroded by up to 2 px; a user's brush does not
 stay inside a 1–2 px tube at 64². Each twin's scribble is changed as ``--brush`` says: ``growN``
@@ -12,7 +12,7 @@ scribble covers, and the selection is made again with the edit kind's default op
 selection IoU on the source's test views, per kind, and where the scribbled pixels land in the
 scribbled view's ground truth (on the part, on another part, on the background: a background
 pixel is lifted only where the model draws some opacity), and how many keep pixels land on the
-part.
+part.  A scribble the tool refuses (all on the background, say) counts as IoU 0 and is named.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import numpy as np
 from selection import load_twin_benchmark
 
 from crfedit.edit.selection import ScribbleView, options_for, select
+from crfedit.errors import CrfError
 from crfedit.masks import dilate
 from crfedit.report import emit_table
 from crfedit.twin_scores import part_map, part_of, selection_iou
@@ -78,6 +79,7 @@ def main() -> None:
     ap.add_argument("--brush", default="grow1,grow2,shift1,shift1grow1",
                     help="changes to measure, comma-separated (the benchmark's own scribbles always run first)")
     ap.add_argument("--whole-strokes", action="store_true", help="lift every scribbled pixel, not the strokes' centres (the default before 2026-11-26)")
+    ap.add_argument("--no-snap", action="store_true", help="do not snap a scribble lying mostly off the object onto it (the default before 2026-11-26)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     model, category, cases = load_twin_benchmark(args.model, args.data)
@@ -86,7 +88,8 @@ def main() -> None:
         sloppy_strokes(np.zeros((2, 2), bool), np.zeros((2, 2), bool), c)  # a bad --brush fails before any selection
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; IoU on each source's test views"
-        f"{'; every scribbled pixel lifted (--whole-strokes)' if args.whole_strokes else ''}.", "",
+        f"{'; every scribbled pixel lifted (--whole-strokes)' if args.whole_strokes else ''}"
+        f"{'; no snap (--no-snap)' if args.no_snap else ''}.", "",
         "| scribble | colour IoU | removal IoU | min IoU | scribbled pixels: on the part / other parts / background | keep pixels on the part | seconds |",
         "|---|---:|---:|---:|---|---:|---:|",
     ]
@@ -99,10 +102,17 @@ def main() -> None:
             options = options_for(case.spec.kind)
             if args.whole_strokes:
                 options = dataclasses.replace(options, stroke_centres=False)
-            sel = select(model, case.instance, [ScribbleView(case.camera, fg, keep)], options)
-            secs.append(time.perf_counter() - t)
+            if args.no_snap:
+                options = dataclasses.replace(options, stroke_snap=0.0)
             inst = category.instance(case.spec.source)
-            iou = selection_iou(model, sel, inst.path, inst.splits["test"], case.spec.part)
+            try:
+                sel = select(model, case.instance, [ScribbleView(case.camera, fg, keep)], options)
+            except CrfError as e:  # the tool refuses the scribble (e.g. all on the background): a lost twin
+                print(f"{change or 'as drawn'}: {case.spec.name} refused: {e}", flush=True)
+                iou = 0.0 if part_of(inst.path, case.spec.part) is not None else None
+            else:
+                iou = selection_iou(model, sel, inst.path, inst.splits["test"], case.spec.part)
+            secs.append(time.perf_counter() - t)
             if iou is not None:
                 ious[case.spec.kind].append(iou)
                 per_twin.setdefault(case.spec.name, []).append(iou)

@@ -1032,7 +1032,7 @@ def test_a_stroke_beside_a_thin_part_snaps_onto_it(trained):
     """A stroke drawn on the background one pixel beside the legs lifts nothing: every pixel
     lifted as drawn, it is refused. Recolours and removals snap a scribble that lies mostly off
     the object onto the object pixels next to it, and select the legs as well as a stroke on
-    them does; a scribble on the object is left as it is."""
+    them does; a scribble on the object is left as it is. Additions do not snap."""
     _, model, category = trained
     k = 0
     view, _, keep, pid = part_view(category, k, "legs")
@@ -1053,3 +1053,7 @@ def test_a_stroke_beside_a_thin_part_snaps_onto_it(trained):
         on_legs = select(model, k, [ScribbleView(view.camera, legs & on, keep)], options)
         assert on_legs.meta["stroke_snap"] == {"added_pixels": 0}
         assert selection_iou(model, sel, k, tests, pid) >= selection_iou(model, on_legs, k, tests, pid) - 0.05
+    # additions do not snap: what snapped onto the object would be copied too (docs/selection.md)
+    assert options_for("add").stroke_snap == 0
+    with pytest.raises(CrfError, match="background only"):
+        select(model, k, [ScribbleView(view.camera, beside)], options_for("add"))
