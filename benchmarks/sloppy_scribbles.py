@@ -111,8 +111,8 @@ def main() -> None:
                 print(f"{change or 'as drawn'}: {case.spec.name} refused: {e}", flush=True)
                 iou = 0.0 if part_of(inst.path, case.spec.part) is not None else None
             else:
+                secs.append(time.perf_counter() - t)
                 iou = selection_iou(model, sel, inst.path, inst.splits["test"], case.spec.part)
-            secs.append(time.perf_counter() - t)
             if iou is not None:
                 ious[case.spec.kind].append(iou)
                 per_twin.setdefault(case.spec.name, []).append(iou)
