@@ -464,7 +464,7 @@ def add_selected(
             return field.fuse_inputs(pts if rows is None else pts[rows], field.codes(k)[0])
         if rows is None:
             return cached
-        return cached._replace(hidden=cached.hidden[rows], pe=cached.pe[rows], idx=None if cached.idx is None else cached.idx[rows])
+        return cached._replace(hidden=cached.hidden[rows], pe=cached.pe[rows])  # one instance: no per-point code rows
 
     with torch.no_grad():
         raw0, feat0 = field.density_from_fuse_inputs(fuse_inputs())
@@ -479,7 +479,7 @@ def add_selected(
         # features matter where the target is opaque over a cell; held exactly outside S′
         w_feat = torch.where(in_pasted, 1.0 - torch.exp(-sigma_t * cell), torch.ones_like(sigma0))
 
-    n_batch = 3 * options.rays
+    n_batch = pts.shape[0] // ADD_POINT_POOL  # the fixed batch's size before the pool
 
     def loss_fn():
         idx = torch.randint(pts.shape[0], (n_batch,), generator=generator).to(device)
