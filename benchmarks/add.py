@@ -38,6 +38,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sloppy_scribbles import moved
+
 from crfedit.data.loading import load_category
 from crfedit.edit import EditOptions, add
 from crfedit.edit.selection import ScribbleView, options_for, select
@@ -63,14 +65,6 @@ def render(model, k, camera):
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = float(np.mean((a - b) ** 2)) if a.size else 0.0
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
-
-
-def moved(mask: np.ndarray, dx: int, dy: int) -> np.ndarray:
-    """``mask`` moved ``dx`` px right and ``dy`` px down; what leaves the image is lost."""
-    out = np.zeros_like(mask)
-    h, w = mask.shape
-    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = mask[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)]
-    return out
 
 
 def score_pair(model, category, k: int, j: int, part: str, method: str, options: EditOptions, grow: int = 0,

@@ -51,12 +51,16 @@ def sloppy(scribble: np.ndarray, change: str) -> np.ndarray:
     m = re.fullmatch(r"(?:shift(\d+))?(?:grow(\d+))?", change)
     if m is None:
         raise SystemExit(f"--brush {change!r}: expected growN, shiftN, shiftNgrowM or keepN")
-    out = scribble
-    if m.group(1):
-        n = int(m.group(1))
-        out = np.zeros_like(scribble)
-        out[:, n:] = scribble[:, : scribble.shape[1] - n]
+    out = moved(scribble, int(m.group(1)), 0) if m.group(1) else scribble
     return dilate(out, int(m.group(2))) if m.group(2) else out
+
+
+def moved(mask: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    """``mask`` moved ``dx`` px right and ``dy`` px down; what leaves the image is lost."""
+    out = np.zeros_like(mask)
+    h, w = mask.shape
+    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = mask[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)]
+    return out
 
 
 def sloppy_strokes(scribble: np.ndarray, keep: np.ndarray | None, change: str) -> tuple[np.ndarray, np.ndarray | None]:
