@@ -12,6 +12,13 @@ from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
 from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _preview_views, _view_render
 
 
+def _summaries():
+    """(label, summary function) of each part of a selection's metadata that the commands print."""
+    from ..edit.selection import mirror_summary, part_summary, shape_summary, stroke_summary
+
+    return (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("shape gate", shape_summary))
+
+
 def _mask(path: Path, model, instance: int, camera, what: str):
     """A mask image (read as drawn: one line says how), or strokes JSON when the name ends in
     .json (:func:`~crfedit.edit.scribble.load_mask`), at the view's size."""
@@ -39,7 +46,7 @@ def select_cmd(
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
-    from ..edit.selection import ScribbleView, mirror_summary, options_for, part_summary, preview as tinted, save_selection, select, shape_summary, stroke_summary
+    from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
     from ..io import write_png
 
     if len(scribble) != len(view):
@@ -64,14 +71,10 @@ def select_cmd(
         f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
         f"({info['positives']} scribbled, {info['keep_points']} keep, {info['view_points']} other surface points; {info['seconds']:.2f} s)"
     )
-    if stroke_summary(info) is not None:
-        typer.echo(f"strokes: {stroke_summary(info)}")
-    if mirror_summary(info) is not None:
-        typer.echo(f"mirror: {mirror_summary(info)}")
-    if part_summary(info) is not None:
-        typer.echo(f"part head: {part_summary(info)}")
-    if shape_summary(info) is not None:
-        typer.echo(f"shape gate: {shape_summary(info)}")
+    for label, summary in _summaries():
+        line = summary(info)
+        if line is not None:
+            typer.echo(f"{label}: {line}")
     if preview is not None:
         preview.mkdir(parents=True, exist_ok=True)
         for i, (label, camera) in enumerate(shown):
@@ -84,7 +87,7 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
     instance, model, cells and how it was made (table or JSON)."""
     import json
 
-    from ..edit.selection import FORMAT, load_selection, mirror_summary, part_summary, shape_summary, stroke_summary
+    from ..edit.selection import FORMAT, load_selection
 
     sel = load_selection(path)
     info = sel.meta if isinstance(sel.meta, dict) else {}
@@ -110,7 +113,7 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
     ]
     if isinstance(features, list):
         rows.append(("features", ", ".join(map(str, features))))
-    for label, summary in (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("shape gate", shape_summary)):
+    for label, summary in _summaries():
         try:
             line = summary(info)
         except (KeyError, TypeError, ValueError, IndexError):  # a hand-edited record: say nothing rather than guess
