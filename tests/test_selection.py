@@ -24,7 +24,7 @@ from crfedit.edit.selection.options import (
 from crfedit.edit.selection.refine import (
     bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
 )
-from crfedit.edit.selection.base import stroke_summary
+from crfedit.edit.selection.base import join_summary, stroke_summary
 from crfedit.edit.selection.store import quantized
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
@@ -178,6 +178,14 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     assert grey.meta["chroma_union"] == {"saturation": joined.meta["chroma_union"]["saturation"], "cells": None, "joined": False}
     for unjoined in (refused, grey):
         assert unjoined.meta["chroma_union"]["joined"] is False and torch.equal(unjoined.values, plain.values)
+    # what select and the page say of it: a refusal names both counts and what to do
+    features = refused.meta["chroma_union"]["features_cells"]
+    assert features == int(plain.mask.sum()) and refused.meta["chroma_union"]["cap"] == 1e-6
+    assert join_summary(plain.meta) is None
+    assert join_summary(joined.meta) == f"took the cells of the scribbled colour ({alone} by chromaticity alone)"
+    assert join_summary(refused.meta).startswith(f"refused: chromaticity alone selects {alone} cells, over 1e-06× the {features} the features select")
+    assert "second view" in join_summary(refused.meta)
+    assert join_summary(grey.meta) == f"not tried (the scribbled colour is near-grey: saturation {grey.meta['chroma_union']['saturation']:.2f})"
     assert bool((joined.values >= plain.values).all()) and bool((joined.mask | ~plain.mask).all())
     assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
     assert options_for("color").chroma_union == options_for("remove").chroma_union == CHROMA_UNION > 0
@@ -785,6 +793,7 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): " in r.output
     edge_points = load_selection(out).meta["stroke_centres"]["edge_points"]  # the seat's strokes have centres
     assert edge_points > 0 and f"strokes: their centres lifted ({edge_points} edge points left out" in r.output
+    assert f"colour join: {join_summary(load_selection(out).meta)}\n" in r.output  # a recolour's selection joins or says why not
     r = runner.invoke(app, [*args, "--keep", str(tmp_path / "fg.png"), "--keep", str(tmp_path / "fg.png"), "--out", str(tmp_path / "x.safetensors")])
     assert_user_error(r, "one per --view")
     assert not (tmp_path / "x.safetensors").exists()

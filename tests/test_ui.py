@@ -254,10 +254,11 @@ def test_select_tints_the_selection_over_any_view_until_cleared(ui, scene):
     other = ui.get("/api/view?instance=0&view=train:4&tint=1")  # switching views keeps the selection
     assert other != ui.get("/api/view?instance=0&view=train:4")
     # the page sends the edit kind, and says what the strokes and the mirror did: every kind's
-    # selection lifts the strokes' centres, a recolour's reads the mirror and an addition's not
+    # selection lifts the strokes' centres, a recolour's reads the mirror and tries the colour join, an addition's neither
     added = ui.post("/api/select", {**body, "kind": "add"})
     assert info["strokes"].startswith(("their centres lifted (", "lifted whole (")) and added["strokes"] == info["strokes"]
     assert info["mirror"].startswith(("not used (", "the plane normal to ")) and added["mirror"] is None
+    assert info["colour_join"].startswith(("took the cells of the scribbled colour (", "refused: ")) and added["colour_join"] is None
     assert "a selection for 'paint'" in ui.error("POST", "/api/select", {**body, "kind": "paint"})
     ui.post("/api/select/clear", {"instance": 0})
     assert "nothing is selected" in ui.error("GET", "/api/view?instance=0&view=train:0&tint=1")

@@ -14,9 +14,10 @@ from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load,
 
 def _summaries():
     """(label, summary function) of each part of a selection's metadata that the commands print."""
-    from ..edit.selection import mirror_summary, part_summary, shape_summary, stroke_summary
+    from ..edit.selection import join_summary, mirror_summary, part_summary, shape_summary, stroke_summary
 
-    return (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("shape gate", shape_summary))
+    return (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("colour join", join_summary),
+            ("shape gate", shape_summary))
 
 
 def _mask(path: Path, model, instance: int, camera, what: str):

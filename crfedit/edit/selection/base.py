@@ -76,6 +76,23 @@ def part_summary(meta: dict) -> str | None:
     return f"not read (coherence {info['coherence']:.2f} < {info['cut']:g}: it does not see the scribbled points as one part)"
 
 
+def join_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of the chromaticity join
+    (:attr:`~.options.SelectOptions.chroma_union`), in a line (None: not asked).  A refused
+    join is what leaves a large part half selected; the line says what to do about it."""
+    info = meta.get("chroma_union")
+    if info is None:
+        return None
+    if info["cells"] is None:
+        return f"not tried (the scribbled colour is near-grey: saturation {info['saturation']:.2f})"
+    if info["joined"]:
+        return f"took the cells of the scribbled colour ({info['cells']} by chromaticity alone)"
+    said = f"refused: chromaticity alone selects {info['cells']} cells"
+    if "features_cells" in info:  # not recorded before 2026-11-26
+        said += f", over {info['cap']:g}× the {info['features_cells']} the features select"
+    return said + " (if the part is that large, scribble more of it or from a second view)"
+
+
 def shape_summary(meta: dict) -> str | None:
     """What a selection's metadata says of the shape gate and the rims, in a line (None: neither ran)."""
     gate, rims = meta.get("shape_gate"), meta.get("rim_fill")

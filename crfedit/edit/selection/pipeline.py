@@ -331,7 +331,7 @@ def select(
                 alone = torch.where(gated((alone >= options.threshold) & (values < options.threshold)), torch.zeros_like(alone), alone)
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
             cap = options.pale_union if options.pale_union > 0 and saturation < options.pale_saturation else options.chroma_union
-            union.update(cells=n_alone, joined=n_alone <= cap * max(n_main, 1))
+            union.update(cells=n_alone, features_cells=n_main, cap=cap, joined=n_alone <= cap * max(n_main, 1))
             if union["joined"]:
                 values = torch.maximum(values, alone)
     def cap_unlike(values: Tensor, factor: float, below: float, low: float = 0.0, high: float = options.threshold,

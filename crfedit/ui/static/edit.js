@@ -32,6 +32,7 @@ async function doSelect() {
     + (info.strokes ? `; strokes: ${info.strokes}` : "")
     + (info.mirror ? `; mirror: ${info.mirror}` : "")
     + (info.part_head ? `; part head: ${info.part_head}` : "")
+    + (info.colour_join ? `; colour join: ${info.colour_join}` : "")
     + (info.shape_gate ? `; shape gate: ${info.shape_gate}` : "");
   await showView();
   measure("select", start);
