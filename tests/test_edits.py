@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -518,6 +519,15 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
     assert r.stdout.splitlines()[0] == "scribble: white on black, 32 pixels (3.1 % of the view)"
     assert r.stdout.splitlines()[-1].startswith(f"wrote {out}: color edit of {model.names[1]}")
+    # it says what its selection took, in select's words (the selection it edits with)
+    lines = r.stdout.splitlines()
+    said = [line for line in lines if line.startswith("selection: ")]
+    from crfedit.edit.selection import ScribbleView, options_for, select
+
+    sel = select(model, 1, [ScribbleView(view.camera, fg, keep & ~fg)], options_for("color"))
+    cells = f"selection: {sel.meta['selected_cells']} of {sel.meta['occupied_cells']} occupied cells ("
+    assert len(said) == 1 and said[0].startswith(cells) and re.fullmatch(r".*\(\d+\.\d\d s\)", said[0]), lines
+    assert any(line.startswith("colour join: ") for line in lines) and any(line.startswith("strokes: ") for line in lines)
     d = read_delta(out)
     assert d.meta["view"] == f"train:{i}" and d.meta["command"] == "crfedit edit-color m.safetensors --color #00f"
     shown = json.loads(invoke("edits", "show", out, "--json").stdout)

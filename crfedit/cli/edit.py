@@ -183,7 +183,25 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(*masks, m, k, camera, force)
     mode = _mirror(mirror, method)
-    return _Scribbled(m, k, shown, label, camera, fg, bg, mode, _selection(selection, m, k, kind, mode))
+    sel = _selection(selection, m, k, kind, mode)
+    if sel is None and method == EditMethod.selection:
+        sel = _lifted(m, k, camera, fg, bg, kind, mode)
+    return _Scribbled(m, k, shown, label, camera, fg, bg, mode, sel)
+
+
+def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None):
+    """The selection a ``kind`` edit makes from its scribbles (what the edit would compute
+    itself), made here so that the command says what it took, in `crfedit select`'s lines."""
+    from ..edit.scribble import check_masks
+    from ..edit.selection import ScribbleView, options_for, select
+    from .select import echo_summaries
+
+    keep = check_masks(fg, bg, camera.width, camera.height)
+    sel = select(m, k, [ScribbleView(camera, fg, keep)], options_for(kind, mirror))
+    info = sel.meta
+    typer.echo(f"selection: {info['selected_cells']} of {info['occupied_cells']} occupied cells ({info['seconds']:.2f} s)")
+    echo_summaries(info)
+    return sel
 
 
 def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty, recolor: Recolor = Recolor.shading):

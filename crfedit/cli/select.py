@@ -20,6 +20,14 @@ def _summaries():
             ("shape gate", shape_summary))
 
 
+def echo_summaries(info: dict) -> None:
+    """Print a fresh selection's summary lines (``label: line``), the ones that apply."""
+    for label, summary in _summaries():
+        line = summary(info)
+        if line is not None:
+            typer.echo(f"{label}: {line}")
+
+
 def _mask(path: Path, model, instance: int, camera, what: str):
     """A mask image (read as drawn: one line says how), or strokes JSON when the name ends in
     .json (:func:`~crfedit.edit.scribble.load_mask`), at the view's size."""
@@ -72,10 +80,7 @@ def select_cmd(
         f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
         f"({info['positives']} scribbled, {info['keep_points']} keep, {info['view_points']} other surface points; {info['seconds']:.2f} s)"
     )
-    for label, summary in _summaries():
-        line = summary(info)
-        if line is not None:
-            typer.echo(f"{label}: {line}")
+    echo_summaries(info)
     if preview is not None:
         preview.mkdir(parents=True, exist_ok=True)
         for i, (label, camera) in enumerate(shown):
