@@ -23,7 +23,7 @@ import torch
 
 from crfedit.data.loading import load_category
 from crfedit import occupancy
-from crfedit.edit.selection import ScribbleView, Selection, options_for, select, surface_points
+from crfedit.edit.selection import ScribbleView, Selection, options_for, select, select_for, surface_points
 import crfedit.evaluation as evaluation
 from crfedit.evaluation import evaluate_edits, load_twin_cases, model_width
 from crfedit.model import load_model
@@ -126,12 +126,12 @@ def edits_with(model, category, cases, by_scribble: dict | None = None) -> tuple
     """The twins' edits (hybrid, default options), made with the given selections
     (``by_scribble``: ``id(case.scribble)`` → Selection) in place of those of their scribbles
     when given: (the table row after its first cell, the hybrid runs per twin)."""
-    if by_scribble is not None:  # evaluate_edits calls select(model, k, [ScribbleView(camera, scribble, keep)]) once per twin
-        evaluation.select = lambda m, k, views, *a, **kw: by_scribble[id(views[0].scribble)]
+    if by_scribble is not None:  # evaluate_edits calls select_for(model, k, camera, scribble, keep, kind) once per twin
+        evaluation.select_for = lambda m, k, camera, scribble, *a, **kw: by_scribble[id(scribble)]
     try:
         result = evaluate_edits(model, category, cases, strategies=("hybrid",), paper=False)
     finally:
-        evaluation.select = select
+        evaluation.select_for = select_for
     c = next(r for r in result["tables"]["color"] if r["method"] == "hybrid")
     r = next(r for r in result["tables"]["remove"] if r["method"] == "hybrid")
     row = (f"{c['gap_closed']:.3f} | {c['psnr_outside']:.2f} dB | {c['selection_iou']:.3f} "

@@ -32,7 +32,7 @@ from .data.loading import Category, View, load_category, load_twins
 from .distributed import SINGLE, Ranks
 from .edit import STRATEGIES, EditOptions, EditResult, edit_color, remove
 from .edit.params import GROUP, trained_prefixes
-from .edit.selection import ScribbleView, Selection, options_for, select
+from .edit.selection import Selection, select_for
 from .errors import CrfError
 from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
@@ -253,7 +253,7 @@ def load_twin_cases(model: CategoryModel, category: Category) -> list[TwinCase]:
 
 def twin_selection(model: CategoryModel, case: TwinCase) -> Selection:
     """The selection the twin's edit makes from its scribbles (the edit kind's options)."""
-    return select(model, case.instance, [ScribbleView(case.camera, case.scribble, case.keep)], options_for(case.spec.kind))
+    return select_for(model, case.instance, case.camera, case.scribble, case.keep, case.spec.kind)
 
 
 def twin_appearance(category: Category, case: TwinCase) -> tuple[float, ...] | None:

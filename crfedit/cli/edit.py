@@ -193,11 +193,10 @@ def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None):
     """The selection a ``kind`` edit makes from its scribbles (what the edit would compute
     itself), made here so that the command says what it took, in `crfedit select`'s lines."""
     from ..edit.scribble import check_masks
-    from ..edit.selection import ScribbleView, options_for, select
+    from ..edit.selection import select_for
     from .select import echo_summaries
 
-    keep = check_masks(fg, bg, camera.width, camera.height)
-    sel = select(m, k, [ScribbleView(camera, fg, keep)], options_for(kind, mirror))
+    sel = select_for(m, k, camera, fg, check_masks(fg, bg, camera.width, camera.height), kind, mirror)
     info = sel.meta
     typer.echo(f"selection: {info['selected_cells']} of {info['occupied_cells']} occupied cells ({info['seconds']:.2f} s)")
     echo_summaries(info)

@@ -28,7 +28,7 @@ from .cache import edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
 from .losses import mse
 from .scribble import check_masks, parse_color, pick_pixels
-from .selection import MIN_OPACITY, ScribbleView, Selection, options_for, select
+from .selection import MIN_OPACITY, Selection, select_for
 from .supervised import recolor_selected
 
 
@@ -88,5 +88,5 @@ def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection
     if not bool(on.any()):
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
     if selection is None:
-        selection = select(model, k, [ScribbleView(camera, scribble, keep)], options_for("color", mirror), renders=[view])
+        selection = select_for(model, k, camera, scribble, keep, "color", mirror, renders=[view])
     return recolor_selected(model, k, selection, [camera], view.rgb.cpu()[on], rgb, options)

@@ -56,7 +56,7 @@ from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, oc
 from .losses import density_cross_entropy, density_entropy, log_density_drift, mse, visible_log_density
 from .params import used_code_tables
 from .scribble import check_masks, pick_pixels
-from .selection import ScribbleView, Selection, options_for, select
+from .selection import Selection, select_for
 from .supervised import add_selected, remove_selected
 from .transfer import swap_codes
 
@@ -116,7 +116,7 @@ def remove(
         if occluded:
             raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
         if selection is None:
-            selection = select(model, k, [ScribbleView(camera, scribble, keep)], options_for("remove", mirror))
+            selection = select_for(model, k, camera, scribble, keep, "remove", mirror)
         return remove_selected(model, k, selection, [camera], options)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator, also_random=True)
@@ -257,7 +257,7 @@ def add(
     ys, xs = ys[inside], xs[inside]
     if method == "selection":
         if selection is None:
-            selection = select(model, j, [ScribbleView(donor_camera, copy_mask)], options_for("add"))
+            selection = select_for(model, j, donor_camera, copy_mask, None, "add")
         return add_selected(model, k, j, selection, camera, offset, options)
     src_of = np.full(h * w, -1, dtype=np.int64)
     src_of[(ys + dy) * w + (xs + dx)] = ys * w + xs

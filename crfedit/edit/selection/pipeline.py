@@ -21,7 +21,7 @@ from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror
 from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, standardizer, within_spread
 from .features import SHAPE_SOURCES, cell_opacity, denser_points, group_width, local_frames, point_features, surface_points
-from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS
+from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
 from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
 from .shapes import RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
@@ -414,3 +414,13 @@ def select(
     if options.rim_fill > 0 and shape_grid is not None:
         meta["rim_fill"] = rim_meta
     return Selection(values, k, model.names[k], model.fingerprint(), meta, at)
+
+
+def select_for(
+    model: CategoryModel, instance: int | str, camera, scribble: np.ndarray, keep: np.ndarray | None, kind: str,
+    mirror: str | None = None, renders: Sequence[RenderOutput] | None = None,
+) -> Selection:
+    """The selection a ``kind`` edit makes from one view's scribbles (:func:`.options.options_for`
+    with the ``mirror`` mode): what ``edit-color``, ``remove`` and ``add`` compute when not
+    given one, and what the commands print before they edit."""
+    return select(model, instance, [ScribbleView(camera, scribble, keep)], options_for(kind, mirror), renders=renders)
