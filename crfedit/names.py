@@ -31,6 +31,12 @@ EDIT_METHODS = ("selection", "paper")
 supervise the edit with it (``edit.selection``, ``edit.supervised``); paper: the paper's losses
 on the scribbled view's rays alone."""
 
+JOIN_MODES = ("auto", "always", "never")
+"""Whether a selection joins what the scribbled colour's chromaticity alone selects
+(``edit.selection``, ``SelectOptions.chroma_union``): as the edit kind does (recolours and
+removals unless it would take over 3.5× the cells the features chose, additions never), always,
+or never."""
+
 MIRROR_MODES = ("off", "views", "values")
 """How a selection reads the instance's mirror symmetry (``edit.symmetry``): not at all, the
 scribbled views' mirror images lending their strokes, or the selection taking its own mirror

@@ -19,7 +19,7 @@ from crfedit.edit.selection import (
 from crfedit.edit.selection.classify import appearance_gate, chroma_alike, classifier, fit_logistic
 from crfedit.edit.selection.features import denser_points, group_width, local_shape
 from crfedit.edit.selection.options import (
-    CENTRE_SHARE, CHROMA_OFFSET, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
+    CENTRE_SHARE, CHROMA_OFFSET, JOIN_ALWAYS, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
 )
 from crfedit.edit.selection.refine import (
     bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
@@ -190,6 +190,14 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
     assert options_for("color").chroma_union == options_for("remove").chroma_union == CHROMA_UNION > 0
     assert options_for("add").chroma_union == 0
+    # --colour-join: the kind's cap (auto), no cap (always: finite, so the metadata stays JSON) or no join
+    for kind in ("color", "remove", "add"):
+        assert options_for(kind, join="auto") == options_for(kind)
+        assert options_for(kind, join="always") == dataclasses.replace(options_for(kind), chroma_union=JOIN_ALWAYS)
+        assert options_for(kind, join="never") == dataclasses.replace(options_for(kind), chroma_union=0.0)
+    assert options_for("color", "off", "always").mirror == "off"
+    with pytest.raises(CrfError, match="--colour-join sometimes: expected one of auto, always, never"):
+        options_for("color", join="sometimes")
     # a pale part's join can be capped by pale_union instead (removals never join below PALE_SATURATION)
     pale = SelectOptions(chroma_union=1e6, pale_union=1e-6, chroma_saturation=0.0, pale_saturation=1.01)  # every part is pale
     assert select(model, k, views, pale).meta["chroma_union"]["joined"] is False
@@ -803,6 +811,15 @@ def test_select_command_and_its_errors(trained, tmp_path):
     r = runner.invoke(app, [*args, "--for", "add", "--out", str(tmp_path / "a.safetensors")])
     assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "a.safetensors").meta
     assert "chroma_union" in load_selection(out).meta and load_selection(out).meta["for"] == "color"  # the default
+    # --colour-join: always takes the colour's cells (and says so), never does not try
+    r = runner.invoke(app, [*args, "--colour-join", "always", "--out", str(tmp_path / "j.safetensors")])
+    joined = load_selection(tmp_path / "j.safetensors")
+    assert r.exit_code == 0 and joined.meta["chroma_union"]["joined"] and joined.meta["chroma_union"]["cap"] == JOIN_ALWAYS
+    assert "colour join: took the cells of the scribbled colour (" in r.output and int(joined.mask.sum()) >= int(load_selection(out).mask.sum())
+    r = runner.invoke(app, [*args, "--colour-join", "never", "--out", str(tmp_path / "n.safetensors")])
+    assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "n.safetensors").meta and "colour join:" not in r.output
+    r = runner.invoke(app, [*args, "--colour-join", "sometimes", "--out", str(tmp_path / "x.safetensors")])
+    assert r.exit_code == 2 and not (tmp_path / "x.safetensors").exists()
     # `crfedit info` reads a selection file: its instance, model and cells, as the file holds them
     sel = load_selection(out)
     shown = runner.invoke(app, ["info", str(out)])
@@ -816,6 +833,13 @@ def test_select_command_and_its_errors(trained, tmp_path):
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[0], "--view", f"train:{index}",
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out)])
     assert r.exit_code == 2 and "is of instance" in r.output and not edit_out.exists()
+    # the edits' --colour-join sets how they make their selection: not with a given one, nor with the paper's losses
+    for extra, message in ((["--selection", str(out)], "--colour-join sets how the selection is computed from the scribbles"),
+                           (["--method", "paper"], "--colour-join belongs to --method selection")):
+        r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--scribble",
+                                str(tmp_path / "fg.png"), "--colour-join", "always", *extra, "--out", str(edit_out)])
+        assert_user_error(r, message)
+        assert not edit_out.exists()
     r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--steps", "5",
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(out), "--out", str(edit_out),
                             "--preview", str(tmp_path / "after"), "--views", "orbit:3"])

@@ -14,7 +14,7 @@ from typing import Annotated, NamedTuple, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import ADD_METHODS, EDIT_METHODS, MIRROR_MODES, PENALTIES, RECOLOR_RULES, STRATEGIES
+from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, PENALTIES, RECOLOR_RULES, STRATEGIES
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
 
 
@@ -24,6 +24,7 @@ EditMethod = enum.Enum("EditMethod", {m: m for m in EDIT_METHODS}, type=str)
 Penalty = enum.Enum("Penalty", {m: m for m in PENALTIES}, type=str)
 Recolor = enum.Enum("Recolor", {m: m for m in RECOLOR_RULES}, type=str)
 MirrorMode = enum.Enum("MirrorMode", {m: m for m in MIRROR_MODES}, type=str)
+JoinMode = enum.Enum("JoinMode", {m: m for m in JOIN_MODES}, type=str)
 
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors).")]
@@ -42,6 +43,7 @@ KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or st
 KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or strokes .json) of what must not change (a random sample of the rest of the view is kept as well).")]
 MethodOpt = Annotated[EditMethod, typer.Option("--method", help="selection: lift the scribbles to a 3-D selection and supervise the edit with it in every view; paper: the paper's losses on the scribbled view's rays alone.")]
 SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles).")]
+JoinOpt = Annotated[Optional[JoinMode], typer.Option("--colour-join", help="Whether the selection computed from the scribbles also takes the cells of the scribbled colour: auto (unless that would be over 3.5× the cells the features chose; additions never), always (a part that is most of the instance) or never.")]
 MirrorOpt = Annotated[Optional[MirrorMode], typer.Option("--mirror", help="Mirror symmetry of the selection computed from the scribbles: views (the scribbled view's mirror image lends its strokes; removals' default), values (the selection takes its own mirror image; recolours' default) or off (one side only). Nothing is mirrored where the keep strokes cover the scribble's mirror image.")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
 PreviewOpt = Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG renders of the edited instance from --views.")]
@@ -108,22 +110,24 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
     return fg.mask, None if bg is None else bg.mask
 
 
-def _mirror(mirror, method) -> str | None:
-    """``--mirror``'s mode (None: the edit's default), refused with ``--method paper``."""
-    if mirror is not None and method != EditMethod.selection:
-        raise CrfError("--mirror belongs to --method selection (the paper's losses select nothing)")
-    return None if mirror is None else mirror.value
+def _mode(value, method, option: str = "--mirror") -> str | None:
+    """A selection mode's value (``--mirror``, ``--colour-join``; None: the edit's default),
+    refused with ``--method paper``."""
+    if value is not None and method != EditMethod.selection:
+        raise CrfError(f"{option} belongs to --method selection (the paper's losses select nothing)")
+    return None if value is None else value.value
 
 
-def _selection(path: Path | None, model, instance: int, kind: str, mirror: str | None = None):
+def _selection(path: Path | None, model, instance: int, kind: str, mirror: str | None = None, join: str | None = None):
     """The selection file at ``path`` checked against the model and instance (None: none
     given); a warning when it was made ``--for`` a kind of edit that selects differently."""
     from ..edit.selection import EDIT_KINDS, load_selection, options_for
 
     if path is None:
         return None
-    if mirror is not None:
-        raise CrfError("--mirror sets how the selection is computed from the scribbles; with --selection give it to `crfedit select`")
+    for option, value in (("--mirror", mirror), ("--colour-join", join)):
+        if value is not None:
+            raise CrfError(f"{option} sets how the selection is computed from the scribbles; with --selection give it to `crfedit select`")
 
     sel = load_selection(path)
     sel.check_for(model, instance)
@@ -172,31 +176,32 @@ class _Scribbled(NamedTuple):
 
 
 def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: str, masks: tuple, force: bool, method,
-               mirror, selection: Path | None, kind: str, preview: Path | None, views: str) -> _Scribbled:
+               mirror, selection: Path | None, kind: str, preview: Path | None, views: str, join=None) -> _Scribbled:
     """Load the model with its ``--edit`` files and read, in this order (so that the first bad
     option is the one named): the instance, the preview's views, the scribbled view, its masks
-    (``masks``: scribble, scribble JSON, keep, keep JSON), the mirror mode and the ``--selection``
-    file made for a ``kind`` edit."""
+    (``masks``: scribble, scribble JSON, keep, keep JSON), the mirror and colour-join modes and
+    the ``--selection`` file made for a ``kind`` edit; then, without one, make the selection
+    (:func:`_lifted`)."""
     m = _load(model, edits, device)
     k = m.instance_index(instance)
     shown = _preview_views(m, k, preview, views)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(*masks, m, k, camera, force)
-    mode = _mirror(mirror, method)
-    sel = _selection(selection, m, k, kind, mode)
+    mode, join_mode = _mode(mirror, method), _mode(join, method, "--colour-join")
+    sel = _selection(selection, m, k, kind, mode, join_mode)
     if sel is None and method == EditMethod.selection:
-        sel = _lifted(m, k, camera, fg, bg, kind, mode)
+        sel = _lifted(m, k, camera, fg, bg, kind, mode, join_mode)
     return _Scribbled(m, k, shown, label, camera, fg, bg, mode, sel)
 
 
-def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None):
+def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None, join: str | None = None):
     """The selection a ``kind`` edit makes from its scribbles (what the edit would compute
     itself), made here so that the command says what it took, in `crfedit select`'s lines."""
     from ..edit.scribble import check_masks
     from ..edit.selection import select_for
     from .select import echo_summaries
 
-    sel = select_for(m, k, camera, fg, check_masks(fg, bg, camera.width, camera.height), kind, mirror)
+    sel = select_for(m, k, camera, fg, check_masks(fg, bg, camera.width, camera.height), kind, mirror, join=join)
     info = sel.meta
     typer.echo(f"selection: {info['selected_cells']} of {info['occupied_cells']} occupied cells ({info['seconds']:.2f} s)")
     echo_summaries(info)
@@ -234,6 +239,7 @@ def edit_color_cmd(
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
     mirror: MirrorOpt = None,
+    join: JoinOpt = None,
     force: ForceOpt = False,
     preview: PreviewOpt = None,
     views: PreviewViewsOpt = "orbit:8",
@@ -255,7 +261,8 @@ def edit_color_cmd(
     _require_scribble(scribble, scribble_json, "part to recolour")
     options = _options(strategy, steps, lr, rays, seed, penalty, recolor)
     _check_out(out, model)
-    p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "color", preview, views)
+    p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "color", preview, views,
+                   join)
     result = edit_color(p.model, p.instance, p.camera, p.scribble, rgb, p.keep, options, method.value, p.selection, p.mirror)
     _write(result, out, p.label)
     _preview(result.model, p.instance, preview, p.shown, views)
@@ -276,6 +283,7 @@ def remove_cmd(
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
     mirror: MirrorOpt = None,
+    join: JoinOpt = None,
     force: ForceOpt = False,
     preview: PreviewOpt = None,
     views: PreviewViewsOpt = "orbit:8",
@@ -294,7 +302,8 @@ def remove_cmd(
     _require_scribble(scribble, scribble_json, "part to remove")
     options = _options(strategy, steps, lr, rays, seed, penalty)
     _check_out(out, model)
-    p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "remove", preview, views)
+    p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "remove", preview, views,
+                   join)
     result = remove(p.model, p.instance, p.camera, p.scribble, p.keep, occluded, options, method.value, p.selection, p.mirror)
     _write(result, out, p.label)
     _preview(result.model, p.instance, preview, p.shown, views)

@@ -9,7 +9,7 @@ import typer
 
 from ..errors import CrfError
 from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
-from .edit import InstanceOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _preview_views, _view_render
+from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _preview_views, _view_render
 
 
 def _summaries():
@@ -52,6 +52,7 @@ def select_cmd(
     views: Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")] = "orbit:8",
     kind: Annotated[str, typer.Option("--for", help="The edit the selection is for: color (also takes the cells of the scribble's chromaticity), remove or add.")] = "color",
     mirror: MirrorOpt = None,
+    join: JoinOpt = None,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
@@ -62,7 +63,7 @@ def select_cmd(
         raise CrfError(f"give one --scribble per --view ({len(view)} views, {len(scribble)} scribbles)")
     if keep and len(keep) != len(view):
         raise CrfError(f"give no --keep or one per --view ({len(view)} views, {len(keep)} keep masks)")
-    options = options_for(kind, None if mirror is None else mirror.value)
+    options = options_for(kind, None if mirror is None else mirror.value, None if join is None else join.value)
     _check_out(out, model)
     m = _load(model, edit, device)
     k = m.instance_index(instance)

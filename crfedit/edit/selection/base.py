@@ -90,7 +90,7 @@ def join_summary(meta: dict) -> str | None:
     said = f"refused: chromaticity alone selects {info['cells']} cells"
     if "features_cells" in info:  # not recorded before 2026-11-26
         said += f", over {info['cap']:g}× the {info['features_cells']} the features select"
-    return said + " (if the part is that large, scribble more of it or from a second view)"
+    return said + " (if the part is that large: --colour-join always, or scribble more of it or from a second view)"
 
 
 def shape_summary(meta: dict) -> str | None:

@@ -7,7 +7,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from ...errors import CrfError
-from ...names import MIRROR_MODES
+from ...names import JOIN_MODES, MIRROR_MODES
 
 MIN_OPACITY = 0.5
 """A pixel shows the object (and has a surface point) where its rendered opacity is at least this."""
@@ -538,7 +538,12 @@ from 0.2 as before: 0.819 / 0.673 (the shell 0.54 / 0.39: on the seed-1 model th
 lit inside was missing, which only the join takes)."""
 
 
-def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
+JOIN_ALWAYS = 1e9
+""":attr:`SelectOptions.chroma_union` for ``join="always"`` (:func:`options_for`): a cap no
+chromaticity-only selection reaches (finite, so that a selection file's metadata stays JSON)."""
+
+
+def options_for(kind: str, mirror: str | None = None, join: str | None = None) -> SelectOptions:
     """The selection options an edit of ``kind`` uses: recolours and removals join the
     chromaticity-only selection (:data:`CHROMA_UNION`), additions (a donor's part) do not: it
     doubled the damage of an added part to the rest of the chair (docs/selection.md).
@@ -554,13 +559,23 @@ def options_for(kind: str, mirror: str | None = None) -> SelectOptions:
     (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`), snap a scribble that lies mostly off
     the object onto it (:data:`STROKE_SNAP`), and read the instance's mirror symmetry
     (:data:`REMOVE_MIRROR`, :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise.
-    All three lift their strokes' centres (:data:`STROKE_CENTRES`)."""
+    All three lift their strokes' centres (:data:`STROKE_CENTRES`).  ``join`` (``auto``, the
+    default; ``always``; ``never``) overrides the chromaticity join's cap: a part that is most
+    of the instance can hold more of its colour than the cap lets the join take."""
     if kind not in EDIT_KINDS:
         raise CrfError(f"a selection for {kind!r}: expected one of {', '.join(EDIT_KINDS)}")
     if mirror is not None and mirror not in MIRROR_MODES:
         raise CrfError(f"--mirror {mirror}: expected one of {', '.join(MIRROR_MODES)}")
+    if join is not None and join not in JOIN_MODES:
+        raise CrfError(f"--colour-join {join}: expected one of {', '.join(JOIN_MODES)}")
     options = _kind_options(kind)
-    return options if mirror is None else dataclasses.replace(options, mirror=mirror)
+    if mirror is not None:
+        options = dataclasses.replace(options, mirror=mirror)
+    if join == "always":
+        options = dataclasses.replace(options, chroma_union=JOIN_ALWAYS)
+    elif join == "never":
+        options = dataclasses.replace(options, chroma_union=0.0)
+    return options
 
 
 def _kind_options(kind: str) -> SelectOptions:

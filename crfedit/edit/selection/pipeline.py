@@ -418,9 +418,9 @@ def select(
 
 def select_for(
     model: CategoryModel, instance: int | str, camera, scribble: np.ndarray, keep: np.ndarray | None, kind: str,
-    mirror: str | None = None, renders: Sequence[RenderOutput] | None = None,
+    mirror: str | None = None, renders: Sequence[RenderOutput] | None = None, join: str | None = None,
 ) -> Selection:
     """The selection a ``kind`` edit makes from one view's scribbles (:func:`.options.options_for`
-    with the ``mirror`` mode): what ``edit-color``, ``remove`` and ``add`` compute when not
-    given one, and what the commands print before they edit."""
-    return select(model, instance, [ScribbleView(camera, scribble, keep)], options_for(kind, mirror), renders=renders)
+    with the ``mirror`` and ``join`` modes): what ``edit-color``, ``remove`` and ``add`` compute
+    when not given one, and what the commands print before they edit."""
+    return select(model, instance, [ScribbleView(camera, scribble, keep)], options_for(kind, mirror, join), renders=renders)
