@@ -110,7 +110,7 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
     return fg.mask, None if bg is None else bg.mask
 
 
-def _mode(value, method, option: str = "--mirror") -> str | None:
+def _mode(value, method, option: str) -> str | None:
     """A selection mode's value (``--mirror``, ``--colour-join``; None: the edit's default),
     refused with ``--method paper``."""
     if value is not None and method != EditMethod.selection:
@@ -187,7 +187,7 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
     shown = _preview_views(m, k, preview, views)
     label, camera = _one_view(m, view, k)
     fg, bg = _masks(*masks, m, k, camera, force)
-    mode, join_mode = _mode(mirror, method), _mode(join, method, "--colour-join")
+    mode, join_mode = _mode(mirror, method, "--mirror"), _mode(join, method, "--colour-join")
     sel = _selection(selection, m, k, kind, mode, join_mode)
     if sel is None and method == EditMethod.selection:
         sel = _lifted(m, k, camera, fg, bg, kind, mode, join_mode)
