@@ -12,17 +12,11 @@ from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
 from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _preview_views, _view_render
 
 
-def _summaries():
-    """(label, summary function) of each part of a selection's metadata that the commands print."""
-    from ..edit.selection import join_summary, mirror_summary, part_summary, shape_summary, stroke_summary
-
-    return (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("colour join", join_summary),
-            ("shape gate", shape_summary))
-
-
 def echo_summaries(info: dict) -> None:
     """Print a fresh selection's summary lines (``label: line``), the ones that apply."""
-    for label, summary in _summaries():
+    from ..edit.selection import SUMMARIES
+
+    for label, summary in SUMMARIES:
         line = summary(info)
         if line is not None:
             typer.echo(f"{label}: {line}")
@@ -94,7 +88,7 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
     instance, model, cells and how it was made (table or JSON)."""
     import json
 
-    from ..edit.selection import FORMAT, load_selection
+    from ..edit.selection import FORMAT, SUMMARIES, load_selection
 
     sel = load_selection(path)
     info = sel.meta if isinstance(sel.meta, dict) else {}
@@ -120,7 +114,7 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
     ]
     if isinstance(features, list):
         rows.append(("features", ", ".join(map(str, features))))
-    for label, summary in _summaries():
+    for label, summary in SUMMARIES:
         try:
             line = summary(info)
         except (KeyError, TypeError, ValueError, IndexError):  # a hand-edited record: say nothing rather than guess

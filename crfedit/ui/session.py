@@ -31,7 +31,7 @@ from ..data.loading import Category
 from ..delta import Delta, apply_deltas, bake, read_delta, restack, save_delta
 from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
-from ..edit.selection import ScribbleView, Selection, join_summary, mirror_summary, options_for, part_summary, preview, select, shape_summary, stroke_summary
+from ..edit.selection import SUMMARIES, ScribbleView, Selection, options_for, preview, select
 from ..errors import CrfError
 from ..model import CategoryModel, save_model
 from ..renderer import render_camera
@@ -231,8 +231,8 @@ class UiSession:
             self._view_cache(model, key, k, s.view)
         info = sel.meta
         return {"instance": k, "selected_cells": info["selected_cells"], "occupied_cells": info["occupied_cells"],
-                "views": len(scribbles), "seconds": info["seconds"], "strokes": stroke_summary(info), "mirror": mirror_summary(info),
-                "part_head": part_summary(info), "colour_join": join_summary(info), "shape_gate": shape_summary(info)}
+                "views": len(scribbles), "seconds": info["seconds"],
+                **{label.replace(" ", "_"): summary(info) for label, summary in SUMMARIES}}
 
     def clear_selection(self, instance) -> None:
         k = instance_of(self.base, instance)

@@ -147,3 +147,9 @@ def mirror_summary(meta: dict) -> str | None:
     if info["mode"] == "views":
         return f"{plane}; the view's mirror image added {info['positives']} scribbled and {info['keep_points']} keep points"
     return f"{plane}; the selection took its mirror image"
+
+
+SUMMARIES = (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("colour join", join_summary),
+             ("shape gate", shape_summary))
+"""(label, summary function) of each part of a selection's metadata that ``select``, ``info``,
+the edit commands and the page say, in that order (the page's field: the label, ``_`` for spaces)."""
