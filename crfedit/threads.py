@@ -52,14 +52,20 @@ def default_threads(cores: int | None = None, load: float | None = None) -> int:
 
 
 def requested_threads() -> int:
-    """``CRFEDIT_THREADS`` when set (a positive integer, else a :class:`CrfError`), else :func:`default_threads`."""
-    value = os.environ.get("CRFEDIT_THREADS")
-    if value is None or not value.strip():
-        return default_threads()
-    try:
-        n = int(value)
-        if n < 1:
-            raise ValueError
-    except ValueError:
-        raise CrfError(f"CRFEDIT_THREADS={value!r}: expected a positive integer") from None
-    return n
+    """``CRFEDIT_THREADS`` when set, else ``OMP_NUM_THREADS`` when set, else :func:`default_threads`.
+
+    Either must be a positive integer, else a :class:`CrfError`; of ``OMP_NUM_THREADS``'s
+    per-level list (``"4,2"``) the first entry counts, the threads torch's pool gets.
+    """
+    for name in ("CRFEDIT_THREADS", "OMP_NUM_THREADS"):
+        value = os.environ.get(name)
+        if value is None or not value.strip():
+            continue
+        try:
+            n = int(value.split(",")[0] if name == "OMP_NUM_THREADS" else value)
+            if n < 1:
+                raise ValueError
+        except ValueError:
+            raise CrfError(f"{name}={value!r}: expected a positive integer") from None
+        return n
+    return default_threads()

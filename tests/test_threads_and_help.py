@@ -3,6 +3,7 @@ readable metavars and answers without importing torch (issue 18)."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +23,7 @@ def test_default_threads_are_the_cores_nothing_else_uses(cores, load, expected):
 
 
 def test_crfedit_threads_overrides_and_is_checked(monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setenv("CRFEDIT_THREADS", "3")
     assert requested_threads() == 3
     for bad in ("0", "-1", "two"):
@@ -30,6 +32,37 @@ def test_crfedit_threads_overrides_and_is_checked(monkeypatch):
             requested_threads()
     monkeypatch.delenv("CRFEDIT_THREADS")
     assert 1 <= requested_threads() <= usable_cores()
+
+
+def test_omp_num_threads_is_honoured_after_crfedit_threads(monkeypatch):
+    """torch's own setting (torchrun sets 1 a rank) counts: the load average cannot see a
+    process started in the same second, so two runs launched together each took every core."""
+    monkeypatch.delenv("CRFEDIT_THREADS", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "5")
+    assert requested_threads() == 5
+    monkeypatch.setenv("OMP_NUM_THREADS", "4,2")  # OpenMP's per-level list: torch's pool is the first
+    assert requested_threads() == 4
+    monkeypatch.setenv("CRFEDIT_THREADS", "3")  # crfedit's own setting wins
+    assert requested_threads() == 3
+    monkeypatch.delenv("CRFEDIT_THREADS")
+    for bad in ("0", "x", ",2"):
+        monkeypatch.setenv("OMP_NUM_THREADS", bad)
+        with pytest.raises(CrfError, match="OMP_NUM_THREADS"):
+            requested_threads()
+    monkeypatch.setenv("OMP_NUM_THREADS", " ")
+    assert 1 <= requested_threads() <= usable_cores()
+
+
+def test_a_command_computes_with_omp_num_threads(tmp_path):
+    """A command started with OMP_NUM_THREADS=N (N above this machine's cores, which the
+    default never picks) leaves torch with N threads."""
+    code = ("import sys, torch; sys.argv = ['crfedit', 'info', sys.argv[1]]\nfrom crfedit.cli import main\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\nprint(torch.get_num_threads())")
+    n = usable_cores() + 1
+    env = {k: v for k, v in os.environ.items() if k != "CRFEDIT_THREADS"}
+    run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "missing.safetensors")], capture_output=True,
+                         text=True, cwd=Path(__file__).parents[1], env={**env, "OMP_NUM_THREADS": str(n)})
+    assert "missing.safetensors" in run.stderr and run.stdout.strip().splitlines()[-1] == str(n), run.stdout + run.stderr
 
 
 def test_help_has_readable_metavars():
