@@ -56,6 +56,12 @@ HOLD_WEIGHT = 10.0
 """Removal: weight of holding σ and the bottleneck at the teacher's values outside S, against
 σ → 0 inside.  The network's drift outside S is what a removal damages; the occupancy grid
 already skips S's cells, so holding the rest firmly costs the removal little."""
+SKIN_LOW = GROW_LOW
+"""A removal's skin takes only the cells of selection value at least this.  Measured (forty-
+eighth session, gap closed, hybrid; docs/benchmarks.md): 0.2 instead of 0.3 helps the
+procedural removals (0.825 → 0.850, 0.831 → 0.846, an H100 model 0.711 → 0.757: the faces of a
+box-shaped part that its features miss) and costs the real ones (0.896 → 0.892, 0.911 → 0.894,
+0.777 → 0.753: where S already reaches beyond the part, the skin takes more of the rest)."""
 SKIN_SHARE = 0.4
 """A removal's skin (:func:`removal_cells`) takes a neighbour of S only where S is at least this
 share of the neighbour's occupied 3×3×3 neighbourhood.  A flat face's outline cell has S on
@@ -123,13 +129,13 @@ def occupied_points(grid: Tensor, selected: Tensor, n_in: int, n_out: int, gener
 
 def removal_cells(selection: Selection, grid: Tensor) -> Tensor:
     """The occupied cells [R, R, R] a removal empties: S, plus S's skin — the occupied cells next
-    to S whose selection value is at least :data:`~.selection.GROW_LOW` and whose occupied 3×3×3
+    to S whose selection value is at least :data:`SKIN_LOW` and whose occupied 3×3×3
     neighbourhood is at least :data:`SKIN_SHARE` S.  A cell grid cut through at threshold 0.5
     leaves the part's outer faces in the cells just outside S, a faint outline where the part
     was; those cells lie against S with little else occupied around them.  A cell of another
     part that S merely touches (a seat under a thin frame) has mostly its own part around it."""
     sel = selection.mask.to(grid.device) & grid
-    skin = occupancy.dilate(sel, 1) & surrounded_by(sel, grid, SKIN_SHARE) & (selection.values.to(grid.device) >= GROW_LOW)
+    skin = occupancy.dilate(sel, 1) & surrounded_by(sel, grid, SKIN_SHARE) & (selection.values.to(grid.device) >= SKIN_LOW)
     return sel | skin
 
 
