@@ -171,6 +171,13 @@ def test_add_reads_the_copy_mask_as_drawn(view, tiny_model, tmp_path):
         r = invoke(*base, "--copy", tmp_path / f"{name}.png", "--out", outs[-1])
         assert r.exit_code == 0, r.output
         assert next(ln for ln in r.stdout.splitlines() if ln.startswith("copy: ")).startswith(f"copy: {reading}")
+        # it says what it took of the donor, in select's words
+        from crfedit.edit.selection import select_for
+
+        made = select_for(model, 1, camera, mask, None, "add").meta
+        said = [ln for ln in r.stdout.splitlines() if ln.startswith("donor selection: ")]
+        assert len(said) == 1 and said[0].startswith(f"donor selection: {made['selected_cells']} of {made['occupied_cells']} occupied cells ("), r.stdout
+        assert any(ln.startswith("strokes: ") for ln in r.stdout.splitlines()), r.stdout
     a, b = (load_file(o) for o in outs)
     assert a.keys() == b.keys() and all(torch.equal(a[n], b[n]) for n in a)
     # --preview renders the edited instance, as remove's and edit-color's do

@@ -199,13 +199,19 @@ def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None, join: str 
     itself), made here so that the command says what it took, in `crfedit select`'s lines."""
     from ..edit.scribble import check_masks
     from ..edit.selection import select_for
-    from .select import echo_summaries
 
     sel = select_for(m, k, camera, fg, check_masks(fg, bg, camera.width, camera.height), kind, mirror, join=join)
-    info = sel.meta
-    typer.echo(f"selection: {info['selected_cells']} of {info['occupied_cells']} occupied cells ({info['seconds']:.2f} s)")
-    echo_summaries(info)
+    _echo_selection(sel)
     return sel
+
+
+def _echo_selection(sel, whose: str = "") -> None:
+    """`crfedit select`'s lines for a selection an edit made (``whose``: e.g. "donor ")."""
+    from .select import echo_summaries
+
+    info = sel.meta
+    typer.echo(f"{whose}selection: {info['selected_cells']} of {info['occupied_cells']} occupied cells ({info['seconds']:.2f} s)")
+    echo_summaries(info)
 
 
 def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty, recolor: Recolor = Recolor.shading):
@@ -356,7 +362,8 @@ def add_cmd(
     if selection is not None and method != AddMethod.selection:
         raise CrfError("--selection belongs to --method selection")
     sel = _selection(selection, m, j, "add")
-    result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel)
+    result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel,
+                 on_selection=lambda made: _echo_selection(made, "donor "))
     _write(result, out, label)
     _preview(result.model, k, preview, shown, views)
 

@@ -36,6 +36,7 @@ only where no density is left nearby.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -222,9 +223,13 @@ def add(
     keep: np.ndarray | None = None,
     options: EditOptions = EditOptions(),
     selection: Selection | None = None,
+    on_selection: Callable[[Selection], None] | None = None,
 ) -> EditResult:
     """Add the donor's part under ``copy_mask`` (donor view) to ``instance``, pasted ``offset``
     = (dx, dy) pixels away in ``camera``'s view.
+
+    ``on_selection`` is told the donor selection the edit makes (with ``method`` selection and
+    no ``selection``), once the inputs have been checked: the CLI prints it as ``select`` would.
 
     ``method``: ``composite`` (the paper's: fit the pasted image along the pasted rays),
     ``density`` (match the donor's density along them) or ``selection`` (lift the copy mask to
@@ -258,6 +263,8 @@ def add(
     if method == "selection":
         if selection is None:
             selection = select_for(model, j, donor_camera, copy_mask, None, "add")
+            if on_selection is not None:
+                on_selection(selection)
         return add_selected(model, k, j, selection, camera, offset, options)
     src_of = np.full(h * w, -1, dtype=np.int64)
     src_of[(ys + dy) * w + (xs + dx)] = ys * w + xs

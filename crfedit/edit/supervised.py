@@ -58,7 +58,7 @@ HOLD_WEIGHT = 10.0
 already skips S's cells, so holding the rest firmly costs the removal little."""
 SKIN_LOW = GROW_LOW
 """A removal's skin takes only the cells of selection value at least this.  Measured (forty-
-eighth session, gap closed, hybrid; docs/benchmarks.md): 0.2 instead of 0.3 helps the
+seventh session, gap closed, hybrid; docs/benchmarks.md): 0.2 instead of 0.3 helps the
 procedural removals (0.825 → 0.850, 0.831 → 0.846, an H100 model 0.711 → 0.757: the faces of a
 box-shaped part that its features miss) and costs the real ones (0.896 → 0.892, 0.911 → 0.894,
 0.777 → 0.753: where S already reaches beyond the part, the skin takes more of the rest)."""
