@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -14,12 +15,77 @@ from typer.testing import CliRunner
 
 from crfedit.cli import app
 from crfedit.errors import CrfError
-from crfedit.threads import default_threads, requested_threads, usable_cores
+from crfedit.threads import (
+    default_threads,
+    is_crfedit,
+    recent_siblings,
+    requested_threads,
+    usable_cores,
+)
 
 
 @pytest.mark.parametrize("cores, load, expected", [(2, 0.1, 2), (2, 0.6, 1), (2, 1.4, 1), (2, 7.5, 1), (16, 3.2, 13), (16, 0.0, 16), (1, 0.0, 1)])
 def test_default_threads_are_the_cores_nothing_else_uses(cores, load, expected):
-    assert default_threads(cores, load) == expected
+    assert default_threads(cores, load, 0) == expected
+
+
+@pytest.mark.parametrize("cores, load, siblings, expected", [(16, 0.0, 1, 8), (16, 0.0, 3, 4), (2, 0.1, 1, 1), (16, 3.2, 1, 6), (2, 1.4, 5, 1), (16, 0.0, 40, 1)])
+def test_default_threads_are_shared_with_crfedit_processes_started_in_the_last_minute(cores, load, siblings, expected):
+    """The load average cannot see a process started seconds ago: two trainings started
+    together each took every core, and their start-up ran 14x slower on 16 cores."""
+    assert default_threads(cores, load, siblings) == expected
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["python3", "-m", "crfedit", "train", "d"], True),
+    (["/x/.venv/bin/python", "/x/.venv/bin/crfedit", "ui", "m"], True),  # the console script
+    (["python3.12", "-u", "-X", "importtime", "-m", "crfedit.cli"], True),
+    (["timeout", "60", "python3", "-m", "crfedit", "train"], False),  # a wrapper computes nothing
+    (["python3", "-m", "pytest", "crfedit"], False),
+    (["python3", "-c", "import crfedit"], False),
+    (["crfedit"], False),
+    ([], False),
+])
+def test_which_command_lines_are_crfedit(argv, expected):
+    assert is_crfedit(argv) is expected
+
+
+def test_recent_siblings_reads_proc(tmp_path):
+    """A /proc made here: crfedit processes started 10 s and 500 s ago, a wrapper, another
+    program, this process; only the first counts."""
+    tick = os.sysconf("SC_CLK_TCK")
+    (tmp_path / "uptime").write_text("1000.00 1500.00\n")
+    def proc(pid, argv, age):
+        d = tmp_path / str(pid)
+        d.mkdir()
+        (d / "cmdline").write_bytes(b"\0".join(a.encode() for a in argv) + b"\0")
+        rest = ["S"] + ["0"] * 18 + [str(int((1000.0 - age) * tick))] + ["0"] * 10  # field 22: start time
+        (d / "stat").write_text(f"{pid} (py (thon)) " + " ".join(rest) + "\n")
+    proc(101, ["python3", "-m", "crfedit", "train", "d"], 10)
+    proc(102, ["python3", "-m", "crfedit", "render", "m"], 500)
+    proc(103, ["timeout", "9", "python3", "-m", "crfedit", "train"], 10)
+    proc(104, ["python3", "-m", "http.server"], 10)
+    proc(os.getpid(), ["python3", "-m", "crfedit", "train"], 1)
+    (tmp_path / "105").mkdir()  # a process that ended while being read
+    assert recent_siblings(proc=tmp_path) == 1
+    assert recent_siblings(window=600, proc=tmp_path) == 2
+    assert recent_siblings(proc=tmp_path / "missing") == 0
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux's /proc")
+def test_a_crfedit_process_started_now_is_a_sibling(tmp_path):
+    script = tmp_path / "crfedit"
+    script.write_text("import time\ntime.sleep(30)\n")
+    child = subprocess.Popen([sys.executable, str(script)])
+    try:
+        deadline = time.monotonic() + 10
+        while recent_siblings() < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert recent_siblings() >= 1
+        assert default_threads(16, 0.0) <= 8
+    finally:
+        child.kill()
+        child.wait()
 
 
 def test_crfedit_threads_overrides_and_is_checked(monkeypatch):
