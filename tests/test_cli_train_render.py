@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +48,20 @@ def trained(data, tmp_path_factory) -> tuple[Path, str]:
 @pytest.fixture(scope="module")
 def model_path(trained) -> Path:
     return trained[0]
+
+
+def test_training_written_to_a_file_prints_progress_lines(data, tmp_path, monkeypatch):
+    """Not a terminal (CliRunner's output, like `> train.log`): plain progress lines while it
+    trains, not only the bar's last state at the end."""
+    from crfedit.cli.train import TrainProgress
+
+    monkeypatch.setattr(TrainProgress, "LINE_SECONDS", 0.0)
+    result = invoke("train", data, "--out", tmp_path / "m.safetensors", "--steps", 6, *TINY)
+    assert result.exit_code == 0, result.output
+    line = re.compile(r"\s*(\d+)/6  loss (\S+)  PSNR +(\S+)  \S+ rays/s  \d+:\d\d:\d\d  ETA \d+:\d\d:\d\d")
+    lines = [m for m in map(line.fullmatch, result.stdout.splitlines()) if m]
+    assert [int(m[1]) for m in lines] == [1, 2, 3, 4, 5, 6], result.stdout
+    assert lines[0][2] == "-" and float(lines[-1][2]) > 0 and float(lines[-1][3]) > 0, result.stdout  # loss read out by the end
 
 
 def test_training_end_score_is_score_model_on_val(trained, data):

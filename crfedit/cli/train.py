@@ -36,8 +36,13 @@ class TrainProgress:
     """A rich progress bar fed by :func:`crfedit.train.train`'s ``on_step``.
 
     Columns: step/total, loss, PSNR (of the training batch), rays/s, elapsed, ETA.  With a time
-    budget the bar tracks whichever limit comes first, steps or minutes.
+    budget the bar tracks whichever limit comes first, steps or minutes.  Written to a file or a
+    pipe (``> train.log``, ``nohup``, CI), where a bar shows only its last state when training
+    ends, the same fields also go out as a plain line every :attr:`LINE_SECONDS`.
     """
+
+    LINE_SECONDS = 30.0
+    """Seconds between the plain progress lines printed when the output is not a terminal."""
 
     def __init__(self, cfg, minutes: float | None, first_step: int = 0):
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -52,6 +57,8 @@ class TrainProgress:
             TextColumn("ETA {task.fields[eta]}"),
         )
         self.task = self.bar.add_task("train", total=1.0, step=first_step, steps=cfg.steps, loss="-", psnr="-", rate="-", eta="-")
+        self.lines = not self.bar.console.is_terminal
+        self.last_line = self.t0
 
     def __enter__(self) -> "TrainProgress":
         self.bar.start()
@@ -71,10 +78,15 @@ class TrainProgress:
         remaining = (self.cfg.steps - step) / steps_per_s if steps_per_s > 0 else math.inf
         if self.budget is not None:
             remaining = min(remaining, self.budget - elapsed)
-        self.bar.update(  # loss and PSNR are NaN until training's first read-out
-            self.task, completed=min(done, 1.0), step=step, loss=_number(loss, "{:.4f}"), psnr=_number(psnr, "{:5.2f}"),
-            rate=_si(rays_per_s), eta=_clock(max(remaining, 0.0)),
-        )
+        fields = {"step": step, "loss": _number(loss, "{:.4f}"), "psnr": _number(psnr, "{:5.2f}"), "rate": _si(rays_per_s),
+                  "eta": _clock(max(remaining, 0.0))}  # loss and PSNR are NaN until training's first read-out
+        self.bar.update(self.task, completed=min(done, 1.0), **fields)
+        now = time.perf_counter()
+        if self.lines and now - self.last_line >= self.LINE_SECONDS:
+            self.last_line = now
+            self.bar.console.print(
+                f"{step:>6}/{self.cfg.steps}  loss {fields['loss']}  PSNR {fields['psnr']}  {fields['rate']} rays/s  "
+                f"{_clock(now - self.t0)}  ETA {fields['eta']}", highlight=False, soft_wrap=True)
 
 
 def _number(x: float, form: str) -> str:
