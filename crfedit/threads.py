@@ -105,10 +105,11 @@ def recent_siblings(window: float = RECENT, proc: Path = Path("/proc")) -> int:
     return count
 
 
-def requested_threads() -> int:
-    """``CRFEDIT_THREADS`` when set, else ``OMP_NUM_THREADS`` when set, else :func:`default_threads`.
+def threads_choice() -> tuple[int, str]:
+    """(threads, why): ``CRFEDIT_THREADS`` when set, else ``OMP_NUM_THREADS`` when set, else
+    :func:`default_threads`, with what decided it in words (``train`` prints it).
 
-    Either must be a positive integer, else a :class:`CrfError`; of ``OMP_NUM_THREADS``'s
+    Either variable must be a positive integer, else a :class:`CrfError`; of ``OMP_NUM_THREADS``'s
     per-level list (``"4,2"``) the first entry counts, the threads torch's pool gets.
     """
     for name in ("CRFEDIT_THREADS", "OMP_NUM_THREADS"):
@@ -121,5 +122,14 @@ def requested_threads() -> int:
                 raise ValueError
         except ValueError:
             raise CrfError(f"{name}={value!r}: expected a positive integer") from None
-        return n
-    return default_threads()
+        return n, f"{name}={value.strip()}"
+    cores, load, siblings = usable_cores(), busy_cores(), recent_siblings()
+    why = f"{cores} usable cores, load average {load:.1f}"
+    if siblings:
+        why += f", shared with {siblings} other crfedit process{'es' * (siblings > 1)} started in the last minute"
+    return default_threads(cores, load, siblings), why + "; CRFEDIT_THREADS=N sets it"
+
+
+def requested_threads() -> int:
+    """The threads of :func:`threads_choice`."""
+    return threads_choice()[0]

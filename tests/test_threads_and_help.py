@@ -20,6 +20,7 @@ from crfedit.threads import (
     is_crfedit,
     recent_siblings,
     requested_threads,
+    threads_choice,
     usable_cores,
 )
 
@@ -34,6 +35,21 @@ def test_default_threads_are_shared_with_crfedit_processes_started_in_the_last_m
     """The load average cannot see a process started seconds ago: two trainings started
     together each took every core, and their start-up ran 14x slower on 16 cores."""
     assert default_threads(cores, load, siblings) == expected
+
+
+def test_threads_choice_says_what_decided_it(monkeypatch):
+    monkeypatch.setenv("CRFEDIT_THREADS", "3")
+    monkeypatch.setenv("OMP_NUM_THREADS", "5")
+    assert threads_choice() == (3, "CRFEDIT_THREADS=3")
+    monkeypatch.delenv("CRFEDIT_THREADS")
+    assert threads_choice() == (5, "OMP_NUM_THREADS=5")
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    monkeypatch.setattr("crfedit.threads.usable_cores", lambda: 16)
+    monkeypatch.setattr("crfedit.threads.busy_cores", lambda: 0.2)
+    monkeypatch.setattr("crfedit.threads.recent_siblings", lambda: 0)
+    assert threads_choice() == (16, "16 usable cores, load average 0.2; CRFEDIT_THREADS=N sets it")
+    monkeypatch.setattr("crfedit.threads.recent_siblings", lambda: 3)
+    assert threads_choice() == (4, "16 usable cores, load average 0.2, shared with 3 other crfedit processes started in the last minute; CRFEDIT_THREADS=N sets it")
 
 
 @pytest.mark.parametrize("argv, expected", [

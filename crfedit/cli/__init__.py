@@ -70,13 +70,13 @@ def _main() -> None:
         import click.exceptions as click_errors
 
     from ..errors import CrfError
-    from ..threads import requested_threads
+    from ..threads import threads_choice
     from .common import Session, debug_requested
 
     # Typer 0.29 vendors click without its Abort; typer.Abort is what it raises on Ctrl-C.
     aborts = tuple({typer.Abort, getattr(click_errors, "Abort", typer.Abort)})
     try:
-        Session.threads = requested_threads()
+        Session.threads, Session.threads_why = threads_choice()
         code = app(standalone_mode=False)
     except CrfError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -68,6 +68,8 @@ class Session:
     """Show the traceback of an unexpected error (``--debug`` or ``CRFEDIT_DEBUG=1``)."""
     threads: int | None = None
     """torch CPU threads to set when a command starts (None: leave torch as it is)."""
+    threads_why: str = ""
+    """What decided :attr:`threads` (:func:`crfedit.threads.threads_choice`), for ``train`` to say."""
 
 
 def debug_requested() -> bool:

@@ -14,7 +14,7 @@ import typer
 from ..io import check_folder_target
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
-from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, user_errors
+from .common import printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, user_errors
 
 
 PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
@@ -133,11 +133,12 @@ def run_training(
     """Train on a loaded category with a progress bar and run records (crfedit.runlog), both on
     rank 0 only under torchrun; return (model, TrainResult).  Training reads its loss back every
     gcd(``log_every``, READ_EVERY) steps, so every logged row holds that step's own loss."""
+    import torch
+
     from ..distributed import SINGLE
     from ..modelfile import stored_training
     from ..parts import part_config
     from ..runlog import RunLog, config_block, record_paths
-    from ..threads import requested_threads
     from ..train import READ_EVERY, train
 
     fixed = {"auto": None, "fixed": True, "exact": False}[march]
@@ -155,10 +156,12 @@ def run_training(
         cfg = part_config(category, cfg)  # what train() will store, for the records
     if not ranks.main:
         return train(category, cfg, out, device, seed=seed, minutes=minutes, resume=resume, ranks=ranks, **options)
+    threads = torch.get_num_threads()  # what this process computes with (the CLI set it at start, :class:`Session`)
     run = {"command": command_line(), "dataset": str(category.root), "dataset_fingerprint": category.fingerprint,
-           "seed": seed, "device": str(device), "threads": requested_threads(), "minutes": minutes, "resumed_at": first_step}
+           "seed": seed, "device": str(device), "threads": threads, "minutes": minutes, "resumed_at": first_step}
     paths = record_paths(out)
     typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}")
+    typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""))
     log = RunLog(out, cfg, log_every, minutes, resume, run)
     try:
         with TrainProgress(cfg, minutes, first_step) as progress:
