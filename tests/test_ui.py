@@ -259,6 +259,13 @@ def test_select_tints_the_selection_over_any_view_until_cleared(ui, scene):
     assert info["strokes"].startswith(("their centres lifted (", "lifted whole (")) and added["strokes"] == info["strokes"]
     assert info["mirror"].startswith(("not used (", "the plane normal to ")) and added["mirror"] is None
     assert info["colour_join"].startswith(("took the cells of the scribbled colour (", "refused: ")) and added["colour_join"] is None
+    # the page's line lists the same summaries, in select's order, the ones that apply
+    from crfedit.edit.selection import SUMMARIES
+
+    for said in (info, added):
+        fields = [(label, said[label.replace(" ", "_")]) for label, _ in SUMMARIES]
+        assert said["summaries"] == [[label, line] for label, line in fields if line is not None]
+    assert ["colour join", info["colour_join"]] in info["summaries"] and "colour join" not in dict(added["summaries"])
     assert "a selection for 'paint'" in ui.error("POST", "/api/select", {**body, "kind": "paint"})
     ui.post("/api/select/clear", {"instance": 0})
     assert "nothing is selected" in ui.error("GET", "/api/view?instance=0&view=train:0&tint=1")

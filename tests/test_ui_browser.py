@@ -59,6 +59,12 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     drawn = p.js("return Strokes.toJson(marks().fg)")
     assert len(drawn["strokes"]) == 1 and len(drawn["strokes"][0]) >= 2  # the mouse drew one polyline
 
+    n = p.count("select")  # Select: the page says what the selection took, in select's lines
+    p.click("#select")
+    p.wait(f"return performance.getEntriesByName('crfedit:select').length > {n}", 120)
+    said = p.driver.find_element("css selector", "#selection-info").text
+    assert " occupied cells selected from 1 view(s) (" in said and "; strokes: " in said and "; colour join: " in said, said
+
     p.set_input("#color", "#2040ff")
     drive.apply_edit(p, "color")
     after = p.pixels()

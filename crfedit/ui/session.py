@@ -230,9 +230,11 @@ class UiSession:
         for s in scribbles:
             self._view_cache(model, key, k, s.view)
         info = sel.meta
+        said = [(label, summary(info)) for label, summary in SUMMARIES]
         return {"instance": k, "selected_cells": info["selected_cells"], "occupied_cells": info["occupied_cells"],
                 "views": len(scribbles), "seconds": info["seconds"],
-                **{label.replace(" ", "_"): summary(info) for label, summary in SUMMARIES}}
+                **{label.replace(" ", "_"): line for label, line in said},
+                "summaries": [[label, line] for label, line in said if line is not None]}  # the page's line, in order
 
     def clear_selection(self, instance) -> None:
         k = instance_of(self.base, instance)

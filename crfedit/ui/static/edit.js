@@ -29,11 +29,7 @@ async function doSelect() {
   S.tint = true;
   $("tint").checked = true;
   $("selection-info").textContent = `${info.selected_cells} of ${info.occupied_cells} occupied cells selected from ${info.views} view(s) (${info.seconds.toFixed(2)} s)`
-    + (info.strokes ? `; strokes: ${info.strokes}` : "")
-    + (info.mirror ? `; mirror: ${info.mirror}` : "")
-    + (info.part_head ? `; part head: ${info.part_head}` : "")
-    + (info.colour_join ? `; colour join: ${info.colour_join}` : "")
-    + (info.shape_gate ? `; shape gate: ${info.shape_gate}` : "");
+    + info.summaries.map(([label, line]) => `; ${label}: ${line}`).join("");  // select's lines (crfedit.edit.selection.SUMMARIES)
   await showView();
   measure("select", start);
   clearError();
