@@ -16,6 +16,9 @@ Rows vary where the targets say the part is:
 * **pixel-perfect**: every sample of a ray whose test-view pixel shows the part (read from the
   ground truth): what the target rule itself leaves.
 
+Every row but the pixel-perfect one holds, outside S's interior, the samples whose colour is
+unlike the scribbled pixels' (`supervised.mixed_at`, `RecolorTarget.likeness`), as the edits do.
+
 Two more rows are the edits themselves (selection from the scribbles, default options), the
 ``hybrid`` strategy (F_rad + colour code, the paper's) and ``all`` (every weight): a fit row below
 its target row is what the network could not reproduce.
@@ -42,7 +45,7 @@ from crfedit.cameras import rays_from_camera
 from crfedit.edit import EditOptions
 from crfedit.edit.cache import edit_passes
 from crfedit.edit.selection import MIN_OPACITY
-from crfedit.edit.supervised import RecolorTarget, in_selection, selection_share
+from crfedit.edit.supervised import RecolorTarget, in_selection, mixed_at, selection_share
 from crfedit.metrics import score_images
 from crfedit.renderer import render_camera
 from crfedit.twin_scores import changed_regions, gap_closed, masked_psnr, part_map, part_of
@@ -86,7 +89,7 @@ def target_render(model, case, category, sel, rule: str) -> list[np.ndarray]:
             m = sel.mask.to(grid.device) & grid
             full = in_selection(m, p.ray, p.xn_kept, p.w, n) if rule != "point" else torch.zeros_like(p.ray, dtype=torch.bool)
             share = full.to(rgb0.dtype) if rule == "cells" else selection_share(m, grid, p.xn_kept, full)
-        target = recolor.toward(rgb0, share)
+        target = recolor.toward(rgb0, share, None if rule == "pixels" else mixed_at(m, grid, p.xn_kept))
         pixels = p.constant.index_add(0, p.ray, p.w[:, None] * target)
         h, w = twin_view.rgb.shape[:2]
         images.append(pixels.clamp(0, 1).view(h, w, 3).cpu().numpy())

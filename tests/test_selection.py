@@ -28,7 +28,8 @@ from crfedit.edit.selection.base import join_summary, stroke_summary
 from crfedit.edit.selection.store import quantized
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
-    JUNCTION_SHARE, SKIN_SHARE, PointTargets, RecolorTarget, removal_cells, removal_split, removed_at, sample_share, surface_selected,
+    JUNCTION_SHARE, SKIN_SHARE, UNLIKE_FLOOR, PointTargets, RecolorTarget, chromaticity, mixed_at, removal_cells, removal_split, removed_at,
+    sample_share, surface_selected,
 )
 from crfedit import occupancy
 from crfedit.errors import CrfError
@@ -450,6 +451,54 @@ def test_recolor_shading_rule_does_not_scale_colour_noise():
     assert torch.allclose(shading, torch.tensor(appear) * s, atol=1e-6)
 
 
+def test_recolor_holds_unlike_colours_outside_the_interior():
+    """Where a sample may show another part (``mixed``), its share of the new colour is scaled
+    by its chromaticity's likeness to the scribbled pixels': 1 within reach = 2·r + floor of
+    their median (r their own 90th-percentile spread), falling linearly to 0 at 2·reach; in
+    S's interior, and with the test off, it takes its share whatever its colour."""
+    blue = torch.tensor([0.10, 0.15, 0.40])
+    pixels = blue.repeat(4, 1)  # one colour: r = 0, reach = the floor
+    target = RecolorTarget([0.8, 0.6, 0.1], pixels)
+    assert target.reach == pytest.approx(UNLIKE_FLOOR)
+    shaded = RecolorTarget([0.8, 0.6, 0.1], blue * torch.tensor([0.5, 0.75, 1.0, 1.25])[:, None])
+    chroma = chromaticity(blue * torch.tensor([0.5, 0.75, 1.0, 1.25])[:, None])
+    r = torch.quantile((chroma - chroma.median(dim=0).values).norm(dim=-1), 0.9)
+    assert shaded.reach == pytest.approx(2 * float(r) + UNLIKE_FLOOR)  # the offset makes dark shades spread
+    grey = torch.tensor([0.3, 0.3, 0.3])
+    rgb = torch.stack([blue * 0.9, grey, grey])
+    share = torch.ones(3)
+    mixed = torch.tensor([True, True, False])
+    out = target.toward(rgb, share, mixed)
+    assert torch.allclose(out[0], target(rgb[:1])[0], atol=1e-6)  # like: takes the new colour
+    assert torch.equal(out[1], grey)  # unlike, where another part may show: held
+    assert torch.allclose(out[2], target(rgb[2:])[0], atol=1e-6)  # unlike, in S's interior: recoloured
+    # a chromaticity 1.5 reaches away takes half the new colour: rgb = v·t with t·Σv + offset = t
+    v = target.chroma + 1.5 * target.reach * torch.tensor([1.0, -1.0, 0.0]) / 2**0.5
+    t = CHROMA_OFFSET / (1.0 - float(v.sum()))
+    assert torch.allclose(chromaticity((v * t)[None])[0], v, atol=1e-6)
+    assert float(target.likeness((v * t)[None])) == pytest.approx(0.5, abs=1e-4)
+    half = target.toward((v * t)[None], torch.ones(1), torch.tensor([True]))[0]
+    assert torch.allclose(half, v * t + 0.5 * (target((v * t)[None])[0] - v * t), atol=1e-4)
+    off = RecolorTarget([0.8, 0.6, 0.1], pixels, unlike=0.0)
+    assert torch.allclose(off.toward(rgb, share, mixed), off(rgb), atol=1e-6)
+
+
+def test_mixed_at_is_everything_but_the_interior_of_s():
+    """S a 4³ block inside an occupied 8³ block: its inner 2³ cells touch no occupied cell
+    outside S (interior, False); its outer shell of cells, the rest of the block and empty
+    space are True."""
+    res = 16
+    grid = torch.zeros(res, res, res, dtype=torch.bool)
+    grid[4:12, 4:12, 4:12] = True
+    sel = torch.zeros_like(grid)
+    sel[6:10, 6:10, 6:10] = True
+    centres = occupancy.cell_centers(res)
+    got = mixed_at(sel, grid, centres).view(res, res, res)
+    interior = torch.zeros_like(grid)
+    interior[7:9, 7:9, 7:9] = True
+    assert torch.equal(got, ~interior)
+
+
 def _selection(values: torch.Tensor) -> Selection:
     return Selection(values, 0, "x", "f", {})
 
@@ -604,8 +653,10 @@ def test_sample_share_closed_form():
 
 
 def test_point_targets_scale_the_part_and_hold_the_rest(trained):
-    """Targets in S are the recolour rule's (here the teacher's colour × ratio, clamped), the
-    rest the teacher's; with a ratio of 1 the starting model already meets them exactly."""
+    """Targets in S's interior are the recolour rule's (here the teacher's colour × ratio,
+    clamped), the rest the teacher's, blended by S's interpolated share and, outside S's
+    interior (:func:`mixed_at`), by the colour's likeness to the scribbled pixels'; with a
+    ratio of 1 the starting model already meets them exactly."""
     _, model, category = trained
     k = 2
     view, fg, keep, _ = part_view(category, k, "seat")
@@ -619,12 +670,18 @@ def test_point_targets_scale_the_part_and_hold_the_rest(trained):
     inside = occupancy.lookup(sel[None], torch.zeros(len(pt.pts), dtype=torch.long), pt.pts)
     assert 0 < int(inside.sum()) < len(inside)
     new = (rgb0 * torch.tensor([0.5, 1.5, 1.0])).clamp(0, 1)
-    assert torch.allclose(pt.target[inside], new[inside], atol=1e-6)
     grid = field.occupancy[k]
+    mixed, like = mixed_at(sel, grid, pt.pts), recolor.likeness(rgb0)
+    interior = inside & ~mixed
+    assert 0 < int(interior.sum()) and 0 < int((inside & mixed).sum())
+    assert torch.allclose(pt.target[interior], new[interior], atol=1e-6)
+    edge = inside & mixed  # S's cells beside another part: the new colour as far as the colour is alike
+    assert float(like[edge].min()) < 1  # the made-up scribbled colour is unlike some of the seat's
+    assert torch.allclose(pt.target[edge], rgb0[edge] + like[edge, None] * (new[edge] - rgb0[edge]), atol=1e-6)
     share = occupancy.masked_trilinear((sel & grid).float(), grid, pt.pts)
     blend = ~inside & (share > 0)  # just outside S: S's interpolated share of the new colour
-    assert 0 < int(blend.sum()) and float(share[blend].max()) < 1
-    assert torch.allclose(pt.target[blend], rgb0[blend] + share[blend, None] * (new[blend] - rgb0[blend]), atol=1e-6)
+    assert 0 < int(blend.sum()) and float(share[blend].max()) < 1 and bool(mixed[blend].all())
+    assert torch.allclose(pt.target[blend], rgb0[blend] + (share * like)[blend, None] * (new[blend] - rgb0[blend]), atol=1e-6)
     held = ~inside & (share == 0)
     assert int(held.sum()) > 0 and torch.allclose(pt.target[held], rgb0[held], atol=1e-6)
     assert abs(float(pt.w.sum()) - 1) < 1e-5 and float(pt.loss().detach()) > 0

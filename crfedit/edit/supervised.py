@@ -46,6 +46,8 @@ from .cache import cache_stage, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
 from .losses import mse
 from .selection import GROW_LOW, Selection
+from .selection.classify import chroma_spread
+from .selection.options import CHROMA_OFFSET
 from .selection.refine import surrounded_by
 
 TURNS = (0.0, 90.0, 180.0, 270.0)
@@ -77,6 +79,22 @@ left the space between the points to chance.  On the four benchmark models, two 
 each (`benchmarks/add.py`, 4 pairs): the rest of the chair +0.87 dB on average (−0.05 to
 +1.87, better in 7 of 8), spill lower in 8 of 8, silhouette IoU −0.001 to +0.009, share added
 −0.005 on average; about 0.15 s more (docs/benchmarks.md, forty-fifth session)."""
+UNLIKE_FACTOR = 2.0
+"""Recolour: outside S's interior (:func:`mixed_at`) a sample whose starting colour's
+chromaticity lies farther than ``UNLIKE_FACTOR`` · r + :data:`UNLIKE_FLOOR` from the scribbled
+pixels' median chromaticity (r: the 90th percentile of their own distances to it) keeps its
+colour: its share of the new colour falls linearly from 1 there to 0 at twice that distance
+(:meth:`RecolorTarget.likeness`; 0 turns the test off).  A 64³ cell where S meets another part
+holds both surfaces, and a cell of S beside an unseen part (the cushion of an armchair
+scribbled from behind) takes that part's rim with it.  Measured (forty-eighth session,
+docs/benchmarks.md; gap closed and the rest of the chair against unedited, edits' seeds 0 / 1):
+real recolours 0.875 → 0.883 and 0.867 → 0.881 (`r_nt`), 0.836 → 0.838 and 0.840 → 0.838
+(`r_nt1`), outside +0.33 / +0.34 and +0.23 / +0.19 dB; procedural 0.912 → 0.908 and
+0.905 → 0.902 (`p_nt`), 0.906 → 0.903 (`p_nt1`), outside +0.04 / +0.05 / +0.05 dB.  Applied
+to every sample (S's interior too) it cost the procedural recolours 0.016 (shaded faces of
+the part itself fall outside); factor 3 or floor 0.03 kept less of the real gain."""
+UNLIKE_FLOOR = 0.02
+"""See :data:`UNLIKE_FACTOR`."""
 POINTS_PER_RAY = 0.5
 """Recolour: 3-D target points in S per supervision ray (twice as many outside S).  At 0.25
 (before 2026-11-26) the recolours closed 0.900 / 0.900 / 0.867 / 0.834 of the gap on the four
@@ -256,6 +274,15 @@ def selection_share(sel: Tensor, grid: Tensor, xn: Tensor, full: Tensor) -> Tens
     return torch.maximum(full.to(soft.dtype), soft)
 
 
+def mixed_at(sel: Tensor, grid: Tensor, xn: Tensor) -> Tensor:
+    """[m] Whether normalized points ``xn`` [m, 3] lie outside S's interior, where a sample may
+    show another part: in a cell of S next to an occupied cell outside S, or outside S.  The
+    recolour's chromaticity test (:data:`UNLIKE_FACTOR`) applies there."""
+    s = sel & grid
+    interior = s & ~occupancy.dilate(grid & ~s, 1)
+    return occupancy.lookup((~interior)[None], torch.zeros(xn.shape[0], dtype=torch.long, device=xn.device), xn)
+
+
 def sample_share(sel: Tensor, grid: Tensor, ray: Tensor, xn: Tensor, w: Tensor, n_rays: int) -> Tensor:
     """[m] Each sample's :func:`selection_share`, full for the samples :func:`in_selection`."""
     return selection_share(sel, grid, xn, in_selection(sel, ray, xn, w, n_rays))
@@ -290,7 +317,7 @@ class PointTargets:
             self.inputs = field.F_rad.inputs(feat, self.dirs)  # constant unless upstream modules train
             rgb0 = self.rgb()
             alpha = 1.0 - torch.exp(-field.sigma(raw) * cell)
-            self.target = recolor.toward(rgb0, selection_share(sel, grid, self.pts, inside))
+            self.target = recolor.toward(rgb0, selection_share(sel, grid, self.pts, inside), mixed_at(sel, grid, self.pts))
             self.w = (alpha / alpha.sum().clamp_min(1e-12))[:, None]
 
     def rgb(self) -> Tensor:
@@ -305,6 +332,12 @@ class PointTargets:
         return (self.w * (self.rgb() - self.target) ** 2).sum()
 
 
+def chromaticity(rgb: Tensor) -> Tensor:
+    """rgb / (r + g + b + :data:`~.selection.options.CHROMA_OFFSET`) [m, 3]: a Lambertian
+    shading factor cancels, and near black it shrinks toward 0 rather than amplify noise."""
+    return rgb / (rgb.sum(dim=-1, keepdim=True) + CHROMA_OFFSET)
+
+
 class RecolorTarget:
     """The colour a sample of the part should take: its starting colour ``rgb`` [m, 3] mapped so
     the scribbled pixels' mean c̄ (``rendered`` [n, 3]) becomes ``appear``.
@@ -315,17 +348,35 @@ class RecolorTarget:
       c_appear · shade / mean shade; they differ on what is not shading: the per-channel ratio
       multiplies the model's colour noise by up to max(r) in one channel (a dark red part turned
       light green scales its green noise by ~9), the projection keeps only its component along c̄.
+
+    ``unlike``: :data:`UNLIKE_FACTOR`, the chromaticity test of :meth:`likeness`.
     """
 
-    def __init__(self, appear: Sequence[float], rendered: Tensor, rule: str = RECOLOR_RULES[0]):
+    def __init__(self, appear: Sequence[float], rendered: Tensor, rule: str = RECOLOR_RULES[0], unlike: float = UNLIKE_FACTOR):
         if rule not in RECOLOR_RULES:
             raise ValueError(f"RecolorTarget: rule={rule!r}, expected one of {RECOLOR_RULES}")
         self.rule = rule
         self.mean = rendered.mean(dim=0).clamp_min(MIN_MEAN_COLOR)
         self.appear = torch.as_tensor(appear, dtype=self.mean.dtype, device=self.mean.device)
+        self.unlike = unlike
+        chroma = chromaticity(rendered)
+        _, spread, self.chroma = chroma_spread(chroma, chroma)
+        self.reach = unlike * float(spread) + UNLIKE_FLOOR
 
-    def toward(self, rgb: Tensor, share: Tensor) -> Tensor:
-        """``rgb`` [m, 3] moved ``share`` [m] of the way to its target: rgb + share · (target − rgb)."""
+    def likeness(self, rgb: Tensor) -> Tensor:
+        """[m] How much of the new colour a sample of colour ``rgb`` [m, 3] may take where it
+        could show another part: 1 while its chromaticity lies within ``reach`` of the scribbled
+        pixels' median, falling linearly to 0 at twice that (all 1 when ``unlike`` is 0)."""
+        if self.unlike <= 0:
+            return torch.ones(rgb.shape[0], dtype=rgb.dtype, device=rgb.device)
+        distance = (chromaticity(rgb) - self.chroma).norm(dim=-1)
+        return (2.0 - distance / self.reach).clamp(0.0, 1.0)
+
+    def toward(self, rgb: Tensor, share: Tensor, mixed: Tensor | None = None) -> Tensor:
+        """``rgb`` [m, 3] moved ``share`` [m] of the way to its target: rgb + share · (target − rgb);
+        where ``mixed`` [m] (:func:`mixed_at`), ``share`` × :meth:`likeness` instead."""
+        if mixed is not None:
+            share = torch.where(mixed, share * self.likeness(rgb), share)
         return rgb + share[:, None] * (self(rgb) - rgb)
 
     def __call__(self, rgb: Tensor) -> Tensor:
@@ -364,8 +415,9 @@ def recolor_selected(
     with torch.no_grad():
         rgb0, w0, pixel0 = current()
         ray, xn = (p.ray, p.xn_kept) if radiance else (p.samples.ray, p.xn)
-        share = sample_share(sel, edit.field.occupancy[k], ray, xn, w0, pixel0.shape[0])
-        target_s = recolor.toward(rgb0, share)
+        grid = edit.field.occupancy[k]
+        share = sample_share(sel, grid, ray, xn, w0, pixel0.shape[0])
+        target_s = recolor.toward(rgb0, share, mixed_at(sel, grid, xn))
         # weights are fixed (density does not change), so a pixel is linear in its samples' colours
         target_px = pixel0.index_add(0, ray, w0[:, None] * (target_s - rgb0))
         w = w0[:, None] / w0.sum().clamp_min(1e-12)
@@ -394,7 +446,7 @@ def recolor_selected(
     final = optimize(edit, loss_fn, options, "colour edit")
     hyper = {
         "method": "selection", "rays": int(rays.origins.shape[0]), "appear": [float(c) for c in appear],
-        "recolor_rule": recolor.rule, "ratio": [round(float(r), 4) for r in recolor.appear / recolor.mean],
+        "recolor_rule": recolor.rule, "unlike": recolor.unlike, "ratio": [round(float(r), 4) for r in recolor.appear / recolor.mean],
         "selected_samples": round(float(share.sum()), 1), "cached_samples": p.n_cached, "stage": p.stage, "cameras": [camera_meta(c) for c in cameras],
     }
     return finish(edit, "color", options, hyper, final, started)
