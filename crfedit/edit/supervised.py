@@ -46,8 +46,7 @@ from .cache import cache_stage, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
 from .losses import mse
 from .selection import GROW_LOW, Selection
-from .selection.classify import chroma_spread
-from .selection.options import CHROMA_OFFSET
+from .selection.classify import chroma_spread, chromaticity
 from .selection.refine import surrounded_by
 
 TURNS = (0.0, 90.0, 180.0, 270.0)
@@ -330,12 +329,6 @@ class PointTargets:
 
     def loss(self) -> Tensor:
         return (self.w * (self.rgb() - self.target) ** 2).sum()
-
-
-def chromaticity(rgb: Tensor) -> Tensor:
-    """rgb / (r + g + b + :data:`~.selection.options.CHROMA_OFFSET`) [m, 3]: a Lambertian
-    shading factor cancels, and near black it shrinks toward 0 rather than amplify noise."""
-    return rgb / (rgb.sum(dim=-1, keepdim=True) + CHROMA_OFFSET)
 
 
 class RecolorTarget:

@@ -10,6 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .options import CHROMA_OFFSET
+
 
 def standardizer(all_feats: Tensor, widths: Sequence[int], weights: Sequence[float], stats: tuple[Tensor, Tensor] | None = None,
                   columns: Tensor | None = None):
@@ -126,6 +128,12 @@ def within_spread(spread: tuple[Tensor, Tensor, Tensor], factor: float, floor: f
     """:func:`chroma_alike`'s test on :func:`chroma_spread`'s terms: distance ≤ ``factor`` · r + ``floor``.  [N] bool"""
     distance, r, _ = spread
     return distance <= factor * r + floor
+
+
+def chromaticity(rgb: Tensor, offset: float = CHROMA_OFFSET) -> Tensor:
+    """rgb / (r + g + b + ``offset``) [..., 3]: a Lambertian shading factor cancels, and near
+    black it shrinks toward 0 rather than amplify the colour noise."""
+    return rgb / (rgb.sum(dim=-1, keepdim=True) + offset)
 
 
 def chroma_spread(cells: Tensor, pos: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -16,6 +16,7 @@ from ...cameras import Camera, rays_from_camera
 from ...errors import CrfError
 from ...field import ConditionalRadianceField
 from ...renderer import RenderOutput, render_camera
+from .classify import chromaticity
 from .options import CHROMA_OFFSET, FEATURE_GROUPS, GEOMETRY_RADIUS, MIN_OPACITY, WIDTHS
 
 
@@ -66,7 +67,7 @@ def point_features(
         elif group == "color":
             out.append(rgb)
         elif group == "chroma":  # rgb / (r + g + b): a Lambertian shading factor cancels
-            out.append(rgb / (rgb.sum(dim=-1, keepdim=True) + chroma_offset))
+            out.append(chromaticity(rgb, chroma_offset))
         elif group == "position":
             x, y, z = xn.unbind(-1)
             out.append(torch.stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], dim=-1))
