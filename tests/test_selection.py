@@ -16,7 +16,7 @@ from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
     ScribbleView, SelectOptions, Selection, load_selection, options_for, point_features, preview, save_selection, select, surface_points,
 )
-from crfedit.edit.selection.classify import appearance_gate, chroma_alike, classifier, fit_logistic
+from crfedit.edit.selection.classify import appearance_gate, chroma_alike, chromaticity, classifier, fit_logistic
 from crfedit.edit.selection.features import denser_points, group_width, local_shape
 from crfedit.edit.selection.options import (
     CENTRE_SHARE, CHROMA_OFFSET, JOIN_ALWAYS, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
@@ -28,7 +28,7 @@ from crfedit.edit.selection.base import join_summary, stroke_summary
 from crfedit.edit.selection.store import quantized
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
-    JUNCTION_SHARE, SKIN_SHARE, UNLIKE_FLOOR, PointTargets, RecolorTarget, chromaticity, mixed_at, removal_cells, removal_split, removed_at,
+    JUNCTION_SHARE, SKIN_SHARE, UNLIKE_FLOOR, PointTargets, RecolorTarget, mixed_at, removal_cells, removal_split, removed_at,
     sample_share, surface_selected,
 )
 from crfedit import occupancy
