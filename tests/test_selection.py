@@ -28,7 +28,7 @@ from crfedit.edit.selection.base import join_summary, stroke_summary
 from crfedit.edit.selection.store import quantized
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
-    JUNCTION_SHARE, SKIN_SHARE, UNLIKE_FLOOR, PointTargets, RecolorTarget, mixed_at, removal_cells, removal_split, removed_at,
+    JUNCTION_SHARE, SKIN_SHARE, UNLIKE_FACTOR, UNLIKE_FLOOR, PointTargets, RecolorTarget, mixed_at, removal_cells, removal_split, removed_at,
     sample_share, surface_selected,
 )
 from crfedit import occupancy
@@ -453,8 +453,8 @@ def test_recolor_shading_rule_does_not_scale_colour_noise():
 
 def test_recolor_holds_unlike_colours_outside_the_interior():
     """Where a sample may show another part (``mixed``), its share of the new colour is scaled
-    by its chromaticity's likeness to the scribbled pixels': 1 within reach = 2·r + floor of
-    their median (r their own 90th-percentile spread), falling linearly to 0 at 2·reach; in
+    by its chromaticity's likeness to the scribbled pixels': 1 within reach = UNLIKE_FACTOR·r +
+    floor of their median (r their own 90th-percentile spread), falling linearly to 0 at 2·reach; in
     S's interior, and with the test off, it takes its share whatever its colour."""
     blue = torch.tensor([0.10, 0.15, 0.40])
     pixels = blue.repeat(4, 1)  # one colour: r = 0, reach = the floor
@@ -463,7 +463,7 @@ def test_recolor_holds_unlike_colours_outside_the_interior():
     shaded = RecolorTarget([0.8, 0.6, 0.1], blue * torch.tensor([0.5, 0.75, 1.0, 1.25])[:, None])
     chroma = chromaticity(blue * torch.tensor([0.5, 0.75, 1.0, 1.25])[:, None])
     r = torch.quantile((chroma - chroma.median(dim=0).values).norm(dim=-1), 0.9)
-    assert shaded.reach == pytest.approx(2 * float(r) + UNLIKE_FLOOR)  # the offset makes dark shades spread
+    assert shaded.reach == pytest.approx(UNLIKE_FACTOR * float(r) + UNLIKE_FLOOR)  # the offset makes dark shades spread
     grey = torch.tensor([0.3, 0.3, 0.3])
     rgb = torch.stack([blue * 0.9, grey, grey])
     share = torch.ones(3)

@@ -89,9 +89,12 @@ scribbled from behind) takes that part's rim with it.  Measured (forty-eighth se
 docs/benchmarks.md; gap closed and the rest of the chair against unedited, edits' seeds 0 / 1):
 real recolours 0.875 → 0.883 and 0.867 → 0.881 (`r_nt`), 0.836 → 0.838 and 0.840 → 0.838
 (`r_nt1`), outside +0.33 / +0.34 and +0.23 / +0.19 dB; procedural 0.912 → 0.908 and
-0.905 → 0.902 (`p_nt`), 0.906 → 0.903 (`p_nt1`), outside +0.04 / +0.05 / +0.05 dB.  Applied
-to every sample (S's interior too) it cost the procedural recolours 0.016 (shaded faces of
-the part itself fall outside); factor 3 or floor 0.03 kept less of the real gain."""
+0.905 → 0.902 (`p_nt`), 0.906 → 0.903 and 0.904 → 0.905 (`p_nt1`), outside +0.04 to +0.06 dB.
+Where the selection is right it costs a little: `r_nt`'s edits with the oracle selection
+0.845 → 0.831 (most likely a dark part's own shaded rim held).  Factor 1.5 gave 0.05–0.10 dB more outside
+on the real models but 0.805 with the oracle selection; factor 3 or floor 0.03 kept less of
+the real gain; applied to every sample (S's interior too) the test cost the procedural
+recolours 0.016 (shaded faces of the part itself fall outside)."""
 UNLIKE_FLOOR = 0.02
 """See :data:`UNLIKE_FACTOR`."""
 POINTS_PER_RAY = 0.5
