@@ -460,8 +460,9 @@ def test_recolor_holds_unlike_colours_outside_the_interior():
     pixels = blue.repeat(4, 1)  # one colour: r = 0, reach = the floor
     target = RecolorTarget([0.8, 0.6, 0.1], pixels)
     assert target.reach == pytest.approx(UNLIKE_FLOOR)
-    shaded = RecolorTarget([0.8, 0.6, 0.1], blue * torch.tensor([0.5, 0.75, 1.0, 1.25])[:, None])
-    chroma = chromaticity(blue * torch.tensor([0.5, 0.75, 1.0, 1.25])[:, None])
+    shades = blue * torch.tensor([0.5, 0.75, 1.0, 1.25])[:, None]
+    shaded = RecolorTarget([0.8, 0.6, 0.1], shades)
+    chroma = chromaticity(shades)
     r = torch.quantile((chroma - chroma.median(dim=0).values).norm(dim=-1), 0.9)
     assert shaded.reach == pytest.approx(UNLIKE_FACTOR * float(r) + UNLIKE_FLOOR)  # the offset makes dark shades spread
     grey = torch.tensor([0.3, 0.3, 0.3])
