@@ -24,7 +24,7 @@ from crfedit.edit.selection.options import (
 from crfedit.edit.selection.refine import (
     bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
 )
-from crfedit.edit.selection.base import join_summary, stroke_summary
+from crfedit.edit.selection.base import JOIN_WARN, join_summary, stroke_summary
 from crfedit.edit.selection.store import quantized
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
@@ -183,7 +183,15 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     features = refused.meta["chroma_union"]["features_cells"]
     assert features == int(plain.mask.sum()) and refused.meta["chroma_union"]["cap"] == 1e-6
     assert join_summary(plain.meta) is None
-    assert join_summary(joined.meta) == f"took the cells of the scribbled colour ({alone} by chromaticity alone)"
+    ratio = f"{alone / features:.1f}× the {features} the features select"
+    assert join_summary(joined.meta).startswith(f"took the cells of the scribbled colour ({alone} by chromaticity alone, {ratio})")
+    assert ("--colour-join never" in join_summary(joined.meta)) == (alone >= JOIN_WARN * features)
+    for cells, warned in ((2 * features, True), (2 * features - 1, False)):  # the advice from JOIN_WARN × on
+        said = join_summary({"chroma_union": {**joined.meta["chroma_union"], "cells": cells}})
+        assert said.startswith(f"took the cells of the scribbled colour ({cells} by chromaticity alone, ")
+        assert ("--colour-join never, or a keep stroke on that part" in said) is warned
+    old_file = {k: v for k, v in joined.meta["chroma_union"].items() if k not in ("features_cells", "cap")}
+    assert join_summary({"chroma_union": old_file}) == f"took the cells of the scribbled colour ({alone} by chromaticity alone)"
     assert join_summary(refused.meta).startswith(f"refused: chromaticity alone selects {alone} cells, over 1e-06× the {features} the features select")
     assert "second view" in join_summary(refused.meta)
     assert join_summary(grey.meta) == f"not tried (the scribbled colour is near-grey: saturation {grey.meta['chroma_union']['saturation']:.2f})"

@@ -76,6 +76,13 @@ def part_summary(meta: dict) -> str | None:
     return f"not read (coherence {info['coherence']:.2f} < {info['cut']:g}: it does not see the scribbled points as one part)"
 
 
+JOIN_WARN = 2.0
+""":func:`join_summary` says what to do when a join takes at least this × the features' cells.
+Such a join is as often right as wrong: on the colour twins of four models (docs/benchmarks.md,
+forty-ninth session) the joins of 2× or more took a wooden frame's legs or an armchair's far
+side, and once an orange seat along with the orange back that was scribbled (2.6×)."""
+
+
 def join_summary(meta: dict) -> str | None:
     """What a selection's metadata says of the chromaticity join
     (:attr:`~.options.SelectOptions.chroma_union`), in a line (None: not asked).  A refused
@@ -86,7 +93,15 @@ def join_summary(meta: dict) -> str | None:
     if info["cells"] is None:
         return f"not tried (the scribbled colour is near-grey: saturation {info['saturation']:.2f})"
     if info["joined"]:
-        return f"took the cells of the scribbled colour ({info['cells']} by chromaticity alone)"
+        said = f"took the cells of the scribbled colour ({info['cells']} by chromaticity alone"
+        features = info.get("features_cells")  # not recorded before 2026-11-26
+        if not features:
+            return said + ")"
+        said += f", {info['cells'] / features:.1f}× the {features} the features select)"
+        if info["cells"] >= JOIN_WARN * features:
+            said += ("; if the preview shows another part of this colour taken with it: --colour-join never,"
+                     " or a keep stroke on that part")
+        return said
     said = f"refused: chromaticity alone selects {info['cells']} cells"
     if "features_cells" in info:  # not recorded before 2026-11-26
         said += f", over {info['cap']:g}× the {info['features_cells']} the features select"
