@@ -338,16 +338,27 @@ TABLE_KEYS = (
 """Per-twin numbers that the edit tables average (a key no run of a method has is None)."""
 
 
+def below_unedited(rows: list[dict]) -> int | None:
+    """How many of ``rows`` (one method's per-twin runs) end with a lower PSNR than the
+    unedited render's (``psnr_before``): edits that did harm.  #14's removals must have none.
+    None when a run lacks either number."""
+    if any(r.get("psnr") is None or r.get("psnr_before") is None for r in rows):
+        return None
+    return sum(r["psnr"] < r["psnr_before"] for r in rows)
+
+
 def edit_tables(runs: list[dict], methods: Sequence[str]) -> dict[str, list[dict]]:
     """Tables 2 and 3 from per-twin ``runs``: per kind, one row per method (in ``methods``'
-    order) with PSNR, SSIM, LPIPS and seconds averaged over that kind's twins."""
+    order) with PSNR, SSIM, LPIPS and seconds averaged over that kind's twins, and the count of
+    twins that end below unedited (:func:`below_unedited`)."""
     tables: dict[str, list[dict]] = {}
     for kind in ("color", "remove"):
         rows = []
         for method in methods:
             sel = [r for r in runs if r["kind"] == kind and r["method"] == method]
             if sel:
-                rows.append({"method": method, "n": len(sel), **{key: _mean(sel, key) for key in TABLE_KEYS}})
+                rows.append({"method": method, "n": len(sel), **{key: _mean(sel, key) for key in TABLE_KEYS},
+                             "below_unedited": below_unedited(sel)})
         if rows:
             tables[kind] = rows
     return tables

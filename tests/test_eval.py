@@ -25,6 +25,7 @@ from crfedit.evaluation import (
     SSIM_NOTE,
     UNEDITED,
     NerfBaseline,
+    below_unedited,
     edit_tables,
     evaluate_edits,
     evaluate_recon,
@@ -168,7 +169,11 @@ def test_edits_with_one_strategy_runs_end_to_end(model_path, data):
     for kind, rows in report["tables"].items():
         assert [r["method"] for r in rows] == [UNEDITED, "hybrid", PAPER_METHOD]
         assert all(r["n"] == 2 and r["psnr"] is not None and r["seconds"] >= 0 for r in rows)
-        assert rows[0]["seconds"] == 0.0 and rows[0]["gap_closed"] == 0.0
+        assert rows[0]["seconds"] == 0.0 and rows[0]["gap_closed"] == 0.0 and rows[0]["below_unedited"] == 0
+        for row in rows:  # the count agrees with the per-twin runs
+            harmed = [r for r in report["runs"] if r["kind"] == kind and r["method"] == row["method"] and r["psnr"] < r["psnr_before"]]
+            assert row["below_unedited"] == len(harmed)
+    assert "below: twins the edit left with a lower PSNR than no edit at all" in result.stdout
     assert len(report["runs"]) == 4 * 3  # 4 twins × (unedited, hybrid, paper)
     for run in report["runs"]:  # the honest-evaluation numbers, consistent with each other
         before = next(r["psnr"] for r in report["runs"] if r["twin"] == run["twin"] and r["method"] == UNEDITED)
@@ -240,6 +245,17 @@ def test_edit_tables_average_per_kind_and_method_in_order():
     hybrid = tables["color"][1]
     assert hybrid["n"] == 2 and hybrid["psnr"] == 22.0 and hybrid["ssim"] == pytest.approx(0.85) and hybrid["seconds"] == 2.0
     assert hybrid["lpips"] is None and tables["remove"][0]["lpips"] == 0.2
+    assert hybrid["below_unedited"] is None  # these runs carry no psnr_before
+
+
+def test_below_unedited_counts_the_twins_an_edit_harmed():
+    runs = [{"psnr": 20.0, "psnr_before": 18.0}, {"psnr": 17.9, "psnr_before": 18.0}, {"psnr": 18.0, "psnr_before": 18.0}]
+    assert below_unedited(runs) == 1  # equal is not below
+    assert below_unedited(runs[:1]) == 0 and below_unedited([{"psnr": None, "psnr_before": 18.0}]) is None
+    rows = [{"kind": "remove", "method": m, "psnr": p, "psnr_before": 18.0, "ssim": 0.5, "lpips": None, "seconds": 0.0}
+            for m, p in ((UNEDITED, 18.0), ("hybrid", 17.0), ("hybrid", 19.0))]
+    table = edit_tables(rows, [UNEDITED, "hybrid"])["remove"]
+    assert [r["below_unedited"] for r in table] == [0, 1]
 
 
 # ----------------------------------------------------------------------------- ablation

@@ -76,7 +76,9 @@ def _print_table(title: str, columns: list[str], rows: list[list[str]], footer: 
     if footer is not None:
         table.add_section()
         table.add_row(*footer)
-    Console(soft_wrap=True).print(table)
+    console = Console(soft_wrap=True)
+    need = console.measure(table, options=console.options.update_width(10_000)).maximum  # printed whole: a narrow terminal wraps its lines
+    (console if need <= console.width else Console(soft_wrap=True, width=need)).print(table)
 
 
 def _lpips_line(reported: bool, note: str | None) -> str:
@@ -233,11 +235,11 @@ def edits_cmd(
     with_lpips = any(r["lpips"] is not None for rows in result["tables"].values() for r in rows)
     for kind, rows in result["tables"].items():
         columns = ["method", "twins", "PSNR (dB)", "SSIM"] + (["LPIPS"] if with_lpips else []) + [
-            "gap closed", "inside", "outside", "sel. IoU", "seconds"]
+            "gap closed", "below", "inside", "outside", "sel. IoU", "seconds"]
         body = [
             [r["method"], str(r["n"]), _num(r["psnr"], ".2f"), _num(r["ssim"], ".4f")]
             + ([_num(r["lpips"], ".4f")] if with_lpips else [])
-            + [_num(r["gap_closed"], ".2f"), _num(r["psnr_inside"], ".2f"), _num(r["psnr_outside"], ".2f"),
+            + [_num(r["gap_closed"], ".2f"), _num(r["below_unedited"], "d"), _num(r["psnr_inside"], ".2f"), _num(r["psnr_outside"], ".2f"),
                _num(r["selection_iou"], ".2f"), _num(r["seconds"], ".2f")]
             for r in rows
         ]
@@ -246,6 +248,7 @@ def edits_cmd(
         typer.echo(f"skipped {entry['method']} for {entry['kind']} twins: {entry['reason']}")
     typer.echo("unedited: the model's renders of the source before editing, scored against the twin (reference)")
     typer.echo("gap closed: (PSNR − unedited) / (ceiling − unedited), ceiling = the source's reconstruction on the same poses")
+    typer.echo("below: twins the edit left with a lower PSNR than no edit at all")
     typer.echo("inside / outside: PSNR (dB) on the pixels where the twin differs from the source / on the rest")
     typer.echo("sel. IoU: the 3-D selection of the scribbles against the part's pixels of the test views")
     typer.echo("seconds: edit optimization time, mean over twins")
