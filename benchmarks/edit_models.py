@@ -1,5 +1,6 @@
 """Selection-supervised edits (hybrid) over several models of one category: per model and kind
-the mean gap closed, outside PSNR and selection IoU, and their mean and spread over the models.
+the mean gap closed, outside PSNR and selection IoU, and the twins left below unedited; the
+means' mean and spread over the models.
 
     python benchmarks/edit_models.py DATA MODEL [MODEL ...] [--seed 0] [--out FILE.md]
 
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 
 from crfedit.edit import EditOptions
-from crfedit.evaluation import evaluate_edits, load_category_for, load_twin_cases
+from crfedit.evaluation import below_unedited, evaluate_edits, load_category_for, load_twin_cases
 from crfedit.model import load_model
 from crfedit.report import emit_table
 
@@ -42,7 +43,7 @@ def main() -> None:
     lines = [
         f"Data `{args.data}`; {platform.processor() or platform.machine()}, torch {torch.__version__}, "
         f"{torch.get_num_threads()} thread; hybrid rows, edit seed {args.seed}.", "",
-        "| model | kind | twins | gap closed | outside dB | sel. IoU |", "|---|---|---:|---:|---:|---:|",
+        "| model | kind | twins | gap closed | outside dB | sel. IoU | below unedited |", "|---|---|---:|---:|---:|---:|---:|",
     ]
     per_kind: dict[str, list[tuple[float, ...]]] = {}
     for path in args.models:
@@ -54,14 +55,15 @@ def main() -> None:
             means = kind_means(out["runs"], kind)
             per_kind.setdefault(kind, []).append(means)
             n = sum(c.spec.kind == kind for c in cases)
-            line = f"| `{Path(path).name}` | {kind} | {n} | {means[0]:.3f} | {means[1]:.2f} | {means[2]:.3f} |"
+            below = below_unedited([r for r in out["runs"] if r["method"] == "hybrid" and r["kind"] == kind])
+            line = f"| `{Path(path).name}` | {kind} | {n} | {means[0]:.3f} | {means[1]:.2f} | {means[2]:.3f} | {below} |"
             print(line, flush=True)
             lines.append(line)
     for kind, values in per_kind.items():
         v = np.array(values)
         mean, spread = v.mean(axis=0), v.std(axis=0)
         lines.append(f"| **mean ± sd over {len(values)}** | {kind} | | **{mean[0]:.3f}** ± {spread[0]:.3f} | "
-                     f"{mean[1]:.2f} ± {spread[1]:.2f} | {mean[2]:.3f} ± {spread[2]:.3f} |")
+                     f"{mean[1]:.2f} ± {spread[1]:.2f} | {mean[2]:.3f} ± {spread[2]:.3f} | |")
     emit_table(lines, args.out)
 
 
