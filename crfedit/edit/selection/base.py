@@ -79,8 +79,9 @@ def part_summary(meta: dict) -> str | None:
 JOIN_WARN = 2.0
 """:func:`join_summary` says what to do when a join takes at least this × the features' cells.
 Such a join is as often right as wrong: on the colour twins of four models (docs/benchmarks.md,
-forty-ninth session) the joins of 2× or more took a wooden frame's legs or an armchair's far
-side, and once an orange seat along with the orange back that was scribbled (2.6×)."""
+forty-ninth session) the joins of 2× or more mostly took what the features had missed of the
+scribbled material (a wooden frame's legs, the rest of an armchair's shell), and once an
+orange seat along with the orange back that was scribbled (2.6×)."""
 
 
 def join_summary(meta: dict) -> str | None:
