@@ -27,9 +27,14 @@ from crfedit.report import emit_table
 COLUMNS = ("gap_closed", "psnr_outside", "selection_iou")
 
 
+def hybrid_rows(runs: list[dict], kind: str) -> list[dict]:
+    """The per-twin hybrid runs of ``kind``."""
+    return [r for r in runs if r["method"] == "hybrid" and r["kind"] == kind]
+
+
 def kind_means(runs: list[dict], kind: str) -> tuple[float, ...]:
     """Mean of :data:`COLUMNS` over the hybrid rows of ``kind`` (NaN where a twin has none)."""
-    rows = [r for r in runs if r["method"] == "hybrid" and r["kind"] == kind]
+    rows = hybrid_rows(runs, kind)
     return tuple(float(np.mean([np.nan if r.get(c) is None else r[c] for r in rows])) for c in COLUMNS)
 
 
@@ -55,7 +60,7 @@ def main() -> None:
             means = kind_means(out["runs"], kind)
             per_kind.setdefault(kind, []).append(means)
             n = sum(c.spec.kind == kind for c in cases)
-            below = below_unedited([r for r in out["runs"] if r["method"] == "hybrid" and r["kind"] == kind])
+            below = below_unedited(hybrid_rows(out["runs"], kind))
             line = f"| `{Path(path).name}` | {kind} | {n} | {means[0]:.3f} | {means[1]:.2f} | {means[2]:.3f} | {below} |"
             print(line, flush=True)
             lines.append(line)
