@@ -17,6 +17,7 @@ from crfedit.data.loading import load_category
 from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.edit.params import trained_prefixes
 from crfedit.edit.selection import ScribbleView, options_for, part_summary, select
+from crfedit.edit.selection.classify import nearest_cosine
 from crfedit.errors import CrfError
 from crfedit.field import ConditionalRadianceField
 from crfedit.masks import dilate, erode
@@ -186,6 +187,39 @@ def test_a_selection_reads_the_part_head_where_the_scribble_is_one_part(headed):
     assert "part" not in strict.meta["features"] and not strict.meta["part_head"]["used"]
     assert part_summary(strict.meta).startswith("not read (coherence ") and "< 1.01" in part_summary(strict.meta)
     assert torch.equal(strict.values, told.values) and not torch.equal(read.values, told.values)
+
+
+def test_the_part_veto_leaves_out_only_the_parts_the_keep_strokes_mark(headed):
+    """A real mesh's parts are its materials, a procedural chair's its seat, back and legs, so
+    the head's veto of another part of the scribble's colour is right on one and wrong on the
+    other; the keep strokes say which.  Kept strokes on the rest of the chair: the veto leaves
+    cells out, and only cells at least as near a keep point's embedding as the scribble's.
+    Without keep strokes it leaves nothing out (the selection is the one without a veto);
+    ``part_veto_keep=False`` vetoes by the cosine alone, as before."""
+    _, model, category = headed
+    k = 1
+    inst = category.instances[k]
+    pid = next(p["id"] for p in json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
+    view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
+    scribble, keep = erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1)
+    opts = options_for("color")
+    kept = select(model, k, [ScribbleView(view.camera, scribble, keep)], opts)
+    assert kept.meta["part_head"]["used"] and kept.meta["part_head"]["veto_by"] == "keep strokes"
+    assert kept.meta["part_head"]["vetoed"] > 0 and "cells left out as parts the keep strokes mark" in part_summary(kept.meta)
+    alone = ScribbleView(view.camera, scribble, None)
+    bare = select(model, k, [alone], opts)
+    assert bare.meta["part_head"]["vetoed"] == 0 and "no keep stroke marks one" in part_summary(bare.meta)
+    assert torch.equal(bare.values, select(model, k, [alone], dataclasses.replace(opts, part_veto=0.0)).values)
+    old = select(model, k, [alone], dataclasses.replace(opts, part_veto_keep=False))
+    assert old.meta["part_head"]["vetoed"] > 0 and old.meta["part_head"]["veto_by"] == "cosine"
+    assert not torch.equal(old.values, bare.values)
+
+
+def test_nearest_cosine_is_the_greatest_cosine_with_any_point():
+    g = torch.Generator().manual_seed(0)
+    cells, points = F.normalize(torch.randn(50, 16, generator=g), dim=-1), F.normalize(torch.randn(7, 16, generator=g), dim=-1)
+    assert torch.allclose(nearest_cosine(cells, points, chunk=8), (cells @ points.T).max(dim=1).values)
+    assert torch.isneginf(nearest_cosine(cells, points[:0])).all()
 
 
 def test_select_prints_whether_it_read_the_part_head(headed, tiny_model, tmp_path):

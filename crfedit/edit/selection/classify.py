@@ -193,6 +193,15 @@ def _squared_distances(cells: Tensor, padded_points_t: Tensor) -> Tensor:
     return torch.cat([cells.mul(-2), c_norm, torch.ones_like(c_norm)], dim=-1).matmul(padded_points_t)
 
 
+def nearest_cosine(cells: Tensor, points: Tensor, max_points: int = 2000, chunk: int = 8192) -> Tensor:
+    """Each unit row of ``cells`` [N, F]: its greatest cosine with a unit row of ``points`` [P, F]
+    (over at most ``max_points`` evenly spaced), ``chunk`` cells at a time; −inf without points.  [N]"""
+    if not len(points):
+        return cells.new_full((len(cells),), float("-inf"))
+    points_t = evenly(points, max_points).mT.contiguous()
+    return torch.cat([c.matmul(points_t).amax(dim=1) for c in cells.split(chunk)]) if len(cells) else cells.new_zeros(0)
+
+
 def keep_wins(cells: Tensor, pos: Tensor, keep: Tensor, ratio: float) -> Tensor:
     """Whether each cell [N, F] lies nearer some keep point [K, F] than ``ratio`` × its nearest
     positive [P, F] (:attr:`SelectOptions.keep_ratio`): a Voronoi split between the two kinds

@@ -100,6 +100,23 @@ PART_VETO = 0.5
 """:attr:`SelectOptions.part_veto`.  With :data:`PART_JOIN`, on the procedural benchmark twins
 (docs/selection.md), recolours' gap closed 0.883 → 0.904 and 0.887 → 0.905 over reading the
 head as a feature alone, removals 0.620 → 0.632 and 0.617 → 0.647 (two models)."""
+PART_VETO_KEEP = True
+""":attr:`SelectOptions.part_veto_keep`.  The head's parts are what its training maps call parts:
+a procedural chair's seat, back and legs, a real mesh's materials.  So where the scribbled part
+meets another of its colour, the head's veto is right on one kind of chair and wrong on the
+other, and a scribble alone cannot tell which is meant: `chair_015`'s seat scribbled, its back
+posts (the seat's grey) vetoed, as the twin wants; `scopia_chair4`'s wooden back scribbled, its
+wooden legs vetoed, which the twin (the wood recoloured) does not want.  The keep strokes can:
+`chair_015`'s keep stroke lies on the back, `scopia_chair4`'s none on the chair.  Measured on
+six models (four H200, two CPU; docs/benchmarks.md, fifty-first session), recolours' gap closed,
+edit seed 0 / 1: real 0.802 / 0.794 → 0.860 / 0.852, 0.837 / 0.835 → 0.855 / 0.856, 0.629 /
+0.641 → 0.707 / 0.698, 0.828 / 0.825 → 0.848 / 0.841 (`scopia_chair4` 0.588 → 1.062 and 0.866
+→ 1.035 on the H200 models, `katorlegaz_cafe_chair`'s 12 scribbled points 0.258 → 0.723);
+procedural 0.933 / 0.932 → 0.927 / 0.922 and 0.700 / 0.694 → 0.680 / 0.685 (an orange seat
+under an orange back, kept strokes on the pedestal only: 0.994 → 0.956 on one model); removals
+within 0.01.  The cost: a procedural scribble with no keep stroke gets no veto, and its colour
+twins' selection IoU falls 0.917 → 0.868 without their keep strokes (real: 0.867 → 0.899 with
+or without them)."""
 PART_JOIN = 0.8
 """:attr:`SelectOptions.part_join`.  A part's far side or hidden face that the scribbled view
 could not show (a black shell's seat scribbled from behind: recolour 0.36 → 0.80 and
@@ -127,6 +144,11 @@ class SelectOptions:
     """When the part head is read: an occupied cell, the scribbled cells aside, whose part
     embedding's cosine with the scribbled points' mean embedding is below this is capped below
     :data:`GROW_LOW` (neither selected nor a removal's skin); 0: no veto."""
+    part_veto_keep: bool = PART_VETO_KEEP
+    """The veto takes only the cells whose part embedding is at least as near (cosine) some
+    keep point's as the scribbled points' mean: the parts the keep strokes mark, wherever the
+    head finds them; without a keep stroke on the object, none.  False: every cell below
+    ``part_veto`` (:data:`PART_VETO_KEEP`)."""
     part_join: float = PART_JOIN
     """When the part head is read: an occupied cell whose cosine (as ``part_veto``'s) is at
     least this joins the selection where it connects (26-neighbourhood, through such cells and

@@ -19,7 +19,7 @@ from ...masks import dilate, erode
 from ...renderer import RenderOutput, render_camera
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 from .base import ScribbleView, Selection
-from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, standardizer, within_spread
+from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
 from .features import SHAPE_SOURCES, cell_opacity, denser_points, group_width, local_frames, point_features, surface_points
 from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
 from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
@@ -362,7 +362,13 @@ def select(
         alike = alike.view(res, res, res)
         if options.part_veto > 0:
             unlike = occupied & (alike < options.part_veto) & ~scribbled
+            if options.part_veto_keep:  # see SelectOptions.part_veto_keep
+                claimed = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+                claimed[cells] = nearest_cosine(f_cells[:, c], f_keep[:, c]) >= alike.view(-1)[cells]
+                unlike &= claimed.view(res, res, res)
             values = torch.where(unlike, values.clamp(max=GROW_LOW * 0.999), values)
+            if part_meta is not None:
+                part_meta.update(vetoed=int(unlike.sum()), veto_by="keep strokes" if options.part_veto_keep else "cosine")
         if options.part_join > 0:
             like = occupied & (alike >= options.part_join) & ~spared
             like &= connected_to(like | (values >= at), occupancy.dilate(scribbled, 1))
