@@ -205,10 +205,10 @@ def test_the_part_veto_leaves_out_only_the_parts_the_keep_strokes_mark(headed):
     opts = options_for("color")
     kept = select(model, k, [ScribbleView(view.camera, scribble, keep)], opts)
     assert kept.meta["part_head"]["used"] and kept.meta["part_head"]["veto_by"] == "keep strokes"
-    assert kept.meta["part_head"]["vetoed"] > 0 and "cells left out as parts the keep strokes mark" in part_summary(kept.meta)
+    assert kept.meta["part_head"]["vetoed"] > 0 and "selected cells left out as parts the keep strokes mark" in part_summary(kept.meta)
     alone = ScribbleView(view.camera, scribble, None)
     bare = select(model, k, [alone], opts)
-    assert bare.meta["part_head"]["vetoed"] == 0 and "no keep stroke marks one" in part_summary(bare.meta)
+    assert bare.meta["part_head"]["vetoed"] == 0 and "no keep stroke on the object" in part_summary(bare.meta)
     assert torch.equal(bare.values, select(model, k, [alone], dataclasses.replace(opts, part_veto=0.0)).values)
     old = select(model, k, [alone], dataclasses.replace(opts, part_veto_keep=False))
     assert old.meta["part_head"]["vetoed"] > 0 and old.meta["part_head"]["veto_by"] == "cosine"

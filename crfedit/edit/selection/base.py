@@ -74,9 +74,10 @@ def part_summary(meta: dict) -> str | None:
     if info["used"]:
         line = f"read (the scribbled points' part embeddings agree: coherence {info['coherence']:.2f})"
         if info.get("veto_by") == "keep strokes":
-            n = info["vetoed"]
-            line += (f"; {n} cells left out as parts the keep strokes mark" if n else
-                     "; nothing left out as another part: no keep stroke marks one (draw one on a part to keep it)")
+            if not info["keep_points"]:
+                line += "; no keep stroke on the object, so no other part is left out (draw one on a part to keep it whole)"
+            else:
+                line += f"; {info['vetoed']} selected cells left out as parts the keep strokes mark"
         return line
     return f"not read (coherence {info['coherence']:.2f} < {info['cut']:g}: it does not see the scribbled points as one part)"
 

@@ -366,9 +366,10 @@ def select(
                 claimed = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
                 claimed[cells] = nearest_cosine(f_cells[:, c], f_keep[:, c]) >= alike.view(-1)[cells]
                 unlike &= claimed.view(res, res, res)
+            if part_meta is not None:  # the selected cells it leaves out
+                part_meta.update(vetoed=int((unlike & (values >= at)).sum()), veto_by="keep strokes" if options.part_veto_keep else "cosine",
+                                 keep_points=int(len(f_keep)))
             values = torch.where(unlike, values.clamp(max=GROW_LOW * 0.999), values)
-            if part_meta is not None:
-                part_meta.update(vetoed=int(unlike.sum()), veto_by="keep strokes" if options.part_veto_keep else "cosine")
         if options.part_join > 0:
             like = occupied & (alike >= options.part_join) & ~spared
             like &= connected_to(like | (values >= at), occupancy.dilate(scribbled, 1))
