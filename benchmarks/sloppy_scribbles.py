@@ -1,13 +1,14 @@
 """Selections from sloppy scribbles: the twins' scribbles drawn with a wider brush, or aimed
 a pixel off.
 
-    python benchmarks/sloppy_scribbles.py MODEL DATA [--brush grow1,grow2,shift1,shift1grow1,keep5] [--whole-strokes] [--no-snap] [--out FILE.md]
+    python benchmarks/sloppy_scribbles.py MODEL DATA [--brush grow1,grow2,shift1,shift1grow1,keep5,nokeep] [--whole-strokes] [--no-snap] [--out FILE.md]
 
 The benchmark's scribbles lie inside each part, eroded by up to 2 px; a user's brush does not
 stay inside a 1–2 px tube at 64². Each twin's scribble is changed as ``--brush`` says: ``growN``
 dilates it by N px (a square brush N px wider on every side), ``shiftN`` moves it N px to the
 right, ``shiftNgrowM`` does both; ``keepN`` dilates the keep strokes instead (they lie at least 4 px
-off the part, so ``keep5`` strays a pixel onto it). The keep strokes lose what the changed
+off the part, so ``keep5`` strays a pixel onto it), and ``nokeep`` drops them (a user who draws
+only the scribble). The keep strokes lose what the changed
 scribble covers, and the selection is made again with the edit kind's default options. Printed per change: mean
 selection IoU on the source's test views, per kind, and where the scribbled pixels land in the
 scribbled view's ground truth (on the part, on another part, on the background: a background
@@ -50,7 +51,7 @@ def sloppy(scribble: np.ndarray, change: str) -> np.ndarray:
     ``shiftNgrowM``; a shift moves it right, what leaves the image is lost)."""
     m = re.fullmatch(r"(?:shift(\d+))?(?:grow(\d+))?", change)
     if m is None:
-        raise SystemExit(f"--brush {change!r}: expected growN, shiftN, shiftNgrowM or keepN")
+        raise SystemExit(f"--brush {change!r}: expected growN, shiftN, shiftNgrowM, keepN or nokeep")
     out = moved(scribble, int(m.group(1)), 0) if m.group(1) else scribble
     return dilate(out, int(m.group(2))) if m.group(2) else out
 
@@ -65,8 +66,10 @@ def moved(mask: np.ndarray, dx: int, dy: int) -> np.ndarray:
 
 def sloppy_strokes(scribble: np.ndarray, keep: np.ndarray | None, change: str) -> tuple[np.ndarray, np.ndarray | None]:
     """(scribble, keep strokes) changed as ``change`` says: ``keepN`` dilates the keep strokes
-    by N px, anything else changes the scribble (:func:`sloppy`); the keep strokes lose what
-    the scribble covers."""
+    by N px, ``nokeep`` drops them, anything else changes the scribble (:func:`sloppy`); the
+    keep strokes lose what the scribble covers."""
+    if change == "nokeep":
+        return scribble, None
     m = re.fullmatch(r"keep(\d+)", change)
     if m is not None:
         fg = scribble

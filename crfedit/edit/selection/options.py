@@ -114,9 +114,9 @@ edit seed 0 / 1: real 0.802 / 0.794 → 0.860 / 0.852, 0.837 / 0.835 → 0.855 /
 → 1.035 on the H200 models, `katorlegaz_cafe_chair`'s 12 scribbled points 0.258 → 0.723);
 procedural 0.933 / 0.932 → 0.927 / 0.922 and 0.700 / 0.694 → 0.680 / 0.685 (an orange seat
 under an orange back, kept strokes on the pedestal only: 0.994 → 0.956 on one model); removals
-within 0.01.  The cost: a procedural scribble with no keep stroke gets no veto, and its colour
-twins' selection IoU falls 0.917 → 0.868 without their keep strokes (real: 0.867 → 0.899 with
-or without them)."""
+within 0.01.  The cost: a procedural scribble with no keep stroke gets no veto; without their keep
+strokes the colour twins' selection IoU falls 0.917 → 0.868 and 0.859 → 0.817
+(`benchmarks/sloppy_scribbles.py --brush nokeep`; real 0.867 → 0.899 and 0.892 → 0.914)."""
 PART_JOIN = 0.8
 """:attr:`SelectOptions.part_join`.  A part's far side or hidden face that the scribbled view
 could not show (a black shell's seat scribbled from behind: recolour 0.36 → 0.80 and
