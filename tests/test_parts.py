@@ -215,6 +215,24 @@ def test_the_part_veto_leaves_out_only_the_parts_the_keep_strokes_mark(headed):
     assert not torch.equal(old.values, bare.values)
 
 
+def test_the_part_join_takes_no_cell_of_another_hue(headed):
+    """``part_join_hue``: the head's join adds back no cell that the hue veto calls unlike the
+    scribble.  With a veto that calls every cell but the scribbled points' own hue unlike, the
+    join adds nothing the selection without a join lacks; with the test off it does."""
+    _, model, category = headed
+    k = 1
+    inst = category.instances[k]
+    pid = next(p["id"] for p in json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
+    view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
+    strokes = [ScribbleView(view.camera, erode(view.parts == pid, 1), (view.parts > 0) & ~dilate(view.parts == pid, 1))]
+    strict = dataclasses.replace(options_for("color"), veto_chroma=1e-3, veto_floor=0.0, part_join_hue=1e-6)
+    tested = select(model, k, strokes, strict)
+    assert tested.meta["part_head"]["used"]
+    assert torch.equal(tested.values, select(model, k, strokes, dataclasses.replace(strict, part_join=0.0)).values)
+    assert not torch.equal(tested.values, select(model, k, strokes, dataclasses.replace(strict, part_join_hue=0.0)).values)
+    assert options_for("color").part_join_hue == 0.3 and options_for("remove").part_join_hue == 0.0
+
+
 def test_nearest_cosine_is_the_greatest_cosine_with_any_point():
     g = torch.Generator().manual_seed(0)
     cells, points = F.normalize(torch.randn(50, 16, generator=g), dim=-1), F.normalize(torch.randn(7, 16, generator=g), dim=-1)

@@ -372,6 +372,8 @@ def select(
             values = torch.where(unlike, values.clamp(max=GROW_LOW * 0.999), values)
         if options.part_join > 0:
             like = occupied & (alike >= options.part_join) & ~spared
+            if 0 < options.part_join_hue <= saturation and options.veto_chroma > 0:  # see SelectOptions.part_join_hue
+                like &= alike_grid(options.veto_chroma, options.veto_floor) | scribbled
             like &= connected_to(like | (values >= at), occupancy.dilate(scribbled, 1))
             if shape_gate:  # see SelectOptions.shape_gate
                 like &= ~gated(like & (values < at))
