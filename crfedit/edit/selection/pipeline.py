@@ -362,10 +362,12 @@ def select(
         alike = alike.view(res, res, res)
         if options.part_veto > 0:
             unlike = occupied & (alike < options.part_veto) & ~scribbled
-            if options.part_veto_keep:  # see SelectOptions.part_veto_keep
-                claimed = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-                claimed[cells] = nearest_cosine(f_cells[:, c], f_keep[:, c]) >= alike.view(-1)[cells]
-                unlike &= claimed.view(res, res, res)
+            if options.part_veto_keep:  # see SelectOptions.part_veto_keep; only the cells below the cut are read
+                rows = unlike.view(-1)[cells].nonzero().squeeze(-1)
+                unlike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+                if len(f_keep) and len(rows):
+                    unlike[cells[rows]] = nearest_cosine(f_cells[rows][:, c], f_keep[:, c]) >= alike.view(-1)[cells[rows]]
+                unlike = unlike.view(res, res, res)
             if part_meta is not None:  # the selected cells it leaves out
                 part_meta.update(vetoed=int((unlike & (values >= at)).sum()), veto_by="keep strokes" if options.part_veto_keep else "cosine",
                                  keep_points=int(len(f_keep)))
