@@ -366,7 +366,8 @@ def select(
                 rows = unlike.view(-1)[cells].nonzero().squeeze(-1)
                 unlike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
                 if len(f_keep) and len(rows):
-                    unlike[cells[rows]] = nearest_cosine(f_cells[rows][:, c], f_keep[:, c]) >= alike.view(-1)[cells[rows]]
+                    part = f_cells[:, int(c[0]):int(c[-1]) + 1]  # the group's columns are contiguous: a view, gathered row by row
+                    unlike[cells[rows]] = nearest_cosine(part[rows], f_keep[:, c]) >= alike.view(-1)[cells[rows]]
                 unlike = unlike.view(res, res, res)
             if part_meta is not None:  # the selected cells it leaves out
                 part_meta.update(vetoed=int((unlike & (values >= at)).sum()), veto_by="keep strokes" if options.part_veto_keep else "cosine",
