@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from crfedit.cli import app
 from crfedit.edit import EditOptions, edit_color, remove
 from crfedit.edit.selection import (
-    ScribbleView, SelectOptions, Selection, load_selection, options_for, point_features, preview, save_selection, select, surface_points,
+    ScribbleView, SelectOptions, Selection, cell_points, load_selection, options_for, point_features, preview, save_selection, select, surface_points,
 )
 from crfedit.edit.selection.classify import appearance_gate, chroma_alike, chromaticity, classifier, fit_logistic
 from crfedit.edit.selection.features import denser_points, group_width, local_shape
@@ -83,6 +83,30 @@ def test_selection_from_one_view_covers_the_part_in_other_views(trained):
     # what was never scribbled nor kept: a sparse scribble (every 4th pixel) still selects the part
     sparse = fg & (np.indices(fg.shape).sum(0) % 4 == 0)
     assert selection_iou(model, select(model, k, [ScribbleView(view.camera, sparse, None)]), k, held, pid) > 0.5
+
+
+def test_cell_points_handed_in_give_the_same_selection(trained):
+    """``select(..., points=cell_points(...))``, what the page does at every stroke, is the
+    selection computed from scratch, bit for bit; points of another ascent, or of another
+    instance's cells, are not used."""
+    _, model, category = trained
+    k = 2
+    view, fg, keep, _ = part_view(category, k, "seat")
+    views = [ScribbleView(view.camera, fg, keep)]
+    for kind in ("color", "remove"):
+        options = options_for(kind)
+        fresh = select(model, k, views, options)
+        points = cell_points(model.field_for(k), k, options.cell_ascent)
+        assert points.fits(fresh_cells := model.field.occupancy[k].reshape(-1).nonzero().squeeze(-1), options.cell_ascent)
+        assert len(points.cells) == fresh.meta["occupied_cells"] and points.fused is not None
+        handed = select(model, k, views, options, points=points)
+        assert torch.equal(handed.values, fresh.values) and handed.meta["selected_cells"] == fresh.meta["selected_cells"]
+        other = cell_points(model.field_for(0), 0, options.cell_ascent)
+        assert not other.fits(fresh_cells, options.cell_ascent)
+        assert torch.equal(select(model, k, views, options, points=other).values, fresh.values)
+        assert not points.fits(fresh_cells, 0.0)
+        assert torch.equal(select(model, k, views, dataclasses.replace(options, cell_ascent=0.0), points=points).values,
+                           select(model, k, views, dataclasses.replace(options, cell_ascent=0.0)).values)
 
 
 def test_twin_selection_iou_counts_the_pixels_labelled_object_only(trained):

@@ -271,6 +271,22 @@ def test_select_tints_the_selection_over_any_view_until_cleared(ui, scene):
     assert "nothing is selected" in ui.error("GET", "/api/view?instance=0&view=train:0&tint=1")
 
 
+def test_strokes_on_one_instance_reuse_its_cell_points(ui, scene):
+    """The page re-selects at every stroke: the cells' density ascent, the same for any
+    scribble, runs once per instance and stack state, and the selection is the one a fresh
+    ``select`` makes (``test_cell_points_handed_in_give_the_same_selection``)."""
+    body = {"instance": 0, "views": [{"view": "train:0", "fg": strokes(scene)}]}
+    first = ui.post("/api/select", body)
+    wider = ui.post("/api/select", {**body, "views": [{"view": "train:0", "fg": strokes(scene, radius=2.0)}]})
+    removal = ui.post("/api/select", {**body, "kind": "remove"})
+    assert first["selected_cells"] > 0 and wider["selected_cells"] > 0 and removal["selected_cells"] > 0
+    assert [key[1:] for key in ui.session._cell_points] == [(0, 1.0)]  # one entry: instance 0, the default ascent
+    ui.post("/api/edit", color_body(scene), expect=202)
+    assert ui.wait_job()["state"] == "done"
+    ui.post("/api/select", body)  # a new stack state: its own cell points
+    assert [key[1:] for key in ui.session._cell_points] == [(0, 1.0), (0, 1.0)]
+
+
 @pytest.mark.parametrize("fg,message", [
     ({"strokes": []}, "scribble is empty"),
     ({"strokes": "x"}, "expected"),

@@ -31,7 +31,7 @@ from ..data.loading import Category
 from ..delta import Delta, apply_deltas, bake, read_delta, restack, save_delta
 from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
-from ..edit.selection import SUMMARIES, ScribbleView, Selection, options_for, preview, select
+from ..edit.selection import SUMMARIES, CellPoints, ScribbleView, Selection, cell_points, options_for, preview, select
 from ..errors import CrfError
 from ..model import CategoryModel, save_model
 from ..renderer import render_camera
@@ -101,6 +101,7 @@ class UiSession:
         self._fields = _Lru(4)
         self._view_caches = _Lru(VIEW_CACHES)
         self._selections = _Lru(16)
+        self._cell_points = _Lru(4)  # (state, instance, ascent) → CellPoints: a stroke re-selects without the density ascent
         self._shown: dict[int, tuple[tuple[ScribbleSet, ...], str]] = {}  # instance → (scribbles, edit kind)
         self._sizes: dict[str, int] = {}
 
@@ -201,9 +202,20 @@ class UiSession:
             hit = self._selections.get(cache_key)
         if hit is None:
             views = [ScribbleView(s.view.camera, s.fg.mask, None if s.bg is None else s.bg.mask) for s in scribbles]
-            hit = select(model, k, views, options)
+            hit = select(model, k, views, options, points=self._points(model, key, k, options.cell_ascent))
             with self._lock:
                 self._selections.put(cache_key, hit)
+        return hit
+
+    def _points(self, model: CategoryModel, key, k: int, ascent: float) -> CellPoints:
+        """Instance ``k``'s :func:`cell_points` in state ``key``, cached: the same for every
+        scribble, and the costliest step of a selection (a density ascent over every cell)."""
+        with self._lock:
+            hit = self._cell_points.get((key, k, ascent))
+        if hit is None:
+            hit = cell_points(self._field(model, key, k), k, ascent)
+            with self._lock:
+                self._cell_points.put((key, k, ascent), hit)
         return hit
 
     def _shown_scribbles(self, k: int) -> tuple[tuple[ScribbleSet, ...], str]:

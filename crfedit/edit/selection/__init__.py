@@ -101,14 +101,14 @@ The package follows these steps, one concept per module:
 """
 
 from .base import SUMMARIES, ScribbleView, Selection, join_summary, mirror_summary, part_summary, shape_summary, stroke_summary
-from .features import point_features, surface_points
+from .features import CellPoints, cell_points, point_features, surface_points
 from .options import EDIT_KINDS, FEATURES, GROW_LOW, MIN_OPACITY, SelectOptions, options_for
 from .pipeline import select, select_for
 from .store import FORMAT, load_selection, save_selection
 from .tint import preview
 
 __all__ = [
-    "EDIT_KINDS", "FEATURES", "FORMAT", "GROW_LOW", "MIN_OPACITY", "SUMMARIES", "ScribbleView", "SelectOptions", "Selection", "load_selection",
-    "join_summary", "mirror_summary", "options_for", "part_summary", "point_features", "preview", "save_selection", "select", "select_for", "shape_summary", "stroke_summary",
+    "CellPoints", "EDIT_KINDS", "FEATURES", "FORMAT", "GROW_LOW", "MIN_OPACITY", "SUMMARIES", "ScribbleView", "SelectOptions", "Selection", "load_selection",
+    "join_summary", "mirror_summary", "options_for", "part_summary", "cell_points", "point_features", "preview", "save_selection", "select", "select_for", "shape_summary", "stroke_summary",
     "surface_points",
 ]

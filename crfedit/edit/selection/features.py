@@ -212,6 +212,39 @@ ASCENT_CHUNK = 8192
 the cache (37 000 cells on one core: 126 → 114 ms, the same bits)."""
 
 
+class CellPoints(NamedTuple):
+    """An instance's occupied cells as a selection describes them, the same for every scribble:
+    their flat indices ``cells`` [N] in the occupancy grid, ``points`` [N, 3] (normalized: the
+    cell centres, moved up the density gradient when ``ascent`` > 0, :func:`denser_points`),
+    F_fuse's output there [N, width] and the density at the centres [N] (both None without the
+    ascent).  A caller that selects on one instance again (the page, at every stroke) computes
+    them once (:func:`cell_points`) and hands them to :func:`~.pipeline.select`."""
+
+    cells: Tensor
+    points: Tensor
+    fused: Tensor | None
+    sigma: Tensor | None
+    ascent: float
+
+    def fits(self, cells: Tensor, ascent: float) -> bool:
+        """Whether these are the points of the occupied cells ``cells`` [N] at ``ascent``."""
+        return self.ascent == ascent and self.cells.shape == cells.shape and bool(torch.equal(self.cells, cells))
+
+
+@torch.no_grad()
+def cell_points(field: ConditionalRadianceField, instance: int, ascent: float) -> CellPoints:
+    """:class:`CellPoints` of ``instance``'s occupied cells, each moved ``ascent`` × half a
+    cell up the density gradient (:attr:`SelectOptions.cell_ascent`; 0: the centres)."""
+    occupied = field.occupancy[instance]
+    res = occupied.shape[-1]
+    cells = occupied.reshape(-1).nonzero().squeeze(-1)
+    centres = occupancy.cell_centers(res, occupied.device)[cells]
+    if ascent <= 0:
+        return CellPoints(cells, centres, None, None, ascent)
+    # a half cell is 1/res in normalized units
+    return CellPoints(cells, *denser_points(field, instance, centres, ascent / res), ascent)
+
+
 def denser_points(field: ConditionalRadianceField, instance: int, xn: Tensor, distance: float) -> tuple[Tensor, Tensor, Tensor]:
     """Normalized points ``xn`` [N, 3], each moved ``distance`` along its density gradient where
     the density is higher there, else left where it is; F_fuse's output at the points

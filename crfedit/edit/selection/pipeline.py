@@ -20,7 +20,7 @@ from ...renderer import RenderOutput, render_camera
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
-from .features import SHAPE_SOURCES, cell_opacity, denser_points, group_width, local_frames, point_features, surface_points
+from .features import SHAPE_SOURCES, CellPoints, cell_opacity, cell_points, group_width, local_frames, point_features, surface_points
 from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
 from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
 from .shapes import RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
@@ -220,10 +220,12 @@ def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tens
 @torch.no_grad()
 def select(
     model: CategoryModel, instance: int | str, views: Sequence[ScribbleView], options: SelectOptions = SelectOptions(),
-    renders: Sequence[RenderOutput] | None = None,
+    renders: Sequence[RenderOutput] | None = None, points: CellPoints | None = None,
 ) -> Selection:
     """The 3-D selection the scribbles of ``views`` mean (see the module docstring).
-    ``renders`` are the views' renders of the instance when the caller has them already."""
+    ``renders`` are the views' renders of the instance when the caller has them already;
+    ``points`` its :func:`~.features.cell_points` (computed here when None, or when they are
+    not this instance's cells at ``options.cell_ascent``)."""
     started = time.perf_counter()
     k = model.instance_index(instance)
     if not views:
@@ -258,9 +260,9 @@ def select(
         mirror_meta.update(positives=int(len(mirrored[0])), keep_points=int(len(mirrored[1])))
         pos_pts, neg_pts, cand_pts = (torch.cat([a, b]) for a, b in zip((pos_pts, neg_pts, cand_pts), mirrored))
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
-    centres, fused, sigma = occupancy.cell_centers(res, occupied.device)[cells], None, None
-    if options.cell_ascent > 0:  # a half cell is 1/res in normalized units
-        centres, fused, sigma = denser_points(field, k, centres, options.cell_ascent / res)
+    if points is None or not points.fits(cells, options.cell_ascent):
+        points = cell_points(field, k, options.cell_ascent)
+    centres, fused, sigma = points.points, points.fused, points.sigma
     cell_pts = field.denormalize(centres)
     eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
     groups, part_meta, fused_pos = options.features, None, None
