@@ -281,6 +281,16 @@ def test_strokes_on_one_instance_reuse_its_cell_points(ui, scene):
     removal = ui.post("/api/select", {**body, "kind": "remove"})
     assert first["selected_cells"] > 0 and wider["selected_cells"] > 0 and removal["selected_cells"] > 0
     assert [key[1:] for key in ui.session._cell_points] == [(0, 1.0)]  # one entry: instance 0, the default ascent
+    assert [key[1:] for key in ui.session._depths] == [(0, "train:0")]  # and the scribbled view's render, once
+    # what the page selects is what select() makes from the same strokes, bit for bit
+    from crfedit.edit.selection import ScribbleView, options_for, select
+    from crfedit.ui.recipe import parse_scribbles
+
+    model = ui.session.model
+    (drawn,) = parse_scribbles(body["views"], model, 0)
+    page = ui.session._selection(model, ui.session.state_key, 0, (drawn,), "remove")
+    fresh = select(model, 0, [ScribbleView(drawn.view.camera, drawn.fg.mask, None)], options_for("remove"))
+    assert torch.equal(page.values, fresh.values)
     ui.post("/api/edit", color_body(scene), expect=202)
     assert ui.wait_job()["state"] == "done"
     ui.post("/api/select", body)  # a new stack state: its own cell points

@@ -102,6 +102,7 @@ class UiSession:
         self._view_caches = _Lru(VIEW_CACHES)
         self._selections = _Lru(16)
         self._cell_points = _Lru(4)  # (state, instance, ascent) → CellPoints: a stroke re-selects without the density ascent
+        self._depths = _Lru(8)  # (state, instance, view) → the view's render without colour, which select lifts strokes with
         self._shown: dict[int, tuple[tuple[ScribbleSet, ...], str]] = {}  # instance → (scribbles, edit kind)
         self._sizes: dict[str, int] = {}
 
@@ -202,7 +203,8 @@ class UiSession:
             hit = self._selections.get(cache_key)
         if hit is None:
             views = [ScribbleView(s.view.camera, s.fg.mask, None if s.bg is None else s.bg.mask) for s in scribbles]
-            hit = select(model, k, views, options, points=self._points(model, key, k, options.cell_ascent))
+            renders = [self._depth(model, key, k, s.view) for s in scribbles]
+            hit = select(model, k, views, options, renders=renders, points=self._points(model, key, k, options.cell_ascent))
             with self._lock:
                 self._selections.put(cache_key, hit)
         return hit
@@ -216,6 +218,18 @@ class UiSession:
             hit = cell_points(self._field(model, key, k), k, ascent)
             with self._lock:
                 self._cell_points.put((key, k, ascent), hit)
+        return hit
+
+    def _depth(self, model: CategoryModel, key, k: int, view):
+        """Instance ``k``'s render of ``view`` (a parsed view: ``.key``, ``.camera``) without
+        colour, in state ``key``, cached: what :func:`select` lifts the strokes with."""
+        with self._lock:
+            hit = self._depths.get((key, k, view.key))
+        if hit is None:
+            with torch.no_grad():
+                hit = render_camera(self._field(model, key, k), view.camera, k, colour=False)
+            with self._lock:
+                self._depths.put((key, k, view.key), hit)
         return hit
 
     def _shown_scribbles(self, k: int) -> tuple[tuple[ScribbleSet, ...], str]:
