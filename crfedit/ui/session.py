@@ -126,14 +126,18 @@ class UiSession:
         key = self.state_key
         return "base" if not key else hashlib.sha256("|".join(key).encode()).hexdigest()[:12]
 
-    def _field(self, model: CategoryModel, key, k: int):
+    def _cached(self, lru: _Lru, key, make: Callable[[], object]):
+        """``lru``'s value for ``key``; made by ``make()`` outside the lock and kept when missing."""
         with self._lock:
-            hit = self._fields.get((key, k))
+            hit = lru.get(key)
         if hit is None:
-            hit = model.field_for(k)
+            hit = make()
             with self._lock:
-                self._fields.put((key, k), hit)
+                lru.put(key, hit)
         return hit
+
+    def _field(self, model: CategoryModel, key, k: int):
+        return self._cached(self._fields, (key, k), lambda: model.field_for(k))
 
     def _entry(self, entry_id) -> Entry:
         e = next((e for e in self.entries if e.id == entry_id), None)
@@ -165,17 +169,13 @@ class UiSession:
         ref = parse_view(view, model, k)
         shown = self._shown_scribbles(k) if tint else None
         cache_key = (key, k, ref.key, None if shown is None else (_canon(shown[0]), shown[1]))
-        with self._lock:
-            hit = self._renders.get(cache_key)
-        if hit is not None:
-            return hit
-        if shown is not None:
-            image = preview(model, self._selection(model, key, k, *shown), ref.camera)
-        else:
-            image = render_camera(self._field(model, key, k), ref.camera, k).rgb
-        png = png_bytes(image)
-        with self._lock:
-            return self._renders.put(cache_key, png)
+
+        def make() -> bytes:
+            if shown is not None:
+                return png_bytes(preview(model, self._selection(model, key, k, *shown), ref.camera))
+            return png_bytes(render_camera(self._field(model, key, k), ref.camera, k).rgb)
+
+        return self._cached(self._renders, cache_key, make)
 
     def thumbnail(self, instance) -> bytes:
         return self.render(instance, THUMB_VIEW)
@@ -198,39 +198,27 @@ class UiSession:
     def _selection(self, model: CategoryModel, key, k: int, scribbles: tuple[ScribbleSet, ...], kind: str) -> Selection:
         """The selection ``scribbles`` mean for an edit of ``kind`` (:func:`options_for`), cached."""
         options = options_for(kind)
-        cache_key = (key, k, _canon(scribbles), kind)
-        with self._lock:
-            hit = self._selections.get(cache_key)
-        if hit is None:
+
+        def make() -> Selection:
             views = [ScribbleView(s.view.camera, s.fg.mask, None if s.bg is None else s.bg.mask) for s in scribbles]
             renders = [self._depth(model, key, k, s.view) for s in scribbles]
-            hit = select(model, k, views, options, renders=renders, points=self._points(model, key, k, options.cell_ascent))
-            with self._lock:
-                self._selections.put(cache_key, hit)
-        return hit
+            return select(model, k, views, options, renders=renders, points=self._points(model, key, k, options.cell_ascent))
+
+        return self._cached(self._selections, (key, k, _canon(scribbles), kind), make)
 
     def _points(self, model: CategoryModel, key, k: int, ascent: float) -> CellPoints:
         """Instance ``k``'s :func:`cell_points` in state ``key``, cached: the same for every
         scribble, and the costliest step of a selection (a density ascent over every cell)."""
-        with self._lock:
-            hit = self._cell_points.get((key, k, ascent))
-        if hit is None:
-            hit = cell_points(self._field(model, key, k), k, ascent)
-            with self._lock:
-                self._cell_points.put((key, k, ascent), hit)
-        return hit
+        return self._cached(self._cell_points, (key, k, ascent), lambda: cell_points(self._field(model, key, k), k, ascent))
 
     def _depth(self, model: CategoryModel, key, k: int, view):
         """Instance ``k``'s render of ``view`` (a parsed view: ``.key``, ``.camera``) without
         colour, in state ``key``, cached: what :func:`select` lifts the strokes with."""
-        with self._lock:
-            hit = self._depths.get((key, k, view.key))
-        if hit is None:
+        def make():
             with torch.no_grad():
-                hit = render_camera(self._field(model, key, k), view.camera, k, colour=False)
-            with self._lock:
-                self._depths.put((key, k, view.key), hit)
-        return hit
+                return render_camera(self._field(model, key, k), view.camera, k, colour=False)
+
+        return self._cached(self._depths, (key, k, view.key), make)
 
     def _shown_scribbles(self, k: int) -> tuple[tuple[ScribbleSet, ...], str]:
         """(scribbles, edit kind) of the selection shown on instance ``k``."""
@@ -268,14 +256,7 @@ class UiSession:
             self._shown.pop(k, None)
 
     def _view_cache(self, model, key, k: int, view) -> ViewCache:
-        cache_key = (key, k, view.key)
-        with self._lock:
-            hit = self._view_caches.get(cache_key)
-        if hit is None:
-            hit = ViewCache(self._field(model, key, k), view.camera, k)
-            with self._lock:
-                self._view_caches.put(cache_key, hit)
-        return hit
+        return self._cached(self._view_caches, (key, k, view.key), lambda: ViewCache(self._field(model, key, k), view.camera, k))
 
     # ------------------------------------------------------------------------- edits
 
