@@ -297,6 +297,16 @@ def test_strokes_on_one_instance_reuse_its_cell_points(ui, scene):
     assert [key[1:] for key in ui.session._cell_points] == [(0, 1.0), (0, 1.0)]
 
 
+def test_a_removal_s_shown_view_is_kept_for_the_next_request(ui, scene):
+    """The view a removal re-rendered to show its result is kept under the key the untinted
+    view is asked for, so the page's next request for it is not rendered again."""
+    job = ui.edit({"kind": "remove", "instance": 0, "view": "train:0", "views": [{"view": "train:0", "fg": strokes(scene)}], "steps": 2})
+    assert job["state"] == "done", job
+    key = (ui.session.state_key, 0, "train:0", None)
+    assert key in ui.session._renders
+    assert ui.get("/api/view?instance=0&view=train:0") == ui.session._renders[key]
+
+
 @pytest.mark.parametrize("fg,message", [
     ({"strokes": []}, "scribble is empty"),
     ({"strokes": "x"}, "expected"),

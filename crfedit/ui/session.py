@@ -296,7 +296,7 @@ class UiSession:
             self.entries.append(entry)
             self.model, self.pinned = result.model, {**self.pinned, entry.id: delta}
             if png is not None and req.kind != "color":
-                self._renders.put((self.state_key, k, req.view.key, False), png)
+                self._renders.put((self.state_key, k, req.view.key, None), png)  # render()'s key for the untinted view
         out = {"entry": entry.id, "stack": self.stack_info(), "state": self.state_name()}
         if png is not None:
             out["image"] = data_url(png)
