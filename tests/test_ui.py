@@ -31,7 +31,7 @@ from crfedit.delta import apply_deltas, check_stack, read_delta  # noqa: E402
 from crfedit.errors import CrfError  # noqa: E402
 from crfedit.model import load_model  # noqa: E402
 from crfedit.renderer import render_camera  # noqa: E402
-from crfedit.ui.server import MAX_BODY, run_in_thread  # noqa: E402
+from crfedit.ui.server import MAX_BODY, compute_threads, open_page_session, run_in_thread  # noqa: E402
 from crfedit.ui.session import open_session  # noqa: E402
 
 from cli_helpers import assert_user_error, invoke  # noqa: E402
@@ -498,6 +498,26 @@ def test_edits_given_with_edit_start_the_stack(scene, tmp_path):
         again.photo(0, "train", 0)
 
 
+def test_the_server_shares_the_cpu_threads_between_its_two_compute_threads(scene, tmp_path):
+    """Each compute thread (renders, edits) keeps an OpenMP team: together they get the threads
+    one process would (compute_threads), and the model loads on a thread that ends, so the
+    caller keeps no third team.  A missing model is still a one-line error."""
+    import threading
+
+    assert [compute_threads(n) for n in (1, 2, 3, 4, 16)] == [1, 1, 1, 2, 8]
+    before = torch.get_num_threads()
+    try:
+        session, _ = open_page_session(scene[0], None, [], tmp_path / "w", "cpu", threads=4)
+        assert torch.get_num_threads() == 2
+        assert session.info()["instances"] == ["chair_000", "chair_001", "chair_002"]
+        assert not [t for t in threading.enumerate() if t.name.startswith("crfedit-load")]
+        with pytest.raises(CrfError, match="no-such.safetensors"):
+            open_page_session(tmp_path / "no-such.safetensors", None, [], tmp_path / "w", "cpu", threads=1)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
 # ----------------------------------------------------------------------------- the command
 
 
@@ -511,9 +531,14 @@ def test_ui_command_warns_when_bound_beyond_this_machine(monkeypatch, scene, tmp
 
     seen = {}
     monkeypatch.setattr(server, "serve", lambda session, host, port, on_ready: (seen.update(host=host), on_ready("http://x/?token=t")))
-    result = invoke("ui", scene[0], "--host", "0.0.0.0", "--workdir", tmp_path / "w")
+    before = torch.get_num_threads()
+    try:
+        result = invoke("ui", scene[0], "--host", "0.0.0.0", "--workdir", tmp_path / "w")
+    finally:
+        torch.set_num_threads(before)  # the command set the page's share of the threads
     assert result.exit_code == 0, result.output
     assert "reachable from other machines" in result.output and "open http://x/?token=t" in result.output
+    assert "CPU thread" in result.output and "of the page's two compute threads" in result.output
     assert seen["host"] == "0.0.0.0" and not (tmp_path / "w").exists()
 
 

@@ -37,17 +37,20 @@ def ui_cmd(
         raise CrfError(f"--port {port}: expected 0-65535")
     if workdir.exists() and not workdir.is_dir():
         raise CrfError(f"--workdir {workdir}: is a file, not a folder")
-    from ..ui.server import serve
-    from ..ui.session import open_session
+    import torch
 
-    session, warnings = open_session(model, data, list(edit or []), workdir, device.value)
+    from ..ui.server import open_page_session, serve
+
+    session, warnings = open_page_session(model, data, list(edit or []), workdir, device.value)
     for w in warnings:
         typer.echo(f"warning: {w}", err=True)
     if host not in LOOPBACK:
         typer.echo(f"warning: --host {host}: the page is reachable from other machines; anyone with its URL can edit and write files in {workdir}", err=True)
 
     def ready(url: str) -> None:
-        typer.echo(f"crfedit ui: {model} with {len(session.entries)} edit(s), work dir {workdir}")
+        threads = torch.get_num_threads()
+        typer.echo(f"crfedit ui: {model} with {len(session.entries)} edit(s), work dir {workdir}, "
+                   f"{threads} CPU thread{'s' * (threads > 1)} for each of the page's two compute threads")
         typer.echo(f"open {url}  (Ctrl-C stops)", err=False)
         if open_browser:
             import webbrowser

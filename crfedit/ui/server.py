@@ -9,7 +9,8 @@ inside the work dir, under plain names; only safetensors files are read.
 Concurrency: renders and selections run on one worker thread, edits on another, so the page
 stays responsive while an edit runs.  One edit at a time: a second is refused with 409.  An
 edit started by a page whose WebSocket closes (the tab was closed) is cancelled at its next
-optimization step; nothing is written.
+optimization step; nothing is written.  The two threads share the process's CPU threads
+(:func:`compute_threads`), and :func:`open_page_session` loads the model on a thread that ends.
 """
 
 from __future__ import annotations
@@ -48,6 +49,37 @@ CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' 
        "frame-ancestors 'none'; base-uri 'none'; form-action 'none'")
 PROGRESS_EVERY = 0.1
 """Seconds between progress messages of a running edit."""
+
+
+COMPUTE_THREADS = 2
+"""Threads of the server that run torch: the render pool's and the edit pool's."""
+
+
+def compute_threads(requested: int) -> int:
+    """torch's CPU threads for the server of a process given ``requested`` threads: a share for
+    each of its :data:`COMPUTE_THREADS` (at least one).
+
+    torch's OpenMP runtime (libgomp) keeps a team of worker threads for every thread that runs
+    torch, and once all the teams hold more threads than the machine has cores, every team's
+    idle workers sleep at once instead of spinning: each parallel region then waits for a wake-up.
+    On 2 cores a loop of small matmuls ran 0.21 s on one thread and 0.37–0.40 s on either of two
+    (as with ``OMP_WAIT_POLICY=passive``), and the page's colour edit took 0.57–0.88 s in the edit
+    thread with 2 torch threads against 0.26–0.34 s with one (docs/benchmarks.md)."""
+    return max(1, requested // COMPUTE_THREADS)
+
+
+def open_page_session(model_path, data, edits, workdir, device: str, threads: int | None = None):
+    """:func:`~crfedit.ui.session.open_session` for a server: sets torch's threads to
+    :func:`compute_threads` of ``threads`` (default: torch's now) and loads on a thread that then
+    ends, so that the calling thread keeps no OpenMP team beside the server's two."""
+    import torch
+
+    from ..runtime import configure_threads
+    from .session import open_session
+
+    configure_threads(compute_threads(torch.get_num_threads() if threads is None else threads))
+    with ThreadPoolExecutor(1, thread_name_prefix="crfedit-load") as pool:
+        return pool.submit(open_session, model_path, data, edits, workdir, device).result()
 
 
 class Cancelled(Exception):
