@@ -151,6 +151,17 @@ def pick_view(page: Page, spec: str) -> None:
     page.wait(f"return performance.getEntriesByName('crfedit:view').length > {n} && !S.viewBusy")
 
 
+def select_shown(page: Page, kind: str, timeout: float = 120.0) -> tuple[float, float]:
+    """Choose ``kind``, press Select and wait for the tinted view and the turntable; returns
+    the page's ms for each (the selection is of ``kind``: an Apply of that kind reuses it)."""
+    page.set_input("#edit-kind", kind)
+    n, t = page.count("select"), page.count("turntable")
+    page.click("#select")
+    page.wait(f"return performance.getEntriesByName('crfedit:select').length > {n} && !S.viewBusy", timeout)
+    page.wait(f"return performance.getEntriesByName('crfedit:turntable').length > {t}", timeout)
+    return page.measures("select")[-1], page.measures("turntable")[t]
+
+
 def apply_edit(page: Page, kind: str, timeout: float = 300.0) -> float:
     """Choose ``kind``, press Apply and wait for the result on screen; returns the page's ms."""
     page.set_input("#edit-kind", kind)
@@ -228,7 +239,10 @@ def run(model: Path, data: Path | None, repeats: int) -> dict:
     ``crfedit ui`` sets them).  A warm-up round is
     not counted.  Each selection is of a new scribble (the stroke's radius changes), so no
     repeat is served from the server's caches; a colour edit is measured after its Select (the
-    page's flow: preview, then Apply; the selection is reused) and without one ("cold")."""
+    page's flow: preview, then Apply; the selection is reused) and without one ("cold"), a
+    removal's Select on its own and its Apply without one.  (Until the fifty-second session
+    the Select before the colour edit was of the removal kind that the round before had left
+    chosen, so the colour edit made its own selection: "after Select" was "cold".)"""
     import torch
 
     from crfedit.runtime import configure_threads
@@ -248,7 +262,7 @@ def run(model: Path, data: Path | None, repeats: int) -> dict:
         parts = load_parts(data, session.base.names[instance], view) if data else None
         stroke, _ = stroke_on_part(parts if parts is not None else (opacity > 0.5).astype(np.uint8), opacity)
         page.set_input("#color", "#2f6fd8")
-        times = {k: [] for k in ("view", "select", "turntable", "apply-color", "apply-color-cold", "apply-remove")}
+        times = {k: [] for k in ("view", "select", "select-remove", "turntable", "apply-color", "apply-color-cold", "apply-remove")}
         radius = float(page.js("return S.radius"))
 
         def scribble(i: int) -> None:
@@ -264,22 +278,21 @@ def run(model: Path, data: Path | None, repeats: int) -> dict:
             switched = page.measures("view")[-1]
             pick_view(page, view)
             scribble(i)
-            n, t = page.count("select"), page.count("turntable")
-            page.click("#select")
-            page.wait(f"return performance.getEntriesByName('crfedit:select').length > {n} && !S.viewBusy", 120)
-            page.wait(f"return performance.getEntriesByName('crfedit:turntable').length > {t}", 120)
-            selected, turntable = page.measures("select")[-1], page.measures("turntable")[t]
+            selected, turntable = select_shown(page, "color")
             ms = apply_edit(page, "color")
             toggle_last(page, False)
             scribble(repeats + 1 + i)
             cold = apply_edit(page, "color")
             toggle_last(page, False)
             scribble(2 * repeats + 2 + i)
+            selected_remove, _ = select_shown(page, "remove")
+            scribble(3 * repeats + 3 + i)
             remove_ms = apply_edit(page, "remove")
             toggle_last(page, False)
             if keep:
                 times["view"].append(switched)
                 times["select"].append(selected)
+                times["select-remove"].append(selected_remove)
                 times["turntable"].append(turntable)
                 times["apply-color"].append(ms)
                 times["apply-color-cold"].append(cold)
@@ -329,7 +342,8 @@ def markdown(result: dict, command: str) -> str:
     ms = result["ms"]
     rows = [
         ("view switch (orbit slider → new view shown)", ms["view"], "≤ 150 ms"),
-        ("selection preview (Select → tinted view shown)", ms["select"], ""),
+        ("selection preview of a recolour (Select → tinted view shown)", ms["select"], ""),
+        ("selection preview of a removal (Select → tinted view shown)", ms["select-remove"], ""),
         ("colour edit applied and shown, after Select (Apply → recoloured view)", ms["apply-color"], "≤ 500 ms"),
         ("colour edit applied and shown, no Select before (the selection is made in Apply)", ms["apply-color-cold"], ""),
         ("removal applied and shown (Apply → view)", ms["apply-remove"], ""),

@@ -17,7 +17,7 @@ from crfedit.edit.selection import (
     ScribbleView, SelectOptions, Selection, cell_points, load_selection, options_for, point_features, preview, save_selection, select, surface_points,
 )
 from crfedit.edit.selection.classify import appearance_gate, chroma_alike, chromaticity, classifier, fit_logistic
-from crfedit.edit.selection.features import denser_points, group_width, local_shape
+from crfedit.edit.selection.features import MEMO_RENDERS, CellPoints, FrameTable, denser_points, group_width, local_frames, local_shape
 from crfedit.edit.selection.options import (
     CENTRE_SHARE, CHROMA_OFFSET, JOIN_ALWAYS, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
 )
@@ -101,12 +101,45 @@ def test_cell_points_handed_in_give_the_same_selection(trained):
         assert len(points.cells) == fresh.meta["occupied_cells"] and points.fused is not None
         handed = select(model, k, views, options, points=points)
         assert torch.equal(handed.values, fresh.values) and handed.meta["selected_cells"] == fresh.meta["selected_cells"]
+        # what the selection derived from the instance alone is kept with the points, and the
+        # next selections (this scribble again, another part's) read it: the same bits
+        assert ("mirror",) in points.memo and (kind != "remove" or ("shape", "density") in points.memo)
+        assert torch.equal(select(model, k, views, options, points=points).values, fresh.values)
+        back, back_fg, back_keep, _ = part_view(category, k, "back")
+        backs = [ScribbleView(back.camera, back_fg, back_keep)]
+        assert torch.equal(select(model, k, backs, options, points=points).values, select(model, k, backs, options).values)
         other = cell_points(model.field_for(0), 0, options.cell_ascent)
         assert not other.fits(fresh_cells, options.cell_ascent)
         assert torch.equal(select(model, k, views, options, points=other).values, fresh.values)
         assert not points.fits(fresh_cells, 0.0)
         assert torch.equal(select(model, k, views, dataclasses.replace(options, cell_ascent=0.0), points=points).values,
                            select(model, k, views, dataclasses.replace(options, cell_ascent=0.0)).values)
+
+
+def test_cell_points_keep_what_they_are_given_and_a_few_renders():
+    """:meth:`CellPoints.kept` makes a value once; renders are kept MEMO_RENDERS at a time, the
+    oldest dropped; without a memo every call makes it again."""
+    points = CellPoints(torch.arange(3), torch.zeros(3, 3), None, None, 0.0, {})
+    assert points.kept(("x",), lambda: 5) == 5 and points.kept(("x",), lambda: 6) == 5
+    for i in range(MEMO_RENDERS + 1):
+        points.kept(("render", i), lambda i=i: i)
+    assert points.kept(("render", MEMO_RENDERS), lambda: -1) == MEMO_RENDERS and points.kept(("render", 1), lambda: -1) == 1
+    assert points.kept(("render", 0), lambda: -1) == -1  # the oldest went
+    assert sum(key[0] == "render" for key in points.memo) == MEMO_RENDERS and points.kept(("x",), lambda: 7) == 5
+    bare = CellPoints(torch.arange(3), torch.zeros(3, 3), None, None, 0.0)
+    assert bare.kept(("x",), lambda: 1) == 1 and bare.kept(("x",), lambda: 2) == 2
+
+
+def test_frame_table_answers_as_computing_the_rows_asked_for():
+    """The page keeps each cell's local frame once computed; overlapping requests in any order
+    give the bits that local_frames gives for exactly those rows."""
+    g = torch.Generator().manual_seed(3)
+    grid = (torch.rand(12, 12, 12, generator=g) > 0.6).float()
+    xn = torch.rand(300, 3, generator=g) * 2 - 1
+    table = FrameTable(grid, xn, 2)
+    for rows in (xn[:, 0] > 0, xn[:, 1] > 0, xn[:, 2] > 0.5, torch.ones(300, dtype=torch.bool)):
+        assert all(torch.equal(a, b) for a, b in zip(table.at(rows), local_frames(grid, xn[rows], 2)))
+    assert bool(table.done.all())
 
 
 def test_twin_selection_iou_counts_the_pixels_labelled_object_only(trained):

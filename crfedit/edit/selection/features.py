@@ -5,6 +5,7 @@ the matter around it (read from the density)."""
 from __future__ import annotations
 
 import math
+import threading
 from typing import NamedTuple, Sequence
 
 import torch
@@ -43,6 +44,7 @@ def surface_points(
 def point_features(
     field: ConditionalRadianceField, instance: int, points: Tensor, view_from: Tensor, groups: Sequence[str], fused: Tensor | None = None,
     shape_grid: Tensor | None = None, shape_radius: int = GEOMETRY_RADIUS, chroma_offset: float = CHROMA_OFFSET,
+    geometry: Tensor | None = None,
 ) -> Tensor:
     """The field's own description of world ``points`` [M, 3]: the chosen :data:`FEATURE_GROUPS`
     groups concatenated, unstandardized.  Colour is F_rad's output looking from ``view_from`` [3];
@@ -50,8 +52,8 @@ def point_features(
     can select e.g. both arms but not the seat between them); ``fuse`` is F_fuse's output, of
     which the bottleneck is a linear map; ``geometry`` the matter's local shape
     (:func:`local_shape` of ``shape_grid``, the instance's :func:`cell_opacity` when None).
-    ``fused``: F_fuse's output at the points, when the caller has it; ``chroma``'s offset:
-    :attr:`SelectOptions.chroma_offset`."""
+    ``fused``: F_fuse's output at the points, when the caller has it, and ``geometry`` their
+    local shape; ``chroma``'s offset: :attr:`SelectOptions.chroma_offset`."""
     xn = field.normalize(points)
     fused = field.fuse_features(xn, instance) if fused is None else fused
     feat = field.bottleneck(fused)
@@ -72,8 +74,10 @@ def point_features(
             x, y, z = xn.unbind(-1)
             out.append(torch.stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], dim=-1))
         elif group == "geometry":
-            grid = cell_opacity(field, instance, field.occupancy[instance]) if shape_grid is None else shape_grid
-            out.append(local_shape(grid, xn, shape_radius))
+            if geometry is None:
+                grid = cell_opacity(field, instance, field.occupancy[instance]) if shape_grid is None else shape_grid
+                geometry = local_shape(grid, xn, shape_radius)
+            out.append(geometry)
         elif group == "part":
             if field.F_part is None:
                 raise CrfError("selection feature 'part': this model has no part head (its dataset had no part maps)")
@@ -218,17 +222,63 @@ class CellPoints(NamedTuple):
     cell centres, moved up the density gradient when ``ascent`` > 0, :func:`denser_points`),
     F_fuse's output there [N, width] and the density at the centres [N] (both None without the
     ascent).  A caller that selects on one instance again (the page, at every stroke) computes
-    them once (:func:`cell_points`) and hands them to :func:`~.pipeline.select`."""
+    them once (:func:`cell_points`) and hands them to :func:`~.pipeline.select`, which keeps
+    in ``memo`` what else it derives from them and the instance alone (:meth:`kept`)."""
 
     cells: Tensor
     points: Tensor
     fused: Tensor | None
     sigma: Tensor | None
     ascent: float
+    memo: dict | None = None
+    """What :func:`~.pipeline.select` derived from these and the instance, not from a scribble:
+    the mirror plane, the mirrored views' renders, the shape grid, the cells' local shape.  The
+    same values as computed afresh, bit for bit (a test); None keeps nothing."""
 
     def fits(self, cells: Tensor, ascent: float) -> bool:
         """Whether these are the points of the occupied cells ``cells`` [N] at ``ascent``."""
         return self.ascent == ascent and self.cells.shape == cells.shape and bool(torch.equal(self.cells, cells))
+
+    def kept(self, key: tuple, make):
+        """``make()``, kept in :attr:`memo` under ``key``.  Renders (keys starting with
+        "render") are kept :data:`MEMO_RENDERS` at a time, the oldest dropped first."""
+        if self.memo is None:
+            return make()
+        if key not in self.memo:
+            renders = [k for k in self.memo if k[0] == "render"]
+            if key[0] == "render" and len(renders) >= MEMO_RENDERS:
+                del self.memo[renders[0]]  # a dict keeps its keys in insertion order
+            self.memo[key] = make()
+        return self.memo[key]
+
+
+class FrameTable:
+    """:func:`local_frames` of points ``xn`` [N, 3] in ``grid``, computed for the rows asked for
+    and kept: a row's frame is the same bits whichever rows are computed with it (a test), so
+    the table answers as computing the rows asked for would."""
+
+    def __init__(self, grid: Tensor, xn: Tensor, radius: int):
+        self.grid, self.xn, self.radius = grid, xn, radius
+        self.done = torch.zeros(len(xn), dtype=torch.bool, device=xn.device)
+        self.table: Frames | None = None
+        self.lock = threading.Lock()  # the page selects on its render thread and in its edits
+
+    def at(self, rows: Tensor) -> Frames:
+        """The frames of the rows ``rows`` [N] bool marks."""
+        with self.lock:
+            todo = rows & ~self.done
+            if bool(todo.any()):
+                fresh = local_frames(self.grid, self.xn[todo], self.radius)
+                if self.table is None:
+                    self.table = Frames(*(t.new_zeros((len(self.xn), *t.shape[1:])) for t in fresh))
+                for t, v in zip(self.table, fresh):
+                    t[todo] = v
+                self.done |= todo
+            return Frames(*(t[rows] for t in self.table))
+
+
+MEMO_RENDERS = 8
+""":meth:`CellPoints.kept` keeps this many renders (one a scribbled view, for its mirror image)."""
 
 
 @torch.no_grad()
@@ -240,9 +290,9 @@ def cell_points(field: ConditionalRadianceField, instance: int, ascent: float) -
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
     centres = occupancy.cell_centers(res, occupied.device)[cells]
     if ascent <= 0:
-        return CellPoints(cells, centres, None, None, ascent)
+        return CellPoints(cells, centres, None, None, ascent, {})
     # a half cell is 1/res in normalized units
-    return CellPoints(cells, *denser_points(field, instance, centres, ascent / res), ascent)
+    return CellPoints(cells, *denser_points(field, instance, centres, ascent / res), ascent, {})
 
 
 def denser_points(field: ConditionalRadianceField, instance: int, xn: Tensor, distance: float) -> tuple[Tensor, Tensor, Tensor]:

@@ -20,7 +20,7 @@ from ...renderer import RenderOutput, render_camera
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
-from .features import SHAPE_SOURCES, CellPoints, cell_opacity, cell_points, group_width, local_frames, point_features, surface_points
+from .features import SHAPE_SOURCES, CellPoints, FrameTable, cell_opacity, cell_points, group_width, local_frames, local_shape, point_features, surface_points
 from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
 from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
 from .shapes import RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
@@ -100,25 +100,31 @@ def _cat_points(field, xs: Sequence[Tensor]) -> Tensor:
     return torch.cat(list(xs)) if xs else torch.zeros(0, 3, device=field.aabb.device)
 
 
-def _lift_mirrors(field, k, views: Sequence[ScribbleView], surfaces, mirror: Mirror, min_opacity: float) -> tuple[Tensor, Tensor, Tensor]:
+def _lift_mirrors(field, k, views: Sequence[ScribbleView], surfaces, mirror: Mirror, min_opacity: float, render) -> tuple[Tensor, Tensor, Tensor]:
     """The three point sets of :func:`_lift_views` for the views' mirror images
-    (:func:`_lift_mirrored`; ``surfaces``: what :func:`_lift_views` returned of each view)."""
-    mirrored = [_lift_mirrored(field, k, v, pts, on, mirror, min_opacity) for v, (pts, on) in zip(views, surfaces)]
+    (:func:`_lift_mirrored`; ``surfaces``: what :func:`_lift_views` returned of each view;
+    ``render``: a camera → its render without colour)."""
+    mirrored = [_lift_mirrored(field, k, v, pts, on, mirror, min_opacity, render) for v, (pts, on) in zip(views, surfaces)]
     return tuple(_cat_points(field, list(x)) for x in zip(*mirrored))
 
 
-def _lift_mirrored(field, k, v: ScribbleView, pts: Tensor, on: Tensor, mirror: Mirror, min_opacity: float):
+def _lift_mirrored(field, k, v: ScribbleView, pts: Tensor, on: Tensor, mirror: Mirror, min_opacity: float, render):
     """The scribbles of view ``v`` (its surface points ``pts`` and on-object mask ``on``, [H·W])
     seen in a mirror: the view from the reflected camera, whose image is the original's flipped
     left–right where the instance is symmetric.  Its scribbled, keep and other surface points,
     kept where its surface agrees with the original's mirror image (:func:`.symmetry.agreeing`)."""
     h, w = v.camera.height, v.camera.width
     cam = mirror_camera(v.camera, mirror, field.aabb)
-    m_pts, m_on = surface_points(field, cam, k, min_opacity)
+    m_pts, m_on = surface_points(field, cam, k, min_opacity, render(cam))
     expected = mirror.points(field.aabb, pts.view(h, w, 3).flip(1).reshape(-1, 3))
     agree = m_on & on.view(h, w).flip(1).reshape(-1) & agreeing(m_pts, expected, mirror.cell(field.aabb))
     scribbled, kept = _strokes(ScribbleView(cam, mirror_image(v.scribble), mirror_image(v.keep)), m_on.device)
     return m_pts[agree & scribbled], m_pts[agree & kept], m_pts[agree & ~scribbled & ~kept]
+
+
+def _camera_key(camera) -> tuple:
+    """A hashable key of a camera (its pose's bytes, focal and size)."""
+    return (np.asarray(camera.c2w, dtype=np.float64).tobytes(), float(camera.focal), int(camera.width), int(camera.height))
 
 
 def _cells_of(field, points: Tensor, res: int) -> Tensor:
@@ -253,16 +259,20 @@ def select(
     pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
     if pos_pts.shape[0] == 0:
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
-    mirror = find_mirror(occupied) if options.mirror != "off" else None
-    mirror, mirror_meta = _mirror_use(field, mirror, options.mirror, pos_pts, neg_pts)
-    if mirror is not None and options.mirror == "views":
-        mirrored = _lift_mirrors(field, k, views, surfaces, mirror, options.min_opacity)
-        mirror_meta.update(positives=int(len(mirrored[0])), keep_points=int(len(mirrored[1])))
-        pos_pts, neg_pts, cand_pts = (torch.cat([a, b]) for a, b in zip((pos_pts, neg_pts, cand_pts), mirrored))
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
     if points is None or not points.fits(cells, options.cell_ascent):
         points = cell_points(field, k, options.cell_ascent)
+    elif points.memo is None:
+        points = points._replace(memo={})  # kept for this selection's own repeated steps
     centres, fused, sigma = points.points, points.fused, points.sigma
+    remember = points.kept  # what depends on the instance alone, kept with its cell points for the next scribble
+    mirror = remember(("mirror",), lambda: find_mirror(occupied)) if options.mirror != "off" else None
+    mirror, mirror_meta = _mirror_use(field, mirror, options.mirror, pos_pts, neg_pts)
+    if mirror is not None and options.mirror == "views":
+        render = lambda cam: remember(("render", _camera_key(cam)), lambda: render_camera(field, cam, k, colour=False))
+        mirrored = _lift_mirrors(field, k, views, surfaces, mirror, options.min_opacity, render)
+        mirror_meta.update(positives=int(len(mirrored[0])), keep_points=int(len(mirrored[1])))
+        pos_pts, neg_pts, cand_pts = (torch.cat([a, b]) for a, b in zip((pos_pts, neg_pts, cand_pts), mirrored))
     cell_pts = field.denormalize(centres)
     eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
     groups, part_meta, fused_pos = options.features, None, None
@@ -272,10 +282,13 @@ def select(
         part_meta = {"coherence": round(coherence, 3), "cut": options.part_coherence, "used": coherence >= options.part_coherence}
         if part_meta["used"]:
             groups = (*groups, "part")
-    shape_grid = None
+    shape_grid = geometry = None
     if "geometry" in groups:
-        shape_grid = cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied
-    feats = lambda p, fused_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius, options.chroma_offset)
+        shape_grid = remember(("shape", options.shape_from), lambda: cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied)
+        geometry = remember(("geometry", options.shape_from, options.shape_radius),
+                        lambda: local_shape(shape_grid, field.normalize(cell_pts), options.shape_radius))  # the cells' (point_features')
+    feats = lambda p, fused_p=None, geometry_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius,
+                                                                    options.chroma_offset, geometry_p)
     scribbled_frames, shape_gate, gate_meta = None, options.shape_gate > 0 and shape_grid is not None, {"dropped": 0}
     if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0):
         scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
@@ -285,8 +298,9 @@ def select(
         ``where`` [R, R, R], their frames read at those cells only; False elsewhere."""
         at_cells = where.reshape(-1)[cells]
         out = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        if bool(at_cells.any()):
-            out[cells[at_cells]] = test(local_frames(shape_grid, centres[at_cells], SHAPE_GATE_RADIUS))
+        if bool(at_cells.any()):  # each cell's frame computed once, when first asked for
+            frames = remember(("frames", options.shape_from), lambda: FrameTable(shape_grid, centres, SHAPE_GATE_RADIUS))
+            out[cells[at_cells]] = test(frames.at(at_cells))
         return out.view(res, res, res)
 
     def gated(added: Tensor) -> Tensor:
@@ -296,10 +310,10 @@ def select(
         gate_meta["dropped"] += int(drop.sum())
         return drop
 
-    f_pos, f_keep, f_view, f_cells = feats(pos_pts, fused_pos), feats(neg_pts), feats(cand_pts), feats(cell_pts, fused)
+    f_pos, f_keep, f_view, f_cells = feats(pos_pts, fused_pos), feats(neg_pts), feats(cand_pts), feats(cell_pts, fused, geometry)
     widths = [group_width(g, field.cfg) for g in groups]
     scribbled, kept = _cells_of(field, pos_pts, res), _cells_of(field, neg_pts, res)
-    neighbours = neighbour_table(cells, res) if options.smooth and options.smooth_bandwidth > 0 else None
+    neighbours = remember(("neighbours",), lambda: neighbour_table(cells, res)) if options.smooth and options.smooth_bandwidth > 0 else None
     stats = feature_stats(f_cells)
     veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options, stats)
     spared = kept.clone()  # keep-stroke cells and those a keep stroke wins: no join takes them
