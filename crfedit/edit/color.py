@@ -23,7 +23,7 @@ from ..cameras import Camera
 from ..model import CategoryModel
 from ..errors import CrfError
 from ..names import EDIT_METHODS
-from ..renderer import render_camera
+from ..renderer import render_rays
 from .cache import edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
 from .losses import mse
@@ -83,10 +83,20 @@ def edit_color(
 
 def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection, mirror=None) -> EditResult:
     """The selection-supervised recolour: the scribbled pixels' rendered colours fix the ratio."""
-    view = render_camera(model.field_for(k), camera, k)
-    on = torch.from_numpy(scribble) & (view.opacity.cpu() >= MIN_OPACITY)
+    scribbled = scribbled_colours(model.field_for(k), k, camera, scribble)
+    if selection is None:
+        selection = select_for(model, k, camera, scribble, keep, "color", mirror)
+    return recolor_selected(model, k, selection, [camera], scribbled, rgb, options)
+
+
+@torch.no_grad()
+def scribbled_colours(field, k: int, camera: Camera, scribble: np.ndarray) -> torch.Tensor:
+    """The rendered colours [n, 3] (CPU) of the scribbled pixels that cover the object
+    (opacity ≥ MIN_OPACITY), in row-major order.  Their rays alone are rendered: a recolour
+    that is handed its selection (the page, ``--selection``) renders no whole view."""
+    pixels = torch.from_numpy(np.flatnonzero(scribble))
+    out = render_rays(field, select_rays(camera, pixels, field.aabb.device), k, early_stop=field.cfg.early_stop)
+    on = out.opacity >= MIN_OPACITY
     if not bool(on.any()):
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
-    if selection is None:
-        selection = select_for(model, k, camera, scribble, keep, "color", mirror, renders=[view])
-    return recolor_selected(model, k, selection, [camera], view.rgb.cpu()[on], rgb, options)
+    return out.rgb[on].cpu()
