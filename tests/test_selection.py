@@ -290,6 +290,27 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
         options_for("bogus")
 
 
+def test_smoothing_over_the_occupied_box_is_the_whole_grid_s_bits():
+    """smooth_over_occupied pools only the occupied cells' box, one cell wider: the same bits
+    as pooling the whole grid, at the grid's edges too, and zeros for an empty grid."""
+    def whole(values, occupied):
+        num = torch.nn.functional.avg_pool3d((values * occupied)[None, None], 3, stride=1, padding=1, count_include_pad=False)
+        den = torch.nn.functional.avg_pool3d(occupied.float()[None, None], 3, stride=1, padding=1, count_include_pad=False)
+        return torch.where(occupied, (num / den.clamp_min(1e-12))[0, 0], torch.zeros_like(values))
+
+    g = torch.Generator().manual_seed(5)
+    for trial in range(6):
+        occ = torch.zeros(20, 20, 20, dtype=torch.bool)
+        lo = torch.randint(0, 10, (3,), generator=g)
+        hi = lo + torch.randint(1, 11, (3,), generator=g)
+        occ[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = torch.rand(*(hi - lo).tolist(), generator=g) > 0.3
+        if trial % 2:
+            occ[0, 19, 7] = occ[19, 0, 0] = True  # cells on the grid's faces and corners
+        values = torch.rand(20, 20, 20, generator=g)
+        assert torch.equal(smooth_over_occupied(values, occ), whole(values, occ))
+    assert torch.equal(smooth_over_occupied(values, torch.zeros_like(occ)), torch.zeros_like(values))
+
+
 def test_smoothing_and_connectivity_closed_forms():
     occ = torch.zeros(5, 5, 5, dtype=torch.bool)
     occ[1:4, 1:4, 1:4] = True

@@ -14,11 +14,32 @@ from ... import occupancy
 
 
 def smooth_over_occupied(values: Tensor, occupied: Tensor) -> Tensor:
-    """Mean of ``values`` [R, R, R] over each occupied cell's occupied 3×3×3 neighbourhood."""
-    occ = occupied.float()[None, None]
+    """Mean of ``values`` [R, R, R] over each occupied cell's occupied 3×3×3 neighbourhood.
+
+    Pooled over the occupied cells' bounding box one cell wider (:func:`occupied_slices`), not
+    the whole grid: every occupied cell's window lies in it, or ends at the grid's edge as it
+    would, so the result is the same bits (a test) in a third of the time on a chair."""
+    out = torch.zeros_like(values)
+    box = occupied_slices(occupied)
+    if box is None:
+        return out
+    occupied, values = occupied[box], values[box]
     num = F.avg_pool3d((values * occupied)[None, None], 3, stride=1, padding=1, count_include_pad=False)
-    den = F.avg_pool3d(occ, 3, stride=1, padding=1, count_include_pad=False)
-    return torch.where(occupied, (num / den.clamp_min(1e-12))[0, 0], torch.zeros_like(values))
+    den = F.avg_pool3d(occupied.float()[None, None], 3, stride=1, padding=1, count_include_pad=False)
+    out[box] = torch.where(occupied, (num / den.clamp_min(1e-12))[0, 0], torch.zeros_like(values))
+    return out
+
+
+def occupied_slices(occupied: Tensor) -> tuple[slice, slice, slice] | None:
+    """The slices of the occupied cells' bounding box in ``occupied`` [D, H, W], one cell wider
+    on each side within the grid; None when no cell is occupied."""
+    box = []
+    for axis in range(3):
+        hit = occupied.any(dim=tuple(a for a in range(3) if a != axis)).nonzero().squeeze(-1)
+        if hit.numel() == 0:
+            return None
+        box.append(slice(max(int(hit[0]) - 1, 0), int(hit[-1]) + 2))
+    return tuple(box)
 
 
 def neighbour_table(cells: Tensor, res: int | Sequence[int], half: bool = False) -> Tensor:
