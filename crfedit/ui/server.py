@@ -62,7 +62,7 @@ def compute_threads(requested: int) -> int:
     torch's OpenMP runtime (libgomp) keeps a team of worker threads for every thread that runs
     torch, and once all the teams hold more threads than the machine has cores, every team's
     idle workers sleep at once instead of spinning: each parallel region then waits for a wake-up.
-    On 2 cores a loop of small matmuls ran 0.21 s on one thread and 0.37–0.40 s on either of two
+    On 2 cores a loop of small matmuls ran 0.21 s on one thread and 0.35–0.40 s on either of two
     (as with ``OMP_WAIT_POLICY=passive``), and the page's colour edit took 0.57–0.88 s in the edit
     thread with 2 torch threads against 0.26–0.34 s with one (docs/benchmarks.md)."""
     return max(1, requested // COMPUTE_THREADS)
