@@ -232,8 +232,9 @@ class CellPoints(NamedTuple):
     ascent: float
     memo: dict | None = None
     """What :func:`~.pipeline.select` derived from these and the instance, not from a scribble:
-    the mirror plane, the mirrored views' renders, the shape grid, the cells' local shape.  The
-    same values as computed afresh, bit for bit (a test); None keeps nothing."""
+    the mirror plane, the mirrored views' renders, the shape grid, the cells' local shape and
+    frames, their neighbour table.  The same values as computed afresh, bit for bit (a test);
+    None keeps nothing."""
 
     def fits(self, cells: Tensor, ascent: float) -> bool:
         """Whether these are the points of the occupied cells ``cells`` [N] at ``ascent``."""
@@ -241,15 +242,22 @@ class CellPoints(NamedTuple):
 
     def kept(self, key: tuple, make):
         """``make()``, kept in :attr:`memo` under ``key``.  Renders (keys starting with
-        "render") are kept :data:`MEMO_RENDERS` at a time, the oldest dropped first."""
+        "render") are kept :data:`MEMO_RENDERS` at a time, the oldest dropped first.  The page
+        may select on two threads at once: the memo is read and written under a lock, and
+        ``make`` runs outside it (two threads may both make a value; the first kept wins)."""
         if self.memo is None:
             return make()
-        if key not in self.memo:
-            renders = [k for k in self.memo if k[0] == "render"]
-            if key[0] == "render" and len(renders) >= MEMO_RENDERS:
-                del self.memo[renders[0]]  # a dict keeps its keys in insertion order
-            self.memo[key] = make()
-        return self.memo[key]
+        with MEMO_LOCK:
+            if key in self.memo:
+                return self.memo[key]
+        value = make()
+        with MEMO_LOCK:
+            if key not in self.memo:
+                renders = [k for k in self.memo if k[0] == "render"]
+                if key[0] == "render" and len(renders) >= MEMO_RENDERS:
+                    del self.memo[renders[0]]  # a dict keeps its keys in insertion order
+                self.memo[key] = value
+            return self.memo[key]
 
 
 class FrameTable:
@@ -279,6 +287,8 @@ class FrameTable:
 
 MEMO_RENDERS = 8
 """:meth:`CellPoints.kept` keeps this many renders (one a scribbled view, for its mirror image)."""
+MEMO_LOCK = threading.Lock()
+""":meth:`CellPoints.kept`'s lock (held only to read and write a memo)."""
 
 
 @torch.no_grad()

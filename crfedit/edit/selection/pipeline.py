@@ -100,22 +100,22 @@ def _cat_points(field, xs: Sequence[Tensor]) -> Tensor:
     return torch.cat(list(xs)) if xs else torch.zeros(0, 3, device=field.aabb.device)
 
 
-def _lift_mirrors(field, k, views: Sequence[ScribbleView], surfaces, mirror: Mirror, min_opacity: float, render) -> tuple[Tensor, Tensor, Tensor]:
+def _lift_mirrors(field, k, views: Sequence[ScribbleView], surfaces, mirror: Mirror, min_opacity: float, render=None) -> tuple[Tensor, Tensor, Tensor]:
     """The three point sets of :func:`_lift_views` for the views' mirror images
     (:func:`_lift_mirrored`; ``surfaces``: what :func:`_lift_views` returned of each view;
-    ``render``: a camera → its render without colour)."""
+    ``render``: a camera → its render without colour, None to render each here)."""
     mirrored = [_lift_mirrored(field, k, v, pts, on, mirror, min_opacity, render) for v, (pts, on) in zip(views, surfaces)]
     return tuple(_cat_points(field, list(x)) for x in zip(*mirrored))
 
 
-def _lift_mirrored(field, k, v: ScribbleView, pts: Tensor, on: Tensor, mirror: Mirror, min_opacity: float, render):
+def _lift_mirrored(field, k, v: ScribbleView, pts: Tensor, on: Tensor, mirror: Mirror, min_opacity: float, render=None):
     """The scribbles of view ``v`` (its surface points ``pts`` and on-object mask ``on``, [H·W])
     seen in a mirror: the view from the reflected camera, whose image is the original's flipped
     left–right where the instance is symmetric.  Its scribbled, keep and other surface points,
     kept where its surface agrees with the original's mirror image (:func:`.symmetry.agreeing`)."""
     h, w = v.camera.height, v.camera.width
     cam = mirror_camera(v.camera, mirror, field.aabb)
-    m_pts, m_on = surface_points(field, cam, k, min_opacity, render(cam))
+    m_pts, m_on = surface_points(field, cam, k, min_opacity, None if render is None else render(cam))
     expected = mirror.points(field.aabb, pts.view(h, w, 3).flip(1).reshape(-1, 3))
     agree = m_on & on.view(h, w).flip(1).reshape(-1) & agreeing(m_pts, expected, mirror.cell(field.aabb))
     scribbled, kept = _strokes(ScribbleView(cam, mirror_image(v.scribble), mirror_image(v.keep)), m_on.device)
