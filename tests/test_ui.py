@@ -281,7 +281,7 @@ def test_strokes_on_one_instance_reuse_its_cell_points(ui, scene):
     removal = ui.post("/api/select", {**body, "kind": "remove"})
     assert first["selected_cells"] > 0 and wider["selected_cells"] > 0 and removal["selected_cells"] > 0
     assert [key[1:] for key in ui.session._cell_points] == [(0, 1.0)]  # one entry: instance 0, the default ascent
-    assert [key[1:] for key in ui.session._depths] == [(0, "train:0")]  # and the scribbled view's render, once
+    assert [key[1:] for key in ui.session._views] == [(0, "train:0")]  # and the scribbled view's render, once
     # what the page selects is what select() makes from the same strokes, bit for bit
     from crfedit.edit.selection import ScribbleView, options_for, select
     from crfedit.ui.recipe import parse_scribbles
@@ -297,13 +297,38 @@ def test_strokes_on_one_instance_reuse_its_cell_points(ui, scene):
     assert [key[1:] for key in ui.session._cell_points] == [(0, 1.0), (0, 1.0)]
 
 
+def test_a_view_is_rendered_once_and_tinted_by_each_selection(ui, scene, monkeypatch):
+    """The page keeps its views' renders per instance and stack state: once a view is shown,
+    a Select and its tinted views (the turntable) render nothing again, and the tinted view is
+    the one preview() renders afresh, bit for bit."""
+    import crfedit.edit.selection.tint as tint
+    import crfedit.ui.session as session_module
+
+    body = {"instance": 0, "views": [{"view": "train:0", "fg": strokes(scene)}]}
+    ui.get("/api/view?instance=0&view=train:0")
+    ui.get("/api/view?instance=0&view=train:4")
+    calls = []
+    real = session_module.render_camera
+    monkeypatch.setattr(session_module, "render_camera", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(tint, "render_camera", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for radius in (1.0, 2.0):  # two scribbles: two selections, each tinted over the kept views
+        ui.post("/api/select", {**body, "views": [{"view": "train:0", "fg": strokes(scene, radius=radius)}]})
+        tinted = ui.get("/api/view?instance=0&view=train:4&tint=1")
+    assert calls == []
+    model = ui.session.model
+    sel = ui.session._selection(model, ui.session.state_key, 0, *ui.session._shown_scribbles(0))
+    camera = model.views["train"].cameras(0)[4]
+    monkeypatch.setattr(tint, "render_camera", real)
+    assert tinted == session_module.png_bytes(tint.preview(model, sel, camera))
+
+
 def test_a_removal_s_shown_view_is_kept_for_the_next_request(ui, scene):
     """The view a removal re-rendered to show its result is kept under the key the untinted
     view is asked for, so the page's next request for it is not rendered again."""
     job = ui.edit({"kind": "remove", "instance": 0, "view": "train:0", "views": [{"view": "train:0", "fg": strokes(scene)}], "steps": 2})
     assert job["state"] == "done", job
     key = (ui.session.state_key, 0, "train:0", None)
-    assert key in ui.session._renders
+    assert key in ui.session._renders and key[:3] in ui.session._views  # its PNG, and its render for a Select on it
     assert ui.get("/api/view?instance=0&view=train:0") == ui.session._renders[key]
 
 

@@ -44,6 +44,10 @@ RENDER_CACHE = 512
 """Rendered views kept (PNG bytes; a 64² view is ~8 KB)."""
 VIEW_CACHES = 4
 """Views whose features are kept for instant re-rendering after a colour edit."""
+VIEW_RENDERS = 24
+"""Views whose renders are kept (their colour, depth and opacity, ~0.1 MB at 64²): a view is
+rendered once per instance and stack state, and shown plain, tinted by any selection (the
+turntable's eight views at every Select) and lifted by select from it."""
 
 
 def png_bytes(rgb) -> bytes:
@@ -102,7 +106,7 @@ class UiSession:
         self._view_caches = _Lru(VIEW_CACHES)
         self._selections = _Lru(16)
         self._cell_points = _Lru(4)  # (state, instance, ascent) → CellPoints: a stroke re-selects without the density ascent
-        self._depths = _Lru(8)  # (state, instance, view) → the view's render without colour, which select lifts strokes with
+        self._views = _Lru(VIEW_RENDERS)  # (state, instance, view) → the view's RenderOutput
         self._shown: dict[int, tuple[tuple[ScribbleSet, ...], str]] = {}  # instance → (scribbles, edit kind)
         self._sizes: dict[str, int] = {}
 
@@ -171,9 +175,10 @@ class UiSession:
         cache_key = (key, k, ref.key, None if shown is None else (_canon(shown[0]), shown[1]))
 
         def make() -> bytes:
+            out = self._view(model, key, k, ref)
             if shown is not None:
-                return png_bytes(preview(model, self._selection(model, key, k, *shown), ref.camera))
-            return png_bytes(render_camera(self._field(model, key, k), ref.camera, k).rgb)
+                return png_bytes(preview(model, self._selection(model, key, k, *shown), ref.camera, out=out, field=self._field(model, key, k)))
+            return png_bytes(out.rgb)
 
         return self._cached(self._renders, cache_key, make)
 
@@ -201,7 +206,7 @@ class UiSession:
 
         def make() -> Selection:
             views = [ScribbleView(s.view.camera, s.fg.mask, None if s.bg is None else s.bg.mask) for s in scribbles]
-            renders = [self._depth(model, key, k, s.view) for s in scribbles]
+            renders = [self._view(model, key, k, s.view) for s in scribbles]
             return select(model, k, views, options, renders=renders, points=self._points(model, key, k, options.cell_ascent))
 
         return self._cached(self._selections, (key, k, _canon(scribbles), kind), make)
@@ -211,14 +216,15 @@ class UiSession:
         scribble, and the costliest step of a selection (a density ascent over every cell)."""
         return self._cached(self._cell_points, (key, k, ascent), lambda: cell_points(self._field(model, key, k), k, ascent))
 
-    def _depth(self, model: CategoryModel, key, k: int, view):
-        """Instance ``k``'s render of ``view`` (a parsed view: ``.key``, ``.camera``) without
-        colour, in state ``key``, cached: what :func:`select` lifts the strokes with."""
+    def _view(self, model: CategoryModel, key, k: int, view):
+        """Instance ``k``'s render of ``view`` (a parsed view: ``.key``, ``.camera``) in state
+        ``key``, cached (:data:`VIEW_RENDERS`): what the page shows, tints a selection over and
+        lifts the strokes with (its depth and opacity are a colourless render's bits)."""
         def make():
             with torch.no_grad():
-                return render_camera(self._field(model, key, k), view.camera, k, colour=False)
+                return render_camera(self._field(model, key, k), view.camera, k)
 
-        return self._cached(self._depths, (key, k, view.key), make)
+        return self._cached(self._views, (key, k, view.key), make)
 
     def _shown_scribbles(self, k: int) -> tuple[tuple[ScribbleSet, ...], str]:
         """(scribbles, edit kind) of the selection shown on instance ``k``."""
@@ -285,7 +291,8 @@ class UiSession:
         if req.kind == "color":  # F_rad alone on the view's cached samples (within 1.6e-3 of a full render)
             png = png_bytes(cache.render(result.model.field_for(k)))
         elif req.view is not None:
-            png = png_bytes(render_camera(result.model.field_for(k), req.view.camera, k).rgb)
+            shown = render_camera(result.model.field_for(k), req.view.camera, k)
+            png = png_bytes(shown.rgb)
         label = "" if req.view is None else req.view.label
         delta = Delta("(page)", result.tensors, {**result.meta, "command": "crfedit ui", "view": label})
         with self._lock:
@@ -297,6 +304,7 @@ class UiSession:
             self.model, self.pinned = result.model, {**self.pinned, entry.id: delta}
             if png is not None and req.kind != "color":
                 self._renders.put((self.state_key, k, req.view.key, None), png)  # render()'s key for the untinted view
+                self._views.put((self.state_key, k, req.view.key), shown)  # and the render, for a tint or a Select on it
         out = {"entry": entry.id, "stack": self.stack_info(), "state": self.state_name()}
         if png is not None:
             out["image"] = data_url(png)

@@ -7,7 +7,7 @@ import torch
 
 from ...cameras import Camera
 from ...model import CategoryModel
-from ...renderer import render_camera
+from ...renderer import RenderOutput, render_camera
 from .base import Selection
 from .features import surface_points
 
@@ -16,11 +16,13 @@ TINT = (1.0, 0.15, 0.1)
 
 
 @torch.no_grad()
-def preview(model: CategoryModel, sel: Selection, camera: Camera, strength: float = 0.6) -> np.ndarray:
+def preview(model: CategoryModel, sel: Selection, camera: Camera, strength: float = 0.6,
+            out: RenderOutput | None = None, field=None) -> np.ndarray:
     """The instance's render from ``camera`` [H, W, 3] with the selected surface tinted, so the
-    user sees what an edit will change before any weight moves."""
-    field = model.field_for(sel.instance)
-    out = render_camera(field, camera, sel.instance)
+    user sees what an edit will change before any weight moves.  ``out``: that render, when the
+    caller has it (the page keeps its views'); ``field``: the instance's field, likewise."""
+    field = model.field_for(sel.instance) if field is None else field
+    out = render_camera(field, camera, sel.instance) if out is None else out
     pts, on = surface_points(field, camera, sel.instance, out=out)
     hit = (sel.at(field.normalize(pts)) & on).reshape(camera.height, camera.width, 1)
     tint = torch.tensor(TINT, device=out.rgb.device)
