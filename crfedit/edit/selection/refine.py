@@ -30,15 +30,15 @@ def smooth_over_occupied(values: Tensor, occupied: Tensor) -> Tensor:
     return out
 
 
-def occupied_slices(occupied: Tensor) -> tuple[slice, slice, slice] | None:
-    """The slices of the occupied cells' bounding box in ``occupied`` [D, H, W], one cell wider
-    on each side within the grid; None when no cell is occupied."""
+def occupied_slices(occupied: Tensor, margin: int = 1) -> tuple[slice, slice, slice] | None:
+    """The slices of the occupied cells' bounding box in ``occupied`` [D, H, W], ``margin``
+    cells wider on each side within the grid; None when no cell is occupied."""
     box = []
     for axis in range(3):
         hit = occupied.any(dim=tuple(a for a in range(3) if a != axis)).nonzero().squeeze(-1)
         if hit.numel() == 0:
             return None
-        box.append(slice(max(int(hit[0]) - 1, 0), int(hit[-1]) + 2))
+        box.append(slice(max(int(hit[0]) - margin, 0), int(hit[-1]) + 1 + margin))
     return tuple(box)
 
 
@@ -154,11 +154,9 @@ def connected_to(selected: Tensor, seeds: Tensor) -> Tensor:
     """Cells of ``selected`` [R, R, R] reachable from ``seeds`` through selected cells
     (26-neighbourhood), grown within the selected cells' bounding box."""
     out = torch.zeros_like(selected, dtype=torch.bool)
-    nz = selected.nonzero()
-    if len(nz) == 0:
+    box = occupied_slices(selected, margin=0)
+    if box is None:
         return out
-    lo, hi = nz.min(dim=0).values.tolist(), (nz.max(dim=0).values + 1).tolist()
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
     inside = selected[box]
     reached = seeds[box] & inside
     while True:
