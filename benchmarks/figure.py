@@ -21,10 +21,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw
-
 import crfedit.evaluation as evaluation
 from crfedit.data.synth import rgb_to_hex
+from crfedit.demo import tiled
 from crfedit.io import read_image, write_png
 from crfedit.model import load_model
 
@@ -84,21 +83,8 @@ def main() -> None:
                 names += [f"test view {i}: before", "recoloured" if kind == "color" else "part removed", "ground-truth twin"]
             rows.append(row)
             labels.append(names)
-    h, w = rows[0][0].shape[:2]
-    s, pad, gap, text_h = args.scale, 6, 18, 16
-    columns = len(rows[0])
-    group_x = lambda c: pad + c * (w * s + pad) + (gap * ((c - 1) // 3 + 1) if c > 0 else 0)
-    canvas = Image.new("RGB", (group_x(columns - 1) + w * s + pad, len(rows) * (h * s + text_h + pad) + pad), "white")
-    draw = ImageDraw.Draw(canvas)
-    for r, (images, names) in enumerate(zip(rows, labels)):
-        y = pad + r * (h * s + text_h + pad)
-        for c, (img, name) in enumerate(zip(images, names)):
-            x = group_x(c)
-            tile = Image.fromarray((np.clip(img, 0, 1) * 255).round().astype(np.uint8)).resize((w * s, h * s), Image.NEAREST)
-            canvas.paste(tile, (x, y + text_h))
-            draw.text((x + 2, y + 2), name, fill=(40, 40, 40))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    write_png(args.out, np.asarray(canvas))
+    write_png(args.out, tiled(rows, labels, args.scale, group=3))
     print(json.dumps({"wrote": args.out, "twins": said}))
 
 

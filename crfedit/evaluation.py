@@ -378,6 +378,7 @@ def evaluate_edits(
     progress: Progress | None = None,
     paper: bool = True,
     ranks: Ranks = SINGLE,
+    on_edit: Callable[[TwinCase, str, EditResult], None] | None = None,
 ) -> dict:
     """The paper's edit protocol on ground-truth twins (Tables 2 and 3).
 
@@ -398,7 +399,8 @@ def evaluate_edits(
     ``seconds`` is the edit's optimization time (0 for ``unedited``), measured after a one-step
     warm-up edit that absorbs the process's one-off costs.  A strategy the model's
     architecture cannot use for a kind of twin (``codes`` without a separate code of that kind)
-    is listed under ``skipped``.
+    is listed under ``skipped``.  ``on_edit(case, strategy, result)`` is handed each strategy's
+    edit (:class:`~crfedit.edit.EditResult`) after it is scored: the quickstart saves its deltas.
     """
 
     options = options or EditOptions()
@@ -459,6 +461,8 @@ def evaluate_edits(
                 continue
             result = apply_twin_edit(model, case, dataclasses.replace(options, strategy=strategy), appear=appear, selection=sel)
             record(case, strategy, result.model, result.seconds, extra=iou)
+            if on_edit is not None:
+                on_edit(case, strategy, result)
         if paper:
             result = apply_twin_edit(model, case, dataclasses.replace(options, strategy="hybrid"), method="paper")
             record(case, PAPER_METHOD, result.model, result.seconds)

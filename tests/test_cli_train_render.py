@@ -15,6 +15,7 @@ import torch
 
 import crfedit.train
 from crfedit.data.loading import load_category
+from crfedit.delta import apply_edit_files
 from crfedit.errors import CrfError
 from crfedit.evaluation import held_out_split, render_views, score_model
 from crfedit.io import read_exr, read_image
@@ -331,6 +332,27 @@ def test_quickstart_end_to_end(tmp_path):
     assert (out / "turntable.gif").is_file() and load_model(out / "model.safetensors")[0].names == ["chair_000"]
     score = json.loads((out / "score.json").read_text())
     assert score["split"] == "test" and score["n"] == 5 and set(score["instances"]) == {"chair_000"}
+    # step 5: chair 0's recolour and removal from the dataset's scribbles, each a delta of the model
+    model = load_model(out / "model.safetensors")[0]
+    assert [(e["kind"], e["twin"]) for e in score["edits"]] == [("color", "chair_000_color"), ("remove", "chair_000_remove")]
+    camera = load_category(out / "data").instance("chair_000").view("test:0").camera
+    before = render_views(model, 0, [camera])[0].rgb
+    for e in score["edits"]:
+        assert Path(e["delta"]) == out / "edits" / f"{e['twin']}.safetensors"
+        edited = apply_edit_files(model, [e["delta"]])
+        assert not torch.equal(render_views(edited, 0, [camera])[0].rgb, before)
+        assert e["psnr"] > 0 and e["psnr_before"] > 0 and e["psnr_ceiling"] > 0
+        # a model of a few seconds' training may render the source no closer than unedited: no gap
+        gap = "n/a" if e["gap_closed"] is None else f"{e['gap_closed']:.2f}"
+        assert (e["gap_closed"] is None) == (e["psnr_ceiling"] - e["psnr_before"] <= 1e-9)
+        assert f"chair_000's {e['part']}: closes {gap} of the PSNR gap" in result.stdout
+    # two rows (recolour, removal) of the scribbled view + two test views × (before, after, twin), 16 px × 3
+    assert read_image(out / "edits" / "edits.png").shape[:2] == (2 * (48 + 16 + 6) + 6, 6 + 6 * 54 + 2 * 18 + 48 + 6)
+    plain = tmp_path / "plain"
+    result = invoke("quickstart", "--out", plain, "--minutes", 0.01, "--instances", 1, "--res", 8, "--no-edits", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert "4/4 scoring" in result.stdout and "edits" not in json.loads((plain / "score.json").read_text())
+    assert not (plain / "edits").exists() and not (plain / "data" / "twins.json").exists()
     (tmp_path / "file").write_text("x")
     assert_user_error(invoke("quickstart", "--out", tmp_path / "file"), "not a folder")
     assert_user_error(invoke("quickstart", "--out", out, "--minutes", -1), "--minutes -1")

@@ -224,6 +224,7 @@ def train_cmd(
     """
     from ..config import make_config
     from ..data.loading import load_category
+    from ..demo import demo_edits
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..evaluation import held_out_split, score_model
     from ..modelfile import stored_training
@@ -368,6 +369,10 @@ def info_cmd(
 # ----------------------------------------------------------------------------- quickstart
 
 
+def _db(psnr: float | None) -> str:
+    return "inf" if psnr is None else f"{psnr:.2f}"
+
+
 @app.command("quickstart")
 @user_errors
 def quickstart_cmd(
@@ -377,14 +382,19 @@ def quickstart_cmd(
     res: Annotated[int, typer.Option("--res", help="Image width and height in pixels.")] = 64,
     seed: SeedOpt = 0,
     device: DeviceOpt = DeviceChoice.auto,
+    edits: Annotated[bool, typer.Option("--edits/--no-edits", help="Also edit chair 0 from the dataset's scribbles (a recolour and a removal) and score the edits against its ground-truth twins.")] = True,
 ) -> None:
-    """Generate procedural chairs, train the fast preset, render a turntable, score held-out views.
+    """Generate procedural chairs, train the fast preset, render a turntable, score held-out views, edit chair 0.
 
-    Everything goes under --out: data/ (the category), model.safetensors, turntable/ (24 PNGs of
-    chair 0 and turntable.gif) and score.json (test-split PSNR/SSIM per chair).
+    Everything goes under --out: data/ (the category, with chair 0's ground-truth twins),
+    model.safetensors, turntable/ (24 PNGs of chair 0 and turntable.gif), edits/ (the
+    recolour's and the removal's deltas and edits.png: the scribbles, and held-out views
+    before, after and of the twin) and score.json (test-split PSNR/SSIM per chair, and each
+    edit's PSNR against its twin and the share of the gap it closed).
     """
     from ..config import make_config
     from ..data.loading import load_category
+    from ..demo import demo_edits
     from ..data.synth import SynthConfig, check_synth_args, write_synth_category
     from ..evaluation import score_model
     from ..io import write_json
@@ -394,33 +404,53 @@ def quickstart_cmd(
     if not (minutes > 0 and math.isfinite(minutes)):
         raise CrfError(f"--minutes {minutes:g}: must be a positive number")
     check_folder_target(out, "--out")
-    synth = SynthConfig(instances=instances, views=50, res=res, seed=seed, twins=False)
+    synth = SynthConfig(instances=instances, views=50, res=res, seed=seed, twins=edits, twin_sources=1)
     check_synth_args(out / "data", synth)
     dev = resolve_device(device)
     start = time.perf_counter()
 
     out.mkdir(parents=True, exist_ok=True)
-    typer.echo(f"1/4 generating {instances} procedural chairs x 50 views at {res}x{res} -> {out / 'data'}")
+    steps = 5 if edits else 4
+    typer.echo(f"1/{steps} generating {instances} procedural chairs x 50 views at {res}x{res} -> {out / 'data'}")
     write_synth_category(out / "data", synth)
 
-    typer.echo(f"2/4 training the fast preset for {minutes:g} min on {dev.type}")
+    typer.echo(f"2/{steps} training the fast preset for {minutes:g} min on {dev.type}")
     model_path = out / "model.safetensors"
     cfg = make_config("fast", device_type=dev.type)
     category = load_category(out / "data", with_depth=cfg.part_dim > 0, with_parts=cfg.part_dim > 0)
     seed_everything(seed)
     model, result = run_training(category, model_path, cfg, dev, seed, minutes, False)
 
-    typer.echo("3/4 rendering a turntable of chair 0 (orbit:24)")
+    typer.echo(f"3/{steps} rendering a turntable of chair 0 (orbit:24)")
     frames_dir = out / "turntable"
     turntable = render_to_folder(model, 0, "orbit:24", frames_dir, video=out / "turntable.gif")
 
-    typer.echo("4/4 scoring every held-out test view")
+    typer.echo(f"4/{steps} scoring every held-out test view")
     score = score_model(model, category, "test")
-    write_json(out / "score.json", {**score, "steps": result.steps, "train_seconds": result.seconds})
+    demo, skipped = None, None
+    if edits:
+        typer.echo(f"5/{steps} editing chair 0 from the dataset's scribbles: a recolour and a removal")
+        try:
+            demo = demo_edits(model, category, out / "edits", seed, command=command_line())
+        except CrfError as e:  # e.g. a model trained too briefly to show the scribbled part
+            skipped = str(e)
+    write_json(out / "score.json", {**score, "steps": result.steps, "train_seconds": result.seconds,
+                                    **({"edits": demo["edits"]} if demo else {}), **({"edits_skipped": skipped} if skipped else {})})
 
     typer.echo(f"held-out test ({score['n']} views): {format_score(score)}")
     typer.echo(f"dataset    {out / 'data'}")
     typer.echo(f"model      {model_path} ({result.steps} steps in {result.seconds:.0f} s; crfedit info {model_path})")
     typer.echo(f"turntable  {frames_dir}/0000.png .. {turntable.count - 1:04d}.png and {turntable.video}")
     typer.echo(f"score      {out / 'score.json'}")
+    if skipped:
+        typer.echo(printable(f"edits      skipped: {skipped}"))
+    for row in demo["edits"] if demo else []:
+        what = "recolour" if row["kind"] == "color" else "removal "
+        gap = "n/a" if row["gap_closed"] is None else f"{row['gap_closed']:.2f}"
+        typer.echo(printable(f"{what}   {row['source']}'s {row['part']}: closes {gap} of the PSNR gap to its twin "
+                             f"({_db(row['psnr_before'])} -> {_db(row['psnr'])} dB) in {row['seconds']:.2f} s; delta {row['delta']}"))
+    if demo:
+        first = demo["edits"][0]
+        typer.echo(f"picture    {demo['picture']}")
+        typer.echo(printable(f"next       crfedit render {model_path} --instance {first['source']} --edit {first['delta']} --views orbit:24 --out {out / 'edited'}"))
     typer.echo(f"done in {time.perf_counter() - start:.0f} s")

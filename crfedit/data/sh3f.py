@@ -1,7 +1,7 @@
 """Chairs from Sweet Home 3D furniture catalogs (``.sh3f``), ready for ``dataset from-meshes``.
 
 A ``.sh3f`` file is a zip holding a ``PluginFurnitureCatalog.properties`` (Java properties,
-ISO-8859-1 with ``\\uXXXX`` escapes) and one folder per model (OBJ + MTL + textures, often a
+ISO-8859-1 with ``\\uHHHH`` escapes) and one folder per model (OBJ + MTL + textures, often a
 license file).  Model ``N`` is described by keys ``name#N``, ``category#N``, ``creator#N``,
 ``model#N`` (path inside the zip), ``width#N`` / ``depth#N`` / ``height#N`` (cm) and an optional
 ``modelRotation#N`` (a row-major 3×3 matrix that turns the file's axes into Sweet Home 3D's
@@ -53,7 +53,7 @@ class CatalogModel:
 
 def read_properties(text: str) -> dict[str, str]:
     """Parse Java ``.properties`` text: comments, ``\\`` line continuations, ``=``/``:``/space
-    separators and backslash escapes (``\\uXXXX``, ``\\n``, ``\\t``, ``\\=`` …).
+    separators and backslash escapes (``\\uHHHH``, ``\\n``, ``\\t``, ``\\=`` …).
 
     >>> read_properties("a=1\\nb : two \\\\\\n   words\\n# c=3\\nd=caf\\\\u00e9")
     {'a': '1', 'b': 'two words', 'd': 'café'}

@@ -432,9 +432,9 @@ def serve(session: UiSession, host: str, port: int, on_ready) -> None:
         runner = await _start(server, host, port)
         try:
             for sig in (signal.SIGINT, signal.SIGTERM):
-                # Windows has no loop signal handlers (NotImplementedError); off the main thread
-                # they raise too: Ctrl-C then stays asyncio.run's KeyboardInterrupt.
-                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                # Windows has no loop signal handlers (a RuntimeError subclass); off the main
+                # thread they raise too: Ctrl-C then stays asyncio.run's KeyboardInterrupt.
+                with contextlib.suppress(RuntimeError, ValueError):
                     loop.add_signal_handler(sig, stop.set)
                     handled.append(sig)
             on_ready(url_of(server, host))
