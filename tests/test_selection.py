@@ -614,6 +614,32 @@ def test_removal_cells_closed_form():
     assert SKIN_SHARE > 1 / 3  # the kept block's face cell stays
 
 
+def test_removal_of_sheets_takes_their_outline():
+    """A 6×6 slab S one cell thick, with its outline above it: the face's outline cells (value
+    0.3) are skin; the cells along the slab's edge above and beside it (value 0.1: below
+    GROW_LOW, and 3 of their 9 occupied neighbours S, under SKIN_SHARE) are not, unless the
+    scribble read sheets, when the skin grows once more by the share test alone (6 of 9 of
+    their neighbours are then removed).  A bulky kept block under the slab stays either way."""
+    values = torch.zeros(12, 12, 12)
+    grid = torch.zeros(12, 12, 12, dtype=torch.bool)
+    values[2:8, 2:8, 4] = 0.9  # S: the slab
+    grid[2:8, 2:8, 4] = True
+    grid[2:8, 2:8, 5] = True
+    values[2:8, 2:8, 5] = 0.3  # the outline over its top face
+    grid[1, 2:8, 5] = True
+    values[1, 2:8, 5] = 0.1  # the outline along its x = 2 edge, one cell out and up
+    grid[2:8, 2:8, 0:4] = True  # a block under the slab: 9 S cells among 27 occupied neighbours
+    skin = values >= 0.5
+    skin[2:8, 2:8, 5] = True
+    edge = torch.zeros_like(grid)
+    edge[1, 2:8, 5] = True
+    lines, sheets = _selection(values), Selection(values, 0, "x", "f", {"rim_fill": {"cells": 0, "sheet_share": 0.8}})
+    assert not lines.reads_sheets and sheets.reads_sheets
+    assert not Selection(values, 0, "x", "f", {"rim_fill": {"cells": 0, "sheet_share": 0.2}}).reads_sheets
+    assert torch.equal(removal_cells(lines, grid), skin)
+    assert torch.equal(removal_cells(sheets, grid), skin | edge)
+
+
 def test_removal_split_closed_form():
     """A one-cell rod S along z whose lower part lies against a bulky kept block: a block cell
     beside the rod has 3 rod cells among its 21 occupied neighbours (1/7 < JUNCTION_SHARE),

@@ -313,6 +313,7 @@ def test_removal_selection_reports_the_gate_and_refuses_an_unknown_shape_source(
     sel = select(model, k, views, options_for("remove"))
     assert "geometry" in sel.meta["features"] and isinstance(sel.meta["shape_gate"]["dropped"], int)
     assert isinstance(sel.meta["rim_fill"]["cells"], int)
+    assert sel.reads_sheets and sel.meta["rim_fill"]["sheet_share"] >= 0.5  # a seat panel: its removal takes its outline
     assert sel.meta["selected_cells"] > 0
     occ = select(model, k, views, dataclasses.replace(options_for("remove"), shape_from="occupancy"))
     assert occ.meta["selected_cells"] > 0

@@ -15,6 +15,7 @@ from ...errors import CrfError
 from ...model import CategoryModel
 from .options import GROW_LOW
 from .refine import hysteresis
+from .shapes import RIM_SHEETS
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,14 @@ class Selection:
         """Whether normalized points [..., 3] lie in a selected cell (outside the box: False)."""
         inst = torch.zeros(xn.shape[:-1], dtype=torch.long, device=xn.device)
         return occupancy.lookup(self.mask[None].to(xn.device), inst, xn)
+
+    @property
+    def reads_sheets(self) -> bool:
+        """Whether the scribbled points lie mostly on sheets (planar rather than linear local
+        shape, :data:`~.shapes.RIM_SHEETS`), as the selection's rim fill measured them
+        (``meta["rim_fill"]["sheet_share"]``); False when its metadata does not say."""
+        share = (self.meta.get("rim_fill") or {}).get("sheet_share")
+        return share is not None and share >= RIM_SHEETS
 
     def grown(self, low: float = GROW_LOW) -> "Selection":
         """This selection plus every cell of value ≥ ``low`` connected to it (26-neighbourhood):

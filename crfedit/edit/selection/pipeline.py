@@ -404,8 +404,8 @@ def select(
             values = torch.where(sheet, values.clamp(max=GROW_LOW * 0.999), values)
             sheet_meta["cells"] = int(sheet.sum())
     if options.rim_fill > 0 and shape_grid is not None:  # see SelectOptions.rim_fill
-        rim_meta = {"cells": 0}
         sheets = scribbled_frames.planar > scribbled_frames.linear
+        rim_meta = {"cells": 0, "sheet_share": round(float(sheets.float().mean()), 3)}  # a removal reads it: Selection.reads_sheets
         if float(sheets.float().mean()) >= RIM_SHEETS:
             sel_now = values >= at
             ring = occupancy.dilate(sel_now, 1) & occupied & ~sel_now & ~spared
