@@ -333,6 +333,9 @@ def test_shape_summary_lines():
     both = shape_summary({"shape_gate": {"dropped": 0}, "rim_fill": {"cells": 37}})
     assert both.startswith("nothing left out of the joins; took 37 rim cells")
     assert shape_summary({"rim_fill": {"cells": 0}}) == "no rim taken"
+    assert shape_summary({"rim_fill": {"cells": 0, "sheet_share": 0.3}}) == "no rim taken"
+    assert shape_summary({"rim_fill": {"cells": 5, "sheet_share": 0.96}}) == ("took 5 rim cells (lines lying in the scribbled panel's plane); "
+                                                                            "the scribble lies on sheets (96%): a removal also empties their outline")
     sheets = shape_summary({"shape_gate": {"dropped": 0}, "sheet_veto": {"line_share": 0.875, "cells": 1963}})
     assert sheets == "nothing left out of the joins; left 1963 sheet cells out (the scribble lies on lines: 88%)"
     assert shape_summary({"shape_gate": {"dropped": 0}, "sheet_veto": {"line_share": 0.2, "cells": 0}}) == "nothing left out of the joins"

@@ -142,6 +142,8 @@ def shape_summary(meta: dict) -> str | None:
         said.append(f"left {cells(sheets['cells'], 'sheet ')} out (the scribble lies on lines: {sheets['line_share']:.0%})")
     if rims is not None and rims["cells"] > 0:
         said.append(f"took {cells(rims['cells'], 'rim ')} (lines lying in the scribbled panel's plane)")
+    if rims is not None and rims.get("sheet_share", 0.0) >= RIM_SHEETS:
+        said.append(f"the scribble lies on sheets ({rims['sheet_share']:.0%}): a removal also empties their outline")
     return "; ".join(said) if said else "no rim taken"
 
 
