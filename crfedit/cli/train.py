@@ -453,4 +453,5 @@ def quickstart_cmd(
         first = demo["edits"][0]
         typer.echo(f"picture    {demo['picture']}")
         typer.echo(printable(f"next       crfedit render {model_path} --instance {first['source']} --edit {first['delta']} --views orbit:24 --out {out / 'edited'}"))
+        typer.echo(printable(f"           crfedit ui {model_path} --data {out / 'data'} --edit {first['delta']}  (scribble your own; needs pip install -e '.[ui]')"))
     typer.echo(f"done in {time.perf_counter() - start:.0f} s")
