@@ -353,6 +353,12 @@ def test_quickstart_end_to_end(tmp_path):
     assert result.exit_code == 0, result.output
     assert "4/4 scoring" in result.stdout and "edits" not in json.loads((plain / "score.json").read_text())
     assert not (plain / "edits").exists() and not (plain / "data" / "twins.json").exists()
+    # at 8 px the twins' keep strokes vanish under the scribble: the edits are skipped, said why, and nothing else fails
+    small = tmp_path / "small"
+    result = invoke("quickstart", "--out", small, "--minutes", 0.01, "--instances", 1, "--res", 8, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    skipped = json.loads((small / "score.json").read_text())["edits_skipped"]
+    assert "keep mask" in skipped and f"edits      skipped: {skipped}" in result.stdout and "edits" not in json.loads((small / "score.json").read_text())
     (tmp_path / "file").write_text("x")
     assert_user_error(invoke("quickstart", "--out", tmp_path / "file"), "not a folder")
     assert_user_error(invoke("quickstart", "--out", out, "--minutes", -1), "--minutes -1")
