@@ -224,7 +224,6 @@ def train_cmd(
     """
     from ..config import make_config
     from ..data.loading import load_category
-    from ..demo import demo_edits
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..evaluation import held_out_split, score_model
     from ..modelfile import stored_training
@@ -394,8 +393,8 @@ def quickstart_cmd(
     """
     from ..config import make_config
     from ..data.loading import load_category
-    from ..demo import demo_edits
     from ..data.synth import SynthConfig, check_synth_args, write_synth_category
+    from ..demo import demo_edits
     from ..evaluation import score_model
     from ..io import write_json
     from ..render_files import render_to_folder

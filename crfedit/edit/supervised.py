@@ -147,6 +147,15 @@ def occupied_points(grid: Tensor, selected: Tensor, n_in: int, n_out: int, gener
     return pts, inside
 
 
+SHEET_OUTLINE = True
+"""Whether a removal of sheets takes their outline (:func:`removal_cells`).  Measured (fifty-third
+session, docs/benchmarks.md, hybrid, gap closed, edit seeds 0 / 1): the procedural removals
+0.836 / 0.837 → 0.872 / 0.873 and 0.867 / 0.866 → 0.889 / 0.888 (every sheet twin up,
+0.017–0.072); the real removals, whose scribbles all lie on lines (frames, tubes), do not
+change.  Grown for every removal instead, the real ones lost 0.014–0.047 (a tube's outline
+cells are the seat's and the pads')."""
+
+
 def removal_cells(selection: Selection, grid: Tensor) -> Tensor:
     """The occupied cells [R, R, R] a removal empties: S, plus S's skin — the occupied cells next
     to S whose selection value is at least :data:`SKIN_LOW` and whose occupied 3×3×3
@@ -165,14 +174,6 @@ def removal_cells(selection: Selection, grid: Tensor) -> Tensor:
     if SHEET_OUTLINE and selection.reads_sheets:
         sel = sel | (occupancy.dilate(sel, 1) & surrounded_by(sel, grid, SKIN_SHARE))
     return sel
-
-
-SHEET_OUTLINE = True
-"""Whether a removal of sheets takes their outline (:func:`removal_cells`).  Measured (fifty-third
-session, docs/benchmarks.md, hybrid, gap closed, seed 0): the procedural removals 0.836 → 0.871
-and 0.867 → 0.888 (every sheet twin up, 0.02–0.07); the real removals, whose scribbles all lie
-on lines (frames, tubes), do not change.  Grown for every removal instead, the real ones lost
-0.014–0.047 (a tube's outline cells are the seat's and the pads')."""
 
 
 JUNCTION_SHARE = 0.2
