@@ -34,9 +34,11 @@ def demo_edits(
 ) -> dict:
     """Edit every twin of ``category`` (:func:`~crfedit.evaluation.evaluate_edits`, hybrid
     strategy, default options), write each delta as ``out/<twin>.safetensors`` and the picture
-    as ``out/edits.png``.  Returns ``{"edits": [one row per twin: twin, kind, source, part,
-    delta, psnr, psnr_before, psnr_ceiling, gap_closed, selection_iou, seconds], "picture"}``;
-    ``command`` is written into each delta as its provenance."""
+    as ``out/edits.png``.  Returns ``{"edits": [one row per twin edited: twin, kind, source,
+    part, delta, psnr, psnr_before, psnr_ceiling, gap_closed, selection_iou, seconds],
+    "skipped": {twin: why}, "picture"}``; a twin whose edit is a user error (a scribble the
+    model does not show) is skipped and the others go on; with none edited, that error is
+    raised.  ``command`` is written into each delta as its provenance."""
     cases = load_twin_cases(model, category)
     if not cases:
         raise CrfError(f"{category.root}: the dataset has no ground-truth twins (twins.json) to demonstrate edits on")
@@ -49,20 +51,24 @@ def demo_edits(
         result.save(path, view=case.spec.view, **({"command": command} if command else {}))
         edited[case.spec.name] = (case, result, path)
 
-    report = evaluate_edits(model, category, cases, ("hybrid",), EditOptions(seed=seed), device=model.device, seed=seed,
-                            progress=progress, paper=False, on_edit=keep)
-    rows = []
-    for run in report["runs"]:
-        if run["method"] != "hybrid":
+    rows, skipped, error = [], {}, None
+    for case in cases:  # one twin at a time, so that one that cannot be edited leaves the others
+        try:
+            report = evaluate_edits(model, category, [case], ("hybrid",), EditOptions(seed=seed), device=model.device, seed=seed,
+                                    progress=progress, paper=False, on_edit=keep)
+        except CrfError as e:
+            skipped[case.spec.name], error = str(e), e
             continue
-        case, _, path = edited[run["twin"]]
+        run = next(r for r in report["runs"] if r["method"] == "hybrid")
         rows.append({
-            "twin": run["twin"], "kind": run["kind"], "source": run["source"], "part": case.spec.part, "delta": str(path),
+            "twin": run["twin"], "kind": run["kind"], "source": run["source"], "part": case.spec.part, "delta": str(edited[run["twin"]][2]),
             **{key: run.get(key) for key in ("psnr", "psnr_before", "psnr_ceiling", "gap_closed", "selection_iou", "seconds")},
         })
+    if not rows:
+        raise error
     picture = out / "edits.png"
     write_png(picture, before_after(model, [edited[r["twin"]][:2] for r in rows], views))
-    return {"edits": rows, "picture": str(picture)}
+    return {"edits": rows, "skipped": skipped, "picture": str(picture)}
 
 
 def before_after(model: CategoryModel, edits: Sequence[tuple[TwinCase, EditResult]], views: Sequence[int], scale: int = 3) -> np.ndarray:

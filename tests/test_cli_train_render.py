@@ -361,6 +361,30 @@ def test_quickstart_end_to_end(tmp_path):
     assert "keep mask" in skipped and f"edits      skipped: {skipped}" in result.stdout and "edits" not in json.loads((small / "score.json").read_text())
     (tmp_path / "file").write_text("x")
     assert_user_error(invoke("quickstart", "--out", tmp_path / "file"), "not a folder")
+
+
+def test_quickstart_keeps_the_edits_it_could_make(tmp_path, monkeypatch):
+    """One twin's edit failing as a user error (here: the removal, made to fail) skips that
+    twin alone: the recolour is still saved, scored and drawn, and the skip is said."""
+    import crfedit.evaluation as evaluation
+
+    apply = evaluation.apply_twin_edit
+
+    def removal_fails(model, case, options, *args, **kwargs):
+        if case.spec.kind == "remove":
+            raise CrfError("the scribble lies on the background only")
+        return apply(model, case, options, *args, **kwargs)
+
+    monkeypatch.setattr(evaluation, "apply_twin_edit", removal_fails)
+    out = tmp_path / "qs"
+    result = invoke("quickstart", "--out", out, "--minutes", 0.01, "--instances", 1, "--res", 16, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    score = json.loads((out / "score.json").read_text())
+    assert [e["twin"] for e in score["edits"]] == ["chair_000_color"]
+    assert score["edits_skipped"] == "chair_000_remove: the scribble lies on the background only"
+    assert f"edits      skipped: {score['edits_skipped']}" in result.stdout and f"recolour   chair_000's {score['edits'][0]['part']}: closes" in result.stdout
+    assert (out / "edits" / "chair_000_color.safetensors").is_file() and not (out / "edits" / "chair_000_remove.safetensors").exists()
+    assert read_image(out / "edits" / "edits.png").shape[:2] == (48 + 16 + 6 + 6, 6 + 6 * 54 + 2 * 18 + 48 + 6)
     assert_user_error(invoke("quickstart", "--out", out, "--minutes", -1), "--minutes -1")
 
 

@@ -433,6 +433,8 @@ def quickstart_cmd(
             demo = demo_edits(model, category, out / "edits", seed, command=command_line())
         except CrfError as e:  # e.g. a model trained too briefly to show the scribbled part
             skipped = str(e)
+    if demo and demo["skipped"]:
+        skipped = "; ".join(f"{twin}: {why}" for twin, why in demo["skipped"].items())
     write_json(out / "score.json", {**score, "steps": result.steps, "train_seconds": result.seconds,
                                     **({"edits": demo["edits"]} if demo else {}), **({"edits_skipped": skipped} if skipped else {})})
 
