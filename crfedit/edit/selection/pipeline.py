@@ -405,8 +405,9 @@ def select(
             sheet_meta["cells"] = int(sheet.sum())
     if options.rim_fill > 0 and shape_grid is not None:  # see SelectOptions.rim_fill
         sheets = scribbled_frames.planar > scribbled_frames.linear
-        rim_meta = {"cells": 0, "sheet_share": round(float(sheets.float().mean()), 3)}  # a removal reads it: Selection.reads_sheets
-        if float(sheets.float().mean()) >= RIM_SHEETS:
+        sheet_share = float(sheets.float().mean())
+        rim_meta = {"cells": 0, "sheet_share": round(sheet_share, 3)}  # a removal reads it: Selection.reads_sheets
+        if sheet_share >= RIM_SHEETS:
             sel_now = values >= at
             ring = occupancy.dilate(sel_now, 1) & occupied & ~sel_now & ~spared
             rim = shape_test(ring, lambda f: rim_lines(f, scribbled_frames, options.rim_fill))
