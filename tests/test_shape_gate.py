@@ -4,6 +4,7 @@ of a join that its stretchers' colour would make."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 
 import numpy as np
@@ -387,3 +388,56 @@ def test_sheet_veto_leaves_no_sheet_but_the_scribbled_cells(edit_category):
     assert not (sheet_cells(on_) & ~scribbled).any()
     assert 0 < on_.meta["selected_cells"] < off.meta["selected_cells"]
     assert shape_summary(on_.meta).startswith(("nothing left out of the joins; left ", "left "))
+
+
+def test_a_join_under_a_scribble_on_bars_leaves_the_slab_out():
+    """The stool's stretchers scribbled (lines), the legs and the seat joined by their shared
+    colour: the pieces mostly not lines (the seat slab) are left out at the options' share, the
+    legs (lines) stay; scribbled on the seat's top instead, the scribble does not read as
+    lines and the rule does not run."""
+    from crfedit.edit.selection.shapes import JOIN_LINES, lines_of
+
+    g = frame_grid()
+    bars = torch.cat([centre_of(i, 3, 5) for i in (6, 7, 8)] + [centre_of(3, j, 5) for j in (6, 7, 8, 9)])
+    assert float(lines_of(local_frames(g, bars, SHAPE_GATE_RADIUS)).float().mean()) >= JOIN_LINES
+    top = torch.cat([centre_of(i, j, 13) for i in (6, 8) for j in (6, 8)])
+    assert float(lines_of(local_frames(g, top, SHAPE_GATE_RADIUS)).float().mean()) < JOIN_LINES
+    legs, seat = torch.zeros(RES, RES, RES, dtype=torch.bool), torch.zeros(RES, RES, RES, dtype=torch.bool)
+    for i in (3, 12):
+        for j in (3, 12):
+            legs[i, j, 0:5] = True
+    seat[3:13, 3:13, 13] = True
+    added = legs | seat
+    cells = added.reshape(-1).nonzero().squeeze(-1)
+    not_line = torch.zeros(RES**3, dtype=torch.bool)
+    not_line[cells] = ~lines_of(local_frames(g, occupancy.centers_of_cells(cells, RES), SHAPE_GATE_RADIUS))
+    dropped = gate_pieces(added, not_line.view(RES, RES, RES), S.JOIN_LINES_SHARE)
+    assert torch.equal(dropped, seat)
+    assert options_for("color").join_lines == options_for("remove").join_lines == S.JOIN_LINES_SHARE > 0
+    assert options_for("add").join_lines == 0
+
+
+def test_join_lines_only_takes_cells_out_of_a_join_and_says_so(edit_category, monkeypatch):
+    """With the rule made to run on any scribble (``JOIN_LINES`` 0) and to leave out any piece
+    with a cell that is not a line, a forced join keeps only pieces of lines: the selection is
+    a subset of the one without the rule, its metadata counts what was left out, and the
+    summary line names it; without the rule nothing is left out."""
+    from test_selection import part_view
+
+    from crfedit.edit.selection import ScribbleView, SelectOptions, join_summary, select
+
+    _, model, category = edit_category
+    k = 1
+    view, fg, keep, _ = part_view(category, k, "back")
+    views = [ScribbleView(view.camera, fg, keep)]
+    base = SelectOptions(chroma_union=1e6, chroma_saturation=0.0)
+    monkeypatch.setattr(pipeline, "JOIN_LINES", 0.0)
+    plain = select(model, k, views, base)
+    gated = select(model, k, views, dataclasses.replace(base, join_lines=1e-6))
+    assert "not_lines" not in plain.meta["chroma_union"]
+    left = gated.meta["chroma_union"]["not_lines"]
+    assert left > 0 and gated.meta["chroma_union"]["joined"]
+    assert bool((plain.mask | ~gated.mask).all())  # every cell the rule keeps, the join without it took
+    assert int(gated.mask.sum()) < int(plain.mask.sum())
+    assert f"; left out {left} of them, in pieces that are not lines (the scribble lies on lines)" in join_summary(gated.meta)
+    assert "not lines" not in join_summary(plain.meta)

@@ -114,7 +114,10 @@ def join_summary(meta: dict) -> str | None:
         if not features:
             return said + ")"
         said += f", {info['cells'] / features:.1f}× the {features} the features select)"
-        if info["cells"] >= JOIN_WARN * features:
+        left = info.get("not_lines", 0)  # SelectOptions.join_lines, since 2026-11-27
+        if left:
+            said += f"; left out {left} of them, in pieces that are not lines (the scribble lies on lines)"
+        if info["cells"] - left >= JOIN_WARN * features:
             said += ("; if the preview shows another part of this colour taken with it: --colour-join never,"
                      " or a keep stroke on that part")
         return said

@@ -23,7 +23,7 @@ from .classify import appearance_gate, chroma_spread, classifier, evenly, featur
 from .features import SHAPE_SOURCES, CellPoints, FrameTable, cell_opacity, cell_points, group_width, local_frames, local_shape, point_features, surface_points
 from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
 from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
-from .shapes import RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
+from .shapes import JOIN_LINES, RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
 
 
@@ -283,14 +283,15 @@ def select(
         if part_meta["used"]:
             groups = (*groups, "part")
     shape_grid = geometry = None
-    if "geometry" in groups:
+    if "geometry" in groups or options.join_lines > 0:
         shape_grid = remember(("shape", options.shape_from), lambda: cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied)
+    if "geometry" in groups:
         geometry = remember(("geometry", options.shape_from, options.shape_radius),
                         lambda: local_shape(shape_grid, field.normalize(cell_pts), options.shape_radius))  # the cells' (point_features')
     feats = lambda p, fused_p=None, geometry_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius,
                                                                     options.chroma_offset, geometry_p)
     scribbled_frames, shape_gate, gate_meta = None, options.shape_gate > 0 and shape_grid is not None, {"dropped": 0}
-    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0):
+    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0 or options.join_lines > 0):
         scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
 
     def shape_test(where: Tensor, test) -> Tensor:
@@ -348,6 +349,11 @@ def select(
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
             cap = options.pale_union if options.pale_union > 0 and saturation < options.pale_saturation else options.chroma_union
             union.update(cells=n_alone, features_cells=n_main, cap=cap, joined=n_alone <= cap * max(n_main, 1))
+            if union["joined"] and options.join_lines > 0 and float(lines_of(scribbled_frames).float().mean()) >= JOIN_LINES:
+                added = (alone >= options.threshold) & (values < options.threshold)  # see SelectOptions.join_lines
+                drop = gate_pieces(added, shape_test(added, lambda f: ~lines_of(f)), options.join_lines)
+                union["not_lines"] = int(drop.sum())
+                alone = torch.where(drop, torch.zeros_like(alone), alone)
             if union["joined"]:
                 values = torch.maximum(values, alone)
     def cap_unlike(values: Tensor, factor: float, below: float, low: float = 0.0, high: float = options.threshold,
