@@ -353,10 +353,12 @@ out once half its cells are not lines.  `chair_009`'s orange back frame, scribbl
 (two thirds of the scribbled points lie on lines), joined the orange seat on `g_p1`: 8 662
 cells by chromaticity, 2.6× the features' 3 347, under the cap.  The seat's 5 306 cells are
 not lines; with them left out the recolour's selection IoU went 0.331 → 0.618 and its gap closed
-−0.99 → 0.36.  The 38 removal twins of six models, whose scribbles lie on legs and frames,
-selected with the recolour's options: mean IoU unchanged to ±0.001 (each twin within 0.008);
-with a removal's: +0.000 to +0.003 (the pale plastic chair's seat +0.013 to +0.035).  Measured
-on seed 0 with the scribbles' own lines (:data:`~.shapes.JOIN_LINES`)."""
+−0.99 → 0.36.  The 46 removal twins of the six benchmark models, whose scribbles lie on legs
+and frames, selected with the recolour's options: mean IoU per model unchanged to ±0.001 (each
+twin within 0.008); with a removal's: +0.000 to +0.003 (the pale plastic chair's frame +0.013 to
++0.035, a piece of its seat left out of the join).  Removals' gap closed on the real models
+0.887 / 0.872 / 0.852 / 0.904 → 0.926 / 0.868 / 0.853 / 0.900 (docs/benchmarks.md, fifty-fourth
+session)."""
 COLOR_SATURATION = 0.2
 """A recolour's :attr:`SelectOptions.pale_veto_saturation`: below it the pale veto
 (:data:`COLOR_PALE_VETO`) runs too.  Until the vetoes (2026-11-26) it was a recolour's
