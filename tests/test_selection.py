@@ -439,6 +439,26 @@ def test_fit_logistic_reaches_the_optimum():
     assert torch.allclose(other.w, fit.w, atol=1e-5) and torch.allclose(other.b, fit.b, atol=1e-5)
 
 
+def test_self_training_never_drops_the_held_points():
+    """The view's other points that look like the positives are dropped from the negatives by
+    self-training, so the fit calls their look the part; held, they stay negatives and the fit
+    calls the same look less likely the part.  Equal to a fit with the held points as plain
+    negatives and the others dropped as before."""
+    g = torch.Generator().manual_seed(0)
+    pos = torch.randn(40, 3, generator=g) * 0.3 + torch.tensor([2.0, 0.0, 0.0])
+    alike = torch.randn(40, 3, generator=g) * 0.3 + torch.tensor([2.0, 0.0, 0.0])
+    unlike = torch.randn(80, 3, generator=g) * 0.3 - torch.tensor([2.0, 0.0, 0.0])
+    others, keep = torch.cat([alike, unlike]), torch.zeros(0, 3)
+    held = torch.cat([torch.ones(40, dtype=torch.bool), torch.zeros(80, dtype=torch.bool)])
+    free = classifier(pos, keep, others, 2, 1.0)
+    kept = classifier(pos, keep, others, 2, 1.0, held=held)
+    assert float(free(alike).mean()) > 0.9  # self-training dropped the look-alikes
+    assert float(kept(alike).mean()) < float(free(alike).mean()) - 0.2
+    assert float(kept(pos).mean()) < 0.9 and float(kept(unlike).mean()) < 0.1
+    never = classifier(pos, keep, others, 2, 1.0, held=torch.zeros(120, dtype=torch.bool))
+    assert torch.equal(never.w, free.w) and torch.equal(never.b, free.b)  # nothing held: the same fit
+
+
 def test_fill_rims_closed_form():
     """A slab selected but for its top rim, lying face-on against an unselected block: a rim
     cell whose occupied neighbours are half slab joins; a block cell against the slab (a third

@@ -441,3 +441,30 @@ def test_join_lines_only_takes_cells_out_of_a_join_and_says_so(edit_category, mo
     assert int(gated.mask.sum()) < int(plain.mask.sum())
     assert f"; left out {left} of them, in pieces that are not lines (the scribble lies on lines)" in join_summary(gated.meta)
     assert "not lines" not in join_summary(plain.meta)
+
+
+def test_line_negatives_hold_the_view_s_points_off_lines(edit_category, monkeypatch):
+    """With the rule made to run on any scribble (``JOIN_LINES`` 0), the scribbled view's other
+    surface points whose cells are not lines stay negatives: the metadata counts them (some,
+    not all of the view's points), the summary says so, and the selection changes; off, or
+    with a scribble read as not on lines, neither the metadata nor the line appear."""
+    from test_selection import part_view
+
+    from crfedit.edit.selection import ScribbleView, SelectOptions, lines_summary, select
+
+    _, model, category = edit_category
+    k = 1
+    view, fg, keep, _ = part_view(category, k, "back")
+    views = [ScribbleView(view.camera, fg, keep)]
+    on = SelectOptions(line_negatives=True)
+    assert "line_negatives" not in select(model, k, views, on).meta  # the back is a panel: its scribble does not lie on lines
+    monkeypatch.setattr(pipeline, "JOIN_LINES", 0.0)
+    plain = select(model, k, views, SelectOptions())
+    held = select(model, k, views, on)
+    info = held.meta["line_negatives"]
+    assert 0 < info["points"] < held.meta["view_points"]
+    assert lines_summary(held.meta) == (f"the scribble lies on lines ({info['line_share']:.0%}): {info['points']} of the view's other "
+                                        "surface points, off lines, held as not the part")
+    assert "line_negatives" not in plain.meta and lines_summary(plain.meta) is None
+    assert not torch.equal(held.values, plain.values)
+    assert options_for("color").line_negatives and options_for("remove").line_negatives and not options_for("add").line_negatives

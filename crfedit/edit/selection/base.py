@@ -185,7 +185,18 @@ def mirror_summary(meta: dict) -> str | None:
     return f"{plane}; the selection took its mirror image"
 
 
-SUMMARIES = (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("colour join", join_summary),
-             ("shape gate", shape_summary))
+def lines_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of :attr:`~.options.SelectOptions.line_negatives`, in a
+    line (None: the scribble does not lie on lines, or the option is off)."""
+    info = meta.get("line_negatives")
+    if info is None:
+        return None
+    n = info["points"]
+    return (f"the scribble lies on lines ({info['line_share']:.0%}): {n} of the view's other surface point{'' if n == 1 else 's'}, "
+            "off lines, held as not the part")
+
+
+SUMMARIES = (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("on lines", lines_summary),
+             ("colour join", join_summary), ("shape gate", shape_summary))
 """(label, summary function) of each part of a selection's metadata that ``select``, ``info``,
 the edit commands and the page say, in that order (the page's field: the label, ``_`` for spaces)."""

@@ -94,13 +94,15 @@ def fit_logistic(pos: Tensor, neg: Tensor, neg_weight: Tensor, l2: float = 1e-2,
     return Logistic(theta[:-1], theta[-1:])
 
 
-def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weight: float, appearance: Tensor | None = None):
+def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weight: float, appearance: Tensor | None = None,
+               held: Tensor | None = None):
     """Positives against the keep strokes' points (each weighing ``keep_weight``) and the view's
     other surface points; each of ``rounds`` self-training rounds drops the other points the last
     fit calls positive (the unscribbled rest of the part must not stay a negative), or that a fit
-    on the ``appearance`` columns alone calls positive.  With no negative at all (the scribbles
-    cover the whole object) everything is selected.  Each round's fits start from the last
-    round's."""
+    on the ``appearance`` columns alone calls positive, but never those ``held`` [len(others)]
+    marks (:attr:`~.options.SelectOptions.line_negatives`).  With no negative at all (the
+    scribbles cover the whole object) everything is selected.  Each round's fits start from the
+    last round's."""
     active = torch.ones(len(others), dtype=torch.bool, device=others.device)
     clf = looks = None
     for _ in range(rounds + 1):
@@ -114,6 +116,8 @@ def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weig
             if appearance is not None:
                 looks = fit_logistic(pos[:, appearance], neg[:, appearance], weight, start=looks)
                 active &= looks(others[:, appearance]) < 0.5
+            if held is not None:
+                active |= held
     return clf
 
 

@@ -177,6 +177,14 @@ class SelectOptions:
     of whose cells are not lines (a seat or panel of the bars' colour).  A scribble on bars
     means bars.  The shape is read from the density (:func:`~.features.cell_opacity`) whether
     or not the ``geometry`` group is.  Recolours and removals use :data:`JOIN_LINES_SHARE`."""
+    line_negatives: bool = False
+    """When set, and at least :data:`~.shapes.JOIN_LINES` of the scribbled points lie on lines:
+    the scribbled views' other surface points whose cells are not lines stay negatives through
+    the self-training (:func:`~.classify.classifier`), however much they look like the part.
+    Self-training drops the view's points that look like the part, so that the unscribbled rest
+    of it does not stay a negative; under a scribble on bars the rest of the part is bars, and a
+    slab or block of the bars' colour is another part.  Recolours and removals set it
+    (:data:`LINE_NEGATIVES`)."""
     sheet_veto: float = 0.0
     """When > 0 (and the ``geometry`` group is read), and at least this share of the scribbled
     points lie on lines (:func:`lines_of`: a frame's tubes, legs): the cells that lie on sheets
@@ -359,6 +367,15 @@ twin within 0.008); with a removal's: +0.000 to +0.003 (the pale plastic chair's
 +0.035, a piece of its seat left out of the join).  Removals' gap closed on the real models
 0.887 / 0.872 / 0.852 / 0.904 → 0.926 / 0.868 / 0.853 / 0.900 (docs/benchmarks.md, fifty-fourth
 session)."""
+LINE_NEGATIVES = True
+"""Recolours' and removals' :attr:`SelectOptions.line_negatives`.  `chair_009`'s orange back
+frame, scribbled on its bars over an orange seat: the seat's points in the scribbled view looked
+like the frame, self-training dropped them from the negatives, and the features took a quarter
+of the seat (selection IoU 0.618 on `g_p1` after :data:`JOIN_LINES_SHARE`).  Held as negatives,
+0.814, and the recolour's gap closed 0.36 → 0.83 (`g_p0`: 0.843 → 0.860).  Hybrid, seed 0,
+recolours' gap closed `g_p0` 0.925 → 0.927, `g_p1` 0.849 → 0.908; removals 0.871 / 0.889 (procedural)
+and 0.926 / 0.868 / 0.853 / 0.900 (real) → 0.875 / 0.889 and 0.911 / 0.876 / 0.875 / 0.930
+(docs/benchmarks.md, fifty-fourth session)."""
 COLOR_SATURATION = 0.2
 """A recolour's :attr:`SelectOptions.pale_veto_saturation`: below it the pale veto
 (:data:`COLOR_PALE_VETO`) runs too.  Until the vetoes (2026-11-26) it was a recolour's
@@ -658,7 +675,7 @@ def _kind_options(kind: str) -> SelectOptions:
                              select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
                              appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
                              keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR, stroke_centres=STROKE_CENTRES,
-                             stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE)
+                             stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES)
     if kind == "remove":
         return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, position_weight=REMOVE_POSITION_WEIGHT,
                              shape_gate=REMOVE_SHAPE_GATE, sheet_veto=REMOVE_SHEET_VETO, rim_fill=REMOVE_RIM_FILL,
@@ -666,5 +683,5 @@ def _kind_options(kind: str) -> SelectOptions:
                              smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA,
                              pale_veto=REMOVE_PALE_VETO, pale_veto_saturation=PALE_SATURATION,
                              keep_ratio=REMOVE_KEEP_RATIO, mirror=REMOVE_MIRROR, stroke_centres=STROKE_CENTRES,
-                             stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE)
+                             stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES)
     return SelectOptions(stroke_centres=STROKE_CENTRES)

@@ -150,10 +150,11 @@ def _group_standardizer(groups: Sequence[str], widths: Sequence[int], f_cells: T
 
 
 def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_view, f_cells, options: SelectOptions,
-              stats: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+              stats: tuple[Tensor, Tensor] | None = None, held: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Steps 3 and 5 on the columns of ``groups``: each occupied cell's probability [N] of
     being the part, from the features of the positives, keep points, the view's other surface
-    points and the cells (unstandardized, ``widths`` columns per group); and the cells'
+    points (those ``held`` marks stay negatives, :attr:`SelectOptions.line_negatives`) and the
+    cells (unstandardized, ``widths`` columns per group); and the cells'
     standardized appearance [N, F] (every group but position and F_fuse's activations), which
     step 6 smooths along: the self-training's appearance fit reads F_fuse too, the bilateral
     smoothing's 26 neighbour distances do not (removals' gap closed within 0.01 of reading it
@@ -163,7 +164,7 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     looks = torch.cat([c for g, c in columns.items() if g != "position"]) if len(groups) > 1 and "position" in groups else None
     z_pos, z_cells = z(f_pos), z(f_cells)
     clf = classifier(z_pos, z(f_keep), z(f_view), options.self_training, options.keep_weight,
-                     looks if options.appearance_self_training else None)
+                     looks if options.appearance_self_training else None, held)
     pred = clf(z_cells)
     gated = [c for g, c in columns.items() if g in ("bottleneck", "chroma")]
     if options.appearance_gate > 0 and gated:
@@ -283,7 +284,7 @@ def select(
         if part_meta["used"]:
             groups = (*groups, "part")
     shape_grid = geometry = None
-    if "geometry" in groups or options.join_lines > 0:
+    if "geometry" in groups or options.join_lines > 0 or options.line_negatives:
         shape_grid = remember(("shape", options.shape_from), lambda: cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied)
     if "geometry" in groups:
         geometry = remember(("geometry", options.shape_from, options.shape_radius),
@@ -291,8 +292,11 @@ def select(
     feats = lambda p, fused_p=None, geometry_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius,
                                                                     options.chroma_offset, geometry_p)
     scribbled_frames, shape_gate, gate_meta = None, options.shape_gate > 0 and shape_grid is not None, {"dropped": 0}
-    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0 or options.join_lines > 0):
+    line_share = None  # the share of the scribbled points that lie on lines
+    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0 or options.join_lines > 0
+                                   or options.line_negatives):
         scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
+        line_share = float(lines_of(scribbled_frames).float().mean())
 
     def shape_test(where: Tensor, test) -> Tensor:
         """[R, R, R] bool: ``test`` (:class:`Frames` [M] → [M] bool) of the occupied cells of
@@ -320,7 +324,15 @@ def select(
     spared = kept.clone()  # keep-stroke cells and those a keep stroke wins: no join takes them
     if veto is not None:
         spared.view(-1)[cells[veto]] = True
-    values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats), cells, neighbours, occupied, scribbled, kept, options, veto)
+    held = None  # see SelectOptions.line_negatives: the view's points off lines stay negatives under a scribble on lines
+    if options.line_negatives and line_share is not None and line_share >= JOIN_LINES and len(cand_pts):
+        ijk, inside = occupancy.cell_index(field.normalize(cand_pts), res)
+        flat = (ijk[:, 0] * res + ijk[:, 1]) * res + ijk[:, 2]
+        seen = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
+        seen[flat[inside]] = True
+        held = inside & shape_test(seen.view(res, res, res), lambda f: ~lines_of(f)).reshape(-1)[flat]
+    values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats, held), cells, neighbours, occupied, scribbled,
+                     kept, options, veto)
     columns = _columns(groups, widths)
     union, saturation, spread = None, 0.0, None
     if "chroma" in groups:  # the cells' chromaticity distances, once for every test below
@@ -349,7 +361,7 @@ def select(
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
             cap = options.pale_union if options.pale_union > 0 and saturation < options.pale_saturation else options.chroma_union
             union.update(cells=n_alone, features_cells=n_main, cap=cap, joined=n_alone <= cap * max(n_main, 1))
-            if union["joined"] and options.join_lines > 0 and float(lines_of(scribbled_frames).float().mean()) >= JOIN_LINES:
+            if union["joined"] and options.join_lines > 0 and line_share is not None and line_share >= JOIN_LINES:
                 added = (alone >= options.threshold) & (values < options.threshold)  # see SelectOptions.join_lines
                 drop = gate_pieces(added, shape_test(added, lambda f: ~lines_of(f)), options.join_lines)
                 union["not_lines"] = int(drop.sum())
@@ -404,7 +416,7 @@ def select(
                 like &= ~gated(like & (values < at))
             values = torch.where(like, values.clamp_min(at), values)
     if options.sheet_veto > 0 and scribbled_frames is not None:  # see SelectOptions.sheet_veto
-        sheet_meta = {"line_share": round(float(lines_of(scribbled_frames).float().mean()), 3), "cells": 0}
+        sheet_meta = {"line_share": round(line_share, 3), "cells": 0}
         if sheet_meta["line_share"] >= options.sheet_veto:
             sheet = shape_test((values >= GROW_LOW) & ~scribbled, sheets_of)
             values = torch.where(sheet, values.clamp(max=GROW_LOW * 0.999), values)
@@ -432,6 +444,8 @@ def select(
     }
     if veto is not None:
         meta["keep_wins_cells"] = int(veto.sum())
+    if held is not None:
+        meta["line_negatives"] = {"line_share": round(line_share, 3), "points": int(held.sum())}
     if centre_meta is not None:
         meta["stroke_centres"] = centre_meta
     if snap_meta is not None:
