@@ -33,7 +33,8 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    ``self_training`` rounds refits without the view points that the last fit — or a fit on
    appearance alone (every group but position) — calls positive.  The appearance fit is what
    lets a part far from the scribble in space but made of the same material (the legs of a
-   frame scribbled on its backrest) leave the negatives.
+   frame scribbled on its backrest) leave the negatives.  Under a scribble on bars, the view
+   points whose cells are not lines never leave them (:attr:`SelectOptions.line_negatives`).
 5. **Appearance gate.**  A linear classifier extrapolates: a part the scribbled view never
    showed (a seat hidden behind the scribbled arms) can land on the positive side merely by
    being unlike the negatives.  A cell whose appearance (bottleneck + chromaticity) is farther
@@ -53,7 +54,8 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    of the scribbled material that look different elsewhere (a frame's legs, a lit top face);
    for a recolour or a removal (:func:`options_for`) that selection is joined cell by cell,
    unless the part is near-grey or it floods the instance (:attr:`SelectOptions.chroma_union`),
-   and only where the chromaticity is the scribbled points' (:attr:`SelectOptions.join_chroma`).
+   and only where the chromaticity is the scribbled points' (:attr:`SelectOptions.join_chroma`);
+   under a scribble on bars, without the pieces that are not lines (:attr:`SelectOptions.join_lines`).
 
 8. **Recolours of saturated parts: a lower cut.**  A recolour's selection of a part that
    passes step 7's saturation test also takes the cells of value :data:`COLOR_THRESHOLD`–0.5
