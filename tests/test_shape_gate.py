@@ -450,7 +450,7 @@ def test_line_negatives_hold_the_view_s_points_off_lines(edit_category, monkeypa
     with a scribble read as not on lines, neither the metadata nor the line appear."""
     from test_selection import part_view
 
-    from crfedit.edit.selection import ScribbleView, SelectOptions, lines_summary, select
+    from crfedit.edit.selection import ScribbleView, SelectOptions, join_summary, lines_summary, select
 
     _, model, category = edit_category
     k = 1
@@ -466,5 +466,9 @@ def test_line_negatives_hold_the_view_s_points_off_lines(edit_category, monkeypa
     assert lines_summary(held.meta) == (f"the scribble lies on lines ({info['line_share']:.0%}): {info['points']} of the view's other "
                                         "surface points, off lines, held as not the part")
     assert "line_negatives" not in plain.meta and lines_summary(plain.meta) is None
+    refused = {**held.meta, "chroma_union": {"saturation": 0.9, "cells": 900, "joined": False, "features_cells": 100, "cap": 3.5}}
+    assert join_summary(refused).endswith("(the scribble lies on bars: --colour-join always would join only the pieces of bars)")
+    not_on_bars = {key: value for key, value in refused.items() if key != "line_negatives"}
+    assert join_summary(not_on_bars).endswith("(if the part is that large: --colour-join always, or scribble more of it or from a second view)")
     assert not torch.equal(held.values, plain.values)
     assert options_for("color").line_negatives and options_for("remove").line_negatives and not options_for("add").line_negatives
