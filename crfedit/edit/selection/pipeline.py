@@ -326,11 +326,8 @@ def select(
         spared.view(-1)[cells[veto]] = True
     held = None  # see SelectOptions.line_negatives: the view's points off lines stay negatives under a scribble on lines
     if options.line_negatives and line_share is not None and line_share >= JOIN_LINES and len(cand_pts):
-        ijk, inside = occupancy.cell_index(field.normalize(cand_pts), res)
-        flat = (ijk[:, 0] * res + ijk[:, 1]) * res + ijk[:, 2]
-        seen = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
-        seen[flat[inside]] = True
-        held = inside & shape_test(seen.view(res, res, res), lambda f: ~lines_of(f)).reshape(-1)[flat]
+        off_lines = shape_test(_cells_of(field, cand_pts, res), lambda f: ~lines_of(f))
+        held = occupancy.lookup(off_lines[None], torch.zeros(len(cand_pts), dtype=torch.long, device=occupied.device), field.normalize(cand_pts))
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats, held), cells, neighbours, occupied, scribbled,
                      kept, options, veto)
     columns = _columns(groups, widths)
