@@ -297,6 +297,7 @@ def select(
                                    or options.line_negatives):
         scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
         line_share = float(lines_of(scribbled_frames).float().mean())
+    on_bars = line_share is not None and line_share >= JOIN_LINES  # join_lines and line_negatives run only then
 
     def shape_test(where: Tensor, test) -> Tensor:
         """[R, R, R] bool: ``test`` (:class:`Frames` [M] → [M] bool) of the occupied cells of
@@ -325,7 +326,7 @@ def select(
     if veto is not None:
         spared.view(-1)[cells[veto]] = True
     held = None  # see SelectOptions.line_negatives: the view's points off lines stay negatives under a scribble on lines
-    if options.line_negatives and line_share is not None and line_share >= JOIN_LINES and len(cand_pts):
+    if options.line_negatives and on_bars and len(cand_pts):
         off_lines = shape_test(_cells_of(field, cand_pts, res), lambda f: ~lines_of(f))
         held = occupancy.lookup(off_lines[None], torch.zeros(len(cand_pts), dtype=torch.long, device=occupied.device), field.normalize(cand_pts))
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats, held), cells, neighbours, occupied, scribbled,
@@ -358,7 +359,7 @@ def select(
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
             cap = options.pale_union if options.pale_union > 0 and saturation < options.pale_saturation else options.chroma_union
             union.update(cells=n_alone, features_cells=n_main, cap=cap, joined=n_alone <= cap * max(n_main, 1))
-            if union["joined"] and options.join_lines > 0 and line_share is not None and line_share >= JOIN_LINES:
+            if union["joined"] and options.join_lines > 0 and on_bars:
                 added = (alone >= options.threshold) & (values < options.threshold)  # see SelectOptions.join_lines
                 drop = gate_pieces(added, shape_test(added, lambda f: ~lines_of(f)), options.join_lines)
                 union["not_lines"] = int(drop.sum())

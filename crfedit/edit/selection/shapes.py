@@ -19,7 +19,8 @@ share of the scribbled points."""
 SHAPE_LINE = 0.5
 """:func:`odd_lines`: a cell is a line where its linearity is at least this and its planarity."""
 JOIN_LINES = 0.5
-""":attr:`SelectOptions.join_lines` runs when at least this share of the scribbled points lie on lines."""
+""":attr:`SelectOptions.join_lines` and :attr:`SelectOptions.line_negatives` run when at least this
+share of the scribbled points lie on lines."""
 RIM_SHEETS = 0.5
 """:attr:`SelectOptions.rim_fill` runs when at least this share of the scribbled points lie on sheets."""
 SHAPE_GATE_POINTS = 512
