@@ -87,15 +87,24 @@ def part_map(instance_dir: Path, view: View) -> np.ndarray | None:
 def appearance(instance_dir: Path, view: View, scribble: np.ndarray, part: str, new_albedo: str) -> tuple[float, ...] | None:
     """The colour a recoloured part *appears* under ``scribble`` in ``view``: the new albedo
     times the mean shading there (source image / old albedo), as a user picking the colour they
-    want to see would give it.  None without part maps or the part's albedo."""
+    want to see would give it.  None without part maps or the part's albedo.
+
+    The image is un-blended from its white background first, (rgb − (1 − α)) / α, on the
+    pixels the part covers at least half of (all of them when none does): a user sees a thin
+    dark tube as dark, not as its pixels' mix with the white behind it, whose ratio to the old
+    albedo would give the new colour a shading of several times 1 in a channel the old one
+    lacks.  A solid part's pixels (α = 1) are the same either way."""
     record, ids = part_of(instance_dir, part), part_map(instance_dir, view)
     if record is None or ids is None or "color" not in record:
         return None
     on = scribble & (ids == record["id"])
     if not on.any():
         return None
+    if (on & (view.alpha >= 0.5)).any():
+        on &= view.alpha >= 0.5
+    alpha = view.alpha[on][:, None]
     old = np.maximum(np.array(parse_color(record["color"])), 1e-3)
-    shade = (view.rgb[on] / old).mean(axis=0)
+    shade = (((view.rgb[on] - (1.0 - alpha)) / alpha) / old).mean(axis=0)
     return tuple(float(c) for c in np.clip(np.array(parse_color(new_albedo)) * shade, 0.0, 1.0))
 
 

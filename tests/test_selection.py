@@ -543,6 +543,61 @@ def test_recolor_targets_keep_shading():
         RecolorTarget([1.0, 0.0, 0.0], pixels, "tint")
 
 
+def test_twin_appearance_unblends_the_background(tmp_path):
+    """A twin's colour as a user would pick it: a pixel half covered by a dark part over white
+    (rgb = 0.5·c + 0.5) counts as c, so the new colour keeps the part's shading (here 1);
+    pixels the part covers less than half of are left out while others cover more; a solid
+    part's pixels (α = 1) read as they are."""
+    from crfedit.data.loading import View
+    from crfedit.twin_scores import appearance
+
+    (tmp_path / "parts.json").write_text(json.dumps([{"id": 1, "name": "leg", "color": "#402010"}]))
+    old, new = np.array([0x40, 0x20, 0x10]) / 255, "#2040c0"
+    parts = np.ones((1, 3), np.uint8)
+    alpha = np.array([[1.0, 0.5, 0.2]], np.float32)
+    covered = old * 0.9  # the part's own colour, shaded 0.9, in the first two pixels
+    stray = np.array([0.9, 0.1, 0.1])  # a pixel the part barely covers, mixed with something else
+    rgb = np.stack([covered, 0.5 * covered + 0.5, 0.2 * stray + 0.8])[None].astype(np.float32)
+    from PIL import Image
+
+    Image.fromarray(parts).save(tmp_path / "r_000_parts.png")
+    Image.fromarray(parts[:, :1]).save(tmp_path / "r_001_parts.png")
+    cam = SimpleNamespace(width=3, height=1)
+    view = View(cam, rgb, alpha, None, parts, "r_000")
+    scribble = np.ones((1, 3), bool)
+    got = np.array(appearance(tmp_path, view, scribble, "leg", new))
+    want = np.array([0x20, 0x40, 0xC0]) / 255 * 0.9
+    assert np.allclose(got, want, atol=1e-5)
+    blended = (rgb[0, 1] / old)  # what the pixel's mix alone would say of the shading: far from 0.9
+    assert blended.max() > 2.0
+    solid = View(SimpleNamespace(width=1, height=1), rgb[:, :1], alpha[:, :1], None, parts[:, :1], "r_001")
+    assert np.allclose(appearance(tmp_path, solid, scribble[:, :1], "leg", new), want, atol=1e-5)
+
+
+def test_scribbled_colours_are_the_object_s_own(edit_category):
+    """The colours a recolour sets its target against are the object's own at each scribbled
+    pixel: composited over white with the pixel's opacity they give the white render back;
+    over the scribble on a solid part they are that render within its opacity's shortfall."""
+    from crfedit.edit.color import scribbled_colours
+    from crfedit.edit.core import select_rays
+    from crfedit.renderer import render_rays
+
+    _, model, category = edit_category
+    k = 1
+    view, fg, _, _ = part_view(category, k, "seat")
+    edge = dilate(fg, 2) & ~fg  # the seat's rim: pixels partly covered
+    field = model.field_for(k)
+    for strokes in (fg, edge | fg):
+        own = scribbled_colours(field, k, view.camera, strokes)
+        with torch.no_grad():
+            out = render_rays(field, select_rays(view.camera, torch.from_numpy(np.flatnonzero(strokes)), field.aabb.device), k,
+                              early_stop=field.cfg.early_stop)
+        on = out.opacity >= 0.5
+        a = out.opacity[on, None]
+        assert torch.allclose(own * a + (1.0 - a), out.rgb[on], atol=1e-5)
+    assert float(out.opacity[on].min()) < 0.95  # the rim has pixels that are partly background
+
+
 def test_recolor_shading_rule_does_not_scale_colour_noise():
     """Noise across c̄ (here a green error on a dark red part turned light green): the ratio
     multiplies it by c_appear/c̄ in green (×9 here); the shading rule keeps only its projection

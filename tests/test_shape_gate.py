@@ -441,6 +441,12 @@ def test_join_lines_only_takes_cells_out_of_a_join_and_says_so(edit_category, mo
     assert int(gated.mask.sum()) < int(plain.mask.sum())
     assert f"; left out {left} of them, in pieces that are not lines (the scribble lies on lines)" in join_summary(gated.meta)
     assert "not lines" not in join_summary(plain.meta)
+    # a join the cap refuses says a forced one would keep to lines, with line_negatives off
+    refused = select(model, k, views, dataclasses.replace(base, chroma_union=1e-6, join_lines=1e-6, line_negatives=False))
+    assert not refused.meta["chroma_union"]["joined"] and refused.meta["chroma_union"]["keeps_lines"]
+    assert "line_negatives" not in refused.meta
+    assert join_summary(refused.meta).endswith("--colour-join always would join only the pieces of bars)")
+    assert not plain.meta["chroma_union"]["keeps_lines"]
 
 
 def test_line_negatives_hold_the_view_s_points_off_lines(edit_category, monkeypatch):
@@ -469,6 +475,11 @@ def test_line_negatives_hold_the_view_s_points_off_lines(edit_category, monkeypa
     refused = {**held.meta, "chroma_union": {"saturation": 0.9, "cells": 900, "joined": False, "features_cells": 100, "cap": 3.5}}
     assert join_summary(refused).endswith("(the scribble lies on bars: --colour-join always would join only the pieces of bars)")
     not_on_bars = {key: value for key, value in refused.items() if key != "line_negatives"}
-    assert join_summary(not_on_bars).endswith("(if the part is that large: --colour-join always, or scribble more of it or from a second view)")
+    general = "(if the part is that large: --colour-join always, or scribble more of it or from a second view)"
+    assert join_summary(not_on_bars).endswith(general)
+    # since 2026-11-28 the join says itself whether it would keep to bars: join_lines on, line_negatives off or on
+    keeps = {"chroma_union": {**refused["chroma_union"], "keeps_lines": True}}
+    assert join_summary(keeps).endswith("(the scribble lies on bars: --colour-join always would join only the pieces of bars)")
+    assert join_summary({**refused, "chroma_union": {**refused["chroma_union"], "keeps_lines": False}}).endswith(general)
     assert not torch.equal(held.values, plain.values)
     assert options_for("color").line_negatives and options_for("remove").line_negatives and not options_for("add").line_negatives

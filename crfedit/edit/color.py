@@ -91,12 +91,16 @@ def _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection
 
 @torch.no_grad()
 def scribbled_colours(field, k: int, camera: Camera, scribble: np.ndarray) -> torch.Tensor:
-    """The rendered colours [n, 3] (CPU) of the scribbled pixels that cover the object
-    (opacity ≥ MIN_OPACITY), in row-major order.  Their rays alone are rendered: a recolour
-    that is handed its selection (the page, ``--selection``) renders no whole view."""
+    """The object's own colours [n, 3] (CPU) at the scribbled pixels that cover it (opacity ≥
+    MIN_OPACITY), in row-major order: each pixel's colour over no background, divided by its
+    opacity.  A pixel of a thin leg is partly background, and the mix is not the leg's colour:
+    over white a dark tube reads pale, and the colour asked for (how the part should *appear*)
+    would be set against that.  Over a solid part the opacity is ~1 and this is the pixel.
+    Their rays alone are rendered: a recolour that is handed its selection (the page,
+    ``--selection``) renders no whole view."""
     pixels = torch.from_numpy(np.flatnonzero(scribble))
-    out = render_rays(field, select_rays(camera, pixels, field.aabb.device), k, early_stop=field.cfg.early_stop)
+    out = render_rays(field, select_rays(camera, pixels, field.aabb.device), k, background=0.0, early_stop=field.cfg.early_stop)
     on = out.opacity >= MIN_OPACITY
     if not bool(on.any()):
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
-    return out.rgb[on].cpu()
+    return (out.rgb[on] / out.opacity[on, None]).clamp(0.0, 1.0).cpu()

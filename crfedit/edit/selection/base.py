@@ -124,7 +124,8 @@ def join_summary(meta: dict) -> str | None:
     said = f"refused: chromaticity alone selects {info['cells']} cells"
     if "features_cells" in info:  # not recorded before 2026-11-26
         said += f", over {info['cap']:g}× the {info['features_cells']} the features select"
-    if "line_negatives" in meta:  # the scribble lies on bars: a flood of another shape is what the cap refused
+    if info.get("keeps_lines", "line_negatives" in meta):  # under a scribble on bars a join keeps to bars (SelectOptions.join_lines);
+        # selections before 2026-11-28 say so only through line_negatives
         return said + " (the scribble lies on bars: --colour-join always would join only the pieces of bars)"
     return said + " (if the part is that large: --colour-join always, or scribble more of it or from a second view)"
 

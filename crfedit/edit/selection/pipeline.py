@@ -359,6 +359,7 @@ def select(
             n_main, n_alone = int((values >= options.threshold).sum()), int((alone >= options.threshold).sum())
             cap = options.pale_union if options.pale_union > 0 and saturation < options.pale_saturation else options.chroma_union
             union.update(cells=n_alone, features_cells=n_main, cap=cap, joined=n_alone <= cap * max(n_main, 1))
+            union["keeps_lines"] = options.join_lines > 0 and on_bars  # a join here keeps only pieces of lines (join_summary's advice)
             if union["joined"] and options.join_lines > 0 and on_bars:
                 added = (alone >= options.threshold) & (values < options.threshold)  # see SelectOptions.join_lines
                 drop = gate_pieces(added, shape_test(added, lambda f: ~lines_of(f)), options.join_lines)
