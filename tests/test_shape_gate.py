@@ -483,3 +483,35 @@ def test_line_negatives_hold_the_view_s_points_off_lines(edit_category, monkeypa
     assert join_summary({**refused, "chroma_union": {**refused["chroma_union"], "keeps_lines": False}}).endswith(general)
     assert not torch.equal(held.values, plain.values)
     assert options_for("color").line_negatives and options_for("remove").line_negatives and not options_for("add").line_negatives
+
+
+def test_on_bars_overrides_apply_only_under_a_scribble_on_lines(edit_category, monkeypatch):
+    """``SelectOptions.on_bars``: with every scribble read as lying on lines (``JOIN_LINES``
+    0) the overrides apply before any feature is read, so the selection is the one the
+    overridden options make, to the bit, and its metadata and summary line say so; with no
+    scribble on lines (``JOIN_LINES`` above 1) they do not apply; a name that is not an
+    option is a one-line error."""
+    from test_selection import part_view
+
+    from crfedit.edit.selection import ScribbleView, SelectOptions, lines_summary, select
+    from crfedit.errors import CrfError
+
+    _, model, category = edit_category
+    k = 1
+    view, fg, keep, _ = part_view(category, k, "back")
+    views = [ScribbleView(view.camera, fg, keep)]
+    bars = SelectOptions(on_bars=(("features", ("bottleneck", "position")), ("position_weight", 0.5)))
+    direct = SelectOptions(features=("bottleneck", "position"), position_weight=0.5)
+    monkeypatch.setattr(pipeline, "JOIN_LINES", 0.0)
+    got, want = select(model, k, views, bars), select(model, k, views, direct)
+    assert torch.equal(got.values, want.values)
+    assert got.meta["on_bars"]["options"] == ["features", "position_weight"] and "on_bars" not in want.meta
+    assert got.meta["features"] == want.meta["features"]
+    assert lines_summary(got.meta) == (f"the scribble lies on lines ({got.meta['on_bars']['line_share']:.0%}): "
+                                       "selected as on bars (features, position_weight)")
+    monkeypatch.setattr(pipeline, "JOIN_LINES", 1.01)
+    off = select(model, k, views, bars)
+    assert "on_bars" not in off.meta and torch.equal(off.values, select(model, k, views, SelectOptions()).values)
+    assert options_for("color").on_bars and not options_for("remove").on_bars and not options_for("add").on_bars
+    with pytest.raises(CrfError, match="on_bars"):
+        SelectOptions(on_bars=(("no_such_option", 1.0),)).on_bars_options()

@@ -189,14 +189,19 @@ def mirror_summary(meta: dict) -> str | None:
 
 
 def lines_summary(meta: dict) -> str | None:
-    """What a selection's metadata says of :attr:`~.options.SelectOptions.line_negatives`, in a
-    line (None: the scribble does not lie on lines, or the option is off)."""
-    info = meta.get("line_negatives")
-    if info is None:
+    """What a selection's metadata says of :attr:`~.options.SelectOptions.line_negatives` and
+    :attr:`~.options.SelectOptions.on_bars`, in a line (None: the scribble does not lie on
+    lines, or neither option is on)."""
+    info, bars = meta.get("line_negatives"), meta.get("on_bars")
+    if info is None and bars is None:
         return None
-    n = info["points"]
-    return (f"the scribble lies on lines ({info['line_share']:.0%}): {n} of the view's other surface point{'' if n == 1 else 's'}, "
-            "off lines, held as not the part")
+    said = f"the scribble lies on lines ({(info or bars)['line_share']:.0%})"
+    if info is not None:
+        n = info["points"]
+        said += f": {n} of the view's other surface point{'' if n == 1 else 's'}, off lines, held as not the part"
+    if bars is not None:
+        said += ("; " if info is not None else ": ") + f"selected as on bars ({', '.join(bars['options'])})"
+    return said
 
 
 SUMMARIES = (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("on lines", lines_summary),

@@ -185,6 +185,12 @@ class SelectOptions:
     of it does not stay a negative; under a scribble on bars the rest of the part is bars, and a
     slab or block of the bars' colour is another part.  Recolours and removals set it
     (:data:`LINE_NEGATIVES`)."""
+    on_bars: tuple = ()
+    """Overrides ``((field name, value), …)`` of these options that apply when at least
+    :data:`~.shapes.JOIN_LINES` of the scribbled points lie on lines, decided before any
+    feature is read (:meth:`on_bars_options`).  A scribble on a frame's bars means bars,
+    whatever the edit: recolours then select as removals, which are all scribbled on frames,
+    read a frame (:data:`COLOR_ON_BARS`).  (): none."""
     sheet_veto: float = 0.0
     """When > 0 (and the ``geometry`` group is read), and at least this share of the scribbled
     points lie on lines (:func:`lines_of`: a frame's tubes, legs): the cells that lie on sheets
@@ -343,6 +349,13 @@ class SelectOptions:
     """When > 0, the selection finally also takes each occupied cell, keep-stroke cells aside,
     at least this share of whose occupied 3×3×3 neighbourhood (itself included) it selects
     (:func:`fill_rims`); recolours use :data:`COLOR_FILL_SHARE`."""
+
+    def on_bars_options(self) -> "SelectOptions":
+        """These options with :attr:`on_bars`'s overrides applied (and none left to apply)."""
+        try:
+            return dataclasses.replace(self, on_bars=(), **dict(self.on_bars))
+        except TypeError as e:  # a name that is not a field
+            raise CrfError(f"selection on_bars {self.on_bars!r}: {e}") from None
 
 
 CHROMA_UNION = 3.5
@@ -632,6 +645,17 @@ JOIN_ALWAYS = 1e9
 chromaticity-only selection reaches (finite, so that a selection file's metadata stays JSON)."""
 
 
+COLOR_ON_BARS = (("features", REMOVE_FEATURES), ("geometry_weight", REMOVE_GEOMETRY_WEIGHT),
+                 ("position_weight", REMOVE_POSITION_WEIGHT), ("shape_gate", REMOVE_SHAPE_GATE), ("sheet_veto", REMOVE_SHEET_VETO))
+"""Recolours' :attr:`SelectOptions.on_bars`: scribbled on bars, a recolour reads the matter's
+shape and F_fuse's activations (:data:`REMOVE_FEATURES`, :data:`REMOVE_GEOMETRY_WEIGHT`),
+weighs position at :data:`REMOVE_POSITION_WEIGHT`, leaves lines square to the scribble out of
+its joins (:data:`REMOVE_SHAPE_GATE`) and vetoes sheets (:data:`REMOVE_SHEET_VETO`), as a
+removal does; it keeps its own cut, smoothing, vetoes and rims.  Measured on the 46 colour
+twins of ``benchmarks/frame_recolours.py`` (each removal twin's part recoloured, from its
+scribbles), selection IoU per model: see docs/benchmarks.md, fifty-fifth session."""
+
+
 def options_for(kind: str, mirror: str | None = None, join: str | None = None) -> SelectOptions:
     """The selection options an edit of ``kind`` uses: recolours and removals join the
     chromaticity-only selection (:data:`CHROMA_UNION`), additions (a donor's part) do not: it
@@ -675,7 +699,8 @@ def _kind_options(kind: str) -> SelectOptions:
                              select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
                              appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
                              keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR, stroke_centres=STROKE_CENTRES,
-                             stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES)
+                             stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES,
+                             on_bars=COLOR_ON_BARS)
     if kind == "remove":
         return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, position_weight=REMOVE_POSITION_WEIGHT,
                              shape_gate=REMOVE_SHAPE_GATE, sheet_veto=REMOVE_SHEET_VETO, rim_fill=REMOVE_RIM_FILL,

@@ -284,20 +284,26 @@ def select(
         if part_meta["used"]:
             groups = (*groups, "part")
     shape_grid = geometry = None
-    if "geometry" in groups or options.join_lines > 0 or options.line_negatives:
+    if "geometry" in groups or options.join_lines > 0 or options.line_negatives or options.on_bars:
         shape_grid = remember(("shape", options.shape_from), lambda: cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied)
+    scribbled_frames, gate_meta = None, {"dropped": 0}
+    line_share = None  # the share of the scribbled points that lie on lines
+    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0 or options.join_lines > 0
+                                   or options.line_negatives or options.on_bars):
+        scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
+        line_share = float(lines_of(scribbled_frames).float().mean())
+    on_bars = line_share is not None and line_share >= JOIN_LINES  # join_lines, line_negatives and on_bars run only then
+    bars_meta = None
+    if on_bars and options.on_bars:  # see SelectOptions.on_bars
+        bars_meta = {"line_share": round(line_share, 3), "options": [name for name, _ in options.on_bars]}
+        options = options.on_bars_options()
+        groups = (*options.features, "part") if part_meta is not None and part_meta["used"] else options.features
     if "geometry" in groups:
         geometry = remember(("geometry", options.shape_from, options.shape_radius),
                         lambda: local_shape(shape_grid, field.normalize(cell_pts), options.shape_radius))  # the cells' (point_features')
     feats = lambda p, fused_p=None, geometry_p=None: point_features(field, k, p, eye, groups, fused_p, shape_grid, options.shape_radius,
                                                                     options.chroma_offset, geometry_p)
-    scribbled_frames, shape_gate, gate_meta = None, options.shape_gate > 0 and shape_grid is not None, {"dropped": 0}
-    line_share = None  # the share of the scribbled points that lie on lines
-    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0 or options.join_lines > 0
-                                   or options.line_negatives):
-        scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
-        line_share = float(lines_of(scribbled_frames).float().mean())
-    on_bars = line_share is not None and line_share >= JOIN_LINES  # join_lines and line_negatives run only then
+    shape_gate = options.shape_gate > 0 and shape_grid is not None
 
     def shape_test(where: Tensor, test) -> Tensor:
         """[R, R, R] bool: ``test`` (:class:`Frames` [M] → [M] bool) of the occupied cells of
@@ -443,6 +449,8 @@ def select(
     }
     if veto is not None:
         meta["keep_wins_cells"] = int(veto.sum())
+    if bars_meta is not None:
+        meta["on_bars"] = bars_meta
     if held is not None:
         meta["line_negatives"] = {"line_share": round(line_share, 3), "points": int(held.sum())}
     if centre_meta is not None:
