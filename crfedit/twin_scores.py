@@ -102,7 +102,7 @@ def appearance(instance_dir: Path, view: View, scribble: np.ndarray, part: str, 
         return None
     if (on & (view.alpha >= 0.5)).any():
         on &= view.alpha >= 0.5
-    alpha = view.alpha[on][:, None]
+    alpha = np.maximum(view.alpha[on][:, None], 1e-3)
     old = np.maximum(np.array(parse_color(record["color"])), 1e-3)
     shade = (((view.rgb[on] - (1.0 - alpha)) / alpha) / old).mean(axis=0)
     return tuple(float(c) for c in np.clip(np.array(parse_color(new_albedo)) * shade, 0.0, 1.0))
