@@ -47,7 +47,7 @@ def _same_test_view(rendered: Path, stored: Path) -> bool:
     return (rendered / "test" / name).read_bytes() == (stored / "test" / name).read_bytes()
 
 
-def _procedural(data: Path, names: list[str]):
+def _procedural(names: list[str]):
     """A function (source name, part name) → (writer of the twin's test views into a folder,
     the twin's colour), for :func:`crfedit.data.synth.write_synth_category`'s chairs."""
     from crfedit.data.synth import _write_instance, make_chair
@@ -100,30 +100,35 @@ def build(data: Path, out: Path, meshes: Path | None) -> list[TwinSpec]:
     removals = [t for t in json.loads((data / "twins.json").read_text())["twins"] if t["kind"] == "remove"]
     if not removals:
         raise SystemExit(f"{data}: no removal twins")
-    make = _meshes(data, names, meshes) if meshes is not None else _procedural(data, names)
+    make = _meshes(data, names, meshes) if meshes is not None else _procedural(names)
     if out.exists():
         raise SystemExit(f"{out}: exists; pick a new folder")
-    tmp = Path(tempfile.mkdtemp(prefix=out.name + ".", dir=out.parent))
-    specs = []
-    for t in removals:
-        source, part = t["source"], t["part"]
-        write_source, write_twin, color = make(source, part)
-        with tempfile.TemporaryDirectory() as check:
-            write_source(Path(check))
-            if not _same_test_view(Path(check), data / source):
-                shutil.rmtree(tmp)
-                raise SystemExit(f"{source}: the rebuilt chair's first test view differs from {data / source}; not the generator's chair")
-        name = source + SUFFIX
-        folder = Path("twins") / name
-        write_twin(tmp / folder)
-        for stroke in ("scribble", "keep"):
-            shutil.copyfile(data / t[stroke], tmp / folder / f"{stroke}.png")
-        specs.append(TwinSpec(name, "color", source, t["view"], part, color, str(folder / "scribble.png"), str(folder / "keep.png"), str(folder)))
-        print(f"{name}: {part} → {color}", file=sys.stderr)
-    for name in names:
-        (tmp / name).symlink_to((data / name).resolve(), target_is_directory=True)
-    shutil.copyfile(data / "instances.txt", tmp / "instances.txt")
-    write_twins_json(tmp, specs)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=out.name + ".", dir=out.parent))  # renamed onto OUT once whole
+    try:
+        specs = []
+        for t in removals:
+            source, part = t["source"], t["part"]
+            write_source, write_twin, color = make(source, part)
+            with tempfile.TemporaryDirectory() as check:
+                write_source(Path(check))
+                if not _same_test_view(Path(check), data / source):
+                    raise SystemExit(f"{source}: the rebuilt chair's first test view differs from {data / source}; not the generator's chair")
+            name = source + SUFFIX
+            folder = Path("twins") / name
+            write_twin(tmp / folder)
+            for stroke in ("scribble", "keep"):
+                shutil.copyfile(data / t[stroke], tmp / folder / f"{stroke}.png")
+            specs.append(TwinSpec(name, "color", source, t["view"], part, color, str(folder / "scribble.png"), str(folder / "keep.png"),
+                                  str(folder)))
+            print(f"{name}: {part} → {color}", file=sys.stderr)
+        for name in names:
+            (tmp / name).symlink_to((data / name).resolve(), target_is_directory=True)
+        shutil.copyfile(data / "instances.txt", tmp / "instances.txt")
+        write_twins_json(tmp, specs)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     tmp.rename(out)
     return specs
 

@@ -545,9 +545,11 @@ def test_recolor_targets_keep_shading():
 
 def test_twin_appearance_unblends_the_background(tmp_path):
     """A twin's colour as a user would pick it: a pixel half covered by a dark part over white
-    (rgb = 0.5·c + 0.5) counts as c, so the new colour keeps the part's shading (here 1);
+    (rgb = 0.5·c + 0.5) counts as c, so the new colour keeps the part's shading (here 0.9);
     pixels the part covers less than half of are left out while others cover more; a solid
     part's pixels (α = 1) read as they are."""
+    from PIL import Image
+
     from crfedit.data.loading import View
     from crfedit.twin_scores import appearance
 
@@ -558,8 +560,6 @@ def test_twin_appearance_unblends_the_background(tmp_path):
     covered = old * 0.9  # the part's own colour, shaded 0.9, in the first two pixels
     stray = np.array([0.9, 0.1, 0.1])  # a pixel the part barely covers, mixed with something else
     rgb = np.stack([covered, 0.5 * covered + 0.5, 0.2 * stray + 0.8])[None].astype(np.float32)
-    from PIL import Image
-
     Image.fromarray(parts).save(tmp_path / "r_000_parts.png")
     Image.fromarray(parts[:, :1]).save(tmp_path / "r_001_parts.png")
     cam = SimpleNamespace(width=3, height=1)
@@ -576,8 +576,8 @@ def test_twin_appearance_unblends_the_background(tmp_path):
 
 def test_scribbled_colours_are_the_object_s_own(edit_category):
     """The colours a recolour sets its target against are the object's own at each scribbled
-    pixel: composited over white with the pixel's opacity they give the white render back;
-    over the scribble on a solid part they are that render within its opacity's shortfall."""
+    pixel: composited over white with the pixel's opacity they give the white render back, on
+    a seat's inner pixels and on its rim's, where the opacity is well below 1."""
     from crfedit.edit.color import scribbled_colours
     from crfedit.edit.core import select_rays
     from crfedit.renderer import render_rays
