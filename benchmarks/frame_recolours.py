@@ -3,6 +3,7 @@ recolour the parts that a dataset's removal twins remove (arms, slats, stretcher
 chairs' metal frames), from the removal twins' own scribbles and keep strokes.
 
     python benchmarks/frame_recolours.py DATA OUT [--meshes DIR]
+    python benchmarks/frame_recolours.py DATA OUT --part legs      # procedural: every chair's legs
     crfedit eval edits MODEL OUT --strategies hybrid --no-nerf-baseline --json > scores.json
     python benchmarks/frame_recolours.py --summary scores.json [scores.json ...]
 
@@ -21,6 +22,13 @@ supersamples), real chairs from the meshes ``--meshes`` names (``examples/real-c
 written, the source's first test view is rendered again and must equal the stored one to the
 byte, so a rebuild that differs from the dataset stops with an error rather than score edits
 against the wrong chair.
+
+``--part NAME`` (procedural chairs only) recolours that part of every chair that has one
+instead, scribbled as the generator scribbles a twin (:func:`~crfedit.data.synth.scribbles`,
+in the train view that shows the part most): 24 twins of the legs, say.  Only the twin
+sources' part maps are left out of a part head's training (``--set part_labels=not-twins``),
+so on the other chairs a model's part head has seen the part's labels: compare options on
+them, do not read their IoU as held out.
 """
 
 from __future__ import annotations
@@ -47,23 +55,56 @@ def _same_test_view(rendered: Path, stored: Path) -> bool:
     return (rendered / "test" / name).read_bytes() == (stored / "test" / name).read_bytes()
 
 
-def _procedural(names: list[str]):
-    """A function (source name, part name) → (writer of the twin's test views into a folder,
-    the twin's colour), for :func:`crfedit.data.synth.write_synth_category`'s chairs."""
-    from crfedit.data.synth import _write_instance, make_chair
+def _chair(names: list[str], source: str):
+    """(the procedural chair ``source`` as :func:`~crfedit.data.synth.write_synth_category`
+    made it, its cameras per split, the generator's config)."""
+    from crfedit.data.synth import make_chair
 
     config = SynthConfig(instances=len(names))
     armed = set(twin_sources(config.instances))  # the default sources get arms (write_synth_category)
+    index = names.index(source)
+    chair = make_chair(np.random.default_rng([config.seed, index, 0]), arms=True if index in armed else None)
+    return chair, sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res), config
+
+
+def _procedural(names: list[str]):
+    """A function (source name, part name) → (writer of the source's test views into a folder,
+    writer of the twin's, the twin's colour), for :func:`crfedit.data.synth.write_synth_category`'s chairs."""
+    from crfedit.data.synth import _write_instance
 
     def twin(source: str, part: str):
-        index = names.index(source)
-        chair = make_chair(np.random.default_rng([config.seed, index, 0]), arms=True if index in armed else None)
-        cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
+        chair, cams, config = _chair(names, source)
         color = contrasting_color([p.color for p in chair.parts])
-        return (lambda folder, c=chair: _write_instance(folder, c, {"test": cams["test"]}, config.aa),
+        return (lambda folder: _write_instance(folder, chair, {"test": cams["test"]}, config.aa),
                 lambda folder: _write_instance(folder, chair.recolored(part, color), {"test": cams["test"]}, config.aa), color)
 
     return twin
+
+
+def _part_twins(data: Path, names: list[str], part: str, tmp: Path) -> list[dict]:
+    """Twin records (as ``twins.json``'s, kind aside) of ``part`` of every procedural chair that
+    has it, their scribbles drawn into ``tmp`` as the generator draws a twin's."""
+    from crfedit.data.synth import best_view, render_chair, scribbles
+    from crfedit.io import write_png
+
+    out = []
+    for index, source in enumerate(names):
+        chair, cams, config = _chair(names, source)
+        if chair.part(part) is None:
+            continue
+        pid = chair.part(part).id
+        frames = [render_chair(chair, cam, config.aa) for cam in cams["train"]]
+        view, _ = best_view(frames, pid)
+        fg, keep = scribbles(np.random.default_rng([config.seed, index, 4]), frames[view].parts, pid)
+        if not fg.any():
+            continue
+        folder = tmp / "strokes" / source
+        folder.mkdir(parents=True)
+        write_png(folder / "scribble.png", fg.astype(np.uint8) * 255)
+        write_png(folder / "keep.png", keep.astype(np.uint8) * 255)
+        out.append({"source": source, "part": part, "view": f"train:{view}", "scribble": str(folder / "scribble.png"),
+                    "keep": str(folder / "keep.png")})
+    return out
 
 
 def _meshes(data: Path, names: list[str], meshes: Path):
@@ -94,38 +135,45 @@ def _meshes(data: Path, names: list[str], meshes: Path):
     return twin
 
 
-def build(data: Path, out: Path, meshes: Path | None) -> list[TwinSpec]:
+def build(data: Path, out: Path, meshes: Path | None, part: str | None = None) -> list[TwinSpec]:
     """Write the companion dataset (see the module docstring); returns its twins."""
     names = (data / "instances.txt").read_text().split()
-    removals = [t for t in json.loads((data / "twins.json").read_text())["twins"] if t["kind"] == "remove"]
-    if not removals:
-        raise SystemExit(f"{data}: no removal twins")
+    if part is not None and meshes is not None:
+        raise SystemExit("--part is for procedural chairs only")
     make = _meshes(data, names, meshes) if meshes is not None else _procedural(names)
     if out.exists():
         raise SystemExit(f"{out}: exists; pick a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=out.name + ".", dir=out.parent))  # renamed onto OUT once whole
     try:
+        if part is None:
+            removals = [t for t in json.loads((data / "twins.json").read_text())["twins"] if t["kind"] == "remove"]
+            removals = [{**t, "scribble": data / t["scribble"], "keep": data / t["keep"]} for t in removals]
+        else:
+            removals = _part_twins(data, names, part, tmp)
+        if not removals:
+            raise SystemExit(f"{data}: no removal twins" if part is None else f"{data}: no chair has a part named {part}")
         specs = []
         for t in removals:
-            source, part = t["source"], t["part"]
-            write_source, write_twin, color = make(source, part)
+            source, edited = t["source"], t["part"]
+            write_source, write_twin, color = make(source, edited)
             with tempfile.TemporaryDirectory() as check:
                 write_source(Path(check))
                 if not _same_test_view(Path(check), data / source):
                     raise SystemExit(f"{source}: the rebuilt chair's first test view differs from {data / source}; not the generator's chair")
-            name = source + SUFFIX
+            name = source + (SUFFIX if part is None else f"_{part}_color")
             folder = Path("twins") / name
             write_twin(tmp / folder)
             for stroke in ("scribble", "keep"):
-                shutil.copyfile(data / t[stroke], tmp / folder / f"{stroke}.png")
-            specs.append(TwinSpec(name, "color", source, t["view"], part, color, str(folder / "scribble.png"), str(folder / "keep.png"),
+                shutil.copyfile(t[stroke], tmp / folder / f"{stroke}.png")
+            specs.append(TwinSpec(name, "color", source, t["view"], edited, color, str(folder / "scribble.png"), str(folder / "keep.png"),
                                   str(folder)))
-            print(f"{name}: {part} → {color}", file=sys.stderr)
+            print(f"{name}: {edited} → {color}", file=sys.stderr)
         for name in names:
             (tmp / name).symlink_to((data / name).resolve(), target_is_directory=True)
         shutil.copyfile(data / "instances.txt", tmp / "instances.txt")
         write_twins_json(tmp, specs)
+        shutil.rmtree(tmp / "strokes", ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -158,6 +206,7 @@ def main() -> None:
     p.add_argument("data", nargs="?", type=Path)
     p.add_argument("out", nargs="?", type=Path)
     p.add_argument("--meshes", type=Path, help="the real chairs' meshes/ folder (examples/real-chairs.sh)")
+    p.add_argument("--part", help="procedural chairs: recolour this part of every chair that has it (e.g. legs)")
     p.add_argument("--summary", nargs="+", metavar="JSON", help="summarize `crfedit eval edits --json` reports instead")
     a = p.parse_args()
     if a.summary:
@@ -165,7 +214,7 @@ def main() -> None:
         return
     if a.data is None or a.out is None:
         p.error("give DATA and OUT (or --summary)")
-    build(a.data, a.out, a.meshes)
+    build(a.data, a.out, a.meshes, a.part)
 
 
 if __name__ == "__main__":
