@@ -515,3 +515,24 @@ def test_on_bars_overrides_apply_only_under_a_scribble_on_lines(edit_category, m
     assert options_for("color").on_bars and not options_for("remove").on_bars and not options_for("add").on_bars
     with pytest.raises(CrfError, match="on_bars"):
         SelectOptions(on_bars=(("no_such_option", 1.0),)).on_bars_options()
+
+
+def test_a_thick_post_reads_as_a_bar_in_the_wider_block():
+    """A square post 4 cells thick (a procedural leg at 64³): its middle cells' shape in the
+    gates' 5³ block is a blob, not a line; in ``BARS_RADIUS``'s 7³ block it is a line along the
+    post.  A slab 4 cells thick reads as no line in either."""
+    from crfedit.edit.selection.shapes import BARS_RADIUS, lines_of
+
+    res = 24
+    post = torch.zeros(res, res, res)
+    post[10:14, 10:14, 2:22] = 1.0
+    pts = torch.cat([centre_of(i, j, k, res) for i in (11, 12) for j in (11, 12) for k in (8, 12, 16)])
+    assert BARS_RADIUS > SHAPE_GATE_RADIUS
+    assert not lines_of(local_frames(post, pts, SHAPE_GATE_RADIUS)).any()
+    wide = local_frames(post, pts, BARS_RADIUS)
+    assert lines_of(wide).all()
+    assert torch.allclose(wide.direction.abs()[:, 2], torch.ones(len(pts)), atol=1e-3)  # along z
+    slab = torch.zeros(res, res, res)
+    slab[2:22, 2:22, 10:14] = 1.0
+    assert not lines_of(local_frames(slab, pts, BARS_RADIUS)).any()
+    assert not lines_of(local_frames(slab, pts, SHAPE_GATE_RADIUS)).any()

@@ -23,7 +23,7 @@ from .classify import appearance_gate, chroma_spread, classifier, evenly, featur
 from .features import SHAPE_SOURCES, CellPoints, FrameTable, cell_opacity, cell_points, group_width, local_frames, local_shape, point_features, surface_points
 from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
 from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
-from .shapes import JOIN_LINES, RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
+from .shapes import BARS_RADIUS, JOIN_LINES, RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
 
 
@@ -290,8 +290,10 @@ def select(
     line_share = None  # the share of the scribbled points that lie on lines
     if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0 or options.join_lines > 0
                                    or options.line_negatives or options.on_bars):
-        scribbled_frames = local_frames(shape_grid, field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS)), SHAPE_GATE_RADIUS)
-        line_share = float(lines_of(scribbled_frames).float().mean())
+        scribbled_xn = field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS))
+        scribbled_frames = local_frames(shape_grid, scribbled_xn, SHAPE_GATE_RADIUS)
+        bar_frames = scribbled_frames if BARS_RADIUS == SHAPE_GATE_RADIUS else local_frames(shape_grid, scribbled_xn, BARS_RADIUS)
+        line_share = float(lines_of(bar_frames).float().mean())
     on_bars = line_share is not None and line_share >= JOIN_LINES  # join_lines, line_negatives and on_bars run only then
     bars_meta = None
     if on_bars and options.on_bars:  # see SelectOptions.on_bars
