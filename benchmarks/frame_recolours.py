@@ -81,7 +81,7 @@ def _procedural(names: list[str]):
     return twin
 
 
-def _part_twins(data: Path, names: list[str], part: str, tmp: Path) -> list[dict]:
+def _part_twins(names: list[str], part: str, tmp: Path) -> list[dict]:
     """Twin records (as ``twins.json``'s, kind aside) of ``part`` of every procedural chair that
     has it, their scribbles drawn into ``tmp`` as the generator draws a twin's."""
     from crfedit.data.synth import best_view, render_chair, scribbles
@@ -150,7 +150,7 @@ def build(data: Path, out: Path, meshes: Path | None, part: str | None = None) -
             removals = [t for t in json.loads((data / "twins.json").read_text())["twins"] if t["kind"] == "remove"]
             removals = [{**t, "scribble": data / t["scribble"], "keep": data / t["keep"]} for t in removals]
         else:
-            removals = _part_twins(data, names, part, tmp)
+            removals = _part_twins(names, part, tmp)
         if not removals:
             raise SystemExit(f"{data}: no removal twins" if part is None else f"{data}: no chair has a part named {part}")
         specs = []

@@ -27,8 +27,9 @@ SHAPE_GATE_POINTS = 512
 """:attr:`SelectOptions.shape_gate` compares the cells with at most this many scribbled points,
 evenly spaced (the comparison is cells × points)."""
 BARS_RADIUS = 3
-"""The block whether the scribble lies on bars (:data:`JOIN_LINES`) is read in: (2r + 1)³
-cells, one wider than :data:`SHAPE_GATE_RADIUS`.  A square leg 3–4 cells thick at 64³ is no
+"""The block whether the scribble lies on bars (:data:`JOIN_LINES`; the share
+:attr:`SelectOptions.sheet_veto` compares too) is read in: (2r + 1)³ cells, one wider than
+:data:`SHAPE_GATE_RADIUS`.  A square leg 3–4 cells thick at 64³ is no
 line in a 5³ block: 5 of the 9 procedural chairs' leg scribbles read at 0.14–0.39 of their
 points on lines there, at 7³ at 0.80–1.0, while every seat, back and shell scribble of the
 benchmark stays at 0–0.09 (`chair_009`'s back frame 0.71 → 0.92).  Measured (edit seed 0):
