@@ -477,7 +477,7 @@ def test_line_negatives_hold_the_view_s_points_off_lines(edit_category, monkeypa
     not_on_bars = {key: value for key, value in refused.items() if key != "line_negatives"}
     general = "(if the part is that large: --colour-join always, or scribble more of it or from a second view)"
     assert join_summary(not_on_bars).endswith(general)
-    # since 2026-11-28 the join says itself whether it would keep to bars: join_lines on, line_negatives off or on
+    # since the fifty-fifth session the join says itself whether it would keep to bars: join_lines on, line_negatives off or on
     keeps = {"chroma_union": {**refused["chroma_union"], "keeps_lines": True}}
     assert join_summary(keeps).endswith("(the scribble lies on bars: --colour-join always would join only the pieces of bars)")
     assert join_summary({**refused, "chroma_union": {**refused["chroma_union"], "keeps_lines": False}}).endswith(general)

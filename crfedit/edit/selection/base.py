@@ -125,7 +125,7 @@ def join_summary(meta: dict) -> str | None:
     if "features_cells" in info:  # not recorded before 2026-11-26
         said += f", over {info['cap']:g}× the {info['features_cells']} the features select"
     if info.get("keeps_lines", "line_negatives" in meta):  # under a scribble on bars a join keeps to bars (SelectOptions.join_lines);
-        # selections before 2026-11-28 say so only through line_negatives
+        # selections made before the fifty-fifth session (2026-11-27) say so only through line_negatives
         return said + " (the scribble lies on bars: --colour-join always would join only the pieces of bars)"
     return said + " (if the part is that large: --colour-join always, or scribble more of it or from a second view)"
 
