@@ -44,6 +44,7 @@ import numpy as np
 
 from crfedit.data.format import TwinSpec, write_twins_json
 from crfedit.data.synth import SynthConfig, contrasting_color, sample_cameras, twin_sources
+from edit_models import hybrid_rows
 
 SUFFIX = "_frame_color"
 """The new twins' names: the source's name and this."""
@@ -189,7 +190,7 @@ def summary(paths: list[str]) -> str:
     for path in paths:
         runs = json.loads(Path(path).read_text())["runs"]
         base = {r["twin"]: r for r in runs if r["method"] == "unedited"}
-        edits = [r for r in runs if r["method"] == "hybrid" and r["kind"] == "color"]
+        edits = hybrid_rows(runs, "color")
         if not edits:
             continue
         gap = np.mean([r["gap_closed"] for r in edits])

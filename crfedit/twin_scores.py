@@ -100,8 +100,9 @@ def appearance(instance_dir: Path, view: View, scribble: np.ndarray, part: str, 
     on = scribble & (ids == record["id"])
     if not on.any():
         return None
-    if (on & (view.alpha >= 0.5)).any():
-        on &= view.alpha >= 0.5
+    covered = on & (view.alpha >= 0.5)
+    if covered.any():
+        on = covered
     alpha = np.maximum(view.alpha[on][:, None], 1e-3)
     old = np.maximum(np.array(parse_color(record["color"])), 1e-3)
     shade = (((view.rgb[on] - (1.0 - alpha)) / alpha) / old).mean(axis=0)

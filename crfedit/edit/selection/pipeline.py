@@ -284,12 +284,12 @@ def select(
         if part_meta["used"]:
             groups = (*groups, "part")
     shape_grid = geometry = None
-    if "geometry" in groups or options.join_lines > 0 or options.line_negatives or options.on_bars:
+    bar_rules = options.join_lines > 0 or options.line_negatives or bool(options.on_bars)  # they ask whether the scribble lies on bars
+    if "geometry" in groups or bar_rules:
         shape_grid = remember(("shape", options.shape_from), lambda: cell_opacity(field, k, occupied, sigma) if options.shape_from == "density" else occupied)
     scribbled_frames, gate_meta = None, {"dropped": 0}
     line_share = None  # the share of the scribbled points that lie on lines
-    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0 or options.join_lines > 0
-                                   or options.line_negatives or options.on_bars):
+    if shape_grid is not None and (options.shape_gate > 0 or options.rim_fill > 0 or options.sheet_veto > 0 or bar_rules):
         scribbled_xn = field.normalize(evenly(pos_pts, SHAPE_GATE_POINTS))
         scribbled_frames = local_frames(shape_grid, scribbled_xn, SHAPE_GATE_RADIUS)
         bar_frames = scribbled_frames if BARS_RADIUS == SHAPE_GATE_RADIUS else local_frames(shape_grid, scribbled_xn, BARS_RADIUS)
