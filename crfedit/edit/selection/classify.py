@@ -22,7 +22,7 @@ def standardizer(all_feats: Tensor, widths: Sequence[int], weights: Sequence[flo
     scale = torch.cat([torch.full((w,), g / w**0.5) for w, g in zip(widths, weights)]).to(all_feats)
     if columns is not None:
         mean, std, scale = mean[columns], std[columns], scale[columns]
-        return lambda f: (f[:, columns] - mean).div_(std).mul_(scale)
+        return lambda f: (f.index_select(1, columns) - mean).div_(std).mul_(scale)
     return lambda f: (f - mean).div_(std).mul_(scale)
 
 
@@ -114,8 +114,8 @@ def classifier(pos: Tensor, keep: Tensor, others: Tensor, rounds: int, keep_weig
         if len(others):
             active = clf(others) < 0.5
             if appearance is not None:
-                looks = fit_logistic(pos[:, appearance], neg[:, appearance], weight, start=looks)
-                active &= looks(others[:, appearance]) < 0.5
+                looks = fit_logistic(pos.index_select(1, appearance), neg.index_select(1, appearance), weight, start=looks)
+                active &= looks(others.index_select(1, appearance)) < 0.5
             if held is not None:
                 active |= held
     return clf
@@ -174,27 +174,30 @@ def nearest_distance(cells: Tensor, points: Tensor, max_points: int = 2000, chun
     ``torch.cdist(c, points).min(dim=1)`` to the bit, without the square root of every pair:
     past 25 rows cdist computes its squared distances as one product of padded rows, |a|²
     − 2a·b + |b|² (:func:`_squared_distances` repeats it), then the root of each, and the
-    root is monotonic, so the root of the least square is the least root.  The least square
-    by ``amin`` (values only: half the time of ``min``'s values and indices)."""
+    root is monotonic, so the root of the least square is the least root.  The product is
+    taken transposed, [P, chunk] (each entry the same dot product, the same bits, a test), so
+    that the least square is a minimum across rows, which vectorizes: a 37 000-cell grid's
+    appearance gate in half the time of ``amin`` along each row."""
     points = evenly(points, max_points)
     if not len(cells):
         return cells.new_zeros(0)
     p_norm = points.pow(2).sum(-1, keepdim=True)
-    p_ = torch.cat([points, torch.ones_like(p_norm), p_norm], dim=-1).mT
+    p_ = torch.cat([points, torch.ones_like(p_norm), p_norm], dim=-1)
     out = []
     for c in cells.split(chunk):
         if len(c) <= 25 and len(points) <= 25:  # cdist's direct path
             out.append(torch.cdist(c, points).amin(dim=1))
         else:
-            out.append(_squared_distances(c, p_).amin(dim=1).clamp_min_(1e-30).sqrt_())
+            out.append(_squared_distances(c, p_).amin(dim=0).clamp_min_(1e-30).sqrt_())
     return torch.cat(out)
 
 
-def _squared_distances(cells: Tensor, padded_points_t: Tensor) -> Tensor:
-    """cdist's squared Euclidean distances [N, P] past 25 rows (ATen's ``_euclidean_dist``):
-    the rows [−2a, |a|², 1] times the columns [b, 1, |b|²] (``padded_points_t`` [F + 2, P])."""
+def _squared_distances(cells: Tensor, padded_points: Tensor) -> Tensor:
+    """cdist's squared Euclidean distances past 25 rows (ATen's ``_euclidean_dist``),
+    transposed [P, N]: the rows [b, 1, |b|²] (``padded_points`` [P, F + 2]) times the columns
+    [−2a, |a|², 1]."""
     c_norm = cells.pow(2).sum(-1, keepdim=True)
-    return torch.cat([cells.mul(-2), c_norm, torch.ones_like(c_norm)], dim=-1).matmul(padded_points_t)
+    return padded_points.matmul(torch.cat([cells.mul(-2), c_norm, torch.ones_like(c_norm)], dim=-1).mT)
 
 
 def nearest_cosine(cells: Tensor, points: Tensor, max_points: int = 2000, chunk: int = 8192) -> Tensor:

@@ -169,9 +169,9 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     gated = [c for g, c in columns.items() if g in ("bottleneck", "chroma")]
     if options.appearance_gate > 0 and gated:
         gated = torch.cat(gated)
-        pred = pred * appearance_gate(z_cells[:, gated], z_pos[:, gated], options.appearance_gate)
+        pred = pred * appearance_gate(z_cells.index_select(1, gated), z_pos.index_select(1, gated), options.appearance_gate)
     smooth = [c for g, c in columns.items() if g not in ("position", "fuse")]
-    return pred, (z_cells[:, torch.cat(smooth)] if smooth else z_cells)
+    return pred, (z_cells.index_select(1, torch.cat(smooth)) if smooth else z_cells)
 
 
 def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_cells, options: SelectOptions,
@@ -342,7 +342,7 @@ def select(
     columns = _columns(groups, widths)
     union, saturation, spread = None, 0.0, None
     if "chroma" in groups:  # the cells' chromaticity distances, once for every test below
-        spread = chroma_spread(f_cells[:, columns["chroma"]], f_pos[:, columns["chroma"]])
+        spread = chroma_spread(f_cells.index_select(1, columns["chroma"]), f_pos.index_select(1, columns["chroma"]))
         med = spread[2]  # HSV saturation of the scribbled points' median chromaticity
         saturation = float((med.max() - med.min()) / med.max().clamp_min(1e-6))
 
@@ -357,7 +357,7 @@ def select(
         c = columns["chroma"]
         union = {"saturation": round(saturation, 3), "cells": None, "joined": False}
         if saturation >= options.chroma_saturation:
-            alone = _refine(_classify(("chroma",), [WIDTHS["chroma"]], f_pos[:, c], f_keep[:, c], f_view[:, c], f_cells[:, c], options,
+            alone = _refine(_classify(("chroma",), [WIDTHS["chroma"]], *(f.index_select(1, c) for f in (f_pos, f_keep, f_view, f_cells)), options,
                                       (stats[0][c], stats[1][c])),
                             cells, neighbours, occupied, scribbled, kept, options, veto)
             if options.join_chroma > 0:  # see SelectOptions.join_chroma
@@ -399,7 +399,7 @@ def select(
     if "part" in groups:  # see SelectOptions.part_veto and part_join
         c = columns["part"]
         alike = torch.full((res**3,), -1.0, device=occupied.device)
-        alike[cells] = f_cells[:, c] @ F.normalize(f_pos[:, c].mean(dim=0), dim=0)
+        alike[cells] = f_cells.index_select(1, c) @ F.normalize(f_pos.index_select(1, c).mean(dim=0), dim=0)
         alike = alike.view(res, res, res)
         if options.part_veto > 0:
             unlike = occupied & (alike < options.part_veto) & ~scribbled
@@ -408,7 +408,7 @@ def select(
                 unlike = torch.zeros(res**3, dtype=torch.bool, device=occupied.device)
                 if len(f_keep) and len(rows):
                     part = f_cells[:, int(c[0]):int(c[-1]) + 1]  # the group's columns are contiguous: a view, gathered row by row
-                    unlike[cells[rows]] = nearest_cosine(part[rows], f_keep[:, c]) >= alike.view(-1)[cells[rows]]
+                    unlike[cells[rows]] = nearest_cosine(part[rows], f_keep.index_select(1, c)) >= alike.view(-1)[cells[rows]]
                 unlike = unlike.view(res, res, res)
             if part_meta is not None:  # the selected cells it leaves out
                 part_meta.update(vetoed=int((unlike & (values >= at)).sum()), veto_by="keep strokes" if options.part_veto_keep else "cosine",

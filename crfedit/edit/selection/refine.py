@@ -57,7 +57,8 @@ def neighbour_table(cells: Tensor, res: int | Sequence[int], half: bool = False)
     padded = ((cells // (shape[1] * shape[2]) + 1) * h + cells // shape[2] % shape[1] + 1) * w + cells % shape[2] + 1
     index[padded] = torch.arange(cells.numel(), device=cells.device)
     steps = torch.tensor([(a * h + b) * w + c for a, b, c in NEIGHBOUR_OFFSETS[: 13 if half else 26]], device=cells.device)
-    return index[steps[:, None] + padded[None]].T  # laid out offset by offset: bilateral_smooth reads it so
+    at = steps[:, None] + padded[None]  # [26, N]: laid out offset by offset, as bilateral_smooth reads it
+    return index.index_select(0, at.reshape(-1)).view(at.shape).T
 
 
 NEIGHBOUR_OFFSETS = [o for o in itertools.product((-1, 0, 1), repeat=3) if any(o)]
