@@ -15,7 +15,7 @@ from crfedit import occupancy
 from crfedit.edit.selection import classify, options as S, pipeline
 from crfedit.edit.selection import options_for
 from crfedit.edit.selection.features import Frames, SHAPE_FRACTION, cell_opacity, local_frames, local_shape, sym3_eigen
-from crfedit.edit.selection.refine import NEIGHBOUR_OFFSETS, components, connected_to, neighbour_table
+from crfedit.edit.selection.refine import NEIGHBOUR_OFFSETS, components, connected_to, large_pieces, neighbour_table
 from crfedit.edit.selection.shapes import SHAPE_GATE_RADIUS, gate_pieces, odd_lines, rim_lines, shape_agreement, sheets_of
 
 RES = 16
@@ -139,6 +139,47 @@ def test_connected_to_is_the_pieces_holding_a_seed(seed):
     reached = connected_to(small, seed)
     assert reached[3:5, 4, 6].all() and int(reached.sum()) == 2
     assert not connected_to(torch.zeros_like(small), seed).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_large_pieces_are_the_breadth_first_pieces_of_that_size(seed):
+    """The cells of exactly the breadth-first pieces of at least ``least`` cells; none of an
+    empty grid."""
+    g = torch.from_numpy(np.random.default_rng(seed).random((9, 12, 10)) < 0.25)
+    labels = torch.from_numpy(bfs_labels(g.numpy()))
+    ids, counts = labels[g].unique(return_counts=True)
+    for least in (1, 3, int(counts.max()), int(counts.max()) + 1):
+        assert torch.equal(large_pieces(g, least), g & torch.isin(labels, ids[counts >= least]))
+    assert not large_pieces(torch.zeros(4, 4, 4, dtype=torch.bool), 0.0).any()
+
+
+def _bar_and_loose_pieces() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A selection's values on a 16³ grid: a scribbled bar of 20 cells, a piece of 10 cells and
+    one of 2 cells that the bar does not touch (all at 0.9), and the scribbled cell."""
+    values = torch.zeros(RES, RES, RES)
+    values[2, 2, 2:16] = 0.9  # the bar: 14 cells in one row, 6 beside them
+    values[3, 2, 2:8] = 0.9
+    values[10, 10, 2:12] = 0.9  # 10 cells apart
+    values[13, 3, 3:5] = 0.9  # 2 cells apart
+    scribbled = torch.zeros(RES, RES, RES, dtype=torch.bool)
+    scribbled[2, 2, 5] = True
+    return values, scribbled, values > 0
+
+
+@pytest.mark.parametrize("free, kept_apart", [(0.0, 0), (0.05, 12), (0.4, 10), (0.6, 0)])
+def test_free_pieces_keep_the_loose_pieces_of_their_share(free, kept_apart):
+    """With ``free_pieces`` f a piece that the scribble does not reach stays selected when it
+    holds at least f × the 20 cells the scribble reaches: 1, 8 and 12 cells for f = 0.05, 0.4
+    and 0.6, so both pieces, the 10-cell one, neither.  The reached bar stays whatever f is,
+    and every other cell ends below the cut."""
+    values, scribbled, occupied = _bar_and_loose_pieces()
+    cells = occupied.reshape(-1).nonzero().squeeze(-1)
+    options = dataclasses.replace(options_for("remove"), free_pieces=free)
+    out = pipeline._refine((values.reshape(-1)[cells], None), cells, None, occupied, scribbled, torch.zeros_like(occupied),
+                           dataclasses.replace(options, smooth=False), free_pieces=free)
+    chosen = out >= options.threshold
+    assert int(chosen[:4].sum()) == 20 and int(chosen.sum()) == 20 + kept_apart
+    assert bool((out[occupied & ~chosen] < options.threshold).all())
 
 
 def test_neighbour_table_halves_and_non_cubic_grids():

@@ -22,7 +22,7 @@ from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
 from .features import SHAPE_SOURCES, CellPoints, FrameTable, cell_opacity, cell_points, group_width, local_frames, local_shape, point_features, surface_points
 from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
-from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied
+from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, large_pieces, neighbour_table, smooth_over_occupied
 from .shapes import BARS_RADIUS, JOIN_LINES, RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
 
@@ -188,11 +188,12 @@ def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_ce
 
 
 def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor | None, occupied: Tensor, scribbled: Tensor,
-            kept: Tensor, options: SelectOptions, veto: Tensor | None = None) -> Tensor:
+            kept: Tensor, options: SelectOptions, veto: Tensor | None = None, free_pieces: float = 0.0) -> Tensor:
     """Step 6: the cells' probabilities (``classified``: from :func:`_classify`, with their
     appearance; cells: flat indices of ``occupied``, ``neighbours`` their :func:`neighbour_table`,
     given when the smoothing is bilateral) as a grid [R, R, R], 0 where ``veto`` [N] (step 5b),
-    smoothed, connected to the ``scribbled`` cells, 0 in the ``kept`` cells."""
+    smoothed, connected to the ``scribbled`` cells (or in a piece of at least ``free_pieces`` of
+    their count, :attr:`SelectOptions.free_pieces`), 0 in the ``kept`` cells."""
     pred, looks = classified
     if veto is not None:
         pred = torch.where(veto, torch.zeros_like(pred), pred)
@@ -204,7 +205,12 @@ def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor
     if options.smooth and neighbours is None:
         values = 0.5 * (values + smooth_over_occupied(values, occupied))
     if options.connected:
-        values = hysteresis(values, occupancy.dilate(scribbled, 1), options.threshold, options.threshold)
+        seeds = occupancy.dilate(scribbled, 1)
+        if free_pieces > 0:
+            selected = values >= options.threshold
+            reached = connected_to(selected, seeds)
+            seeds = seeds | large_pieces(selected & ~reached, free_pieces * int(reached.sum()))
+        values = hysteresis(values, seeds, options.threshold, options.threshold)
     return torch.where(kept, torch.zeros_like(values), values)
 
 
@@ -338,7 +344,7 @@ def select(
         off_lines = shape_test(_cells_of(field, cand_pts, res), lambda f: ~lines_of(f))
         held = occupancy.lookup(off_lines[None], torch.zeros(len(cand_pts), dtype=torch.long, device=occupied.device), field.normalize(cand_pts))
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats, held), cells, neighbours, occupied, scribbled,
-                     kept, options, veto)
+                     kept, options, veto, options.free_pieces)
     columns = _columns(groups, widths)
     union, saturation, spread = None, 0.0, None
     if "chroma" in groups:  # the cells' chromaticity distances, once for every test below

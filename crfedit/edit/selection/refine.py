@@ -151,6 +151,14 @@ def components(selected: Tensor) -> Tensor:
     return out
 
 
+def large_pieces(selected: Tensor, least: float) -> Tensor:
+    """[D, H, W] bool: the cells of the connected pieces of ``selected`` (26-neighbourhood,
+    :func:`components`) that hold at least ``least`` cells."""
+    label = components(selected).reshape(-1)
+    _, piece, count = torch.unique(label, return_inverse=True, return_counts=True)
+    return ((count >= least)[piece] & (label > 0)).view(selected.shape)
+
+
 def connected_to(selected: Tensor, seeds: Tensor) -> Tensor:
     """Cells of ``selected`` [R, R, R] reachable from ``seeds`` through selected cells
     (26-neighbourhood), grown within the selected cells' bounding box."""
