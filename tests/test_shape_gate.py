@@ -13,7 +13,7 @@ import torch
 
 from crfedit import occupancy
 from crfedit.edit.selection import classify, options as S, pipeline
-from crfedit.edit.selection import options_for
+from crfedit.edit.selection import options_for, pieces_summary
 from crfedit.edit.selection.features import Frames, SHAPE_FRACTION, cell_opacity, local_frames, local_shape, sym3_eigen
 from crfedit.edit.selection.refine import NEIGHBOUR_OFFSETS, components, connected_to, large_pieces, neighbour_table
 from crfedit.edit.selection.shapes import SHAPE_GATE_RADIUS, gate_pieces, odd_lines, rim_lines, shape_agreement, sheets_of
@@ -149,8 +149,11 @@ def test_large_pieces_are_the_breadth_first_pieces_of_that_size(seed):
     labels = torch.from_numpy(bfs_labels(g.numpy()))
     ids, counts = labels[g].unique(return_counts=True)
     for least in (1, 3, int(counts.max()), int(counts.max()) + 1):
-        assert torch.equal(large_pieces(g, least), g & torch.isin(labels, ids[counts >= least]))
-    assert not large_pieces(torch.zeros(4, 4, 4, dtype=torch.bool), 0.0).any()
+        large, n_large, n_small = large_pieces(g, least)
+        assert torch.equal(large, g & torch.isin(labels, ids[counts >= least]))
+        assert (n_large, n_small) == (int((counts >= least).sum()), int((counts < least).sum()))
+    large, n_large, n_small = large_pieces(torch.zeros(4, 4, 4, dtype=torch.bool), 0.0)
+    assert not large.any() and n_large == n_small == 0
 
 
 def _bar_and_loose_pieces() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -166,20 +169,33 @@ def _bar_and_loose_pieces() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return values, scribbled, values > 0
 
 
-@pytest.mark.parametrize("free, kept_apart", [(0.0, 0), (0.05, 12), (0.4, 10), (0.6, 0)])
-def test_free_pieces_keep_the_loose_pieces_of_their_share(free, kept_apart):
+@pytest.mark.parametrize("free, kept_apart, pieces", [(0.0, 0, None), (0.05, 12, (2, 0)), (0.4, 10, (1, 1)), (0.6, 0, (0, 2))])
+def test_free_pieces_keep_the_loose_pieces_of_their_share(free, kept_apart, pieces):
     """With ``free_pieces`` f a piece that the scribble does not reach stays selected when it
     holds at least f × the 20 cells the scribble reaches: 1, 8 and 12 cells for f = 0.05, 0.4
     and 0.6, so both pieces, the 10-cell one, neither.  The reached bar stays whatever f is,
-    and every other cell ends below the cut."""
+    and every other cell ends below the cut.  What it did is said: the pieces kept and left
+    out, and their cells."""
     values, scribbled, occupied = _bar_and_loose_pieces()
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
     options = dataclasses.replace(options_for("remove"), free_pieces=free)
+    said = {}
     out = pipeline._refine((values.reshape(-1)[cells], None), cells, None, occupied, scribbled, torch.zeros_like(occupied),
-                           dataclasses.replace(options, smooth=False), free_pieces=free)
+                           dataclasses.replace(options, smooth=False), free_pieces=free, said=said)
     chosen = out >= options.threshold
     assert int(chosen[:4].sum()) == 20 and int(chosen.sum()) == 20 + kept_apart
     assert bool((out[occupied & ~chosen] < options.threshold).all())
+    if pieces is None:
+        assert said == {}
+        return
+    assert said == {"share": free, "reached": 20, "kept_pieces": pieces[0], "kept_cells": kept_apart,
+                    "left_pieces": pieces[1], "left_cells": 12 - kept_apart}
+    line = pieces_summary({"free_pieces": said})
+    assert ("kept" in line) == (pieces[0] > 0) and ("left" in line) == (pieces[1] > 0)
+    if free == 0.4:
+        assert line == ("kept 1 piece that the scribble does not reach (10 cells; each at least 40% of the 20 cells it reaches); "
+                        "left 1 piece out (2 cells; each under 40% of the 20 cells it reaches)")
+    assert pieces_summary({"free_pieces": {**said, "kept_pieces": 0, "left_pieces": 0}}) is None and pieces_summary({}) is None
 
 
 def test_neighbour_table_halves_and_non_cubic_grids():

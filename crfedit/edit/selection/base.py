@@ -204,7 +204,24 @@ def lines_summary(meta: dict) -> str | None:
     return said
 
 
+def pieces_summary(meta: dict) -> str | None:
+    """What a selection's metadata says of :attr:`~.options.SelectOptions.free_pieces`, in a
+    line (None: not on, or every selected cell connected to the scribble)."""
+    info = meta.get("free_pieces")
+    if not info or info["kept_pieces"] + info["left_pieces"] == 0:
+        return None
+    piece = lambda n: f"{n} piece{'' if n == 1 else 's'}"
+    cells = lambda n: f"{n} cell{'' if n == 1 else 's'}"
+    least = f"{info['share']:.0%} of the {cells(info['reached'])} it reaches"
+    said = []
+    if info["kept_pieces"]:
+        said.append(f"kept {piece(info['kept_pieces'])} that the scribble does not reach ({cells(info['kept_cells'])}; each at least {least})")
+    if info["left_pieces"]:
+        said.append(f"left {piece(info['left_pieces'])} out ({cells(info['left_cells'])}; each under {least})")
+    return "; ".join(said)
+
+
 SUMMARIES = (("strokes", stroke_summary), ("mirror", mirror_summary), ("part head", part_summary), ("on lines", lines_summary),
-             ("colour join", join_summary), ("shape gate", shape_summary))
+             ("colour join", join_summary), ("shape gate", shape_summary), ("loose pieces", pieces_summary))
 """(label, summary function) of each part of a selection's metadata that ``select``, ``info``,
 the edit commands and the page say, in that order (the page's field: the label, ``_`` for spaces)."""

@@ -188,12 +188,13 @@ def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_ce
 
 
 def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor | None, occupied: Tensor, scribbled: Tensor,
-            kept: Tensor, options: SelectOptions, veto: Tensor | None = None, free_pieces: float = 0.0) -> Tensor:
+            kept: Tensor, options: SelectOptions, veto: Tensor | None = None, free_pieces: float = 0.0, said: dict | None = None) -> Tensor:
     """Step 6: the cells' probabilities (``classified``: from :func:`_classify`, with their
     appearance; cells: flat indices of ``occupied``, ``neighbours`` their :func:`neighbour_table`,
     given when the smoothing is bilateral) as a grid [R, R, R], 0 where ``veto`` [N] (step 5b),
     smoothed, connected to the ``scribbled`` cells (or in a piece of at least ``free_pieces`` of
-    their count, :attr:`SelectOptions.free_pieces`), 0 in the ``kept`` cells."""
+    their count, :attr:`SelectOptions.free_pieces`, which ``said`` is filled with), 0 in the
+    ``kept`` cells."""
     pred, looks = classified
     if veto is not None:
         pred = torch.where(veto, torch.zeros_like(pred), pred)
@@ -209,7 +210,13 @@ def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor
         if free_pieces > 0:
             selected = values >= options.threshold
             reached = connected_to(selected, seeds)
-            seeds = seeds | large_pieces(selected & ~reached, free_pieces * int(reached.sum()))
+            apart = selected & ~reached
+            n_reached = int(reached.sum())
+            large, n_large, n_small = large_pieces(apart, free_pieces * n_reached)
+            seeds = seeds | large
+            if said is not None:
+                said.update(share=free_pieces, reached=n_reached, kept_pieces=n_large, kept_cells=int(large.sum()),
+                            left_pieces=n_small, left_cells=int((apart & ~large).sum()))
         values = hysteresis(values, seeds, options.threshold, options.threshold)
     return torch.where(kept, torch.zeros_like(values), values)
 
@@ -343,8 +350,9 @@ def select(
     if options.line_negatives and on_bars and len(cand_pts):
         off_lines = shape_test(_cells_of(field, cand_pts, res), lambda f: ~lines_of(f))
         held = occupancy.lookup(off_lines[None], torch.zeros(len(cand_pts), dtype=torch.long, device=occupied.device), field.normalize(cand_pts))
+    pieces_meta = {} if options.free_pieces > 0 and options.connected else None
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats, held), cells, neighbours, occupied, scribbled,
-                     kept, options, veto, options.free_pieces)
+                     kept, options, veto, options.free_pieces, pieces_meta)
     columns = _columns(groups, widths)
     union, saturation, spread = None, 0.0, None
     if "chroma" in groups:  # the cells' chromaticity distances, once for every test below
@@ -473,6 +481,8 @@ def select(
         meta["part_head"] = part_meta
     if shape_gate:
         meta["shape_gate"] = gate_meta
+    if pieces_meta:
+        meta["free_pieces"] = pieces_meta
     if options.sheet_veto > 0 and scribbled_frames is not None:
         meta["sheet_veto"] = sheet_meta
     if options.rim_fill > 0 and shape_grid is not None:

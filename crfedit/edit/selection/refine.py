@@ -151,12 +151,15 @@ def components(selected: Tensor) -> Tensor:
     return out
 
 
-def large_pieces(selected: Tensor, least: float) -> Tensor:
-    """[D, H, W] bool: the cells of the connected pieces of ``selected`` (26-neighbourhood,
-    :func:`components`) that hold at least ``least`` cells."""
+def large_pieces(selected: Tensor, least: float) -> tuple[Tensor, int, int]:
+    """(the cells [D, H, W] bool of the connected pieces of ``selected`` (26-neighbourhood,
+    :func:`components`) that hold at least ``least`` cells, how many pieces those are, how many
+    the others)."""
     label = components(selected).reshape(-1)
-    _, piece, count = torch.unique(label, return_inverse=True, return_counts=True)
-    return ((count >= least)[piece] & (label > 0)).view(selected.shape)
+    ids, piece, count = torch.unique(label, return_inverse=True, return_counts=True)
+    large = (count >= least) & (ids > 0)
+    n_large = int(large.sum())
+    return large[piece].view(selected.shape), n_large, int((ids > 0).sum()) - n_large
 
 
 def connected_to(selected: Tensor, seeds: Tensor) -> Tensor:
