@@ -148,12 +148,11 @@ def test_large_pieces_are_the_breadth_first_pieces_of_that_size(seed):
     g = torch.from_numpy(np.random.default_rng(seed).random((9, 12, 10)) < 0.25)
     labels = torch.from_numpy(bfs_labels(g.numpy()))
     ids, counts = labels[g].unique(return_counts=True)
-    for least in (1, 3, int(counts.max()), int(counts.max()) + 1):
-        large, n_large, n_small = large_pieces(g, least)
-        assert torch.equal(large, g & torch.isin(labels, ids[counts >= least]))
-        assert (n_large, n_small) == (int((counts >= least).sum()), int((counts < least).sum()))
-    large, n_large, n_small = large_pieces(torch.zeros(4, 4, 4, dtype=torch.bool), 0.0)
-    assert not large.any() and n_large == n_small == 0
+    for least in (1, 3, int(counts.max()), int(counts.max()) + 1, int(g.sum()) + 1):
+        large, n_large = large_pieces(g, least)
+        assert torch.equal(large, g & torch.isin(labels, ids[counts >= least])) and n_large == int((counts >= least).sum())
+    large, n_large = large_pieces(torch.zeros(4, 4, 4, dtype=torch.bool), 0.0)
+    assert not large.any() and n_large == 0
 
 
 def _bar_and_loose_pieces() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -188,14 +187,13 @@ def test_free_pieces_keep_the_loose_pieces_of_their_share(free, kept_apart, piec
     if pieces is None:
         assert said == {}
         return
-    assert said == {"share": free, "reached": 20, "kept_pieces": pieces[0], "kept_cells": kept_apart,
-                    "left_pieces": pieces[1], "left_cells": 12 - kept_apart}
+    assert said == {"share": free, "reached": 20, "kept_pieces": pieces[0], "kept_cells": kept_apart, "left_cells": 12 - kept_apart}
     line = pieces_summary({"free_pieces": said})
     assert ("kept" in line) == (pieces[0] > 0) and ("left" in line) == (pieces[1] > 0)
     if free == 0.4:
         assert line == ("kept 1 piece that the scribble does not reach (10 cells; each at least 40% of the 20 cells it reaches); "
-                        "left 1 piece out (2 cells; each under 40% of the 20 cells it reaches)")
-    assert pieces_summary({"free_pieces": {**said, "kept_pieces": 0, "left_pieces": 0}}) is None and pieces_summary({}) is None
+                        "left 2 cells out, in pieces it does not reach of under 40% of the 20 cells it reaches")
+    assert pieces_summary({"free_pieces": {**said, "kept_pieces": 0, "kept_cells": 0, "left_cells": 0}}) is None and pieces_summary({}) is None
 
 
 def test_neighbour_table_halves_and_non_cubic_grids():

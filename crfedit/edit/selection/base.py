@@ -208,16 +208,16 @@ def pieces_summary(meta: dict) -> str | None:
     """What a selection's metadata says of :attr:`~.options.SelectOptions.free_pieces`, in a
     line (None: not on, or every selected cell connected to the scribble)."""
     info = meta.get("free_pieces")
-    if not info or info["kept_pieces"] + info["left_pieces"] == 0:
+    if not info or info["kept_cells"] + info["left_cells"] == 0:
         return None
-    piece = lambda n: f"{n} piece{'' if n == 1 else 's'}"
     cells = lambda n: f"{n} cell{'' if n == 1 else 's'}"
     least = f"{info['share']:.0%} of the {cells(info['reached'])} it reaches"
     said = []
     if info["kept_pieces"]:
-        said.append(f"kept {piece(info['kept_pieces'])} that the scribble does not reach ({cells(info['kept_cells'])}; each at least {least})")
-    if info["left_pieces"]:
-        said.append(f"left {piece(info['left_pieces'])} out ({cells(info['left_cells'])}; each under {least})")
+        n = info["kept_pieces"]
+        said.append(f"kept {n} piece{'' if n == 1 else 's'} that the scribble does not reach ({cells(info['kept_cells'])}; each at least {least})")
+    if info["left_cells"]:
+        said.append(f"left {cells(info['left_cells'])} out, in pieces it does not reach of under {least}")
     return "; ".join(said)
 
 

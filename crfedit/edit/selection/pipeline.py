@@ -22,7 +22,7 @@ from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
 from .features import SHAPE_SOURCES, CellPoints, FrameTable, cell_opacity, cell_points, group_width, local_frames, local_shape, point_features, surface_points
 from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
-from .refine import bilateral_smooth, connected_to, fill_rims, hysteresis, large_pieces, neighbour_table, smooth_over_occupied
+from .refine import bilateral_smooth, connected_to, fill_rims, large_pieces, neighbour_table, raised, smooth_over_occupied
 from .shapes import BARS_RADIUS, JOIN_LINES, RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
 
@@ -206,18 +206,17 @@ def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor
     if options.smooth and neighbours is None:
         values = 0.5 * (values + smooth_over_occupied(values, occupied))
     if options.connected:
-        seeds = occupancy.dilate(scribbled, 1)
-        if free_pieces > 0:
-            selected = values >= options.threshold
-            reached = connected_to(selected, seeds)
+        selected = values >= options.threshold
+        reached = connected_to(selected, occupancy.dilate(scribbled, 1))
+        if free_pieces > 0:  # whole pieces of the selected cells: joined to the reached ones, they are reached as they are
             apart = selected & ~reached
             n_reached = int(reached.sum())
-            large, n_large, n_small = large_pieces(apart, free_pieces * n_reached)
-            seeds = seeds | large
+            large, n_large = large_pieces(apart, free_pieces * n_reached)
+            reached = reached | large
             if said is not None:
                 said.update(share=free_pieces, reached=n_reached, kept_pieces=n_large, kept_cells=int(large.sum()),
-                            left_pieces=n_small, left_cells=int((apart & ~large).sum()))
-        values = hysteresis(values, seeds, options.threshold, options.threshold)
+                            left_cells=int((apart & ~large).sum()))
+        values = raised(values, reached, options.threshold)  # hysteresis at one cut
     return torch.where(kept, torch.zeros_like(values), values)
 
 

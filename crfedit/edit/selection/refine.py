@@ -114,7 +114,12 @@ def surrounded_by(selected: Tensor, occupied: Tensor, share: float) -> Tensor:
 def hysteresis(values: Tensor, seeds: Tensor, high: float, low: float) -> Tensor:
     """``values`` [R, R, R] with the cells reached from ``seeds`` through cells of value ≥
     ``low`` raised to at least ``high`` and every other cell capped just below ``high``."""
-    reached = connected_to(values >= low, seeds)
+    return raised(values, connected_to(values >= low, seeds), high)
+
+
+def raised(values: Tensor, reached: Tensor, high: float) -> Tensor:
+    """``values`` [R, R, R] raised to at least ``high`` in the cells of ``reached`` and capped
+    just below ``high`` everywhere else (:func:`hysteresis`' last step)."""
     return torch.where(reached, values.clamp_min(high), values.clamp(max=high * 0.999))
 
 
@@ -151,15 +156,17 @@ def components(selected: Tensor) -> Tensor:
     return out
 
 
-def large_pieces(selected: Tensor, least: float) -> tuple[Tensor, int, int]:
+def large_pieces(selected: Tensor, least: float) -> tuple[Tensor, int]:
     """(the cells [D, H, W] bool of the connected pieces of ``selected`` (26-neighbourhood,
-    :func:`components`) that hold at least ``least`` cells, how many pieces those are, how many
-    the others)."""
+    :func:`components`) that hold at least ``least`` cells, how many pieces those are).  No
+    piece is sought when ``selected`` holds fewer cells than that in all (most selections:
+    a few specks)."""
+    if int(selected.sum()) < max(least, 1):
+        return torch.zeros_like(selected), 0
     label = components(selected).reshape(-1)
     ids, piece, count = torch.unique(label, return_inverse=True, return_counts=True)
     large = (count >= least) & (ids > 0)
-    n_large = int(large.sum())
-    return large[piece].view(selected.shape), n_large, int((ids > 0).sum()) - n_large
+    return large[piece].view(selected.shape), int(large.sum())
 
 
 def connected_to(selected: Tensor, seeds: Tensor) -> Tensor:
