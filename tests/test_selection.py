@@ -19,7 +19,7 @@ from crfedit.edit.selection import (
 from crfedit.edit.selection.classify import appearance_gate, chroma_alike, chromaticity, classifier, fit_logistic
 from crfedit.edit.selection.features import MEMO_RENDERS, CellPoints, FrameTable, denser_points, group_width, local_frames, local_shape
 from crfedit.edit.selection.options import (
-    CENTRE_SHARE, CHROMA_OFFSET, JOIN_ALWAYS, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
+    CENTRE_SHARE, CHROMA_OFFSET, JOIN_ALWAYS, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_PALE_UNION, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
 )
 from crfedit.edit.selection.refine import (
     bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
@@ -256,10 +256,12 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     assert int(plain.mask.sum()) <= int(joined.mask.sum()) <= int(plain.mask.sum()) + alone
     assert options_for("color").chroma_union == options_for("remove").chroma_union == CHROMA_UNION > 0
     assert options_for("add").chroma_union == 0
-    # --colour-join: the kind's cap (auto), no cap (always: finite, so the metadata stays JSON) or no join
+    # --colour-join: the kind's cap (auto), no cap (always: finite, so the metadata stays JSON; nor
+    # a recolour's pale cap) or no join
+    assert options_for("color").pale_union == COLOR_PALE_UNION < CHROMA_UNION and options_for("remove").pale_union == 0
     for kind in ("color", "remove", "add"):
         assert options_for(kind, join="auto") == options_for(kind)
-        assert options_for(kind, join="always") == dataclasses.replace(options_for(kind), chroma_union=JOIN_ALWAYS)
+        assert options_for(kind, join="always") == dataclasses.replace(options_for(kind), chroma_union=JOIN_ALWAYS, pale_union=0.0)
         assert options_for(kind, join="never") == dataclasses.replace(options_for(kind), chroma_union=0.0)
     assert options_for("color", "off", "always").mirror == "off"
     with pytest.raises(CrfError, match="--colour-join sometimes: expected one of auto, always, never"):
@@ -272,7 +274,7 @@ def test_chroma_union_only_adds_cells_and_respects_its_bound(trained):
     assert torch.equal(select(model, k, views, dataclasses.replace(pale, pale_union=1e6)).values, joined.values)
     assert options_for("color").pale_veto_saturation == COLOR_SATURATION < PALE_SATURATION == options_for("remove").chroma_saturation
     assert options_for("color").chroma_saturation == 0.0  # recolours join at every saturation: the vetoes keep other hues out
-    assert options_for("color").pale_union == options_for("remove").pale_union == 0  # the vetoes hold a recolour's join
+    assert options_for("remove").pale_union == 0  # removals do not join pale parts; a recolour's pale cap is its old 3.5 (above)
     # recolours select at the lower threshold, after the same refinement: same values, more cells
     assert options_for("color").select_threshold == COLOR_THRESHOLD < 0.5
     assert options_for("remove").select_threshold is None and options_for("add").select_threshold is None
