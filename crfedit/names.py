@@ -34,9 +34,8 @@ on the scribbled view's rays alone."""
 JOIN_MODES = ("auto", "always", "never")
 """Whether a selection joins what the scribbled colour's chromaticity alone selects
 (``edit.selection``, ``SelectOptions.chroma_union``): as the edit kind does (recolours and
-removals unless it would take over 4.5× the cells the features chose, 3.5× for a recolour's pale part;
-additions never), always,
-or never."""
+removals unless it would take over 4.5× the cells the features chose, 3.5× for a recolour's
+pale part; additions never), always, or never."""
 
 MIRROR_MODES = ("off", "views", "values")
 """How a selection reads the instance's mirror symmetry (``edit.symmetry``): not at all, the
