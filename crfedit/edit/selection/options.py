@@ -275,9 +275,9 @@ class SelectOptions:
     """With :attr:`connected`: a piece of the classifier's selection (after smoothing) that no
     scribbled cell reaches is kept too when it holds at least this share of the cells the
     scribbles reach; 0 keeps none.  A part in pieces that touch only through other parts (the
-    bar along the top of a slung back, the far side of a frame) is one part to the classifier
-    and several to the connectivity test; a stray fragment beside the part (a leg's stub
-    between stretchers of its colour) is small.  Only the features' selection reads it, not
+    bar along the top of a slung back) is one part to the classifier and several to the
+    connectivity test; a stray fragment beside the part (a leg's stub between stretchers of
+    its colour) is small.  Only the features' selection reads it, not
     the chromaticity join's."""
     threshold: float = 0.5
     """A cell is selected when its value is at least this; it also decides which cells seed
