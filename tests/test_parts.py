@@ -233,6 +233,37 @@ def test_the_part_join_takes_no_cell_of_another_hue(headed):
     assert options_for("color").part_join_hue == 0.3 and options_for("remove").part_join_hue == 0.0
 
 
+def test_a_sure_part_head_s_join_passes_the_shape_gate(headed, monkeypatch):
+    """``part_join_sure``: with a shape gate that leaves out everything a join would add, a
+    head not sure enough (cut above its coherence) joins nothing (the selection is the one
+    without the join, to the bit), and a sure head (cut at or below it) joins what it joins
+    ungated; the metadata and the summary line say which.  Recolours are sure at
+    :data:`PART_JOIN_SURE`, removals and additions never."""
+    from crfedit.edit.selection import pipeline
+    from crfedit.edit.selection.options import PART_JOIN_SURE
+
+    _, model, category = headed
+    k = 1
+    inst = category.instances[k]
+    pid = next(p["id"] for p in json.loads((inst.path / "parts.json").read_text()) if p["name"] == "seat")
+    view = max(inst.splits["train"], key=lambda v: int(erode(v.parts == pid, 1).sum()))
+    strokes = [ScribbleView(view.camera, erode(view.parts == pid, 1), None)]
+    monkeypatch.setattr(pipeline, "gate_pieces", lambda added, odd, share: added)  # the gate leaves every added cell out
+    opts = dataclasses.replace(options_for("remove"), chroma_union=0.0)
+    coherence = select(model, k, strokes, opts).meta["part_head"]["coherence"]
+    assert coherence >= opts.part_coherence
+    unsure = select(model, k, strokes, dataclasses.replace(opts, part_join_sure=coherence + 0.01))
+    sure = select(model, k, strokes, dataclasses.replace(opts, part_join_sure=coherence - 0.01))
+    bare = select(model, k, strokes, dataclasses.replace(opts, part_join=0.0))
+    assert unsure.meta["part_head"]["join_gated"] and not sure.meta["part_head"]["join_gated"]
+    assert part_summary(sure.meta).endswith(f"; sure of the part (coherence ≥ {coherence - 0.01:g}), so the shape gate leaves its join alone")
+    assert "sure of the part" not in part_summary(unsure.meta)
+    assert torch.equal(unsure.values, bare.values)
+    assert not torch.equal(sure.values, bare.values) and bool((sure.mask | ~bare.mask).all())
+    assert options_for("color").part_join_sure == PART_JOIN_SURE > 0.9
+    assert options_for("remove").part_join_sure == options_for("add").part_join_sure == 0.0
+
+
 def test_nearest_cosine_is_the_greatest_cosine_with_any_point():
     g = torch.Generator().manual_seed(0)
     cells, points = F.normalize(torch.randn(50, 16, generator=g), dim=-1), F.normalize(torch.randn(7, 16, generator=g), dim=-1)

@@ -87,6 +87,8 @@ def part_summary(meta: dict) -> str | None:
                 line += "; no keep stroke on the object, so no other part is left out (draw one on a part to keep it whole)"
             else:
                 line += f"; {info['vetoed']} selected cells left out as parts the keep strokes mark"
+        if info.get("join_gated") is False:
+            line += f"; sure of the part (coherence ≥ {info['sure_at']:g}), so the shape gate leaves its join alone"
         return line
     return f"not read (coherence {info['coherence']:.2f} < {info['cut']:g}: it does not see the scribbled points as one part)"
 

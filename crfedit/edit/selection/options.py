@@ -122,6 +122,20 @@ PART_JOIN = 0.8
 could not show (a black shell's seat scribbled from behind: recolour 0.36 → 0.80 and
 0.41 → 0.93 on two real models).  At 0.7: procedural recolours 0.910 and removals 0.636, real
 recolours 0.765 (seed-0 models)."""
+PART_JOIN_SURE = 0.97
+""":attr:`SelectOptions.part_join_sure` of recolours.  A procedural back frame is a top rail and
+two posts.  Scribbled on the rail, the shape gate left the posts out of the head's join as
+lines square to the scribble: `chair_023`'s back recoloured at 0.414 / 0.480 selection IoU
+(gap closed 0.45 / 0.53) on `g_p0` / `g_p1`, 0.355 (0.41) on a model whose head never saw that
+chair's part labels; trusted, 0.917 / 0.935 (0.80 / 0.81) and 0.766 (0.68).  Those heads
+put the scribble in one part at coherence 0.97–0.996; `chair_015`'s legs, whose join the head
+floods with the stretchers (a legs recolour 0.88 → 0.65 ungated), at 0.93, so the gate still
+holds them.  Removals leave it off: on the model whose head never saw the labels, it is sure
+(0.971) that `chair_023`'s stretchers and legs are one part, and their removal took the legs
+(IoU 0.588 → 0.459, gap closed 0.73 → 0.28, −3.9 dB outside), while its gains were an arm's
+posts (`chair_001`, 0.73 → 0.79).  Measured on twins the rules were not tuned on
+(``benchmarks/heldout_twins.py``; docs/benchmarks.md, fifty-seventh session): the benchmark's
+own twins move by at most 0.003."""
 PALE_SATURATION = 0.3
 """The saturation below which :attr:`SelectOptions.pale_union` caps the chromaticity join, and
 the default :attr:`SelectOptions.chroma_saturation` (removals never join below it)."""
@@ -154,6 +168,13 @@ class SelectOptions:
     least this joins the selection where it connects (26-neighbourhood, through such cells and
     selected ones) to a scribbled cell, keep-stroke cells and those a keep stroke wins aside: the
     part's far side, or its hidden face, that the scribbled view could not show; 0: no join."""
+    part_join_sure: float = 0.0
+    """When > 0 and the part head is at least this sure of the scribbled part (its
+    ``coherence``, as :attr:`part_coherence` reads it): :attr:`shape_gate` leaves the head's join
+    alone.  The gate stops joins from taking bars square to the scribbled ones (the legs of a
+    stretchers' colour); a head that puts every scribbled point in one part knows whether the
+    bars square to them are that part (an arm's post under its rail, a back's posts under its
+    top rail).  Recolours use :data:`PART_JOIN_SURE`; removals, whose joins remove, do not."""
     part_join_hue: float = 0.0
     """When > 0, and the scribbled points' saturation (as ``chroma_saturation``'s) is at least
     this: the part head's join leaves out the cells whose chromaticity ``veto_chroma`` (with
@@ -738,7 +759,7 @@ def _kind_options(kind: str) -> SelectOptions:
                              appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
                              keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR, stroke_centres=STROKE_CENTRES,
                              stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES,
-                             on_bars=COLOR_ON_BARS, pale_union=COLOR_PALE_UNION)
+                             on_bars=COLOR_ON_BARS, pale_union=COLOR_PALE_UNION, part_join_sure=PART_JOIN_SURE)
     if kind == "remove":
         return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, position_weight=REMOVE_POSITION_WEIGHT,
                              shape_gate=REMOVE_SHAPE_GATE, sheet_veto=REMOVE_SHEET_VETO, rim_fill=REMOVE_RIM_FILL,

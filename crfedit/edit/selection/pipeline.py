@@ -288,7 +288,7 @@ def select(
         pos_pts, neg_pts, cand_pts = (torch.cat([a, b]) for a, b in zip((pos_pts, neg_pts, cand_pts), mirrored))
     cell_pts = field.denormalize(centres)
     eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
-    groups, part_meta, fused_pos = options.features, None, None
+    groups, part_meta, fused_pos, coherence = options.features, None, None, 0.0
     if options.part_head and field.F_part is not None and "part" not in groups:
         fused_pos = field.fuse_features(field.normalize(pos_pts), k)  # point_features reuses it
         coherence = float(field.part_embedding(fused_pos).mean(dim=0).norm())
@@ -432,8 +432,11 @@ def select(
             if 0 < options.part_join_hue <= saturation and options.veto_chroma > 0:  # see SelectOptions.part_join_hue
                 like &= alike_grid(options.veto_chroma, options.veto_floor) | scribbled
             like &= connected_to(like | (values >= at), occupancy.dilate(scribbled, 1))
-            if shape_gate:  # see SelectOptions.shape_gate
+            sure = 0 < options.part_join_sure <= coherence  # see SelectOptions.part_join_sure
+            if shape_gate and not sure:  # see SelectOptions.shape_gate
                 like &= ~gated(like & (values < at))
+            if shape_gate and part_meta is not None:
+                part_meta.update(join_gated=not sure, sure_at=options.part_join_sure)
             values = torch.where(like, values.clamp_min(at), values)
     if options.sheet_veto > 0 and scribbled_frames is not None:  # see SelectOptions.sheet_veto
         sheet_meta = {"line_share": round(line_share, 3), "cells": 0}
