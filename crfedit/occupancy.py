@@ -45,8 +45,13 @@ def lookup_in_box(grids: Tensor, instance: Tensor, xn: Tensor) -> Tensor:
 def _at_cells(grids: Tensor, instance: Tensor, ijk: Tensor) -> Tensor:
     """``grids[instance, i, j, k]`` for cell coordinates ``ijk`` [..., 3] on the grid."""
     res = grids.shape[-1]
-    flat = ((instance * res + ijk[..., 0]) * res + ijk[..., 1]) * res + ijk[..., 2]
-    return grids.reshape(-1).index_select(0, flat.reshape(-1)).view(flat.shape)  # a third of indexing's time
+    return gather_flat(grids.reshape(-1), ((instance * res + ijk[..., 0]) * res + ijk[..., 1]) * res + ijk[..., 2])
+
+
+def gather_flat(values: Tensor, index: Tensor) -> Tensor:
+    """``values[index]`` for a 1-D ``values`` and an ``index`` of any shape, the same bits by
+    ``index_select``: on the CPU a third of advanced indexing's time on a 64³ grid's cells."""
+    return values.index_select(0, index.reshape(-1)).view(index.shape)
 
 
 def masked_trilinear(values: Tensor, known: Tensor, xn: Tensor) -> Tensor:

@@ -58,7 +58,7 @@ def neighbour_table(cells: Tensor, res: int | Sequence[int], half: bool = False)
     index[padded] = torch.arange(cells.numel(), device=cells.device)
     steps = torch.tensor([(a * h + b) * w + c for a, b, c in NEIGHBOUR_OFFSETS[: 13 if half else 26]], device=cells.device)
     at = steps[:, None] + padded[None]  # [26, N]: laid out offset by offset, as bilateral_smooth reads it
-    return index.index_select(0, at.reshape(-1)).view(at.shape).T
+    return occupancy.gather_flat(index, at).T
 
 
 NEIGHBOUR_OFFSETS = [o for o in itertools.product((-1, 0, 1), repeat=3) if any(o)]
