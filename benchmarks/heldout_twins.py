@@ -31,7 +31,9 @@ import math
 from pathlib import Path
 
 from crfedit.data.loading import read_twin_specs
+from crfedit.evaluation import below_unedited
 from crfedit.report import emit_table
+from edit_models import hybrid_rows
 
 
 def summarize(runs: list[dict], names: set[str], kind: str) -> dict | None:
@@ -39,7 +41,7 @@ def summarize(runs: list[dict], names: set[str], kind: str) -> dict | None:
     mean PSNR outside the part against unedited, mean selection IoU and how many end below
     their unedited PSNR (None: no such twin)."""
     before = {r["twin"]: r for r in runs if r["method"] == "unedited"}
-    rows = [r for r in runs if r["method"] == "hybrid" and r["kind"] == kind and r["twin"] in names]
+    rows = [r for r in hybrid_rows(runs, kind) if r["twin"] in names]
     if not rows:
         return None
     ious = [r["selection_iou"] for r in rows if r.get("selection_iou") is not None]
@@ -48,7 +50,7 @@ def summarize(runs: list[dict], names: set[str], kind: str) -> dict | None:
         "gap": sum(r["gap_closed"] for r in rows) / len(rows),
         "outside": sum(r["psnr_outside"] - before[r["twin"]]["psnr_outside"] for r in rows) / len(rows),
         "iou": sum(ious) / len(ious) if ious else math.nan,
-        "below": sum(r["psnr"] < before[r["twin"]]["psnr"] for r in rows),
+        "below": below_unedited(rows),
     }
 
 
