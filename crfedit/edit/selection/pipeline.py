@@ -136,9 +136,10 @@ def _cells_of(field, points: Tensor, res: int) -> Tensor:
     return grid
 
 
-def _columns(groups: Sequence[str], widths: Sequence[int]) -> dict[str, Tensor]:
-    """Each feature group's column indices in :func:`point_features`' output (``widths`` per group)."""
-    return dict(zip(groups, torch.arange(sum(widths)).split(widths)))
+def _columns(groups: Sequence[str], widths: Sequence[int], device: torch.device) -> dict[str, Tensor]:
+    """Each feature group's column indices in :func:`point_features`' output (``widths`` per
+    group), on ``device``: ``index_select`` takes its index on the features' device."""
+    return dict(zip(groups, torch.arange(sum(widths), device=device).split(widths)))
 
 
 def _group_standardizer(groups: Sequence[str], widths: Sequence[int], f_cells: Tensor, options: SelectOptions, position_scale: float = 1.0,
@@ -160,7 +161,7 @@ def _classify(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_vie
     smoothing's 26 neighbour distances do not (removals' gap closed within 0.01 of reading it
     on three of four models, and 0.13 s faster on a 37 000-cell grid with a 64-wide F_fuse)."""
     z = _group_standardizer(groups, widths, f_cells, options, stats=stats)
-    columns = _columns(groups, widths)
+    columns = _columns(groups, widths, f_cells.device)
     looks = torch.cat([c for g, c in columns.items() if g != "position"]) if len(groups) > 1 and "position" in groups else None
     z_pos, z_cells = z(f_pos), z(f_cells)
     clf = classifier(z_pos, z(f_keep), z(f_view), options.self_training, options.keep_weight,
@@ -182,7 +183,7 @@ def _keep_veto(groups: Sequence[str], widths: Sequence[int], f_pos, f_keep, f_ce
     use = [g for g in groups if g in KEEP_GROUPS]
     if options.keep_ratio <= 0 or len(f_keep) == 0 or not use:
         return None
-    columns = _columns(groups, widths)
+    columns = _columns(groups, widths, f_cells.device)
     z = _group_standardizer(groups, widths, f_cells, options, options.keep_position_weight, stats, torch.cat([columns[g] for g in use]))
     return keep_wins(z(f_cells), z(f_pos), z(f_keep), options.keep_ratio)
 
@@ -352,7 +353,7 @@ def select(
     pieces_meta = {} if options.free_pieces > 0 and options.connected else None
     values = _refine(_classify(groups, widths, f_pos, f_keep, f_view, f_cells, options, stats, held), cells, neighbours, occupied, scribbled,
                      kept, options, veto, options.free_pieces, pieces_meta)
-    columns = _columns(groups, widths)
+    columns = _columns(groups, widths, f_cells.device)
     union, saturation, spread = None, 0.0, None
     if "chroma" in groups:  # the cells' chromaticity distances, once for every test below
         spread = chroma_spread(f_cells.index_select(1, columns["chroma"]), f_pos.index_select(1, columns["chroma"]))
