@@ -20,7 +20,9 @@ benchmark's twins alone.  The part head is another matter: a model trained with 
 ``part_labels=not-twins`` learned the part maps of every chair but the benchmark's twin
 sources, so on a held-out twin's chair it has seen the part's labels.  That is a user's own
 labelled category, not the benchmark's unlabelled case; the first group stays the measure of
-the latter.
+the latter.  A model trained with ``--set part_labels=not:twins,NAME,…`` hides the named
+chairs' maps too; ``eval edits`` warns for a twin whose source's maps its head learned (the
+file records them; the six benchmark models predate the record).
 """
 
 from __future__ import annotations

@@ -108,7 +108,9 @@ class Config:
     part_labels: str = "not-twins"
     """Whose part maps train F_part: ``not-twins``, every instance but the sources of the
     dataset's ground-truth twins (``twins.json``; a dataset without twins: every instance), so
-    that an edit benchmark scores selections of parts the model was never told about; or ``all``."""
+    that an edit benchmark scores selections of parts the model was never told about; ``all``;
+    or ``not:NAME,…``, every instance but those named (the name ``twins``: the twins' sources),
+    to hold out more chairs than the twins' (:func:`hidden_part_labels`)."""
     checkpoint_every: int = 500
     eval_views: int = 5
     """Held-out views per instance scored at the end of training."""
@@ -155,7 +157,8 @@ class Config:
             (self.part_dim >= 0 and self.part_weight >= 0, "part_dim and part_weight must be ≥ 0"),
             (self.distortion >= 0 and math.isfinite(self.distortion), "distortion must be ≥ 0"),
             (self.distortion == 0 or self.sampler == "grid", "distortion needs sampler grid"),
-            (self.part_labels in PART_LABELS, f"part_labels {self.part_labels!r}: expected one of {', '.join(PART_LABELS)}"),
+            (self.part_labels in PART_LABELS or hidden_part_labels(self.part_labels) is not None,
+             f"part_labels {self.part_labels!r}: expected {', '.join(PART_LABELS)} or not:NAME[,NAME…]"),
         ]
         for ok, message in checks:
             if not ok:
@@ -165,6 +168,18 @@ class Config:
 
 ARCHS = ("ours", "separate", "single", "nerf")
 PART_LABELS = ("all", "not-twins")
+
+
+def hidden_part_labels(labels: str) -> list[str] | None:
+    """The instance names whose part maps ``part_labels`` hides from F_part (``twins``: the
+    twins' sources): ``all`` none, ``not-twins`` ``["twins"]``, ``not:A,B`` ``["A", "B"]``;
+    None when ``labels`` is none of these (an empty name, say)."""
+    if labels == "all":
+        return []
+    if labels == "not-twins":
+        return ["twins"]
+    names = [n.strip() for n in labels.removeprefix("not:").split(",")] if labels.startswith("not:") else []
+    return names if names and all(names) else None
 
 PRESETS: dict[str, Config] = {
     "fast": Config(),

@@ -36,6 +36,7 @@ from .edit.selection import Selection, select_for
 from .errors import CrfError
 from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
+from .parts import labelled_names
 from .renderer import RenderOutput, render_camera
 from .train import train
 from .twin_scores import appearance, changed_regions, gap_closed, region_scores, selection_iou
@@ -68,12 +69,25 @@ def fingerprint_warning(model: CategoryModel, category: Category) -> str | None:
 
 def part_labels_warning(model: CategoryModel, cases: Sequence["TwinCase"]) -> str | None:
     """A one-line warning when the model's part head was trained on the part maps of a twin's
-    source (``part_labels`` ``all``): its selections then read the answer the twin scores."""
-    if not cases or model.field.F_part is None or model.cfg.part_labels != "all":
+    source: its selections then read the answer the twin scores.  Read from the file's record
+    of whose labels it learned (:func:`~crfedit.parts.labelled_names`), so that twins of
+    another dataset of the same chairs (``dataset synth --twin-sources``) are caught too; a
+    file written before the record warns only for ``part_labels=all``."""
+    if not cases or model.field.F_part is None:
         return None
-    return ("the model's part head F_part was trained on the part maps of every instance, the twins' sources "
-            "among them (part_labels=all): its selections read the answer; train with --set part_labels=not-twins "
-            "to benchmark edits")
+    labelled = labelled_names(model.meta)
+    if labelled is None:
+        if model.cfg.part_labels != "all":
+            return None
+        return ("the model's part head F_part was trained on the part maps of every instance, the twins' sources "
+                "among them (part_labels=all): its selections read the answer; train with --set part_labels=not-twins "
+                "to benchmark edits")
+    seen = sorted({c.spec.source for c in cases} & set(labelled))
+    if not seen:
+        return None
+    named = ", ".join(seen[:3]) + (f" and {len(seen) - 3} more" if len(seen) > 3 else "")
+    return (f"the model's part head F_part was trained on the part maps of {len(seen)} of the twins' sources ({named}): "
+            f"their selections read the answer; train with --set part_labels=not:twins,NAME,… to hold them out")
 
 
 def model_width(model: CategoryModel, split: str = "test") -> int | None:

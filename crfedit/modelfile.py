@@ -113,6 +113,7 @@ def _baked_edits(meta: dict[str, str]) -> int | None:
 def model_info(path: str | os.PathLike) -> dict:
     """What ``crfedit info`` prints, as plain JSON types."""
     from .model import load_model
+    from .parts import labelled_names
 
     path = Path(path)
     model, state = load_model(path)
@@ -154,6 +155,7 @@ def model_info(path: str | os.PathLike) -> dict:
         "baked_edits": _baked_edits(meta),
         "baked_from": meta.get("baked_from"),
         "dataset_fingerprint": model.dataset_fingerprint,
+        "part_labelled": labelled_names(meta) if field.F_part is not None else None,
         "fingerprint": model.fingerprint(),
         "step": int(meta["step"]) if meta.get("step", "").isdigit() else None,
         "steps": cfg.steps,

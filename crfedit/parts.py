@@ -17,6 +17,7 @@ real mesh's groups are its own), and a dataset without part maps trains no head
 from __future__ import annotations
 
 import dataclasses
+import json
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -25,8 +26,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .cameras import rays_from_camera
-from .config import Config
+from .config import Config, hidden_part_labels
 from .data.loading import Category, read_twin_specs
+from .errors import CrfError
+from .names import did_you_mean
 
 POINTS_PER_VIEW = 300
 """Labelled surface points drawn per training view (a 64×64 view has ~1 000 object pixels)."""
@@ -49,13 +52,28 @@ class PartPoints(NamedTuple):
 
 
 def labelled_instances(category: Category, labels: str) -> list[int]:
-    """The instance indices whose part maps train F_part: ``all``, or ``not-twins`` (the
-    sources of the dataset's ground-truth twins left out, so that an edit benchmark scores
-    selections of parts the model was never told about)."""
-    if labels == "not-twins":
-        sources = {t.source for t in read_twin_specs(category.root)}
-        return [k for k, inst in enumerate(category.instances) if inst.name not in sources]
-    return list(range(len(category.instances)))
+    """The instance indices whose part maps train F_part (``labels``: ``Config.part_labels``):
+    ``all``; ``not-twins`` (the sources of the dataset's ground-truth twins left out, so that an
+    edit benchmark scores selections of parts the model was never told about); or ``not:NAME,…``
+    (those named left out, ``twins`` standing for the twins' sources: chairs held out beyond
+    the benchmark's).  A name the dataset does not have is an error."""
+    hidden = set(hidden_part_labels(labels) or ())
+    if "twins" in hidden:
+        hidden = (hidden - {"twins"}) | {t.source for t in read_twin_specs(category.root)}
+    unknown = sorted(hidden - set(category.names))
+    if unknown:
+        raise CrfError(f"part_labels {labels}: {category.root} has no instance {unknown[0]!r}{did_you_mean(unknown[0], category.names)}")
+    return [k for k, inst in enumerate(category.instances) if inst.name not in hidden]
+
+
+def labelled_names(meta: dict[str, str]) -> list[str] | None:
+    """The instances whose part maps trained a model's F_part, as its file records them
+    (``part_labelled``); None for a file written before the record, or one that does not read."""
+    try:
+        names = json.loads(meta["part_labelled"])
+    except (KeyError, json.JSONDecodeError):
+        return None
+    return names if isinstance(names, list) and all(isinstance(n, str) for n in names) else None
 
 
 def has_labels(category: Category, instances: Sequence[int]) -> bool:

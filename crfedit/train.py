@@ -29,6 +29,7 @@ checked), and rank 0 alone writes the checkpoint, in the single-process format.
 from __future__ import annotations
 
 import functools
+import json
 import math
 import time
 from dataclasses import dataclass
@@ -349,6 +350,8 @@ def train(
         n_labels = 0 if parts is None else int(parts.labels.max()) + 1
     weight = n_rays * ranks.world / cfg.rays  # this rank's part of the step's mean loss, times world
     meta = dict(extra_meta or {})
+    if field.F_part is not None:  # whose part maps the head learned: `eval edits` warns when a twin's source is among them
+        meta["part_labelled"] = json.dumps([] if parts is None else [category.names[k] for k in parts.instance.tolist()])
     march = FixedMarch(field, compile) if cfg.sampler == "grid" and fixed_shapes else None
     if march is not None:
         march.load_state(state, device)

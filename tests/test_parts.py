@@ -89,6 +89,25 @@ def test_labelled_points_lift_part_pixels_to_the_surface(labelled):
     assert labelled_points(load_category(labelled.root, with_parts=True), every) is None
 
 
+def test_part_labels_can_hold_out_named_instances(labelled):
+    """``not:NAME,…`` hides the named instances' part maps (``twins``: the twins' sources), a
+    name the dataset lacks is a one-line error naming it, and the grammar is checked up front."""
+    names = labelled.names
+    sources = {t["source"] for t in json.loads((labelled.root / "twins.json").read_text())["twins"]}
+    assert len(sources) == 2
+    other = next(n for n in names if n not in sources)
+    assert [names[k] for k in labelled_instances(labelled, f"not:{other}")] == [n for n in names if n != other]
+    both = labelled_instances(labelled, f"not:twins, {other}")
+    assert {names[k] for k in both} == set(names) - sources - {other}
+    assert labelled_instances(labelled, "not:twins") == labelled_instances(labelled, "not-twins")
+    with pytest.raises(CrfError, match=r"has no instance 'chair_099'"):
+        labelled_instances(labelled, "not:twins,chair_099")
+    assert make_config("fast", sets=[f"part_labels=not:{other},twins"]).part_labels == f"not:{other},twins"
+    for bad in ("not:", "not:a,,b", "none"):
+        with pytest.raises(CrfError, match="part_labels"):
+            make_config("fast", sets=[f"part_labels={bad}"])
+
+
 def test_sample_parts_draws_within_each_instance(labelled):
     pts = labelled_points(labelled, labelled_instances(labelled, "all"), per_view=20, seed=1)
     gen = torch.Generator().manual_seed(0)
@@ -165,6 +184,29 @@ def test_training_with_part_maps_separates_each_instance_s_parts(headed):
         nearest = torch.tensor(ids)[(e_test @ centres.T).argmax(dim=1)]
         accuracy = float((nearest == test.labels).float().mean())
         assert accuracy > 0.95, f"instance {k}: held-out nearest-centre accuracy {accuracy:.2f}"
+
+
+def test_the_model_file_records_whose_labels_the_head_learned(headed):
+    """Training writes the instances whose part maps F_part learned into the file, and ``eval
+    edits`` warns for a twin whose source is among them, as when the twins come from another
+    dataset of the same chairs (``dataset synth --twin-sources``); a file written before the
+    record warns only for ``part_labels=all``."""
+    from types import SimpleNamespace
+
+    from crfedit.evaluation import part_labels_warning
+    from crfedit.parts import labelled_names
+
+    path, _, category = headed
+    model, _ = load_model(path)
+    assert labelled_names(model.meta) == category.names  # no twins: every chair's maps
+    case = lambda source: SimpleNamespace(spec=SimpleNamespace(source=source))
+    warning = part_labels_warning(model, [case("chair_001"), case("chair_009")])
+    assert warning is not None and "1 of the twins' sources (chair_001)" in warning
+    assert part_labels_warning(model, [case("chair_009")]) is None and part_labels_warning(model, []) is None
+    old = dataclasses.replace(model, meta={k: v for k, v in model.meta.items() if k != "part_labelled"})
+    assert labelled_names(old.meta) is None and part_labels_warning(old, [case("chair_001")]) is None
+    old.field.cfg = dataclasses.replace(model.cfg, part_labels="all")  # (a fresh load: no fixture shares it)
+    assert "part_labels=all" in part_labels_warning(old, [case("chair_001")])
 
 
 def test_a_selection_reads_the_part_head_where_the_scribble_is_one_part(headed):

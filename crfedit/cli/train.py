@@ -361,6 +361,11 @@ def info_cmd(
         ("dataset", meta["dataset_fingerprint"] or "unknown"),
         ("fingerprint", meta["fingerprint"]),
     ]
+    if "F_part" in meta["modules"]:
+        seen = meta["part_labelled"]
+        rows.insert(-2, ("part labels", f"part_labels={meta['config']['part_labels']}; " + (
+            "whose part maps F_part learned: not recorded (a file written before the record)" if seen is None
+            else f"F_part learned the part maps of {len(seen)} of {meta['instances']} instances")))
     for key, value in rows:
         typer.echo(printable(f"{key:<14} {value}"))
 
