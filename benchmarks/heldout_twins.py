@@ -21,8 +21,9 @@ benchmark's twins alone.  The part head is another matter: a model trained with 
 sources, so on a held-out twin's chair it has seen the part's labels.  That is a user's own
 labelled category, not the benchmark's unlabelled case; the first group stays the measure of
 the latter.  A model trained with ``--set part_labels=not:twins,NAME,…`` hides the named
-chairs' maps too; ``eval edits`` warns for a twin whose source's maps its head learned (the
-file records them; the six benchmark models predate the record).
+chairs' maps too.  Its file records whose maps the head learned, and ``eval edits`` reports
+them (``part_labels_seen``); the table then splits the held-out twins by it (the six
+benchmark models predate the record).
 """
 
 from __future__ import annotations
@@ -70,9 +71,15 @@ def main() -> None:
         "|---|---|---|---:|---:|---:|---:|---:|",
     ]
     for path in args.scores:
-        runs = json.loads(path.read_text())["runs"]
+        report = json.loads(path.read_text())
+        runs = report["runs"]
         names = {r["twin"] for r in runs}
-        for group, members in (("benchmark", names & bench), ("held out", names - bench)):
+        groups = [("benchmark", names & bench), ("held out", names - bench)]
+        seen = report.get("part_labels_seen")  # the sources whose part maps the head learned, where the model file says
+        if seen is not None:
+            of_seen = {r["twin"] for r in runs if r["source"] in seen}
+            groups += [("held out, head saw the labels", (names - bench) & of_seen), ("held out, labels hidden", names - bench - of_seen)]
+        for group, members in groups:
             for kind in ("color", "remove"):
                 s = summarize(runs, members, kind)
                 if s is not None:

@@ -67,22 +67,29 @@ def fingerprint_warning(model: CategoryModel, category: Category) -> str | None:
     )
 
 
+def part_labels_seen(model: CategoryModel, cases: Sequence["TwinCase"]) -> list[str] | None:
+    """The twins' sources whose part maps trained the model's F_part, as the file records them
+    (:func:`~crfedit.parts.labelled_names`); None without a head or without the record (a file
+    written before it)."""
+    labelled = None if model.field.F_part is None else labelled_names(model.meta)
+    return None if labelled is None else sorted({c.spec.source for c in cases} & set(labelled))
+
+
 def part_labels_warning(model: CategoryModel, cases: Sequence["TwinCase"]) -> str | None:
     """A one-line warning when the model's part head was trained on the part maps of a twin's
     source: its selections then read the answer the twin scores.  Read from the file's record
-    of whose labels it learned (:func:`~crfedit.parts.labelled_names`), so that twins of
-    another dataset of the same chairs (``dataset synth --twin-sources``) are caught too; a
-    file written before the record warns only for ``part_labels=all``."""
+    (:func:`part_labels_seen`), so that twins of another dataset of the same chairs
+    (``dataset synth --twin-sources``) are caught too; a file written before the record warns
+    only for ``part_labels=all``."""
     if not cases or model.field.F_part is None:
         return None
-    labelled = labelled_names(model.meta)
-    if labelled is None:
+    seen = part_labels_seen(model, cases)
+    if seen is None:
         if model.cfg.part_labels != "all":
             return None
         return ("the model's part head F_part was trained on the part maps of every instance, the twins' sources "
                 "among them (part_labels=all): its selections read the answer; train with --set part_labels=not-twins "
                 "to benchmark edits")
-    seen = sorted({c.spec.source for c in cases} & set(labelled))
     if not seen:
         return None
     named = ", ".join(seen[:3]) + (f" and {len(seen) - 3} more" if len(seen) > 3 else "")
@@ -408,7 +415,8 @@ def evaluate_edits(
 
         {"runs": [{"twin", "kind", "source", "method", "n", "psnr", "ssim", "lpips", "seconds"}],
          "tables": {"color": [rows], "remove": [rows]}, "skipped": [{"method", "kind", "reason"}],
-         "nerf_train_seconds": {source: s}, "ssim_note", "lpips_note"}
+         "nerf_train_seconds": {source: s}, "ssim_note", "lpips_note",
+         "part_labels_seen": the twins' sources whose part maps trained F_part (None: unknown)}
 
     ``seconds`` is the edit's optimization time (0 for ``unedited``), measured after a one-step
     warm-up edit that absorbs the process's one-off costs.  A strategy the model's
@@ -514,4 +522,5 @@ def evaluate_edits(
         "nerf_train_seconds": train_seconds,
         "ssim_note": SSIM_NOTE,
         "lpips_note": note,
+        "part_labels_seen": part_labels_seen(model, cases),
     }

@@ -193,7 +193,7 @@ def test_the_model_file_records_whose_labels_the_head_learned(headed):
     record warns only for ``part_labels=all``."""
     from types import SimpleNamespace
 
-    from crfedit.evaluation import part_labels_warning
+    from crfedit.evaluation import part_labels_seen, part_labels_warning
     from crfedit.parts import labelled_names
 
     path, _, category = headed
@@ -202,9 +202,11 @@ def test_the_model_file_records_whose_labels_the_head_learned(headed):
     case = lambda source: SimpleNamespace(spec=SimpleNamespace(source=source))
     warning = part_labels_warning(model, [case("chair_001"), case("chair_009")])
     assert warning is not None and "1 of the twins' sources (chair_001)" in warning
+    assert part_labels_seen(model, [case("chair_001"), case("chair_009"), case("chair_001")]) == ["chair_001"]
     assert part_labels_warning(model, [case("chair_009")]) is None and part_labels_warning(model, []) is None
     old = dataclasses.replace(model, meta={k: v for k, v in model.meta.items() if k != "part_labelled"})
-    assert labelled_names(old.meta) is None and part_labels_warning(old, [case("chair_001")]) is None
+    assert labelled_names(old.meta) is None and part_labels_seen(old, [case("chair_001")]) is None
+    assert part_labels_warning(old, [case("chair_001")]) is None
     old.field.cfg = dataclasses.replace(model.cfg, part_labels="all")  # (a fresh load: no fixture shares it)
     assert "part_labels=all" in part_labels_warning(old, [case("chair_001")])
 
