@@ -157,7 +157,7 @@ class Config:
             (self.part_dim >= 0 and self.part_weight >= 0, "part_dim and part_weight must be ≥ 0"),
             (self.distortion >= 0 and math.isfinite(self.distortion), "distortion must be ≥ 0"),
             (self.distortion == 0 or self.sampler == "grid", "distortion needs sampler grid"),
-            (self.part_labels in PART_LABELS or hidden_part_labels(self.part_labels) is not None,
+            (hidden_part_labels(self.part_labels) is not None,
              f"part_labels {self.part_labels!r}: expected {', '.join(PART_LABELS)} or not:NAME[,NAME…]"),
         ]
         for ok, message in checks:
@@ -180,6 +180,7 @@ def hidden_part_labels(labels: str) -> list[str] | None:
         return ["twins"]
     names = [n.strip() for n in labels.removeprefix("not:").split(",")] if labels.startswith("not:") else []
     return names if names and all(names) else None
+
 
 PRESETS: dict[str, Config] = {
     "fast": Config(),
