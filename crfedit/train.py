@@ -343,15 +343,16 @@ def train(
         own = training_rays(category, "train", ranks.shard(range(len(category.instances))))
         batches = BatchSampler(own, device, jitter=cfg.sampler == "grid", random_background=cfg.random_background)
     n_rays = ranks.share(cfg.rays)
-    parts = None  # every rank draws part points of every labelled instance (crfedit.parts)
+    parts, learned = None, []  # every rank draws part points of every labelled instance (crfedit.parts)
     if field.F_part is not None and cfg.part_weight > 0:
         parts = labelled_points(category, labelled_instances(category, cfg.part_labels), seed=seed)
+        learned = [] if parts is None else [category.names[k] for k in parts.instance.tolist()]
         parts = None if parts is None else parts.to(device)
         n_labels = 0 if parts is None else int(parts.labels.max()) + 1
     weight = n_rays * ranks.world / cfg.rays  # this rank's part of the step's mean loss, times world
     meta = dict(extra_meta or {})
     if field.F_part is not None:  # whose part maps the head learned: `eval edits` warns when a twin's source is among them
-        meta["part_labelled"] = json.dumps([] if parts is None else [category.names[k] for k in parts.instance.tolist()])
+        meta["part_labelled"] = json.dumps(learned)
     march = FixedMarch(field, compile) if cfg.sampler == "grid" and fixed_shapes else None
     if march is not None:
         march.load_state(state, device)
