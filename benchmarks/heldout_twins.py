@@ -7,7 +7,8 @@ others (held out).
     crfedit dataset from-meshes runs/heldout/real64 runs/real-chairs/meshes/*/*.obj --up y \\
         --views 50 --res 64 --twin-sources 24                       # runs/real-chairs/chairs64's, 33 twins
     crfedit eval edits MODEL runs/heldout/proc --strategies hybrid --no-nerf-baseline --json > scores.json
-    python benchmarks/heldout_twins.py --bench runs/chairs8 scores.json [scores.json ...] [--out FILE.md]
+    python benchmarks/heldout_twins.py --bench runs/chairs8 scores.json [scores.json ...] [--pool] [--out FILE.md]
+    python benchmarks/heldout_twins.py --bench runs/chairs8 --folds 2 runs/heldout/proc   # part_labels per fold
 
 The generators draw the same chairs, views and scribbles whatever the count (a twin's scribble is
 seeded by its chair), and the default count's twin sources are always among a larger count's,
@@ -23,7 +24,10 @@ labelled category, not the benchmark's unlabelled case; the first group stays th
 the latter.  A model trained with ``--set part_labels=not:twins,NAME,…`` hides the named
 chairs' maps too.  Its file records whose maps the head learned, and ``eval edits`` reports
 them (``part_labels_seen``); the table then splits the held-out twins by it (the six
-benchmark models predate the record).
+benchmark models predate the record).  ``--folds K HELDOUT`` prints, for K models, the
+``part_labels`` that hide the benchmark's sources and every K-th of the held-out dataset's
+other sources (sorted), so that each held-out twin is edited by a model whose head never saw
+its chair's maps and by K − 1 that did; ``--pool`` adds the groups' means over all the files.
 """
 
 from __future__ import annotations
@@ -57,12 +61,27 @@ def summarize(runs: list[dict], names: set[str], kind: str) -> dict | None:
     }
 
 
+def fold_labels(bench: Path, heldout: Path, folds: int) -> list[str]:
+    """``part_labels`` for each of ``folds`` models: the benchmark's twin sources and every
+    ``folds``-th other twin source of ``heldout`` (sorted names) hidden from the part head."""
+    own = {spec.source for spec in read_twin_specs(bench)}
+    others = sorted({spec.source for spec in read_twin_specs(heldout)} - own)
+    return ["not:" + ",".join(["twins", *others[i::folds]]) for i in range(folds)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("scores", nargs="+", type=Path, help="`crfedit eval edits --json` outputs on the larger dataset")
+    ap.add_argument("scores", nargs="+", type=Path, help="`crfedit eval edits --json` outputs on the larger dataset "
+                    "(with --folds: that dataset)")
     ap.add_argument("--bench", type=Path, required=True, help="the benchmark's dataset (its twins are the first group)")
+    ap.add_argument("--folds", type=int, help="print the part_labels of this many fold models and stop")
+    ap.add_argument("--pool", action="store_true", help="also each group's mean over all the scores files")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    if args.folds:
+        for i, labels in enumerate(fold_labels(args.bench, args.scores[0], args.folds)):
+            print(f"fold {i}: --set part_labels={labels}")
+        return
     bench = {spec.name for spec in read_twin_specs(args.bench)}
     lines = [
         f"Twins of `{args.bench}` (the benchmark) and the others (held out); hybrid edits, mean over the twins;",
@@ -70,6 +89,7 @@ def main() -> None:
         "| scores | twins | kind | n | gap closed | outside (dB) | selection IoU | below unedited |",
         "|---|---|---|---:|---:|---:|---:|---:|",
     ]
+    pooled: dict[tuple[str, str], list[tuple[list[dict], set[str]]]] = {}
     for path in args.scores:
         report = json.loads(path.read_text())
         runs = report["runs"]
@@ -81,11 +101,30 @@ def main() -> None:
             groups += [("held out, head saw the labels", (names - bench) & of_seen), ("held out, labels hidden", names - bench - of_seen)]
         for group, members in groups:
             for kind in ("color", "remove"):
+                pooled.setdefault((group, kind), []).append((runs, members))
                 s = summarize(runs, members, kind)
                 if s is not None:
-                    lines.append(f"| `{path.name}` | {group} | {kind} | {s['n']} | {s['gap']:.3f} | {s['outside']:+.2f} | "
-                                 f"{s['iou']:.3f} | {s['below']} |")
+                    lines.append(row(f"`{path.name}`", group, kind, s))
+    if args.pool:
+        for (group, kind), parts in pooled.items():
+            s = pool([summarize(runs, members, kind) for runs, members in parts])
+            if s is not None:
+                lines.append(row(f"all {len(args.scores)}", group, kind, s))
     emit_table(lines, args.out)
+
+
+def row(name: str, group: str, kind: str, s: dict) -> str:
+    return f"| {name} | {group} | {kind} | {s['n']} | {s['gap']:.3f} | {s['outside']:+.2f} | {s['iou']:.3f} | {s['below']} |"
+
+
+def pool(summaries: list[dict | None]) -> dict | None:
+    """The twins' means over several :func:`summarize` results (each weighted by its count)."""
+    got = [s for s in summaries if s is not None]
+    if not got:
+        return None
+    n = sum(s["n"] for s in got)
+    mean = lambda key: sum(s[key] * s["n"] for s in got) / n
+    return {"n": n, "gap": mean("gap"), "outside": mean("outside"), "iou": mean("iou"), "below": sum(s["below"] for s in got)}
 
 
 if __name__ == "__main__":
