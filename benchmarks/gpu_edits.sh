@@ -7,17 +7,9 @@
 # runs/gpu/data.tar.xz (tar cJf runs/gpu/data.tar.xz -C runs real-chairs/chairs64 chairs8), since
 # a lent machine takes 64 MiB at most. Results in $OUT: e_{p0,p1,r0,r1}.json and logs.txt.
 # Compare them with the CPU's: python /work/diag21/summ.py, or `crfedit eval edits` here.
-export PYTHONUNBUFFERED=1
 OUT=${OUT:?set OUT to a results folder}
-if ! python3 -c "import OpenEXR" 2>/dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl \
-        && export PYTHONPATH=/tmp/site || exit 1
-fi
-export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+source "$(dirname "$0")/gpu_setup.sh"
 tar xJf runs/gpu/data.tar.xz -C runs || exit 1
-nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv,noheader
-python3 -c "import torch, numpy, typer; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'numpy', numpy.__version__, 'typer', typer.__version__)"
-lscpu | grep -m1 'Model name'
 echo "== CUDA tests $(date +%T)"
 timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/test_device_resident.py 2>&1 | tail -4
 echo "== eval edits on cuda $(date +%T)"

@@ -2,10 +2,7 @@
 # One GPU lease's checks in one call (about 7 minutes on an H200): CUDA tests, the suite, edits on CUDA, benchmarks/gpu.py.
 # Run on the device machine from the repository root, with a cp312 OpenEXR wheel in .whl/ and
 # the 24-chair category in runs/bench/chairs (see docs/gpu.md); results go to $OUT.
-export PYTHONUNBUFFERED=1
-python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD || exit 1
-nvidia-smi --query-gpu=name,memory.total,clocks.sm,temperature.gpu --format=csv,noheader
-python3 -c "import torch, numpy, typer; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'numpy', numpy.__version__, 'typer', typer.__version__)"
+source "$(dirname "$0")/gpu_setup.sh"
 echo "== CUDA tests"; date +%T
 timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/test_device_resident.py "tests/test_cli_train_render.py::test_render_files_sizes_depth_and_determinism" 2>&1 | tee $OUT/cuda_tests.log | tail -8
 echo "== suite"; date +%T

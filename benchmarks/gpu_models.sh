@@ -7,17 +7,10 @@
 # --twin-sources 8 --data-only; crfedit dataset synth runs/chairs8 --twin-sources 8).
 # Results in $OUT (six files at most come back from a lent machine): the stripped models
 # g_{p,r}{0,1}.safetensors and logs.txt (the CUDA tests, each training's log tail and run.json, a GPU monitor).
-export PYTHONUNBUFFERED=1
-export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
-if ! python3 -c "import OpenEXR" 2>/dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        && export PYTHONPATH=/tmp/site:$PYTHONPATH || exit 1
-fi
 OUT=${OUT:?set OUT to a results folder}
 MINUTES=${MINUTES:-6.5}
 DEVICE=${DEVICE:-cuda}  # DEVICE=cpu MINUTES=0.05: a smoke test of this script without a GPU
-nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv,noheader 2>/dev/null
-python3 -c "import torch, numpy; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'numpy', numpy.__version__)"
+source "$(dirname "$0")/gpu_setup.sh"
 T0=$(date +%s)
 ( while true; do echo "$(( $(date +%s)-T0 ))s $(nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader 2>/dev/null)"; sleep 15; done ) > /tmp/monitor.txt 2>&1 &
 M=$!

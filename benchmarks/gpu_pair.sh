@@ -5,9 +5,8 @@
 #   B: both with OMP_NUM_THREADS=6, --minutes 4.5 to the end, a 10-s monitor of GPU use.
 # Run on the device machine from the repository root, with a cp312 OpenEXR wheel in .whl/ and
 # the real and procedural categories in runs/real-chairs/chairs64 and runs/chairs8; results in $OUT.
-export PYTHONUNBUFFERED=1
-python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD || exit 1
 OUT=${OUT:?set OUT to a results folder}
+source "$(dirname "$0")/gpu_setup.sh"
 rm -rf /tmp/g_* /tmp/a_*
 data() { [ "$1" = p ] && echo runs/chairs8 || echo runs/real-chairs/chairs64; }
 mon() { while true; do echo "$(( $(date +%s)-T0 ))s $(nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader) $(for p in $(pgrep -f '^python3 -m crfedit train'); do ps -o stat=,pcpu=,nlwp= -p $p | tr -s ' '; done | tr '\n' ';')"; sleep "$1"; done; }

@@ -8,17 +8,10 @@
 # models in runs/g_{p0,p1,r0,r1}.safetensors (benchmarks/gpu_models.sh) and both categories in
 # runs/gpu/data.tar.xz (tar cJf runs/gpu/data.tar.xz -C runs real-chairs/chairs64 chairs8).
 # Results in $OUT: t_{p0,p1,r0,r1}.json (the eval's JSON) and logs.txt.
-export PYTHONUNBUFFERED=1
 OUT=${OUT:?set OUT to a results folder}
 LIMIT=${LIMIT:-420}
-if ! python3 -c "import OpenEXR" 2>/dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl \
-        && export PYTHONPATH=/tmp/site || exit 1
-fi
-export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+source "$(dirname "$0")/gpu_setup.sh"
 tar xJf runs/gpu/data.tar.xz -C runs || exit 1
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
 echo "== eval edits, all strategies, on cuda $(date +%T)"
 P=""
 for k in p0 p1 r0 r1; do
