@@ -89,7 +89,7 @@ def main() -> None:
         "| scores | twins | kind | n | gap closed | outside (dB) | selection IoU | below unedited |",
         "|---|---|---|---:|---:|---:|---:|---:|",
     ]
-    pooled: dict[tuple[str, str], list[tuple[list[dict], set[str]]]] = {}
+    pooled: dict[tuple[str, str], list[dict | None]] = {}  # (group, kind): each file's summary
     for path in args.scores:
         report = json.loads(path.read_text())
         runs = report["runs"]
@@ -101,13 +101,13 @@ def main() -> None:
             groups += [("held out, head saw the labels", (names - bench) & of_seen), ("held out, labels hidden", names - bench - of_seen)]
         for group, members in groups:
             for kind in ("color", "remove"):
-                pooled.setdefault((group, kind), []).append((runs, members))
                 s = summarize(runs, members, kind)
+                pooled.setdefault((group, kind), []).append(s)
                 if s is not None:
                     lines.append(row(f"`{path.name}`", group, kind, s))
     if args.pool:
-        for (group, kind), parts in pooled.items():
-            s = pool([summarize(runs, members, kind) for runs, members in parts])
+        for (group, kind), summaries in pooled.items():
+            s = pool(summaries)
             if s is not None:
                 lines.append(row(f"all {len(args.scores)}", group, kind, s))
     emit_table(lines, args.out)
