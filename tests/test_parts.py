@@ -328,6 +328,10 @@ def test_select_prints_whether_it_read_the_part_head(headed, tiny_model, tmp_pat
     assert r.exit_code == 0, r.output
     assert "part head: read (the scribbled points' part embeddings agree: coherence " in r.stdout
     assert "shape gate" not in r.stdout  # a recolour's selection reads no shape
+    assert "never learned" not in r.stdout  # the head learned every chair's maps here
+    read = {"coherence": 0.95, "cut": 0.9, "used": True}
+    assert "never learned this chair's part maps" in part_summary({"part_head": {**read, "learned": False}})
+    assert all("never learned" not in part_summary({"part_head": {**read, **extra}}) for extra in ({"learned": True}, {"learned": None}, {}))
     r = invoke("select", path, *args, "--for", "remove", "--out", tmp_path / "r.safetensors")
     assert r.exit_code == 0, r.output
     assert "shape gate: " in r.stdout and ("nothing left out" in r.stdout or "out of the joins" in r.stdout)

@@ -89,6 +89,8 @@ def part_summary(meta: dict) -> str | None:
                 line += f"; {info['vetoed']} selected cells left out as parts the keep strokes mark"
         if info.get("join_gated") is False:
             line += f"; sure of the part (coherence ≥ {info['sure_at']:g}), so the shape gate leaves its join alone"
+        if info.get("learned") is False:  # held-out chairs: 0.85 of the gap against 0.93 (docs/benchmarks.md, fifty-eighth session)
+            line += "; it never learned this chair's part maps and judges it by other chairs' (check the preview)"
         return line
     return f"not read (coherence {info['coherence']:.2f} < {info['cut']:g}: it does not see the scribbled points as one part)"
 

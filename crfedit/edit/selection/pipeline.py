@@ -15,6 +15,7 @@ from ... import occupancy
 from ...errors import CrfError
 from ...model import CategoryModel
 from ...names import MIRROR_MODES
+from ...parts import labelled_names
 from ...masks import dilate, erode
 from ...renderer import RenderOutput, render_camera
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
@@ -293,7 +294,9 @@ def select(
     if options.part_head and field.F_part is not None and "part" not in groups:
         fused_pos = field.fuse_features(field.normalize(pos_pts), k)  # point_features reuses it
         coherence = float(field.part_embedding(fused_pos).mean(dim=0).norm())
-        part_meta = {"coherence": round(coherence, 3), "cut": options.part_coherence, "used": coherence >= options.part_coherence}
+        labelled = labelled_names(model.meta)  # whether the head learned this chair's maps: None when the file does not say
+        part_meta = {"coherence": round(coherence, 3), "cut": options.part_coherence, "used": coherence >= options.part_coherence,
+                     "learned": None if labelled is None else model.names[k] in labelled}
         if part_meta["used"]:
             groups = (*groups, "part")
     shape_grid = geometry = None
