@@ -1,14 +1,16 @@
 """Selection quality and speed on a dataset's twins: IoU of the 3-D selection of each twin's
 scribbles with the part's pixels on the source's test views, per selection variant.
 
-    python benchmarks/selection.py MODEL DATA [--out FILE.md]
+    python benchmarks/selection.py MODEL DATA [--sources NAME,...] [--out FILE.md]
 
 Prints a markdown table (and writes it to --out): mean IoU over twins per variant, and the
 mean seconds of `select` (one torch thread).  Two last rows read the answer: an oracle
 selection built from the ground-truth part maps of the train views (per cell), and an oracle
 that labels each test surface point by its nearest labelled train surface point (per point):
 what any labelling of this model's surface can reach under this IoU.  ``--default-only`` skips
-the variants.
+the variants.  ``--sources`` keeps only the twins of the named chairs: e.g. the held-out chairs
+whose part maps a fold model's head never learned (``benchmarks/heldout_twins.py --folds``
+prints them), to measure the variants on chairs the rules were not tuned on.
 """
 
 from __future__ import annotations
@@ -139,6 +141,15 @@ def edits_with(model, category, cases, by_scribble: dict | None = None) -> tuple
     return row, [x for x in result["runs"] if x["method"] == "hybrid"]
 
 
+def twins_of(cases: list, sources: list[str]) -> list:
+    """The ``cases`` whose source is one of ``sources``; a name that is no twin's source is an error."""
+    known = {case.spec.source for case in cases}
+    unknown = [name for name in sources if name not in known]
+    if unknown:
+        raise SystemExit(f"--sources: no twin has the source {', '.join(unknown)}")
+    return [case for case in cases if case.spec.source in set(sources)]
+
+
 def load_twin_benchmark(model_path: str, data: str):
     """(model, category at the model's test width, twin cases), one torch thread: what the twin
     benchmarks (this one and edit_ceiling.py) run on."""
@@ -154,8 +165,11 @@ def main() -> None:
     ap.add_argument("data")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--default-only", action="store_true", help="the default and the oracles, no variants")
+    ap.add_argument("--sources", help="only the twins of these chairs (comma-separated names)")
     args = ap.parse_args()
     model, category, cases = load_twin_benchmark(args.model, args.data)
+    if args.sources:
+        cases = twins_of(cases, args.sources.split(","))
     select(model, cases[0].instance, [ScribbleView(cases[0].camera, cases[0].scribble, cases[0].keep)])  # warm-up
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; IoU on each source's test views.", "",

@@ -104,7 +104,10 @@ class Config:
     view_reg: float = 0.0
     """Weight of the paper's view-dependence regularizer (one view per instance)."""
     part_weight: float = 0.05
-    """Weight of the part loss (:func:`~crfedit.parts.part_contrastive_loss`) against the MSE."""
+    """Weight of the part loss (:func:`~crfedit.parts.part_contrastive_loss`) against the MSE.
+    At 0.2 the head judged held-out procedural chairs it never learned as well as learned ones,
+    but removals and the reconstruction lost; 0.1 was no clear gain (docs/benchmarks.md,
+    fifty-ninth session)."""
     part_labels: str = "not-twins"
     """Whose part maps train F_part: ``not-twins``, every instance but the sources of the
     dataset's ground-truth twins (``twins.json``; a dataset without twins: every instance), so

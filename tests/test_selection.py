@@ -189,6 +189,24 @@ def test_full_scribble_benchmark_paints_the_part_and_keeps_the_rest():
     assert not keep[2:8, 8].any() and keep[2:8, 2:8].all() and (keep == ((parts > 0) & ~dilate(parts == 2, 1))).all()
 
 
+def test_selection_benchmark_keeps_the_named_sources_twins():
+    """benchmarks/selection.py --sources: the twins of the named chairs, in their order; a name
+    that is no twin's source stops it with that name."""
+    import importlib.util
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    spec = importlib.util.spec_from_file_location("selection_bench", Path(__file__).parents[1] / "benchmarks" / "selection.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    cases = [SimpleNamespace(spec=SimpleNamespace(source=s, name=f"{s}_{k}")) for s, k in
+             (("chair_001", "color"), ("chair_002", "color"), ("chair_001", "remove"), ("chair_004", "remove"))]
+    kept = bench.twins_of(cases, ["chair_004", "chair_001"])
+    assert [c.spec.name for c in kept] == ["chair_001_color", "chair_001_remove", "chair_004_remove"]
+    with pytest.raises(SystemExit, match="no twin has the source chair_009"):
+        bench.twins_of(cases, ["chair_001", "chair_009"])
+
+
 def test_correction_benchmark_strokes_thin_errors_but_not_edge_blur():
     """benchmarks/correction.py's simulated user, ``--errors thin``: a 2-px leg wrongly selected
     whole, or missed whole, is an error to stroke (the default's erosion erases it); the 1-px band where the
@@ -943,6 +961,10 @@ def test_quantized_values_keep_each_cell_on_its_side_of_the_cuts():
     assert ((q >= 0.3) == (v >= 0.3)).all() and ((q >= 0.5) == (v >= 0.5)).all()
     assert (v[0] * 255).round() / 255 < 0.3  # plain rounding would drop a cell at exactly 0.3
     assert q[-2] == 1 and q[-1] == 0
+    grid = torch.zeros(4, 4, 4)
+    grid.view(-1)[torch.arange(0, 64, 3)] = torch.linspace(-0.2, 1.1, 22)
+    from crfedit.edit.selection.store import _levels  # the sparse path rounds only the cells above 0: the same bits
+    assert torch.equal(quantized(grid, (0.3, 0.5)), _levels(grid, (0.3, 0.5)))
 
 
 @pytest.mark.parametrize("kind", ["color", "remove"])

@@ -32,7 +32,21 @@ def quantized(values: Tensor, cuts: Sequence[float]) -> Tensor:
     A selection is used as computed (the page, one-step edits) and as read back from its file
     (``--selection``): the two must be the same tensor.  Plain rounding is not enough at a cut:
     filling the rims sets cells to exactly the recolour's cut 0.3, which rounds to 76/255 =
-    0.298, below it, so a file dropped every filled cell."""
+    0.298, below it, so a file dropped every filled cell.
+
+    Each cell's level depends on its own value alone, and with every cut above 0 a cell at or
+    below 0 is level 0: only the cells above 0 (the occupied ones, a seventh of a 64³ grid) are
+    rounded, to the same bits."""
+    if all(cut > 0 for cut in cuts):
+        above = values > 0
+        out = torch.zeros_like(values)
+        out[above] = _levels(values[above], cuts)
+        return out
+    return _levels(values, cuts)
+
+
+def _levels(values: Tensor, cuts: Sequence[float]) -> Tensor:
+    """:func:`quantized` of every value."""
     v = values.clamp(0, 1)
     q = (v * 255).round()
     levels = torch.arange(256, dtype=q.dtype, device=q.device)
