@@ -528,6 +528,7 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     cells = f"selection: {sel.meta['selected_cells']} of {sel.meta['occupied_cells']} occupied cells ("
     assert len(said) == 1 and said[0].startswith(cells) and re.fullmatch(r".*\(\d+\.\d\d s\)", said[0]), lines
     assert any(line.startswith("colour join: ") for line in lines) and any(line.startswith("strokes: ") for line in lines)
+    assert sel.meta["keep_points"] > 0 and not any(line.startswith("keep strokes: ") for line in lines)
     d = read_delta(out)
     assert d.meta["view"] == f"train:{i}" and d.meta["command"] == "crfedit edit-color m.safetensors --color #00f"
     shown = json.loads(invoke("edits", "show", out, "--json").stdout)
@@ -540,6 +541,7 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     r = invoke("remove", path, "--instance", 1, "--view", f"train:{i}", "--scribble-json", strokes, "--edit", out,
                "--out", out2, "--device", "cpu", "--steps", 5)
     assert r.exit_code == 0, r.output
+    assert any(ln.startswith("keep strokes: none on the object") for ln in r.stdout.splitlines()), r.stdout  # no --keep
     assert read_delta(out2).meta["parent"] != "" and read_delta(out2).meta["kind"] == "remove"
     stacked = apply_edit_files(model, [out, out2])
     assert set(stacked.overrides) == {1}

@@ -16,7 +16,7 @@ from crfedit.config import PRESETS, Config, make_config
 from crfedit.data.loading import load_category
 from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.edit.params import trained_prefixes
-from crfedit.edit.selection import ScribbleView, options_for, part_summary, select
+from crfedit.edit.selection import ScribbleView, keep_summary, options_for, part_summary, select
 from crfedit.edit.selection.classify import nearest_cosine
 from crfedit.errors import CrfError
 from crfedit.field import ConditionalRadianceField
@@ -252,7 +252,9 @@ def test_the_part_veto_leaves_out_only_the_parts_the_keep_strokes_mark(headed):
     assert kept.meta["part_head"]["vetoed"] > 0 and "selected cells left out as parts the keep strokes mark" in part_summary(kept.meta)
     alone = ScribbleView(view.camera, scribble, None)
     bare = select(model, k, [alone], opts)
-    assert bare.meta["part_head"]["vetoed"] == 0 and "no keep stroke on the object" in part_summary(bare.meta)
+    assert bare.meta["part_head"]["vetoed"] == 0 and bare.meta["keep_points"] == 0
+    assert "left out" not in part_summary(bare.meta) and "the part head leaves no other part out" in keep_summary(bare.meta)
+    assert keep_summary(kept.meta) is None
     assert torch.equal(bare.values, select(model, k, [alone], dataclasses.replace(opts, part_veto=0.0)).values)
     old = select(model, k, [alone], dataclasses.replace(opts, part_veto_keep=False))
     assert old.meta["part_head"]["vetoed"] > 0 and old.meta["part_head"]["veto_by"] == "cosine"

@@ -178,6 +178,7 @@ def test_add_reads_the_copy_mask_as_drawn(view, tiny_model, tmp_path):
         said = [ln for ln in r.stdout.splitlines() if ln.startswith("donor selection: ")]
         assert len(said) == 1 and said[0].startswith(f"donor selection: {made['selected_cells']} of {made['occupied_cells']} occupied cells ("), r.stdout
         assert any(ln.startswith("strokes: ") for ln in r.stdout.splitlines()), r.stdout
+        assert not any(ln.startswith("keep strokes: ") for ln in r.stdout.splitlines()), r.stdout  # a donor takes none
     a, b = (load_file(o) for o in outs)
     assert a.keys() == b.keys() and all(torch.equal(a[n], b[n]) for n in a)
     # --preview renders the edited instance, as remove's and edit-color's do

@@ -1330,6 +1330,18 @@ def test_the_strokes_line_says_what_each_rule_left_out():
     assert stroke_summary({"stroke_snap": {"added_pixels": 0}, "stroke_centres": {"edge_points": 3}}) == f"their centres lifted (3 edge points {lost}"
 
 
+def test_the_keep_line_speaks_only_when_no_keep_stroke_lies_on_the_object():
+    """Keep strokes on the background lift to no point: then, and only then, the line says so."""
+    from crfedit.edit.selection import keep_summary
+
+    assert keep_summary({"positives": 40, "keep_points": 12}) is None
+    assert keep_summary({}) is None and keep_summary({"keep_points": 0}) is None  # a record that does not say
+    bare = keep_summary({"positives": 40, "keep_points": 0})
+    assert bare.startswith("none on the object") and "part head" not in bare and bare.endswith("holds it)")
+    head = {"used": True, "veto_by": "keep strokes", "keep_points": 0, "vetoed": 0}
+    assert "the part head leaves no other part out" in keep_summary({"positives": 40, "keep_points": 0, "part_head": head})
+
+
 def test_a_stroke_beside_a_thin_part_snaps_onto_it(trained):
     """A stroke drawn on the background one pixel beside the legs lifts nothing: every pixel
     lifted as drawn, it is refused. Recolours and removals snap a scribble that lies mostly off

@@ -206,12 +206,13 @@ def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None, join: str 
 
 
 def _echo_selection(sel, whose: str = "") -> None:
-    """`crfedit select`'s lines for a selection an edit made (``whose``: e.g. "donor ")."""
+    """`crfedit select`'s lines for a selection an edit made (``whose``: e.g. "donor "; a
+    donor's copy strokes take no keep strokes, so no line asks for them)."""
     from .select import echo_summaries
 
     info = sel.meta
     typer.echo(f"{whose}selection: {info['selected_cells']} of {info['occupied_cells']} occupied cells ({info['seconds']:.2f} s)")
-    echo_summaries(info)
+    echo_summaries(info, ("keep strokes",) if whose == "donor " else ())
 
 
 def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty, recolor: Recolor = Recolor.shading):

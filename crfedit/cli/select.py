@@ -12,12 +12,13 @@ from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
 from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _check_out, _load, _one_view, _preview_views, _view_render
 
 
-def echo_summaries(info: dict) -> None:
-    """Print a fresh selection's summary lines (``label: line``), the ones that apply."""
+def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
+    """Print a fresh selection's summary lines (``label: line``), the ones that apply and are
+    not labelled in ``skip``."""
     from ..edit.selection import SUMMARIES
 
     for label, summary in SUMMARIES:
-        line = summary(info)
+        line = None if label in skip else summary(info)
         if line is not None:
             typer.echo(f"{label}: {line}")
 
