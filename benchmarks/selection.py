@@ -143,11 +143,11 @@ def edits_with(model, category, cases, by_scribble: dict | None = None) -> tuple
 
 def twins_of(cases: list, sources: list[str]) -> list:
     """The ``cases`` whose source is one of ``sources``; a name that is no twin's source is an error."""
-    known = {case.spec.source for case in cases}
+    known, wanted = {case.spec.source for case in cases}, set(sources)
     unknown = [name for name in sources if name not in known]
     if unknown:
         raise SystemExit(f"--sources: no twin has the source {', '.join(unknown)}")
-    return [case for case in cases if case.spec.source in set(sources)]
+    return [case for case in cases if case.spec.source in wanted]
 
 
 def load_twin_benchmark(model_path: str, data: str):
