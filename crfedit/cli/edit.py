@@ -205,14 +205,15 @@ def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None, join: str 
     return sel
 
 
-def _echo_selection(sel, whose: str = "") -> None:
-    """`crfedit select`'s lines for a selection an edit made (``whose``: e.g. "donor "; a
-    donor's copy strokes take no keep strokes, so no line asks for them)."""
+def _echo_selection(sel, whose: str = "", takes_keep: bool = True) -> None:
+    """`crfedit select`'s lines for a selection an edit made (``whose``: e.g. "donor ";
+    ``takes_keep`` False where the command takes no keep strokes for it, so that no line asks
+    for them)."""
     from .select import echo_summaries
 
     info = sel.meta
     typer.echo(f"{whose}selection: {info['selected_cells']} of {info['occupied_cells']} occupied cells ({info['seconds']:.2f} s)")
-    echo_summaries(info, ("keep strokes",) if whose == "donor " else ())
+    echo_summaries(info, () if takes_keep else ("keep strokes",))
 
 
 def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty, recolor: Recolor = Recolor.shading):
@@ -364,7 +365,7 @@ def add_cmd(
         raise CrfError("--selection belongs to --method selection")
     sel = _selection(selection, m, j, "add")
     result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel,
-                 on_selection=lambda made: _echo_selection(made, "donor "))
+                 on_selection=lambda made: _echo_selection(made, "donor ", takes_keep=False))
     _write(result, out, label)
     _preview(result.model, k, preview, shown, views)
 
