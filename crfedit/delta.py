@@ -48,9 +48,13 @@ from torch import Tensor
 
 from .errors import ModelFileError, NonFiniteError
 from .field import ConditionalRadianceField
+from .io import atomic_write_bytes
 from .model import CategoryModel
 from .names import COLOR_CODES, SHAPE_CODES
-from .safefile import EDIT_FORMAT, fingerprint, grid_shape, other_kind, pack_bits, read_header, read_safetensors, unpack_bits, write_safetensors
+from .safefile import (
+    EDIT_FORMAT, fingerprint, grid_shape, other_kind, pack_bits, read_header, read_safetensors, safetensors_bytes,
+    unpack_bits,
+)
 
 FORMAT = EDIT_FORMAT
 VERSION = "3"
@@ -234,16 +238,21 @@ def make_delta(
     return tensors, metadata
 
 
-def save_delta(path: str | os.PathLike, tensors: Mapping[str, Tensor], metadata: Mapping[str, str]) -> None:
-    """Write an edit file atomically (temp file, fsync, rename): never a partial file.  In the
-    version its metadata names: a version-3 file's grid change is bit-packed, an older one (a
-    re-pinned file keeps its version) stores it as it is."""
+def delta_bytes(tensors: Mapping[str, Tensor], metadata: Mapping[str, str]) -> bytes:
+    """The bytes of an edit file, in the version its metadata names: a version-3 file's grid
+    change is bit-packed, an older one (a re-pinned file keeps its version) stores it as it is.
+    What :func:`save_delta` writes, and what the page's Download gives."""
     out, meta = dict(tensors), {k: str(v) for k, v in metadata.items() if k != PACKED_SHAPE}
     if grid_packed(meta.get("version", VERSION)) and GRID in out:
         packed, shape = pack_grid_change(out.pop(GRID))
         out.update(packed)
         meta[PACKED_SHAPE] = shape
-    write_safetensors(path, out, meta)
+    return safetensors_bytes(out, meta)
+
+
+def save_delta(path: str | os.PathLike, tensors: Mapping[str, Tensor], metadata: Mapping[str, str]) -> None:
+    """Write :func:`delta_bytes` atomically (temp file, fsync, rename): never a partial file."""
+    atomic_write_bytes(path, delta_bytes(tensors, metadata))
 
 
 def pack_grid_change(change: Tensor) -> tuple[dict[str, Tensor], str]:

@@ -24,7 +24,7 @@ from .cameras import Camera
 from .config import Config
 from .errors import CrfError, ModelFileError
 from .field import ConditionalRadianceField
-from .names import did_you_mean
+from .names import did_you_mean, is_digits
 from .safefile import MODEL_FORMAT, check_tensors, fingerprint, other_kind, read_header, read_safetensors, write_safetensors
 
 FORMAT = MODEL_FORMAT
@@ -53,7 +53,7 @@ class CategoryModel:
 
     def instance_index(self, key: str | int) -> int:
         """An instance by name or index; unknown → one-line error naming a few valid ones."""
-        if isinstance(key, int) or (isinstance(key, str) and key.lstrip("-").isdigit() and key not in self.names):
+        if isinstance(key, int) or (isinstance(key, str) and is_digits(key.lstrip("-")) and key not in self.names):
             k = int(key)
             if 0 <= k < len(self.names):
                 return k
@@ -179,7 +179,7 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> t
     for name, t in tensors.items():
         if name.startswith("override."):
             _, idx, pname = name.split(".", 2)
-            if not idx.isdigit() or int(idx) >= k or pname not in params:
+            if not is_digits(idx) or int(idx) >= k or pname not in params:
                 raise ModelFileError(f"{path}: unexpected tensor {name[:80]!r}")
             check_tensors(path, {pname: t}, params)
             overrides.setdefault(int(idx), {})[pname] = t.to(device)

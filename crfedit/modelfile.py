@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from .config import Config
-from .names import CODE_TABLES, MODULES
+from .names import CODE_TABLES, MODULES, is_digits
 from .safefile import read_header, read_safetensors, write_safetensors
 
 CODES = ("field.shape_codes", "field.color_codes")
@@ -80,7 +80,7 @@ def stored_training(path: str | os.PathLike) -> StoredRun:
     """The run recorded in a model file, read from its header only."""
     _, meta = read_header(path)
     cfg = Config.from_json(meta.get("config", ""))
-    step = int(meta["step"]) if meta.get("step", "").isdigit() else 0
+    step = int(meta["step"]) if is_digits(meta.get("step", "")) else 0
     try:
         sizes = json.loads(meta.get("view_sizes", "{}"))
     except json.JSONDecodeError:
@@ -157,7 +157,7 @@ def model_info(path: str | os.PathLike) -> dict:
         "dataset_fingerprint": model.dataset_fingerprint,
         "part_labelled": labelled_names(meta) if field.F_part is not None else None,
         "fingerprint": model.fingerprint(),
-        "step": int(meta["step"]) if meta.get("step", "").isdigit() else None,
+        "step": int(meta["step"]) if is_digits(meta.get("step", "")) else None,
         "steps": cfg.steps,
         "train_seconds": float(state["elapsed"]) if "elapsed" in state else None,
         "resumable": bool(state),

@@ -43,6 +43,12 @@ scribbled views' mirror images lending their strokes, or the selection taking it
 image."""
 
 
+def is_digits(text: str) -> bool:
+    """Whether ``text`` is a whole number in ASCII digits ("12", not "" or "²"): ``str.isdigit``
+    also passes superscripts and other digit characters that ``int`` refuses."""
+    return text.isascii() and text.isdigit()
+
+
 def did_you_mean(key: str, names: list[str] | tuple[str, ...]) -> str:
     """A hint for an unknown name: "; did you mean 'x'?" naming the names that contain ``key`` (or
     that ``key`` contains) or, failing that, the closest spellings; "" when nothing is near. Users

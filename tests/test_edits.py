@@ -592,6 +592,9 @@ def test_edit_command_errors_write_nothing(trained, tmp_path):
     assert_user_error(invoke("edit-color", path, "--instance", 0, "--view", "train", "--scribble", fg_png,
                              "--color", "red", "--out", out), "names 8 views")
     assert_user_error(invoke("transfer", path, "--instance", 0, "--out", out), "--shape-from or --color-from")
+    assert_user_error(invoke("transfer", path, "--instance", 0, "--shape-from", 0, "--out", out), "from itself changes nothing")
+    assert_user_error(invoke("edit-color", path, "--instance", "²", "--view", "train:0", "--scribble", fg_png,
+                             "--color", "red", "--out", out), "unknown instance '²'")  # a digit int() refuses
     with pytest.raises(NonFiniteError):
         edit_color(model, 0, view.camera, fg, "red", options=EditOptions(lr=1e30, steps=3))
     # an edit made for another model

@@ -191,6 +191,22 @@ def test_host_and_origin_are_checked(ui):
     assert ui.call("POST", "/api/select/clear", {"instance": 0}, headers=ok)[0] == 200
 
 
+def test_a_wildcard_bind_takes_ip_addresses_and_this_machine_s_name_but_no_other_name():
+    """Bound to every address, the Host check still refuses a DNS name that is not this machine's
+    (DNS rebinding needs one) and any other port."""
+    import socket
+
+    from crfedit.ui.server import Server
+
+    server = Server(None, "t", "0.0.0.0")
+    server.port = 8804
+    for host in ("127.0.0.1:8804", "192.168.1.7:8804", "[::1]:8804", "[fe80::1]:8804", "localhost:8804",
+                 f"{socket.gethostname()}:8804"):
+        assert server._host_ok(host), host
+    for host in ("evil.example:8804", "192.168.1.7:1", "192.168.1.7", "", "[::1]", ":8804"):
+        assert not server._host_ok(host), host
+
+
 def test_websocket_needs_the_token_and_this_origin(ui):
     import aiohttp
 
@@ -212,6 +228,10 @@ def test_oversized_and_malformed_bodies_are_refused_and_nothing_is_written(ui, s
     assert "larger than" in ui.error("POST", "/api/edit", data=big, expect=413, headers={"Content-Type": "application/json"})
     assert "not valid JSON" in ui.error("POST", "/api/edit", data=b"{nope", headers={"Content-Type": "application/json"})
     assert "JSON object" in ui.error("POST", "/api/select", [1, 2])
+    assert "too deeply" in ui.error("POST", "/api/select", data=b"[" * 100_000 + b"]" * 100_000,
+                                    headers={"Content-Type": "application/json"})
+    for path in ("/api/stack/download?id=%C2%B2", "/api/view?instance=%C2%B2&az=0&el=0"):  # "²": isdigit, but not int()
+        ui.error("GET", path)
     assert json.loads(ui.get("/api/job"))["state"] == "none"
     assert ui.session.entries == [] and ui.files() == []
 
@@ -414,6 +434,36 @@ def test_colour_edit_then_toggle_save_download_bake(ui, scene, edit_category, tm
     assert torch.equal(render_camera(edited.field_for(0), camera, 0).rgb, expected)
     ui.post("/api/stack/toggle", {"id": entry, "enabled": False})
     assert "nothing to fold" in ui.error("POST", "/api/bake", {})
+
+
+def test_a_removal_downloads_as_saved_and_nothing_is_overwritten(ui, scene, edit_category, tmp_path):
+    """Download gives the bytes Save writes (a removal's grid change bit-packed, a file every
+    command reads); Save and Bake never overwrite a file of the work dir, and saving an edit
+    twice writes one file."""
+    path, _, _ = edit_category
+    job = ui.edit({"kind": "remove", "instance": 0, "view": "train:0", "views": [{"view": "train:0", "fg": strokes(scene)}], "steps": 2})
+    assert job["state"] == "done", job
+    entry = job["result"]["entry"]
+    saved = Path(ui.post("/api/stack/save", {"id": entry})["path"])
+    assert Path(ui.post("/api/stack/save", {"id": entry})["path"]) == saved and ui.files() == [saved.name]
+    _, _, data = ui.call("GET", f"/api/stack/download?id={entry}")
+    assert len(data) == saved.stat().st_size == json.loads(ui.get("/api/state"))["stack"][0]["bytes"]
+    (tmp_path / "downloaded.safetensors").write_bytes(data)
+    base, _ = load_model(path)
+    check_stack(base, [read_delta(tmp_path / "downloaded.safetensors")])
+    (ui.workdir / "theirs.safetensors").write_bytes(b"not ours")
+    assert "already in the work dir" in ui.error("POST", "/api/stack/save", {"id": entry, "name": "theirs.safetensors"})
+    assert (ui.workdir / "theirs.safetensors").read_bytes() == b"not ours"
+    saved.write_bytes(b"someone else's file")  # the edit's default name now holds another file
+    again = Path(ui.post("/api/stack/save", {"id": entry})["path"])
+    assert again.name == saved.name.replace(".safetensors", "-2.safetensors") and saved.read_bytes() == b"someone else's file"
+    model_name = f"{Path(path).stem}-baked.safetensors"
+    (ui.workdir / model_name).write_bytes(b"an earlier bake")
+    baked = ui.post("/api/bake", {})
+    assert Path(baked["model"]).name == model_name.replace(".safetensors", "-2.safetensors")
+    assert [Path(p).name for p in baked["edits"]] == [again.name]  # the file that holds the edit already
+    assert (ui.workdir / model_name).read_bytes() == b"an earlier bake"
+    assert "already in the work dir" in ui.error("POST", "/api/bake", {"name": "theirs.safetensors"})
 
 
 @pytest.mark.parametrize("name", ["../escape.safetensors", "/tmp/abs.safetensors", "sub/dir.safetensors", "x.txt",

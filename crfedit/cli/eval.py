@@ -17,6 +17,7 @@ import typer
 
 from ..io import check_folder_target
 from ..errors import CrfError
+from ..names import is_digits
 from .common import DeviceChoice, DeviceOpt, SeedOpt, app, eval_app, user_errors
 from .train import PresetChoice
 
@@ -346,7 +347,7 @@ def _ints(option: str, text: str | None) -> tuple[int, ...] | None:
     if text.strip().lower() == "none":
         return ()
     items = [x.strip() for x in text.split(",") if x.strip()]
-    if not items or not all(x.isdigit() and int(x) > 0 for x in items):
+    if not items or not all(is_digits(x) and int(x) > 0 for x in items):
         raise CrfError(f"{option} {text}: expected positive whole numbers separated by commas, e.g. 10,30,100")
     return tuple(int(x) for x in items)
 

@@ -14,7 +14,7 @@ import torch
 
 from ..cameras import Camera, focal_from_angle, rays_from_camera
 from ..errors import DataError
-from ..names import did_you_mean
+from ..names import did_you_mean, is_digits
 from .format import (
     IMAGE_EXTENSIONS,
     SPLITS,
@@ -47,7 +47,7 @@ class View:
 def parse_view_spec(spec: str) -> tuple[str, int]:
     """``"train:7"`` → ``("train", 7)``."""
     split, sep, index = str(spec).partition(":")
-    if not sep or split not in SPLITS or not index.strip().isdigit():
+    if not sep or split not in SPLITS or not is_digits(index.strip()):
         raise DataError(f"view {spec!r}: expected SPLIT:INDEX with SPLIT one of {', '.join(SPLITS)}, e.g. train:7")
     return split, int(index)
 

@@ -47,7 +47,7 @@ from .. import occupancy
 from ..cameras import Camera, Rays
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
-from ..names import ADD_METHODS, COLOR_CODES, EDIT_METHODS
+from ..names import ADD_METHODS, COLOR_CODES, EDIT_METHODS, is_digits
 from ..model import CategoryModel
 from ..renderer import render_camera
 from ..rendering import composite_dense
@@ -167,7 +167,7 @@ def remove(
 def parse_offset(text: str) -> tuple[int, int]:
     """``"12,-3"`` → (12, -3): pixels right and down."""
     parts = str(text).replace(" ", "").split(",")
-    if len(parts) != 2 or not all(p.lstrip("+-").isdigit() for p in parts):
+    if len(parts) != 2 or not all(is_digits(p.lstrip("+-")) for p in parts):
         raise CrfError(f"--offset {text}: expected DX,DY in whole pixels, e.g. 10,-4")
     return int(parts[0]), int(parts[1])
 

@@ -43,6 +43,8 @@ def _swapped(
         if table not in used:
             raise CrfError(f"--{which}-from: a model of arch {field.arch!r} has no separate {which} code")
         j = model.instance_index(source)
+        if j == k:
+            raise CrfError(f"--{which}-from {model.names[j]}: is the instance being edited; a transfer from itself changes nothing")
         donor = instance_state(model, j)
         value = current[table].clone()
         value[k] = donor[table][j]

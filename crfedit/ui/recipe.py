@@ -151,8 +151,8 @@ def parse_strokes(value, camera: Camera, what: str) -> Strokes | None:
 
 def parse_scribbles(value, model, instance: int) -> tuple[ScribbleSet, ...]:
     """``[{"view": V, "fg": strokes, "bg": strokes}, …]``: views without "edit here" strokes are dropped."""
-    if not isinstance(value, list) or not value:
-        raise CrfError("views: expected a list of {\"view\", \"fg\", \"bg\"} (scribble on the view first)")
+    if not isinstance(value, list):
+        raise CrfError("views: expected a list of {\"view\", \"fg\", \"bg\"}")
     if len(value) > MAX_VIEWS:
         raise CrfError(f"views: scribbles on {len(value)} views; at most {MAX_VIEWS}")
     out: dict[str, ScribbleSet] = {}
@@ -165,7 +165,7 @@ def parse_scribbles(value, model, instance: int) -> tuple[ScribbleSet, ...]:
         if fg is not None:
             out[view.key] = ScribbleSet(view, fg, bg)
     if not out:
-        raise CrfError("the scribble is empty: draw 'edit here' strokes on the part first")
+        raise CrfError("the scribble is empty: draw 'edit here' strokes on the part first (keep strokes only say what to leave)")
     return tuple(out.values())
 
 

@@ -19,10 +19,12 @@ import asyncio
 import contextlib
 import hmac
 import html
+import ipaddress
 import itertools
 import json
 import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -34,6 +36,7 @@ from importlib import resources
 from aiohttp import WSMsgType, web
 
 from ..errors import CrfError
+from ..names import is_digits
 from .recipe import parse_edit
 from .session import UiSession
 
@@ -152,10 +155,20 @@ class Server:
         return app
 
     def _host_ok(self, host: str) -> bool:
-        if self.bind_host in WILDCARD:
-            return bool(host)
-        names = {*LOOPBACK, self.bind_host if ":" not in self.bind_host else f"[{self.bind_host}]"}
-        return host in {f"{n}:{self.port}" for n in names}
+        """Whether a request's Host header names this server (against DNS rebinding): a loopback
+        name or the bound address, at this port; on a wildcard bind (0.0.0.0, ::) any IP address
+        or this machine's own host name, but no other name, since a rebinding attack needs one."""
+        if self.bind_host not in WILDCARD:
+            names = {*LOOPBACK, self.bind_host if ":" not in self.bind_host else f"[{self.bind_host}]"}
+            return host in {f"{n}:{self.port}" for n in names}
+        name, sep, port = host.rpartition(":")
+        if not sep or port != str(self.port):
+            return False
+        try:
+            ipaddress.ip_address(name[1:-1] if name.startswith("[") and name.endswith("]") else name)
+            return True
+        except ValueError:
+            return name.lower() in {*LOOPBACK, socket.gethostname().lower(), socket.getfqdn().lower()}
 
     @web.middleware
     async def guard(self, request: web.Request, handler):
@@ -198,6 +211,8 @@ class Server:
             raise
         except ValueError:
             raise CrfError("the request body is not valid JSON") from None
+        except RecursionError:
+            raise CrfError("the request body nests its JSON too deeply") from None
         if not isinstance(body, dict):
             raise CrfError("expected a JSON object")
         return body
@@ -251,7 +266,7 @@ class Server:
     async def photo(self, request):
         q = request.query
         index = q.get("index", "")
-        if not index.isdigit():
+        if not is_digits(index):
             raise CrfError("index: expected a view number")
         return self._png(await self._run(self.session.photo, q.get("instance", ""), q.get("split", ""), int(index)))
 
@@ -349,7 +364,7 @@ class Server:
 
     async def download(self, request):
         raw = request.query.get("id", "")
-        if not raw.isdigit():
+        if not is_digits(raw):
             raise CrfError("id: expected an edit number")
         name, data = await self._run(self.session.delta_file, int(raw))
         return web.Response(body=data, content_type="application/octet-stream",

@@ -16,26 +16,26 @@ import base64
 import dataclasses
 import hashlib
 import io
+import itertools
 import json
 import re
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
 from ..data.loading import Category
-from ..delta import Delta, apply_deltas, bake, read_delta, restack, save_delta
+from ..delta import Delta, apply_deltas, bake, delta_bytes, read_delta, restack, save_delta
 from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
 from ..edit.selection import SUMMARIES, CellPoints, ScribbleView, Selection, cell_points, options_for, preview, select
 from ..errors import CrfError
 from ..model import CategoryModel, save_model
 from ..renderer import render_camera
-from ..safefile import safetensors_bytes
 from .recipe import EditRequest, Replay, ScribbleSet, instance_of, parse_scribbles, parse_view
 
 FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,120}\.safetensors")
@@ -144,6 +144,8 @@ class UiSession:
         return self._cached(self._fields, (key, k), lambda: model.field_for(k))
 
     def _entry(self, entry_id) -> Entry:
+        if isinstance(entry_id, bool) or not isinstance(entry_id, int):
+            raise CrfError("id: expected an edit number")
         e = next((e for e in self.entries if e.id == entry_id), None)
         if e is None:
             raise CrfError(f"edit {entry_id!r}: no such edit in the stack")
@@ -318,7 +320,7 @@ class UiSession:
             for i, e in enumerate(self.entries):
                 d = self.pinned.get(e.id, e.delta)
                 if d.fingerprint not in self._sizes:
-                    self._sizes[d.fingerprint] = len(safetensors_bytes(d.tensors, d.meta))
+                    self._sizes[d.fingerprint] = len(delta_bytes(d.tensors, d.meta))
                 rows.append({
                     "id": e.id, "position": i + 1, "kind": d.kind, "instance": d.instance, "bytes": self._sizes[d.fingerprint],
                     "seconds": round(e.seconds, 3), "enabled": e.enabled, "source": Path(e.source).name if e.source else "page",
@@ -391,19 +393,42 @@ class UiSession:
             raise CrfError(f"name {name}: must name a new file inside the work dir")
         return path
 
+    def free_target(self, name, default: str, edit: Delta | None = None, taken: Sequence[Path] = ()) -> Path:
+        """Where a Save or Bake writes: :meth:`target` of ``name``, which must not exist yet, or
+        with no name the first free one of ``default``, ``default-2``, … (none in ``taken``
+        either).  A file that already holds ``edit`` (the same fingerprint) is its place: saving
+        an edit twice writes one file.  Nothing in the work dir is ever overwritten."""
+        def holds_edit(path: Path) -> bool:
+            try:
+                return edit is not None and read_delta(path).fingerprint == edit.fingerprint
+            except (CrfError, OSError):
+                return False
+
+        if name is not None:
+            path = self.target(name)
+            if path.exists() and not holds_edit(path):
+                raise CrfError(f"name {name}: a file of that name is already in the work dir; pick another name")
+            return path
+        stem = default.removesuffix(".safetensors")
+        for i in itertools.count(1):
+            path = self.target(default if i == 1 else f"{stem}-{i}.safetensors")
+            if path not in taken and (not path.exists() or holds_edit(path)):
+                return path
+
     def delta_file(self, entry_id) -> tuple[str, bytes]:
         """(default file name, bytes) of an edit as it applies in the stack now."""
         with self._lock:
             e = self._entry(entry_id)
             d = self.pinned.get(e.id, e.delta)
-            return self._default_name(self.entries.index(e), d), safetensors_bytes(d.tensors, d.meta)
+            return self._default_name(self.entries.index(e), d), delta_bytes(d.tensors, d.meta)
 
     def save(self, entry_id, name=None) -> Path:
-        """Write an edit into the work dir (atomically) as it applies in the stack now."""
+        """Write an edit into the work dir (atomically) as it applies in the stack now, under a
+        name no other file there has (:meth:`free_target`)."""
         with self._lock:
             e = self._entry(entry_id)
             d = self.pinned.get(e.id, e.delta)
-            path = self.target(name if name is not None else self._default_name(self.entries.index(e), d))
+            path = self.free_target(name, self._default_name(self.entries.index(e), d), d)
         self.workdir.mkdir(parents=True, exist_ok=True)
         save_delta(path, d.tensors, d.meta)
         return path
@@ -411,11 +436,14 @@ class UiSession:
     def bake(self, name=None) -> dict:
         """Save every enabled edit into the work dir and fold them into a new model file there."""
         with self._lock:
-            out = self.target(name if name is not None else f"{self.model_path.stem}-baked.safetensors")
             enabled = [e for e in self.entries if e.enabled]
             if not enabled:
                 raise CrfError("bake: no edit is on; there is nothing to fold into a model")
-            targets = [self.target(self._default_name(self.entries.index(e), self.pinned[e.id])) for e in enabled]
+            targets: list[Path] = []
+            for e in enabled:
+                d = self.pinned[e.id]
+                targets.append(self.free_target(None, self._default_name(self.entries.index(e), d), d, targets))
+            out = self.free_target(name, f"{self.model_path.stem}-baked.safetensors", taken=targets)
             if out in targets:
                 raise CrfError(f"name {out.name}: is the file of an edit; pick another name for the model")
             files = [(t, self.pinned[e.id]) for t, e in zip(targets, enabled)]

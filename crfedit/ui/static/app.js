@@ -14,7 +14,7 @@ const S = {
   copy: null, // add: {instance, view, strokes: []}
   paste: null, donorMode: false,
   tool: "fg", radius: 1.5, tint: false, drag: null,
-  viewSeq: 0, viewBusy: false, viewAgain: false,
+  viewBusy: false, viewAgain: false, turnSeq: 0,
   job: null, ws: null, lost: false,
 };
 
@@ -132,15 +132,18 @@ function wipe() {
   $("before").style.clipPath = `inset(0 ${100 - Number($("wipe").value)}% 0 0)`;
 }
 
+// The turntable of the current instance.  A newer call wins: an older call's late replies (the
+// user clicked through several chairs) are dropped, not drawn among the newer chair's tiles.
 async function showTurntable() {
-  const start = performance.now();
+  const start = performance.now(), seq = ++S.turnSeq;
   const el = typeof S.view === "string" ? 30 : S.view.elevation;
   const tint = S.tint ? "&tint=1" : "";
   const imgs = [...$("turntable").children];
   await Promise.all(imgs.map(async (img, i) => {
-    await setImage(img, await imageUrl(`/api/view?${viewQuery({ azimuth: i * 45, elevation: el }, S.instance)}${tint}`));
+    const url = await imageUrl(`/api/view?${viewQuery({ azimuth: i * 45, elevation: el }, S.instance)}${tint}`);
+    if (seq === S.turnSeq) await setImage(img, url); else URL.revokeObjectURL(url);
   }));
-  measure("turntable", start);
+  if (seq === S.turnSeq) measure("turntable", start);
 }
 
 function setView(view) {
@@ -413,7 +416,8 @@ function wire() {
     $("selection-info").textContent = "";
     await showView();
   }));
-  $("tint").addEventListener("change", () => { S.tint = $("tint").checked; showView(); attempt(showTurntable); });
+  // showView turns the tint off again when there is no selection to show; the turntable follows it
+  $("tint").addEventListener("change", () => attempt(async () => { S.tint = $("tint").checked; await showView(); await showTurntable(); }));
   $("edit-kind").addEventListener("change", () => {
     for (const d of document.querySelectorAll(".kind")) d.hidden = d.dataset.kind !== $("edit-kind").value;
     if (S.donorMode && $("edit-kind").value !== "add") toggleDonor();

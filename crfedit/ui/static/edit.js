@@ -76,7 +76,7 @@ async function doApply() {
   const body = editBody();
   const start = performance.now();
   const reply = await postJson("/api/edit", body);
-  S.job = { id: reply.job, kind: body.kind, start, steps: reply.steps };
+  S.job = { id: reply.job, kind: body.kind, start, steps: reply.steps, instance: body.instance, view: viewKey(body.view) };
   busy(true);
   status(`${body.kind}: starting…`);
 }
@@ -107,16 +107,21 @@ async function onJobMessage(msg) {
   S.state = msg.state;
   S.tint = false;
   $("tint").checked = false;
-  if (msg.image && S.instance === shownInstance()) {
+  // The edit's render is of the view it was made on: shown only if that view is still on screen
+  // (the user may have turned to another view or chair while it ran), else the view on screen
+  // is rendered again in the new state.
+  if (msg.image && !S.donorMode && S.instance === job.instance && viewKey(S.view) === job.view) {
     await setImage($("view"), msg.image);
     $("view").dataset.state = S.state;
+  } else {
+    await showView();
   }
   measure(`apply-${job.kind}`, job.start);
   status(`${job.kind} applied in ${msg.seconds.toFixed(2)} s`);
   renderStack(msg.stack);
   await showCompare();
   await showTurntable();
-  refreshThumb(S.instance);
+  refreshThumb(job.instance);
 }
 
 // ------------------------------------------------------------------------------------ stack
