@@ -155,7 +155,7 @@ class Config:
             (self.n_coarse >= 1 and self.n_fine >= 0, "n_coarse must be ≥ 1 and n_fine ≥ 0"),
             (self.rays >= 1, "rays must be ≥ 1"),
             (self.steps >= 1, "steps must be ≥ 1"),
-            (self.lr > 0 and self.lr_codes > 0, "learning rates must be > 0"),
+            (self.lr > 0 and self.lr_codes > 0, f"lr {self.lr:g} and lr_codes {self.lr_codes:g}: learning rates must be > 0"),
             (self.occ_every >= 1 and self.checkpoint_every >= 1, "intervals must be ≥ 1"),
             (self.part_dim >= 0 and self.part_weight >= 0, "part_dim and part_weight must be ≥ 0"),
             (self.distortion >= 0 and math.isfinite(self.distortion), "distortion must be ≥ 0"),

@@ -365,6 +365,8 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
     """Why ``delta``'s parent does not match its place in the stack, in one line."""
     where = f"{delta.path}: "
     parent = delta.meta["parent"]
+    if delta.fingerprint in [d.fingerprint for d in deltas[:position]]:
+        return ModelFileError(f"{where}is given twice (edit {position + 1} of the stack is an earlier one again); give each edit once")
     if parent == "":
         return ModelFileError(f"{where}made on the bare model, so it must come first (it is edit {position + 1} of the stack)")
     names = [d.path for d in deltas]

@@ -23,10 +23,15 @@ from .errors import CrfError
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success fsync and rename it onto ``path``.
 
-    On any exception the temporary file is removed and ``path`` is left as it was.
-    ``suffix`` defaults to the target's own suffix (some writers pick the format from it).
+    On any exception the temporary file is removed and ``path`` is left as it was; an OS error
+    (a full disk) names ``path``, not the hidden temporary file.  An existing ``path`` that is
+    not a regular file (a folder, a device such as /dev/full, a pipe) is refused: the rename
+    would replace it.  ``suffix`` defaults to the target's own suffix (some writers pick the
+    format from it).
     """
     path = Path(path)
+    if path.exists() and not path.is_file():
+        raise CrfError(f"{path}: exists and is not a regular file (a folder, device or pipe); give a file name")
     folder = path.parent if str(path.parent) else Path(".")
     if folder.exists() and not folder.is_dir():
         raise CrfError(f"{path}: {folder} is a file, not a folder")
@@ -51,9 +56,11 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
                 os.fsync(dfd)
             finally:
                 os.close(dfd)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             tmp_path.unlink()
+        if isinstance(e, OSError) and e.errno is not None and e.filename in (None, str(tmp_path)) and e.filename2 is None:
+            raise OSError(e.errno, e.strerror, str(path)) from None
         raise
 
 

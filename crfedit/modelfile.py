@@ -74,11 +74,12 @@ class StoredRun(NamedTuple):
     elapsed: float | None  # seconds trained; None: written before the key
     minutes: float | None  # the run's --minutes budget; None: none, or written before the key
     dataset: str  # fingerprint of the dataset it was trained on
+    resumable: bool  # it holds training state (not baked or stripped)
 
 
 def stored_training(path: str | os.PathLike) -> StoredRun:
     """The run recorded in a model file, read from its header only."""
-    _, meta = read_header(path)
+    header, meta = read_header(path)
     cfg = Config.from_json(meta.get("config", ""))
     step = int(meta["step"]) if is_digits(meta.get("step", "")) else 0
     try:
@@ -94,7 +95,7 @@ def stored_training(path: str | os.PathLike) -> StoredRun:
         return value if math.isfinite(value) and value >= 0 else None
 
     return StoredRun(cfg, step, sizes if isinstance(sizes, dict) else {}, number("elapsed"), number("minutes"),
-                     meta.get("dataset_fingerprint", ""))
+                     meta.get("dataset_fingerprint", ""), any(tensor_kind(n) == "training state" for n in header))
 
 
 MODULE_ORDER = (*MODULES, *CODE_TABLES)

@@ -11,7 +11,7 @@ from .errors import CrfError
 from .io import write_exr, write_json, write_png
 from .preview import depth_preview
 from .renderer import ray_distance, render_camera
-from .video import video_path, write_video
+from .video import check_fps, video_path, write_video
 from .views import resolve_views
 
 
@@ -45,7 +45,9 @@ def render_to_folder(
 
     Under torchrun (``ranks``) each rank renders and writes every ``world``-th view; rank 0
     gathers the camera records (and frames) and writes ``views.json`` and the video, so the
-    folder is the same as a single process writes.  ``seconds`` is then the slowest rank's."""
+    folder is the same as a single process writes.  ``seconds`` is then the slowest rank's.
+    A run that fails part way (a full disk, Ctrl-C) removes the files it wrote, so no partial
+    set of frames is left to pass for a render."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -58,7 +60,8 @@ def render_to_folder(
         raise CrfError(f"--chunk {chunk}: must be at least 1")
     views = resolve_views(spec, model, instance, res)
     if video is not None:
-        video_path(video)  # a bad suffix fails before any rendering
+        video_path(video)  # a bad suffix or frame rate fails before any rendering
+        check_fps(fps)
         if video.is_dir() or not video.parent.is_dir():
             raise CrfError(f"--video {video}: needs a file name in an existing folder")
     if ranks.main:
@@ -68,33 +71,41 @@ def render_to_folder(
     frames, records, seconds = {}, {}, 0.0
     columns = (TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     console = Console()
-    with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
-        task = bar.add_task("rendering", total=len(views))
-        for i, (label, camera) in ranks.shard(list(enumerate(views))):
-            t0 = time.perf_counter()
-            output = render_camera(field, camera, instance, chunk=chunk)
-            seconds += time.perf_counter() - t0
-            rgb = output.rgb.clamp(0.0, 1.0).cpu().numpy()
-            write_png(out / f"{i:04d}.png", rgb)
-            if depth:
-                z = ray_distance(output).cpu().numpy()
-                write_exr(out / f"{i:04d}_depth.exr", {"Z": z, "A": output.opacity.cpu().numpy()})
-                write_png(out / f"{i:04d}_depth.png", depth_preview(z, output.opacity.cpu().numpy()))
-            if video is not None:
-                frames[i] = to_uint8(rgb)
-            records[i] = {
-                "file": f"{i:04d}.png", "view": label, "width": camera.width, "height": camera.height,
-                "camera_angle_x": camera.camera_angle_x, "transform_matrix": camera.c2w.tolist(),
-            }
-            bar.update(task, advance=1, description=label)
-    if ranks.world > 1:
-        parts = ranks.gather((records, frames, seconds), "gathering the rendered views")
-        records = {i: r for part in parts for i, r in part[0].items()}
-        frames = {i: f for part in parts for i, f in part[1].items()}
-        seconds = max(part[2] for part in parts)
-    written = None
-    if ranks.main:
-        write_json(out / "views.json", {"instance": model.names[instance], "spec": spec, "views": [records[i] for i in sorted(records)]})
-        written = write_video(video, [frames[i] for i in sorted(frames)], fps) if video is not None else None
+    written: list[Path] = []  # this run's files: a run that fails (a full disk, Ctrl-C) removes them again
+    try:
+        with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
+            task = bar.add_task("rendering", total=len(views))
+            for i, (label, camera) in ranks.shard(list(enumerate(views))):
+                t0 = time.perf_counter()
+                output = render_camera(field, camera, instance, chunk=chunk)
+                seconds += time.perf_counter() - t0
+                rgb = output.rgb.clamp(0.0, 1.0).cpu().numpy()
+                written.append(out / f"{i:04d}.png")
+                write_png(written[-1], rgb)
+                if depth:
+                    z = ray_distance(output).cpu().numpy()
+                    written += [out / f"{i:04d}_depth.exr", out / f"{i:04d}_depth.png"]
+                    write_exr(written[-2], {"Z": z, "A": output.opacity.cpu().numpy()})
+                    write_png(written[-1], depth_preview(z, output.opacity.cpu().numpy()))
+                if video is not None:
+                    frames[i] = to_uint8(rgb)
+                records[i] = {
+                    "file": f"{i:04d}.png", "view": label, "width": camera.width, "height": camera.height,
+                    "camera_angle_x": camera.camera_angle_x, "transform_matrix": camera.c2w.tolist(),
+                }
+                bar.update(task, advance=1, description=label)
+        if ranks.world > 1:
+            parts = ranks.gather((records, frames, seconds), "gathering the rendered views")
+            records = {i: r for part in parts for i, r in part[0].items()}
+            frames = {i: f for part in parts for i, f in part[1].items()}
+            seconds = max(part[2] for part in parts)
+        video_written = None
+        if ranks.main:
+            write_json(out / "views.json", {"instance": model.names[instance], "spec": spec, "views": [records[i] for i in sorted(records)]})
+            video_written = write_video(video, [frames[i] for i in sorted(frames)], fps) if video is not None else None
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
     first = views[0][1]
-    return RenderResult(len(views), first.width, first.height, seconds, written)
+    return RenderResult(len(views), first.width, first.height, seconds, video_written)

@@ -30,7 +30,7 @@ def read_header(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
     """Validated (tensor table, metadata) of a safetensors file, reading only its header."""
     path = Path(path)
     if not path.is_file():
-        raise ModelFileError(f"{path}: file not found")
+        raise ModelFileError(f"{path}: is a folder, not a file" if path.is_dir() else f"{path}: file not found")
     size = path.stat().st_size
     if size < 8:
         raise ModelFileError(f"{path}: not a safetensors file (only {size} bytes)")

@@ -39,6 +39,13 @@ def video_path(path: str | os.PathLike) -> Path:
     return path.with_suffix(".gif")
 
 
+def check_fps(fps: float) -> float:
+    """``fps`` when a video can play at it (above 0, at most 240 frames a second), else a one-line error."""
+    if not 0 < fps <= 240:  # False for NaN too
+        raise CrfError(f"--fps {fps:g}: must be above 0 and at most 240")
+    return fps
+
+
 def to_uint8(frame: np.ndarray) -> np.ndarray:
     """A float [H, W, 3] image in [0, 1] (or uint8) as contiguous uint8 [H, W, 3]."""
     arr = np.asarray(frame)
@@ -55,8 +62,7 @@ def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: floa
     :func:`video_path`)."""
     if not frames:
         raise CrfError(f"{path}: no frames to write")
-    if not 0 < fps <= 240:
-        raise CrfError(f"--fps {fps:g}: must be between 0 and 240")
+    check_fps(fps)
     target = video_path(path)
     images = [to_uint8(f) for f in frames]
     if any(im.shape != images[0].shape for im in images):

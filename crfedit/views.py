@@ -105,8 +105,10 @@ def _split_views(spec: str, split: str, rest: str, model, instance: int) -> list
     table = model.views.get(split)
     cams = table.cameras(instance) if table is not None else []
     if not cams:
-        have = ", ".join(s for s in SPLITS if s in model.views) or "none"
-        raise CrfError(f"view spec {spec!r}: the model stores no {split} views of instance {instance} (splits: {have})")
+        have = [s for s in SPLITS if s in model.views and model.views[s].cameras(instance)]
+        name = model.names[instance] if 0 <= instance < len(model.names) else instance
+        stored = f"its stored splits: {', '.join(have)}" if have else "it has no stored views (an instance fit-real added)"
+        raise CrfError(f"view spec {spec!r}: the model stores no {split} views of instance {name} ({stored}; orbit:N renders any instance)")
     indices = range(len(cams)) if not rest.strip() and ":" not in spec else parse_indices(spec, rest, len(cams))
     return [(f"{split}:{i}", cams[i]) for i in indices]
 

@@ -233,6 +233,36 @@ def test_render_to_folder_library(model_path, tmp_path):
         render_to_folder(model, 0, "orbit:2", tmp_path / "turn.gif")
 
 
+def test_a_render_that_fails_part_way_leaves_none_of_its_frames(model_path, tmp_path, monkeypatch):
+    """A full disk at the third frame: the two frames written are removed again, the folder's
+    other files stay; a bad --fps fails before the first frame."""
+    import errno
+
+    import crfedit.render_files as render_files
+
+    model, _ = load_model(model_path)
+    out = tmp_path / "frames"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    real, calls = render_files.write_png, []
+
+    def write_png(path, image):
+        calls.append(path)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real(path, image)
+
+    monkeypatch.setattr(render_files, "write_png", write_png)
+    with pytest.raises(OSError):
+        render_to_folder(model, 0, "orbit:4", out, res=8)
+    assert len(calls) == 3 and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    monkeypatch.setattr(render_files, "write_png", real)
+    for fps in ("0", "nan", "300"):
+        assert_user_error(invoke("render", model_path, "--instance", 0, "--views", "orbit:2", "--fps", fps,
+                                 "--video", tmp_path / "t.gif", "--out", tmp_path / "r"), "--fps", "above 0 and at most 240")
+        assert not (tmp_path / "r").exists() and not (tmp_path / "t.gif").exists()
+
+
 def test_render_split_views_at_stored_size_and_gif(model_path, tmp_path):
     out = tmp_path / "r"
     result = invoke("render", model_path, "--instance", 0, "--views", "train:0-2", "--out", out, "--video", tmp_path / "t.gif")

@@ -283,6 +283,8 @@ def test_wrong_order_parent_and_base_are_rejected(tmp_path, model):
         apply_edit_files(model, [b])
     with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, so it must come first \(it is edit 2"):
         apply_edit_files(model, [a, c])
+    with pytest.raises(ModelFileError, match=r"a\.safetensors: is given twice \(edit 2 of the stack"):
+        apply_edit_files(model, [a, a])
     other = make_model(seed=1)
     with pytest.raises(ModelFileError, match=rf"a\.safetensors: made for model {model.fingerprint()}, not this model \({other.fingerprint()}\)"):
         apply_edit_files(other, [a])
@@ -467,7 +469,7 @@ def test_edits_show_check_bake_cli(tmp_path, model):
     wrong = runner.invoke(app, ["edits", "check", str(tmp_path / "other.safetensors"), "--edit", str(a)])
     assert_user_error(wrong, "made for model")
     same = runner.invoke(app, ["edits", "bake", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out", str(tmp_path / "m.safetensors")])
-    assert_user_error(same, "write the baked model to a new file")
+    assert_user_error(same, "is the model file", "pick another name for the baked model")
 
 
 def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):

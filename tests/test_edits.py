@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import sys
 from pathlib import Path
@@ -610,6 +611,21 @@ def test_edit_command_errors_write_nothing(trained, tmp_path):
     assert_user_error(invoke(*base, "--scribble", fg_png, "--color", "red", "--edit", edit, "--out", out),
                       "t.safetensors", "made for model")
     assert not out.exists()
+    # --out naming one of the command's own inputs, or a pipe: refused before any work, the input intact
+    scribble_bytes, edit_bytes = fg_png.read_bytes(), edit.read_bytes()
+    assert_user_error(invoke(*base, "--scribble", fg_png, "--color", "red", "--out", fg_png), "is the --scribble file")
+    assert_user_error(invoke("transfer", other, "--instance", 0, "--shape-from", 2, "--edit", edit, "--out", edit), "is the --edit file")
+    assert fg_png.read_bytes() == scribble_bytes and edit.read_bytes() == edit_bytes
+    os.mkfifo(tmp_path / "pipe")
+    assert_user_error(invoke(*base, "--scribble", fg_png, "--color", "red", "--out", tmp_path / "pipe"), "not a regular file")
+    assert (tmp_path / "pipe").is_fifo()
+    # a seed torch cannot take is a usage error, before any work
+    r = invoke(*base, "--scribble", fg_png, "--color", "red", "--seed", 2**64, "--out", out)
+    assert r.exit_code == 2 and "--seed" in r.stderr and "Traceback" not in r.output + r.stderr and not out.exists()
+    # strokes that all miss the view
+    outside = tmp_path / "outside.json"
+    outside.write_text('{"strokes": [[[300, 300], [310, 300]]]}')
+    assert_user_error(invoke(*base, "--scribble", outside, "--color", "red", "--out", out), "outside the 32x32 view")
 
 
 def test_paper_preset_edits_train_both_networks():

@@ -101,6 +101,29 @@ def test_png_writer_failing_midway_keeps_old_file(tmp_path, monkeypatch):
     assert listing(tmp_path) == ["view.png"]
 
 
+def test_a_full_disk_names_the_file_being_written_not_its_temporary(tmp_path, monkeypatch):
+    import errno
+
+    def full(self, fp, format=None, **params):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Image.Image, "save", full)
+    with pytest.raises(OSError) as caught:
+        write_png(tmp_path / "view.png", np.zeros((3, 3, 3)))
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(tmp_path / "view.png")
+    assert listing(tmp_path) == []
+
+
+def test_a_target_that_is_not_a_regular_file_is_refused(tmp_path):
+    """The rename would replace a folder's name, a pipe or a device node (/dev/full) with a file."""
+    os.mkfifo(tmp_path / "pipe")
+    (tmp_path / "folder").mkdir()
+    for target in (tmp_path / "pipe", tmp_path / "folder"):
+        with pytest.raises(CrfError, match="not a regular file"):
+            write_png(target, np.zeros((3, 3, 3)))
+    assert (tmp_path / "pipe").is_fifo() and (tmp_path / "folder").is_dir() and listing(tmp_path) == ["folder", "pipe"]
+
+
 def test_exr_writer_failing_midway_keeps_old_file(tmp_path, monkeypatch):
     target = tmp_path / "depth.exr"
     write_exr(target, {"Z": np.full((2, 3), 7.0, np.float32)})

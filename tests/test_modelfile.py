@@ -18,7 +18,7 @@ from crfedit.renderer import render_camera
 from crfedit.safefile import read_header
 from crfedit.train import train
 
-from cli_helpers import invoke
+from cli_helpers import assert_user_error, invoke
 
 
 def test_size_breakdown_adds_up_and_names_the_training_state(tiny_model):
@@ -48,8 +48,11 @@ def test_strip_keeps_renders_and_drops_resume(tiny_model, tiny_chairs, tmp_path)
 
     with pytest.raises(CrfError, match="holds no training state"):
         train(load_category(tiny_chairs), cfg, small, torch.device("cpu"), resume=True)
+    r = invoke("train", tiny_chairs, "--out", small, "--resume", "--minutes", 1, "--device", "cpu")
+    assert_user_error(r, "holds no training state")  # from the header, before the run's records are written
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["small.safetensors"]
     r = invoke("model", "strip", small, "--out", small)
-    assert r.exit_code == 2 and "is the input model" in r.stderr
+    assert r.exit_code == 2 and "is the model file" in r.stderr
 
 
 def test_bake_writes_a_stripped_model_by_default(tiny_model, tmp_path):

@@ -1342,6 +1342,16 @@ def test_the_keep_line_speaks_only_when_no_keep_stroke_lies_on_the_object():
     assert "the part head leaves no other part out" in keep_summary({"positives": 40, "keep_points": 0, "part_head": head})
 
 
+def test_the_coverage_line_speaks_when_nearly_every_cell_is_selected():
+    """A scribble drawn on another view than the one named selected 99 % of the chair; the
+    benchmark's selections hold at most 90 %, and say nothing."""
+    from crfedit.edit.selection import coverage_summary
+
+    assert coverage_summary({"selected_cells": 25091, "occupied_cells": 25240}).startswith("25091 of the instance's 25240")
+    assert coverage_summary({"selected_cells": 9000, "occupied_cells": 10000}) is None
+    assert coverage_summary({}) is None and coverage_summary({"selected_cells": 0, "occupied_cells": 0}) is None
+
+
 def test_a_stroke_beside_a_thin_part_snaps_onto_it(trained):
     """A stroke drawn on the background one pixel beside the legs lifts nothing: every pixel
     lifted as drawn, it is refused. Recolours and removals snap a scribble that lies mostly off

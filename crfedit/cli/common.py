@@ -7,6 +7,7 @@ import errno
 import functools
 import os
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -132,6 +133,28 @@ def os_error_message(e: OSError) -> str:
     return f"{' -> '.join(paths)}: {what}" if paths else what
 
 
+def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", example: str = "edit.safetensors") -> None:
+    """A command's one ``--out`` file, checked before any work: not one of the files the command
+    reads (``inputs``: the option's name → a path, a list of paths or None; ``MODEL`` for the
+    model argument), since the finished write would replace it; not a folder, device or pipe;
+    in a folder that exists and can be written."""
+    if out.exists():
+        for option, given in inputs.items():
+            for path in [given] if isinstance(given, (str, Path)) else list(given or []):
+                if Path(path).exists() and os.path.samefile(out, path):
+                    name = "the model file" if option == "MODEL" else f"the {option} file"
+                    raise CrfError(f"--out {out}: is {name}; pick another name for the {what}")
+        if out.is_dir():
+            raise CrfError(f"--out {out}: is a folder; give a file name such as {example}")
+        if not out.is_file():
+            raise CrfError(f"--out {out}: is not a regular file (a device or pipe); give a file name such as {example}")
+    folder = out.parent if str(out.parent) else Path(".")
+    if not folder.is_dir():
+        raise CrfError(f"--out {out}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise CrfError(f"--out {out}: folder {folder} is not writable")
+
+
 def user_errors(fn):
     """Decorator for commands: a CrfError, an OS error (permission, disk full, read-only file
     system), a broken pipe or Ctrl-C exits cleanly with one line, no traceback.  Sets torch's
@@ -169,7 +192,8 @@ class DeviceChoice(str, enum.Enum):
 
 
 DeviceOpt = Annotated[DeviceChoice, typer.Option("--device", help="Where to compute: auto picks cuda when available.")]
-SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed; the same seed gives the same result.")]
+SeedOpt = Annotated[int, typer.Option("--seed", min=0, max=2**63 - 1, help="Random seed; the same seed gives the same result.")]
+"""Seeds torch's generators take: 0 to 2⁶³ − 1."""
 AaOpt = Annotated[
     int, typer.Option("--aa", help="Antialiasing: aa×aa rays per pixel, box-filtered (1 = one ray per pixel center, aliased).")
 ]

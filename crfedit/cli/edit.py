@@ -15,7 +15,7 @@ import typer
 
 from ..errors import CrfError
 from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, PENALTIES, RECOLOR_RULES, STRATEGIES
-from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, command_line, edits_app, user_errors
+from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, edits_app, user_errors
 
 
 Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
@@ -51,14 +51,10 @@ PreviewViewsOpt = Annotated[str, typer.Option("--views", help="Views of the prev
 ForceOpt = Annotated[bool, typer.Option("--force", help="Accept a scribble that covers more than half the view.")]
 
 
-def _check_out(out: Path, model: Path) -> None:
-    if out.exists() and out.resolve() == Path(model).resolve():
-        raise CrfError(f"--out {out}: is the model file; pick another name for the edit")
-    if out.is_dir():
-        raise CrfError(f"--out {out}: is a folder; give a file name such as edit.safetensors")
-    folder = out.parent if str(out.parent) else Path(".")
-    if not folder.is_dir():
-        raise CrfError(f"--out {out}: folder {folder} does not exist")
+def _scribbled_inputs(model: Path, edits, scribble, scribble_json, keep, keep_json, selection) -> dict[str, object]:
+    """The files an edit command reads, for :func:`~.common.check_out_file`."""
+    return {"MODEL": model, "--edit": edits, "--scribble": scribble, "--scribble-json": scribble_json, "--keep": keep,
+            "--keep-json": keep_json, "--selection": selection}
 
 
 def _load(model: Path, edits: list[Path] | None, device: DeviceChoice):
@@ -268,7 +264,7 @@ def edit_color_cmd(
     rgb = parse_color(color)
     _require_scribble(scribble, scribble_json, "part to recolour")
     options = _options(strategy, steps, lr, rays, seed, penalty, recolor)
-    _check_out(out, model)
+    check_out_file(out, _scribbled_inputs(model, edit, scribble, scribble_json, keep, keep_json, selection))
     p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "color", preview, views,
                    join)
     result = edit_color(p.model, p.instance, p.camera, p.scribble, rgb, p.keep, options, method.value, p.selection, p.mirror)
@@ -309,7 +305,7 @@ def remove_cmd(
 
     _require_scribble(scribble, scribble_json, "part to remove")
     options = _options(strategy, steps, lr, rays, seed, penalty)
-    _check_out(out, model)
+    check_out_file(out, _scribbled_inputs(model, edit, scribble, scribble_json, keep, keep_json, selection))
     p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "remove", preview, views,
                    join)
     result = remove(p.model, p.instance, p.camera, p.scribble, p.keep, occluded, options, method.value, p.selection, p.mirror)
@@ -350,7 +346,7 @@ def add_cmd(
 
     dxdy = parse_offset(offset)
     options = _options(strategy, steps, lr, rays, seed, penalty)
-    _check_out(out, model)
+    check_out_file(out, {**_scribbled_inputs(model, edit, None, None, keep, keep_json, selection), "--copy": copy_mask})
     m = _load(model, edit, device)
     k, j = m.instance_index(instance), m.instance_index(donor)
     shown = _preview_views(m, k, preview, views)
@@ -388,7 +384,7 @@ def transfer_cmd(
 
     if shape_from is None and color_from is None:
         raise CrfError("transfer: give --shape-from or --color-from (or both)")
-    _check_out(out, model)
+    check_out_file(out, {"MODEL": model, "--edit": edit})
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     shown = _preview_views(m, k, preview, views)
@@ -547,8 +543,7 @@ def bake_cmd(
     from ..delta import bake
     from ..model import load_model, save_model
 
-    if out.exists() and out.resolve() == model.resolve():
-        raise CrfError(f"--out {out}: is the input model; write the baked model to a new file")
+    check_out_file(out, {"MODEL": model, "--edit": edit}, "baked model", "baked.safetensors")
     m, state = load_model(model, "cpu")
     baked = bake(m, edit)
     save_model(out, baked, state if training_state else None, extra_meta={"command": command_line()})

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from .common import DeviceChoice, DeviceOpt, SeedOpt, app, command_line, user_errors
+from .common import DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, user_errors
 
 
 class JointWeights(str, enum.Enum):
@@ -61,16 +61,6 @@ class FitProgress:
             typer.echo(line)
 
 
-def _check_out(out: Path, model: Path) -> None:
-    if out.exists() and out.resolve() == Path(model).resolve():
-        raise CrfError(f"--out {out}: is the model file; pick another name for the edit")
-    if out.is_dir():
-        raise CrfError(f"--out {out}: is a folder; give a file name such as real.safetensors")
-    folder = out.parent if str(out.parent) else Path(".")
-    if not folder.is_dir():
-        raise CrfError(f"--out {out}: folder {folder} does not exist")
-
-
 @app.command("fit-real")
 @user_errors
 def fit_real_cmd(
@@ -103,7 +93,7 @@ def fit_real_cmd(
         steps_codes=steps_codes, steps_joint=steps_joint, weights=weights.value, lr_codes=lr_codes,
         lr_weights=lr_weights, rays=rays, seed=seed,
     ).validated()
-    _check_out(out, model)
+    check_out_file(out, {"MODEL": model, "PHOTO": photo, "--mask": mask, "--edit": edit}, "edit", "real.safetensors")
     name_from = "--name" if name is not None else "instance name (the photo's file name)"
     name = photo.stem if name is None else name
     image, object_mask = read_photo(photo, mask)

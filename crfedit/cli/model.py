@@ -7,8 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ..errors import CrfError
-from .common import app, user_errors
+from .common import app, check_out_file, user_errors
 
 model_app = typer.Typer(help="Shareable model files.", no_args_is_help=True)
 app.add_typer(model_app, name="model")
@@ -30,10 +29,7 @@ def strip_cmd(
     """
     from ..modelfile import strip_model
 
-    if out.exists() and out.resolve() == model.resolve():
-        raise CrfError(f"--out {out}: is the input model; write the stripped model to a new file")
-    if out.is_dir():
-        raise CrfError(f"--out {out}: is a folder; give a file name such as small.safetensors")
+    check_out_file(out, {"MODEL": model}, "stripped model", "small.safetensors")
     before = model.stat().st_size if model.is_file() else 0
     sizes = strip_model(model, out)
     after = out.stat().st_size

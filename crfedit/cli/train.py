@@ -249,6 +249,8 @@ def train_cmd(
         if not out.is_file():
             raise CrfError(f"--resume: {out} does not exist (start without --resume)")
         stored = stored_training(out)
+        if not stored.resumable:  # before the dataset loads or any run record is written
+            raise CrfError(f"--resume: {out} holds no training state (it was baked or stripped)")
         stored_width = (stored.sizes.get("train") or [None])[0]
         if res is None:
             res = stored_width

@@ -213,7 +213,7 @@ def instance_names(root: Path) -> list[str]:
     """Names from ``root/instances.txt``, or ``[root.name]`` for a single NeRF-synthetic scene."""
     root = Path(root)
     if not root.is_dir():
-        raise DataError(f"{root}: dataset folder not found")
+        raise DataError(f"{root}: is a file, not a dataset folder" if root.exists() else f"{root}: dataset folder not found")
     listing = root / "instances.txt"
     if not listing.is_file():
         if (root / "transforms_train.json").is_file():

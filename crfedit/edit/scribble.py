@@ -74,12 +74,14 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
         if pts is None or not np.isfinite(pts).all():
             raise CrfError(f"{where}: stroke {i} is not a list of [x, y] pixel positions")
         mask |= strokes_mask((height, width), [pts], r)
+    if not mask.any():
+        raise CrfError(f"{where}: every stroke lies outside the {width}x{height} view (x from 0 to {width - 1}, y from 0 to {height - 1})")
     return mask
 
 
 def _radius(r, width: int, height: int, where: str) -> float:
     if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0 < r <= max(width, height):
-        raise CrfError(f"{where}: radius must be a number of pixels above 0")
+        raise CrfError(f"{where}: radius must be a number of pixels above 0 and at most the view's size ({max(width, height)})")
     return float(r)
 
 

@@ -102,7 +102,7 @@ The package follows these steps, one concept per module:
 - :mod:`.store`: the selection file; :mod:`.tint`: the tinted preview.
 """
 
-from .base import SUMMARIES, ScribbleView, Selection, join_summary, keep_summary, lines_summary, mirror_summary, part_summary, pieces_summary, shape_summary, stroke_summary
+from .base import SUMMARIES, ScribbleView, Selection, coverage_summary, join_summary, keep_summary, lines_summary, mirror_summary, part_summary, pieces_summary, shape_summary, stroke_summary
 from .features import CellPoints, cell_points, point_features, surface_points
 from .options import EDIT_KINDS, FEATURES, GROW_LOW, MIN_OPACITY, SelectOptions, options_for
 from .pipeline import select, select_for
@@ -111,6 +111,6 @@ from .tint import preview
 
 __all__ = [
     "CellPoints", "EDIT_KINDS", "FEATURES", "FORMAT", "GROW_LOW", "MIN_OPACITY", "SUMMARIES", "ScribbleView", "SelectOptions", "Selection", "load_selection",
-    "join_summary", "keep_summary", "lines_summary", "mirror_summary", "options_for", "part_summary", "pieces_summary", "cell_points", "point_features", "preview", "save_selection", "select", "select_for", "shape_summary", "stroke_summary",
+    "coverage_summary", "join_summary", "keep_summary", "lines_summary", "mirror_summary", "options_for", "part_summary", "pieces_summary", "cell_points", "point_features", "preview", "save_selection", "select", "select_for", "shape_summary", "stroke_summary",
     "surface_points",
 ]
