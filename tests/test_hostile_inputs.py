@@ -342,6 +342,12 @@ def with_dir(tmp: Path, name: str) -> Path:
     return tmp / name
 
 
+def with_fifo(tmp: Path, name: str) -> Path:
+    """``tmp/name``, a named pipe: a path that exists and is no regular file (as /dev/full is)."""
+    os.mkfifo(tmp / name)
+    return tmp / name
+
+
 def write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
@@ -587,6 +593,8 @@ CATALOGUE: list[Case] = [
     Case("out/the-model-itself/edits-bake", lambda e, t: (bake(t, e.model, e.delta, out=e.model)[0], []), ("is the model file",)),
     Case("out/a-folder/edit-color", lambda e, t: (edit_color(e, t, out=with_dir(t, "dir"))[0], []), ("is a folder",)),
     Case("out/a-folder/train", lambda e, t: (train_cmd(e, t, out=with_dir(t, "dir"))[0], []), ("is a folder",)),
+    Case("out/its-own-scribble/edit-color", lambda e, t: (edit_color(e, t, out=e.scribble)[0], []), ("is the --scribble file",)),
+    Case("out/a-pipe/transfer", lambda e, t: (transfer_cmd(e, t, out=with_fifo(t, "pipe"))[0], []), ("pipe", "not a regular file")),
     Case("out/video-in-missing-folder/render", lambda e, t: (render(e, t, "--video", t / "missing" / "v.gif")[0], [t / "frames", t / "missing"]),
          ("--video", "existing folder")),
     Case("out/under-a-file/dataset-synth",
