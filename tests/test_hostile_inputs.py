@@ -17,6 +17,7 @@ import ast
 import hashlib
 import json
 import os
+import re
 import shutil
 import struct
 import sys
@@ -666,7 +667,11 @@ def test_hostile_input(case: Case, env: Env, tmp_path: Path):
     inputs = [a for a in argv if isinstance(a, Path) and a.exists()] + [env.root, env.data, env.model]
     before = digest(inputs)
     result = invoke(*argv)
-    assert_user_error(result, *case.expect)
+    line = assert_user_error(result, *case.expect)
+    if os.environ.get("CRFEDIT_CATALOGUE"):  # docs/robustness.md's table: CRFEDIT_CATALOGUE=rows.md pytest this file
+        shown = re.sub(r"(?:/[^\s/'\"]+)+/(?=[^\s/'\"]+)", "", line)  # absolute paths as their file names
+        with open(os.environ["CRFEDIT_CATALOGUE"], "a", encoding="utf-8") as rows:
+            rows.write(f"| `{case.id}` | {shown.replace('|', chr(92) + '|')} |\n")
     assert digest(inputs) == before, "an input changed"
     assert leftovers(tmp_path, env.root, env.data.parent) == []
     for target in targets:
