@@ -139,7 +139,21 @@ class Config:
         return cls(**data).validated()
 
     def validated(self) -> "Config":
-        """Raise a one-line CrfError for values that cannot work."""
+        """Raise a one-line CrfError for values that cannot work: a wrong type (a damaged model
+        file), a non-finite number, a value out of its range, or a size no machine holds."""
+        for f in fields(self):
+            value, default = getattr(self, f.name), f.default
+            kind = (int, float) if type(default) is float else type(default)
+            if type(value) is bool and type(default) is not bool or not isinstance(value, kind):
+                raise CrfError(f"{f.name} {value!r}: expected {type(default).__name__}")
+            if isinstance(value, float) and not math.isfinite(value):
+                raise CrfError(f"{f.name} {value}: must be a finite number")
+        sizes = {"width": 4096, "rad_width": 4096, "code_dim": 4096, "code_embed": 4096, "bottleneck": 1024, "part_dim": 1024,
+                 "grid_features": 256, "share_layers": 64, "inst_layers": 64, "fuse_layers": 64, "rad_layers": 64,
+                 "n_coarse": 4096, "n_fine": 4096, "rays": 1 << 22, "pe_x": 20, "pe_d": 20, "grid_res": MAX_GRID_SIDE}
+        for key, most in sizes.items():
+            if getattr(self, key) > most:
+                raise CrfError(f"{key} {getattr(self, key)}: at most {most}")
         checks = [
             (self.preset in PRESETS, f"preset {self.preset!r}: expected one of {', '.join(PRESETS)}"),
             (self.arch in ARCHS, f"arch {self.arch!r}: expected one of {', '.join(ARCHS)}"),
@@ -152,6 +166,14 @@ class Config:
             (self.pe_x >= 0 and self.pe_d >= 0 and self.grid_res >= 0, "encoding sizes must be ≥ 0"),
             (2 <= self.occ_res <= MAX_GRID_SIDE, f"occ_res must be from 2 to {MAX_GRID_SIDE}"),
             (self.steps_per_cell > 0, "steps_per_cell must be > 0"),
+            (self.grid_res == 0 or self.grid_features >= 1, "grid_features must be ≥ 1 (or grid_res 0: no grid)"),
+            (0 < self.occ_threshold < 1, f"occ_threshold {self.occ_threshold:g}: must be between 0 and 1"),
+            (0 <= self.early_stop < 1 and 0 <= self.train_early_stop < 1, "early_stop and train_early_stop must be from 0 to below 1"),
+            (0 <= self.lr_final <= 1, f"lr_final {self.lr_final:g}: a fraction of the learning rate, from 0 to 1"),
+            (self.density_noise >= 0 and self.view_reg >= 0, "density_noise and view_reg must be ≥ 0"),
+            (self.hull_margin >= -1, f"hull_margin {self.hull_margin}: must be ≥ -1 (-1: no hull)"),
+            (self.occ_warmup >= 0, "occ_warmup must be ≥ 0"),
+            (self.eval_views >= 1, f"eval_views {self.eval_views}: must be ≥ 1"),
             (self.n_coarse >= 1 and self.n_fine >= 0, "n_coarse must be ≥ 1 and n_fine ≥ 0"),
             (self.rays >= 1, "rays must be ≥ 1"),
             (self.steps >= 1, "steps must be ≥ 1"),
@@ -253,7 +275,9 @@ def make_config(
     for item in sets:
         key, sep, value = item.partition("=")
         key = key.strip().replace("-", "_")
+        if key == "preset":
+            raise CrfError(f"--set {item}: the preset is chosen with --preset, before the --set changes")
         if not sep or key not in known:
-            raise CrfError(f"--set {item}: expected KEY=VALUE with KEY one of {', '.join(sorted(known))}")
+            raise CrfError(f"--set {item}: expected KEY=VALUE with KEY one of {', '.join(sorted(k for k in known if k != 'preset'))}")
         changes[key] = _coerce(key, value.strip(), known[key])
     return dataclasses.replace(cfg, **changes).validated()

@@ -429,6 +429,9 @@ def evaluate_edits(
     unknown = [s for s in strategies if s not in STRATEGIES]
     if unknown:
         raise CrfError(f"--strategies {','.join(strategies)}: {unknown[0]!r} is not one of {', '.join(STRATEGIES)}")
+    twice = sorted({s for s in strategies if list(strategies).count(s) > 1})
+    if twice:
+        raise CrfError(f"--strategies {','.join(strategies)}: {twice[0]!r} is named twice (each row would count its twins twice)")
     if not cases:
         raise CrfError(f"{category.root}: the dataset has no ground-truth twins (twins.json) to evaluate edits on")
     say = progress or (lambda _msg: None)

@@ -186,7 +186,7 @@ class FitOptions:
             (self.weights in JOINT, f"--weights {self.weights}: expected one of {', '.join(JOINT)}"),
             (math.isfinite(self.lr_codes) and self.lr_codes > 0, f"--lr-codes {self.lr_codes}: must be a positive number"),
             (math.isfinite(self.lr_weights) and self.lr_weights > 0, f"--lr-weights {self.lr_weights}: must be a positive number"),
-            (self.rays >= 1, f"--rays {self.rays}: need at least 1"),
+            (self.rays >= 2, f"--rays {self.rays}: need at least 2"),
             (math.isfinite(self.lambda_reg) and self.lambda_reg >= 0, f"lambda_reg {self.lambda_reg}: must be ≥ 0"),
         ]
         for ok, message in checks:
@@ -221,8 +221,10 @@ class FitResult(EditResult):
 def check_new_name(model: CategoryModel, name: str, what: str = "--name") -> str:
     """A valid name for an added instance: non-empty, not a number, not taken.  ``what`` says
     where the name came from in the error message."""
-    if not name or name != name.strip() or any(c in name for c in "\n\r\t"):
-        raise CrfError(f"{what} {name!r}: must be non-empty, without surrounding spaces or line breaks")
+    if not name or name != name.strip() or not name.isprintable():
+        raise CrfError(f"{what} {name!r}: must be non-empty, without surrounding spaces, line breaks or control characters")
+    if any(c in name for c in "/\\") or name in (".", ".."):  # names become file and folder names (a render's, the page's)
+        raise CrfError(f"{what} {name!r}: must not hold / or \\ (it names files)")
     if name.lstrip("-").isdigit():
         raise CrfError(f"{what} {name}: must not be a number (numbers select instances by index); pick a name with --name")
     if name in model.names:

@@ -102,8 +102,12 @@ class FusedAdam:
 
 def adam_step(opt: torch.optim.Optimizer | FusedAdam, loss: Tensor, before_step: Callable[[], None] | None = None) -> None:
     """One optimizer step on ``loss``, reading nothing back.  ``before_step`` runs between the
-    backward pass and the step (training averages the gradients over ranks there)."""
+    backward pass and the step (training averages the gradients over ranks there).  A loss that
+    no parameter reaches (a batch whose few rays all missed the object) is no step at all; under
+    ``before_step`` every rank must step, so there it is an error as before."""
     opt.zero_grad(set_to_none=True)
+    if not loss.requires_grad and before_step is None:
+        return
     loss.backward()
     if before_step is not None:
         before_step()

@@ -28,9 +28,12 @@ checked), and rank 0 alone writes the checkpoint, in the single-process format.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -260,6 +263,31 @@ def refresh_occupancy(field, hulls, ema, instances, generator, ranks: Ranks = SI
                 field.occupancy[instances], ema[instances] = rows
 
 
+@contextlib.contextmanager
+def interrupt_between_steps(enabled: bool = True):
+    """Yield an event that the first Ctrl-C (SIGINT) sets instead of raising, for the training
+    loop to read between steps: the checkpoint an interrupted run writes is then a step boundary
+    (weights, optimizer moments and generator state of the same step), and ``--resume`` goes on
+    as if never stopped.  A second Ctrl-C interrupts at once.  Only in the main thread, where
+    Python's own handler is installed (and not under torchrun, whose ranks could stop at
+    different steps): elsewhere the event is never set and Ctrl-C raises as usual."""
+    event = threading.Event()
+    if not enabled or threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield event
+        return
+
+    def on_sigint(signum, frame) -> None:
+        if event.is_set():
+            raise KeyboardInterrupt
+        event.set()
+
+    signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield event
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def train(
     category: Category,
     cfg: Config,
@@ -357,7 +385,9 @@ def train(
     if march is not None:
         march.load_state(state, device)
     cells = None if hulls is None else [h.reshape(-1).nonzero().squeeze(-1) for h in hulls]  # once: hulls are fixed
-    consequence = f"{out} keeps its last checkpoint"
+    # what a failed run leaves, said in its error: this run's last checkpoint once it wrote one
+    consequence = (f"{out} keeps its last checkpoint" if resume else
+                   f"{out} is left as it was (this run wrote no checkpoint yet)" if out.exists() else "no checkpoint was written yet")
     log = StepLog(2, device, size=read_every)  # per step: loss, MSE
     loss_value, mse_value, dropped = float("nan"), float("nan"), 0
 
@@ -373,6 +403,7 @@ def train(
             dropped += march.resize()
 
     def checkpoint() -> None:
+        nonlocal consequence
         read_out(False)
         check_finite(params, "training", consequence)
         rank_states = ranks.gather(rank_generator.get_state().tolist(), "gathering generator states") if ranks.world > 1 else []
@@ -394,59 +425,63 @@ def train(
             # the header also says how far the run's clock and time budget are, for --resume
             timing = {"elapsed": f"{elapsed:.3f}", **({"minutes": repr(float(minutes))} if minutes is not None else {})}
             save_model(out, model, train_state, {**meta, "step": str(step), **timing})
+        consequence = f"{out} keeps its last checkpoint"
         ranks.barrier("waiting for rank 0 to write the checkpoint")
 
     budget = None if minutes is None else 60.0 * minutes
     t_start = time.perf_counter() - elapsed
     try:  # Ctrl-C writes a checkpoint first, so an interrupted run can be resumed
-        while step < cfg.steps and (budget is None or elapsed < budget):
-            progress = None if budget is None else max(step / cfg.steps, elapsed / budget)
-            for g in opt.param_groups:
-                g["lr"] = learning_rate(cfg, g["base_lr"], step, progress)
-            batch = batches(n_rays, rank_generator)
-            noise = cfg.density_noise * max(0.0, 1.0 - step / max(1, cfg.occ_warmup))
-            out_r = render_rays(
-                field, batch.rays, batch.instance, generator=rank_generator, density_noise=noise,
-                early_stop=cfg.train_early_stop, jitter=batch.jitter, march=march,
-                background=1.0 if batch.background is None else batch.background, distortion=cfg.distortion > 0,
-            )
-            loss = batch_mse(out_r.rgb, batch.rgb, out_r.complete)
-            mse = loss.detach()
-            if out_r.coarse_rgb is not None:
-                loss = loss + batch_mse(out_r.coarse_rgb, batch.rgb, None)
-            if cfg.distortion > 0:
-                loss = loss + cfg.distortion * batch_mean(out_r.distortion, out_r.complete)
-            if cfg.view_reg > 0:
-                loss = loss + cfg.view_reg * view_dependence_penalty(field, batch.rays, batch.instance, out_r.depth, out_r.opacity, rank_generator)
-            if parts is not None:
-                x, inst, labels = sample_parts(parts, rank_generator)
-                embedding = field.part_embedding(field.fuse_features(field.normalize(x), inst))
-                loss = loss + cfg.part_weight * part_contrastive_loss(embedding.view(*labels.shape, -1), labels, n_labels)
-            loss = loss if weight == 1.0 else loss * weight
-            log.record(step, torch.stack([loss.detach(), mse]))
-            shared = []  # under torchrun: the step's mean loss, MSE and clock over ranks, from the gradient all-reduce
+        with interrupt_between_steps(ranks.world == 1) as interrupted:
+            while step < cfg.steps and (budget is None or elapsed < budget):
+                if interrupted.is_set():
+                    raise KeyboardInterrupt
+                progress = None if budget is None else max(step / cfg.steps, elapsed / budget)
+                for g in opt.param_groups:
+                    g["lr"] = learning_rate(cfg, g["base_lr"], step, progress)
+                batch = batches(n_rays, rank_generator)
+                noise = cfg.density_noise * max(0.0, 1.0 - step / max(1, cfg.occ_warmup))
+                out_r = render_rays(
+                    field, batch.rays, batch.instance, generator=rank_generator, density_noise=noise,
+                    early_stop=cfg.train_early_stop, jitter=batch.jitter, march=march,
+                    background=1.0 if batch.background is None else batch.background, distortion=cfg.distortion > 0,
+                )
+                loss = batch_mse(out_r.rgb, batch.rgb, out_r.complete)
+                mse = loss.detach()
+                if out_r.coarse_rgb is not None:
+                    loss = loss + batch_mse(out_r.coarse_rgb, batch.rgb, None)
+                if cfg.distortion > 0:
+                    loss = loss + cfg.distortion * batch_mean(out_r.distortion, out_r.complete)
+                if cfg.view_reg > 0:
+                    loss = loss + cfg.view_reg * view_dependence_penalty(field, batch.rays, batch.instance, out_r.depth, out_r.opacity, rank_generator)
+                if parts is not None:
+                    x, inst, labels = sample_parts(parts, rank_generator)
+                    embedding = field.part_embedding(field.fuse_features(field.normalize(x), inst))
+                    loss = loss + cfg.part_weight * part_contrastive_loss(embedding.view(*labels.shape, -1), labels, n_labels)
+                loss = loss if weight == 1.0 else loss * weight
+                log.record(step, torch.stack([loss.detach(), mse]))
+                shared = []  # under torchrun: the step's mean loss, MSE and clock over ranks, from the gradient all-reduce
 
-            def average_gradients() -> None:  # one host read per step: every rank must agree on when to stop
-                shared[:] = ranks.average(params, [float(loss.detach()), float(mse) * weight, time.perf_counter() - t_start])
-                check_losses([(step, shared)], "training", consequence)
+                def average_gradients() -> None:  # one host read per step: every rank must agree on when to stop
+                    shared[:] = ranks.average(params, [float(loss.detach()), float(mse) * weight, time.perf_counter() - t_start])
+                    check_losses([(step, shared)], "training", consequence)
 
-            adam_step(opt, loss, average_gradients if ranks.world > 1 else None)
-            step += 1
-            if hulls is not None and step >= cfg.occ_warmup and step % cfg.occ_every == 0:
-                per_update = max(1, math.ceil(len(category.instances) / 4))
-                ks = [(next_instance + i) % len(category.instances) for i in range(per_update)]
-                next_instance = (next_instance + per_update) % len(category.instances)
-                refresh_occupancy(field, hulls, ema, ks, generator, ranks, cells, march.step if march else None)
-            if ranks.world > 1:
-                loss_value, mse_value, elapsed = shared  # every rank stops at the same step
-            else:
-                elapsed = time.perf_counter() - t_start
-            if step % read_every == 0 or step % cfg.checkpoint_every == 0:
-                read_out(step % read_every == 0)
-            if on_step is not None:
-                on_step(step, loss_value, mse_to_psnr(mse_value), cfg.rays * step / max(elapsed, 1e-9))
-            if step % cfg.checkpoint_every == 0:
-                checkpoint()
+                adam_step(opt, loss, average_gradients if ranks.world > 1 else None)
+                step += 1
+                if hulls is not None and step >= cfg.occ_warmup and step % cfg.occ_every == 0:
+                    per_update = max(1, math.ceil(len(category.instances) / 4))
+                    ks = [(next_instance + i) % len(category.instances) for i in range(per_update)]
+                    next_instance = (next_instance + per_update) % len(category.instances)
+                    refresh_occupancy(field, hulls, ema, ks, generator, ranks, cells, march.step if march else None)
+                if ranks.world > 1:
+                    loss_value, mse_value, elapsed = shared  # every rank stops at the same step
+                else:
+                    elapsed = time.perf_counter() - t_start
+                if step % read_every == 0 or step % cfg.checkpoint_every == 0:
+                    read_out(step % read_every == 0)
+                if on_step is not None:
+                    on_step(step, loss_value, mse_to_psnr(mse_value), cfg.rays * step / max(elapsed, 1e-9))
+                if step % cfg.checkpoint_every == 0:
+                    checkpoint()
     except KeyboardInterrupt:
         if ranks.world > 1:  # the ranks may be interrupted inside different collectives: no joint write
             raise KeyboardInterrupt(f"{out} keeps its last checkpoint; continue with --resume") from None

@@ -33,6 +33,42 @@ def test_ctrl_c_before_the_first_checkpoint_writes_one(tiny_chairs, tmp_path):
     assert result.steps == 50 and int(load_model(out)[1]["step"]) == 50
 
 
+def test_a_ctrl_c_mid_step_stops_at_the_step_boundary_and_resume_is_bit_identical(tiny_chairs, tmp_path):
+    """SIGINT arrives inside step 3's forward pass: the step finishes, the checkpoint is of
+    step 3 (weights, Adam moments, generator), and --resume ends bit-identical to a run never
+    stopped."""
+    import os
+    import signal
+
+    import crfedit.train as train_module
+
+    cfg = make_config("fast", overrides=dict(steps=8, rays=64, checkpoint_every=10**9))
+    category = load_category(tiny_chairs)
+    whole, stopped = tmp_path / "whole.safetensors", tmp_path / "stopped.safetensors"
+    train(category, cfg, whole, torch.device("cpu"), seed=0)
+    real, calls = train_module.render_rays, []
+
+    def render_rays(*args, **kwargs):  # Ctrl-C in the middle of the third step's forward pass
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kwargs)
+
+    train_module.render_rays = render_rays
+    try:
+        with pytest.raises(KeyboardInterrupt, match="checkpoint at step 3"):
+            train(category, cfg, stopped, torch.device("cpu"), seed=0)
+    finally:
+        train_module.render_rays = real
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    train(category, cfg, stopped, torch.device("cpu"), seed=0, resume=True)
+    (a, sa), (b, sb) = load_model(whole), load_model(stopped)
+    sa.pop("elapsed"), sb.pop("elapsed")
+    assert a.state().keys() == b.state().keys() and sa.keys() == sb.keys()
+    assert all(torch.equal(a.state()[k], b.state()[k]) for k in a.state())
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
 def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
     import crfedit.train as train_module
 
@@ -60,8 +96,28 @@ def test_existing_model_is_not_replaced_silently(tiny_chairs, tmp_path):
     r = invoke("train", tiny_chairs, "--out", out, *TINY)
     assert r.exit_code == 2 and "--resume" in r.stderr and "--overwrite" in r.stderr, r.output
     assert out.read_bytes() == b"precious"
-    r = invoke("train", tiny_chairs, "--out", out, "--overwrite", *TINY)
-    assert r.exit_code == 0 and load_model(out)[1]["step"] == 3, r.output
+    r = invoke("train", tiny_chairs, "--out", out, "--overwrite", *TINY)  # --overwrite replaces models only
+    assert r.exit_code == 2 and "is not a crfedit model" in r.stderr and out.read_bytes() == b"precious", r.output
+    out.unlink()
+    assert invoke("train", tiny_chairs, "--out", out, *TINY).exit_code == 0
+    first = out.read_bytes()
+    r = invoke("train", tiny_chairs, "--out", out, "--overwrite", "--seed", 1, *TINY)
+    assert r.exit_code == 0 and load_model(out)[1]["step"] == 3 and out.read_bytes() != first, r.output
+
+
+def test_a_run_that_fails_before_its_first_checkpoint_leaves_the_records_as_they_were(tiny_chairs, tmp_path):
+    """Diverged at once (lr 1e30): a fresh run leaves no record files, and --overwrite of a model
+    leaves the model and its records byte for byte (they would describe a run the model does
+    not hold); the error says what was left."""
+    out = tmp_path / "m.safetensors"
+    r = invoke("train", tiny_chairs, "--out", out, "--set", "lr=1e30", *TINY)
+    assert r.exit_code == 2 and "no checkpoint was written yet" in r.stderr, r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    assert invoke("train", tiny_chairs, "--out", out, *TINY).exit_code == 0
+    kept = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    r = invoke("train", tiny_chairs, "--out", out, "--overwrite", "--set", "lr=1e30", *TINY)
+    assert r.exit_code == 2 and "is left as it was" in r.stderr, r.output
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == kept
 
 
 def test_train_out_creates_its_folder(tiny_chairs, tmp_path):

@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..io import check_folder_target
+from ..io import atomic_write_bytes, check_folder_target
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from .common import printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, user_errors
@@ -107,6 +107,16 @@ def _clock(seconds: float) -> str:
 # ----------------------------------------------------------------------------- helpers
 
 
+def _is_model(path: Path) -> bool:
+    """Whether ``path`` is a crfedit model file (by its header alone)."""
+    from ..safefile import MODEL_FORMAT, read_header
+
+    try:
+        return read_header(path)[1].get("format") == MODEL_FORMAT
+    except (CrfError, OSError):
+        return False
+
+
 def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, what: str = "--out") -> None:
     """``out`` is a file name whose folder is created if missing; an existing model there is
     only continued (``resume``) or replaced (``overwrite``), never replaced silently."""
@@ -114,6 +124,8 @@ def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, 
         raise CrfError(f"{what} {out}: is a folder; give a file name such as {out / 'model.safetensors'}")
     if out.exists() and not (resume or overwrite):
         raise CrfError(f"{what} {out}: exists; continue its training with --resume, or replace it with --overwrite")
+    if out.exists() and not _is_model(out):
+        raise CrfError(f"{what} {out}: exists and is not a crfedit model; --resume and --overwrite take only models (pick another name)")
     folder = out.parent
     if folder.exists() and not folder.is_dir():
         raise CrfError(f"{what} {out}: {folder} is a file, not a folder")
@@ -162,6 +174,11 @@ def run_training(
     paths = record_paths(out)
     typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}")
     typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""))
+    # the records as they were: a run that fails before its first checkpoint puts them back, so
+    # they never describe a run the model file does not hold
+    before = {p: p.read_bytes() if p.is_file() else None for p in (paths["run"], paths["log"])}
+    stamp = lambda: (out.stat().st_mtime_ns, out.stat().st_size) if out.is_file() else None
+    model_before, finished = stamp(), False
     log = RunLog(out, cfg, log_every, minutes, resume, run)
     try:
         with TrainProgress(cfg, minutes, first_step) as progress:
@@ -169,12 +186,20 @@ def run_training(
                 progress.on_step(*args)
                 log.on_step(*args)
 
-            return train(
+            result = train(
                 category, cfg, out, device, seed=seed, minutes=minutes, resume=resume,
                 on_step=on_step, extra_meta={"command": command_line()}, ranks=ranks, **options,
             )
+            finished = True
+            return result
     finally:
         log.close()
+        if not finished and stamp() == model_before:
+            for path, data in before.items():
+                if data is None:
+                    path.unlink(missing_ok=True)
+                else:
+                    atomic_write_bytes(path, data)
 
 
 def _finished(step: int, steps: int, elapsed: float | None, minutes: float | None) -> str:

@@ -143,6 +143,8 @@ def _load_split(
     focal_px = meta.get("focal", meta.get("fl_x"))
     if not isinstance(angle, (int, float)) and not isinstance(focal_px, (int, float)):
         raise DataError(f"{path}: missing camera_angle_x (or focal / fl_x)")
+    if isinstance(angle, (int, float)) and not 0 < angle < math.pi:  # 0 or π: no pinhole camera has it
+        raise DataError(f"{path}: camera_angle_x {angle}: a field of view in radians, between 0 and π")
     views, first_size = [], None
     for k, frame in enumerate(frames):
         file_path = frame.get("file_path") if isinstance(frame, dict) else None
