@@ -161,8 +161,9 @@ def run_training(
     if resume and out.is_file():
         stored = stored_training(out)
         stored_cfg, first_step = stored.cfg, stored.step
-        if stored_cfg != cfg and ranks.main:
-            typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps)")
+        ignored = ignored_flags(part_config(category, cfg), stored_cfg)
+        if ignored and ranks.main:
+            typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps); {ignored}")
         cfg = stored_cfg
     else:
         cfg = part_config(category, cfg)  # what train() will store, for the records
@@ -200,6 +201,13 @@ def run_training(
                     path.unlink(missing_ok=True)
                 else:
                     atomic_write_bytes(path, data)
+
+
+def ignored_flags(asked, stored) -> str:
+    """What ``--resume`` ignores: the settings asked for that differ from the stored run's
+    ("" when none do)."""
+    differ = [f"{k} {getattr(asked, k)} (stored {getattr(stored, k)})" for k in vars(asked) if getattr(asked, k) != getattr(stored, k)]
+    return f"ignored: {', '.join(differ)}" if differ else ""
 
 
 def _finished(step: int, steps: int, elapsed: float | None, minutes: float | None) -> str:
@@ -292,7 +300,10 @@ def train_cmd(
         if resume and finished:  # rewriting it would only replace its records
             if stored.dataset != category.fingerprint:
                 raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {stored.dataset})")
-            typer.echo(f"{out} {finished}")
+            from ..parts import part_config
+
+            ignored = ignored_flags(part_config(category, cfg), stored.cfg)
+            typer.echo(f"{out} {finished}" + (f"; {ignored}" if ignored else ""))
             return
         seed_everything(seed)  # train() draws the initial weights from torch's global generator
         model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value)
