@@ -277,6 +277,13 @@ def test_broken_and_empty_meshes_are_one_line_errors(tmp_path):
 
     assert_user_error(invoke("dataset", "from-meshes", tmp_path / "out", broken), "broken.ply")
     assert not (tmp_path / "out").exists()  # meshes are checked before anything is written
+    noise = tmp_path / "noise.obj"
+    noise.write_bytes(np.random.default_rng(0).integers(0, 256, 3000, dtype=np.uint8).tobytes())
+    with pytest.raises(DataError, match=r"noise\.obj: cannot read mesh"):
+        load_part_mesh(noise)
+    (tmp_path / "folder.obj").mkdir()
+    with pytest.raises(DataError, match=r"folder\.obj: is a folder, not a mesh file"):
+        load_part_mesh(tmp_path / "folder.obj")
 
 
 def test_missing_embreex_is_a_data_error_with_the_install_hint(boxes, tmp_path, monkeypatch):

@@ -108,11 +108,13 @@ def load_part_mesh(path: str | Path) -> PartMesh:
     path = Path(path)
     trimesh = _trimesh()
     if not path.is_file():
-        raise DataError(f"{path}: mesh file not found")
+        raise DataError(f"{path}: is a folder, not a mesh file" if path.is_dir() else f"{path}: mesh file not found")
     if path.suffix.lower().lstrip(".") not in trimesh.available_formats():
         raise DataError(f"{path}: not a mesh format trimesh reads (use .obj, .ply, .glb, .gltf, .off or .stl)")
     try:
         scene = trimesh.load(path, force="scene")
+    except ImportError:  # trimesh reaches for an optional text-encoding detector on bytes that are no text
+        raise DataError(f"{path}: cannot read mesh (not {path.suffix.lstrip('.').upper()} text in a known encoding)") from None
     except Exception as e:  # trimesh's loaders raise anything from ValueError to IndexError
         raise DataError(f"{path}: cannot read mesh ({e.__class__.__name__}: {str(e)[:120]})") from None
 
