@@ -55,12 +55,14 @@ def test_a_ctrl_c_mid_step_stops_at_the_step_boundary_and_resume_is_bit_identica
         return real(*args, **kwargs)
 
     train_module.render_rays = render_rays
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)  # a background job starts with SIGINT ignored
     try:
         with pytest.raises(KeyboardInterrupt, match="checkpoint at step 3"):
             train(category, cfg, stopped, torch.device("cpu"), seed=0)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the loop's handler is gone again
     finally:
         train_module.render_rays = real
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        signal.signal(signal.SIGINT, inherited)
     train(category, cfg, stopped, torch.device("cpu"), seed=0, resume=True)
     (a, sa), (b, sb) = load_model(whole), load_model(stopped)
     sa.pop("elapsed"), sb.pop("elapsed")
