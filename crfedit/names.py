@@ -10,6 +10,11 @@ COLOR_CODES = "color_codes"
 CODE_TABLES = (SHAPE_CODES, COLOR_CODES)
 """State-dict names of the per-instance code tables [K, code_dim]."""
 
+MODEL_FORMAT = "crfedit-model"
+EDIT_FORMAT = "crfedit-edit"
+SELECTION_FORMAT = "crfedit-selection"
+"""The ``format`` metadata of crfedit's three kinds of safetensors file."""
+
 STRATEGIES = ("hybrid", "codes", "all")
 """What an edit trains.  hybrid: ``edit.params.TRAINED``; codes: the instance's code row only;
 all: every network weight that renders (not the part head F_part) and the instance's code rows."""

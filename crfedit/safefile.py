@@ -20,6 +20,7 @@ from safetensors.torch import save as st_save
 from .config import MAX_GRID_SIDE
 from .errors import ModelFileError
 from .io import atomic_write_bytes
+from .names import EDIT_FORMAT, MODEL_FORMAT, SELECTION_FORMAT
 
 MAX_HEADER_BYTES = 16 * 1024 * 1024
 MAX_FILE_BYTES = 4 * 1024**3
@@ -114,9 +115,6 @@ def fingerprint(tensors: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()[:16]
 
 
-MODEL_FORMAT = "crfedit-model"
-EDIT_FORMAT = "crfedit-edit"
-SELECTION_FORMAT = "crfedit-selection"
 """The ``format`` metadata of crfedit's three kinds of file, here so that each kind's module
 (:mod:`.model`, :mod:`.delta`, :mod:`.edit.selection.store`) and :func:`other_kind` name them
 from one place."""

@@ -616,6 +616,8 @@ def test_edit_command_errors_write_nothing(trained, tmp_path):
     assert_user_error(invoke(*base, "--scribble", fg_png, "--color", "red", "--out", fg_png), "is the --scribble file")
     assert_user_error(invoke("transfer", other, "--instance", 0, "--shape-from", 2, "--edit", edit, "--out", edit), "is the --edit file")
     assert fg_png.read_bytes() == scribble_bytes and edit.read_bytes() == edit_bytes
+    assert_user_error(invoke("transfer", path, "--instance", 0, "--shape-from", 2, "--out", other), "is a crfedit model file")
+    assert invoke("transfer", other, "--instance", 0, "--shape-from", 2, "--out", edit).exit_code == 0  # an edit over an edit
     os.mkfifo(tmp_path / "pipe")
     assert_user_error(invoke(*base, "--scribble", fg_png, "--color", "red", "--out", tmp_path / "pipe"), "not a regular file")
     assert (tmp_path / "pipe").is_fifo()

@@ -13,6 +13,7 @@ from typing import Annotated
 import typer
 
 from ..errors import EXIT_USER_ERROR, CrfError
+from ..names import EDIT_FORMAT, MODEL_FORMAT, SELECTION_FORMAT
 
 def _readable(param) -> None:
     """Give a click parameter a readable metavar: its name in capitals (MODEL, EDIT), N for an
@@ -133,11 +134,13 @@ def os_error_message(e: OSError) -> str:
     return f"{' -> '.join(paths)}: {what}" if paths else what
 
 
-def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", example: str = "edit.safetensors") -> None:
+def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", example: str = "edit.safetensors",
+                   writes: str = EDIT_FORMAT) -> None:
     """A command's one ``--out`` file, checked before any work: not one of the files the command
     reads (``inputs``: the option's name → a path, a list of paths or None; ``MODEL`` for the
     model argument), since the finished write would replace it; not a folder, device or pipe;
-    in a folder that exists and can be written."""
+    not a crfedit file of another kind than the one it ``writes`` (an edit written over a copy
+    of a model); in a folder that exists and can be written."""
     if out.exists():
         for option, given in inputs.items():
             for path in [given] if isinstance(given, (str, Path)) else list(given or []):
@@ -148,6 +151,15 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
             raise CrfError(f"--out {out}: is a folder; give a file name such as {example}")
         if not out.is_file():
             raise CrfError(f"--out {out}: is not a regular file (a device or pipe); give a file name such as {example}")
+        from ..safefile import read_header
+
+        try:
+            held = read_header(out)[1].get("format")
+        except CrfError:
+            held = None  # not a crfedit file: replaced as any output is
+        kinds = {MODEL_FORMAT: "model", EDIT_FORMAT: "edit", SELECTION_FORMAT: "selection"}
+        if held in kinds and held != writes:
+            raise CrfError(f"--out {out}: is a crfedit {kinds[held]} file, which the {what} would replace; pick another name")
     folder = out.parent if str(out.parent) else Path(".")
     if not folder.is_dir():
         raise CrfError(f"--out {out}: folder {folder} does not exist")

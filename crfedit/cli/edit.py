@@ -14,7 +14,7 @@ from typing import Annotated, NamedTuple, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, PENALTIES, RECOLOR_RULES, STRATEGIES
+from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, MODEL_FORMAT, PENALTIES, RECOLOR_RULES, STRATEGIES
 from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, edits_app, user_errors
 
 
@@ -543,7 +543,7 @@ def bake_cmd(
     from ..delta import bake
     from ..model import load_model, save_model
 
-    check_out_file(out, {"MODEL": model, "--edit": edit}, "baked model", "baked.safetensors")
+    check_out_file(out, {"MODEL": model, "--edit": edit}, "baked model", "baked.safetensors", MODEL_FORMAT)
     m, state = load_model(model, "cpu")
     baked = bake(m, edit)
     save_model(out, baked, state if training_state else None, extra_meta={"command": command_line()})

@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from ..names import MODEL_FORMAT
 from .common import app, check_out_file, user_errors
 
 model_app = typer.Typer(help="Shareable model files.", no_args_is_help=True)
@@ -29,7 +30,7 @@ def strip_cmd(
     """
     from ..modelfile import strip_model
 
-    check_out_file(out, {"MODEL": model}, "stripped model", "small.safetensors")
+    check_out_file(out, {"MODEL": model}, "stripped model", "small.safetensors", MODEL_FORMAT)
     before = model.stat().st_size if model.is_file() else 0
     sizes = strip_model(model, out)
     after = out.stat().st_size

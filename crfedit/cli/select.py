@@ -8,6 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
+from ..names import SELECTION_FORMAT
 from .common import DeviceChoice, DeviceOpt, app, check_out_file, printable, user_errors
 from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _load, _one_view, _preview_views, _view_render
 
@@ -59,7 +60,7 @@ def select_cmd(
     if keep and len(keep) != len(view):
         raise CrfError(f"give no --keep or one per --view ({len(view)} views, {len(keep)} keep masks)")
     options = options_for(kind, None if mirror is None else mirror.value, None if join is None else join.value)
-    check_out_file(out, {"MODEL": model, "--edit": edit, "--scribble": scribble, "--keep": keep}, "selection", "sel.safetensors")
+    check_out_file(out, {"MODEL": model, "--edit": edit, "--scribble": scribble, "--keep": keep}, "selection", "sel.safetensors", SELECTION_FORMAT)
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     shown = _preview_views(m, k, preview, views)
