@@ -5,6 +5,7 @@ from __future__ import annotations
 import enum
 import json
 import math
+import shutil
 import time
 from pathlib import Path
 from typing import Annotated, Optional
@@ -178,6 +179,8 @@ def run_training(
     # the records as they were: a run that fails before its first checkpoint puts them back, so
     # they never describe a run the model file does not hold
     before = {p: p.read_bytes() if p.is_file() else None for p in (paths["run"], paths["log"])}
+    tb = paths["tensorboard"]  # TensorBoard's events, when it is installed: this run's files go again
+    tb_before = {p for p in tb.rglob("*")} if tb.is_dir() else None
     stamp = lambda: (out.stat().st_mtime_ns, out.stat().st_size) if out.is_file() else None
     model_before, finished = stamp(), False
     log = RunLog(out, cfg, log_every, minutes, resume, run)
@@ -201,6 +204,11 @@ def run_training(
                     path.unlink(missing_ok=True)
                 else:
                     atomic_write_bytes(path, data)
+            if tb_before is None:
+                shutil.rmtree(tb, ignore_errors=True)
+            elif tb.is_dir():
+                for path in sorted(set(tb.rglob("*")) - tb_before, reverse=True):
+                    (shutil.rmtree if path.is_dir() else Path.unlink)(path)
 
 
 def ignored_flags(asked, stored) -> str:
