@@ -130,6 +130,15 @@ def other_kind(fmt: object) -> str:
     }.get(fmt if isinstance(fmt, str) else "", "")
 
 
+def file_format(path: str | os.PathLike) -> str | None:
+    """The ``format`` its metadata names of a safetensors file at ``path`` (a crfedit model, edit
+    or selection), None for a file that is not safetensors or cannot be read."""
+    try:
+        return read_header(path)[1].get("format")
+    except (ModelFileError, OSError):
+        return None
+
+
 # ----------------------------------------------------------------------------- bit-packed grids
 
 

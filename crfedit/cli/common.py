@@ -151,12 +151,9 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
             raise CrfError(f"--out {out}: is a folder; give a file name such as {example}")
         if not out.is_file():
             raise CrfError(f"--out {out}: is not a regular file (a device or pipe); give a file name such as {example}")
-        from ..safefile import read_header
+        from ..safefile import file_format
 
-        try:
-            held = read_header(out)[1].get("format")
-        except CrfError:
-            held = None  # not a crfedit file: replaced as any output is
+        held = file_format(out)  # None: not a crfedit file, replaced as any output is
         kinds = {MODEL_FORMAT: "model", EDIT_FORMAT: "edit", SELECTION_FORMAT: "selection"}
         if held in kinds and held != writes:
             raise CrfError(f"--out {out}: is a crfedit {kinds[held]} file, which the {what} would replace; pick another name")

@@ -15,6 +15,7 @@ import typer
 from ..io import atomic_write_bytes, check_folder_target
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
+from ..names import MODEL_FORMAT
 from .common import printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, user_errors
 
 
@@ -108,24 +109,16 @@ def _clock(seconds: float) -> str:
 # ----------------------------------------------------------------------------- helpers
 
 
-def _is_model(path: Path) -> bool:
-    """Whether ``path`` is a crfedit model file (by its header alone)."""
-    from ..safefile import MODEL_FORMAT, read_header
-
-    try:
-        return read_header(path)[1].get("format") == MODEL_FORMAT
-    except (CrfError, OSError):
-        return False
-
-
 def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, what: str = "--out") -> None:
     """``out`` is a file name whose folder is created if missing; an existing model there is
     only continued (``resume``) or replaced (``overwrite``), never replaced silently."""
+    from ..safefile import file_format
+
     if out.is_dir():
         raise CrfError(f"{what} {out}: is a folder; give a file name such as {out / 'model.safetensors'}")
     if out.exists() and not (resume or overwrite):
         raise CrfError(f"{what} {out}: exists; continue its training with --resume, or replace it with --overwrite")
-    if out.exists() and not _is_model(out):
+    if out.exists() and file_format(out) != MODEL_FORMAT:
         raise CrfError(f"{what} {out}: exists and is not a crfedit model; --resume and --overwrite take only models (pick another name)")
     folder = out.parent
     if folder.exists() and not folder.is_dir():
