@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import textwrap
 from pathlib import Path
 
 from .config import Config
-from .io import write_json
+from .io import atomic_write_bytes, write_json
 
 COLUMNS = ("step", "loss", "psnr", "rays_per_s", "lr", "seconds")
 
@@ -70,6 +71,10 @@ class RunLog:
         self.paths, self.cfg, self.every = record_paths(model_path), cfg, max(1, every)
         self.budget = None if minutes is None else 60.0 * minutes
         self._lr = learning_rate
+        # the records as they were, for take_back()
+        self._before = {p: p.read_bytes() if p.is_file() else None for p in (self.paths["run"], self.paths["log"])}
+        tb = self.paths["tensorboard"]
+        self._tb_before = set(tb.rglob("*")) if tb.is_dir() else None
         write_json(self.paths["run"], run_record(self.paths["run"], run, cfg, resume))
         fresh = not (resume and self.paths["log"].is_file())
         self.file = open(self.paths["log"], "w" if fresh else "a", newline="")
@@ -94,3 +99,19 @@ class RunLog:
         self.file.close()
         if self.tb is not None:
             self.tb.close()
+
+    def take_back(self) -> None:
+        """Put the records back as they were before this run (after :meth:`close`): for a run
+        that failed before its first checkpoint, whose records would describe a run the model
+        file does not hold.  TensorBoard's events of this run go too."""
+        for path, data in self._before.items():
+            if data is None:
+                path.unlink(missing_ok=True)
+            else:
+                atomic_write_bytes(path, data)
+        tb = self.paths["tensorboard"]
+        if self._tb_before is None:
+            shutil.rmtree(tb, ignore_errors=True)
+        elif tb.is_dir():
+            for path in sorted(set(tb.rglob("*")) - self._tb_before, reverse=True):  # a new folder's files first
+                (shutil.rmtree if path.is_dir() else Path.unlink)(path)

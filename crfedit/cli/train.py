@@ -5,14 +5,13 @@ from __future__ import annotations
 import enum
 import json
 import math
-import shutil
 import time
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 
-from ..io import atomic_write_bytes, check_folder_target
+from ..io import check_folder_target
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from ..names import MODEL_FORMAT
@@ -169,11 +168,7 @@ def run_training(
     paths = record_paths(out)
     typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}")
     typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""))
-    # the records as they were: a run that fails before its first checkpoint puts them back, so
-    # they never describe a run the model file does not hold
-    before = {p: p.read_bytes() if p.is_file() else None for p in (paths["run"], paths["log"])}
-    tb = paths["tensorboard"]  # TensorBoard's events, when it is installed: this run's files go again
-    tb_before = {p for p in tb.rglob("*")} if tb.is_dir() else None
+    # a run that fails before its first checkpoint takes its records back (RunLog.take_back)
     stamp = lambda: (out.stat().st_mtime_ns, out.stat().st_size) if out.is_file() else None
     model_before, finished = stamp(), False
     log = RunLog(out, cfg, log_every, minutes, resume, run)
@@ -192,16 +187,7 @@ def run_training(
     finally:
         log.close()
         if not finished and stamp() == model_before:
-            for path, data in before.items():
-                if data is None:
-                    path.unlink(missing_ok=True)
-                else:
-                    atomic_write_bytes(path, data)
-            if tb_before is None:
-                shutil.rmtree(tb, ignore_errors=True)
-            elif tb.is_dir():
-                for path in sorted(set(tb.rglob("*")) - tb_before, reverse=True):
-                    (shutil.rmtree if path.is_dir() else Path.unlink)(path)
+            log.take_back()
 
 
 def ignored_flags(asked, stored) -> str:
