@@ -199,7 +199,7 @@ def rank_device(choice: str, ranks: Ranks) -> torch.device:
     if not torch.cuda.is_available():
         raise CrfError("--device cuda: no CUDA device is available (use --device cpu or auto)")
     if ranks.local_rank >= torch.cuda.device_count():
-        raise CrfError(f"LOCAL_RANK {ranks.local_rank}: this node has only {torch.cuda.device_count()} CUDA devices")
+        raise DistributedError(f"rank {ranks.rank} of {ranks.world}: LOCAL_RANK {ranks.local_rank}, but this node has only {torch.cuda.device_count()} CUDA devices")
     return torch.device("cuda", ranks.local_rank)
 
 

@@ -60,8 +60,11 @@ def render_to_folder(
         raise CrfError(f"--chunk {chunk}: must be at least 1")
     views = resolve_views(spec, model, instance, res)
     if video is not None:
-        video_path(video)  # a bad suffix or frame rate fails before any rendering
+        target = video_path(video)  # a bad suffix or frame rate fails before any rendering
         check_fps(fps)
+        if target != video and target.exists():  # the GIF in place of an MP4 is a file the user did not name
+            raise CrfError(f"--video {video}: without the [video] extra (pip install -e '.[video]') this writes {target.name}, "
+                           f"which exists already; give --video {target} to replace it")
         if video.is_dir() or not video.parent.is_dir():
             raise CrfError(f"--video {video}: needs a file name in an existing folder")
     if ranks.main:

@@ -284,6 +284,20 @@ def test_video_falls_back_to_gif_without_imageio_ffmpeg(tmp_path, monkeypatch):
     assert (tmp_path / "v.gif").is_file() and not (tmp_path / "v.mp4").exists()
 
 
+def test_render_refuses_a_gif_fallback_over_an_existing_gif(model_path, tmp_path, monkeypatch):
+    """--video v.mp4 without the extra writes v.gif: a file the user did not name, so an existing
+    one is refused before any rendering (naming v.gif replaces it)."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    (tmp_path / "v.gif").write_bytes(b"GIF89a mine")
+    result = invoke("render", model_path, "--instance", 0, "--views", "test", "--out", tmp_path / "r", "--video", tmp_path / "v.mp4")
+    assert_user_error(result, "v.gif, which exists already", f"--video {tmp_path / 'v.gif'}")
+    assert (tmp_path / "v.gif").read_bytes() == b"GIF89a mine" and not (tmp_path / "r").exists()
+    result = invoke("render", model_path, "--instance", 0, "--views", "test", "--out", tmp_path / "r", "--video", tmp_path / "v.gif")
+    assert result.exit_code == 0 and (tmp_path / "v.gif").read_bytes()[:6] == b"GIF89a" and len((tmp_path / "v.gif").read_bytes()) > 11
+
+
 @pytest.mark.skipif(not __import__("crfedit.video").video.mp4_available(), reason="imageio-ffmpeg is not installed")
 def test_video_mp4(tmp_path):
     frames = [np.full((5, 7, 3), k / 4, dtype=np.float32) for k in range(4)]

@@ -268,3 +268,27 @@ def test_a_broken_job_exits_without_teardown():
         r = subprocess.run([sys.executable, "-c", script.format(b=flag)], capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and r.stderr.startswith("error: "), (r.returncode, r.stderr)
         assert ("teardown" in r.stdout) == teardown, (flag, r.stdout)
+
+
+def test_under_torchrun_one_line_per_job_and_unshared_commands_refused(tiny_model, tmp_path, monkeypatch):
+    """Under torchrun (``RANK``/``WORLD_SIZE`` set) a user error found before the process group
+    is printed by rank 0 alone (every rank read the same arguments and files); a command that
+    does not share its work over ranks is refused instead of running once per rank."""
+    from cli_helpers import assert_user_error, invoke
+
+    render = ["render", tiny_model, "--instance", "nope", "--views", "test", "--out", tmp_path / "r", "--device", "cpu"]
+    export = ["model", "strip", tiny_model, "--out", tmp_path / "s.safetensors"]
+    for rank in (0, 1):
+        monkeypatch.setenv("RANK", str(rank))
+        monkeypatch.setenv("LOCAL_RANK", str(rank))
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        r, s = invoke(*render), invoke(*export)
+        if rank == 0:
+            assert_user_error(r, "unknown instance 'nope'")
+            assert_user_error(s, "does not share its work over torchrun's ranks", "without torchrun")
+        else:
+            assert (r.exit_code, r.stderr, s.exit_code, s.stderr) == (2, "", 2, "")
+    assert not (tmp_path / "s.safetensors").exists() and not (tmp_path / "r").exists()
+    monkeypatch.setenv("WORLD_SIZE", "1")  # torchrun --nproc-per-node 1: nothing to share, the command runs
+    monkeypatch.setenv("RANK", "0")
+    assert invoke(*export).exit_code == 0 and (tmp_path / "s.safetensors").is_file()

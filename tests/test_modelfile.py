@@ -68,3 +68,20 @@ def test_bake_writes_a_stripped_model_by_default(tiny_model, tmp_path):
     assert size_breakdown(tmp_path / "b.safetensors")["training state"] == 0
     r = invoke("edits", "bake", tiny_model, "--edit", edit, "--out", tmp_path / "c.safetensors", "--training-state")
     assert r.exit_code == 0 and size_breakdown(tmp_path / "c.safetensors")["training state"] == size_breakdown(tiny_model)["training state"]
+    # an existing model is replaced only with --overwrite (it took training to make); an edit
+    # replaces an edit, and an empty file (mktemp), but never a file that is not crfedit's
+    c_bytes = (tmp_path / "c.safetensors").read_bytes()
+    r = invoke("edits", "bake", tiny_model, "--edit", edit, "--out", tmp_path / "c.safetensors")
+    assert r.exit_code == 2 and "is a crfedit model already" in r.stderr and (tmp_path / "c.safetensors").read_bytes() == c_bytes
+    r = invoke("model", "strip", tiny_model, "--out", tmp_path / "c.safetensors")
+    assert r.exit_code == 2 and "--overwrite" in r.stderr and (tmp_path / "c.safetensors").read_bytes() == c_bytes
+    r = invoke("edits", "bake", tiny_model, "--edit", edit, "--out", tmp_path / "c.safetensors", "--overwrite")
+    assert r.exit_code == 0 and size_breakdown(tmp_path / "c.safetensors")["training state"] == 0
+    (tmp_path / "empty.safetensors").write_bytes(b"")
+    notes = tmp_path / "notes.safetensors"
+    notes.write_text("not a model")
+    for out, code in ((edit, 0), (tmp_path / "empty.safetensors", 0), (notes, 2)):
+        r = invoke("edit-color", tiny_model, "--instance", 0, "--view", "train:0", "--scribble", tmp_path / "s.png",
+                   "--color", "blue", "--steps", 2, "--device", "cpu", "--out", out)
+        assert r.exit_code == code, r.output
+    assert "not crfedit's" in r.stderr and notes.read_text() == "not a model"

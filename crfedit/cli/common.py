@@ -135,12 +135,15 @@ def os_error_message(e: OSError) -> str:
 
 
 def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", example: str = "edit.safetensors",
-                   writes: str = EDIT_FORMAT) -> None:
+                   writes: str = EDIT_FORMAT, overwrite: bool = False) -> None:
     """A command's one ``--out`` file, checked before any work: not one of the files the command
     reads (``inputs``: the option's name → a path, a list of paths or None; ``MODEL`` for the
     model argument), since the finished write would replace it; not a folder, device or pipe;
-    not a crfedit file of another kind than the one it ``writes`` (an edit written over a copy
-    of a model); in a folder that exists and can be written."""
+    not a non-empty file that is not crfedit's (a photo or notes, lost to a typo); not a crfedit
+    file of another kind than the one it ``writes`` (an edit written over a copy of a model); not
+    a model when it writes one, unless ``overwrite`` (a model took training to make, as
+    ``train --overwrite``); in a folder that exists and can be written.  An edit or selection
+    replaces one of its own kind, or an empty file (``mktemp``): both are seconds to remake."""
     if out.exists():
         for option, given in inputs.items():
             for path in [given] if isinstance(given, (str, Path)) else list(given or []):
@@ -153,10 +156,15 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
             raise CrfError(f"--out {out}: is not a regular file (a device or pipe); give a file name such as {example}")
         from ..safefile import file_format
 
-        held = file_format(out)  # None: not a crfedit file, replaced as any output is
+        held = file_format(out)  # None: not a crfedit file
         kinds = {MODEL_FORMAT: "model", EDIT_FORMAT: "edit", SELECTION_FORMAT: "selection"}
-        if held in kinds and held != writes:
-            raise CrfError(f"--out {out}: is a crfedit {kinds[held]} file, which the {what} would replace; pick another name")
+        if held not in kinds and out.stat().st_size > 0:
+            raise CrfError(f"--out {out}: holds a file that is not crfedit's, which the {what} would replace; pick another name")
+        if held != writes:
+            if held in kinds:
+                raise CrfError(f"--out {out}: is a crfedit {kinds[held]} file, which the {what} would replace; pick another name")
+        elif held == MODEL_FORMAT and not overwrite:
+            raise CrfError(f"--out {out}: is a crfedit model already; replace it with --overwrite, or pick another name")
     folder = out.parent if str(out.parent) else Path(".")
     if not folder.is_dir():
         raise CrfError(f"--out {out}: folder {folder} does not exist")
@@ -164,32 +172,72 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
         raise CrfError(f"--out {out}: folder {folder} is not writable")
 
 
-def user_errors(fn):
+def torchrun_place() -> tuple[int, int]:
+    """``(rank, world)`` as torchrun sets them (``RANK``, ``WORLD_SIZE``); ``(0, 1)`` for a
+    plain run or values that are not numbers (:func:`~crfedit.distributed.ranks_from_env`
+    names those)."""
+    try:
+        return int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1"))
+    except ValueError:
+        return 0, 1
+
+
+def _says_it(error: BaseException) -> bool:
+    """Whether this process prints ``error``.  Under torchrun a rank other than 0 keeps quiet
+    about a user error met before its process group formed, and about Ctrl-C: it read the same
+    arguments and files as rank 0, whose line says it (one line, not one per rank).  Errors of
+    its own (a collective, its device, its disk) it prints, its rank named."""
+    rank, world = torchrun_place()
+    if rank == 0 or world <= 1:
+        return True
+    if isinstance(error, KeyboardInterrupt):
+        return False
+    dist = sys.modules.get("crfedit.distributed")
+    joined = "torch.distributed" in sys.modules and sys.modules["torch.distributed"].is_available() and sys.modules["torch.distributed"].is_initialized()
+    return not isinstance(error, CrfError) or joined or (dist is not None and isinstance(error, dist.DistributedError))
+
+
+def user_errors(fn=None, *, ranked: bool = False):
     """Decorator for commands: a CrfError, an OS error (permission, disk full, read-only file
     system), a broken pipe or Ctrl-C exits cleanly with one line, no traceback.  Sets torch's
-    threads first when :class:`Session` says so (torch is imported only here, when a command runs)."""
+    threads first when :class:`Session` says so (torch is imported only here, when a command runs).
+    Under torchrun a command that does not share its work over the ranks (``ranked=False``:
+    every one but train, render and eval recon/edits) is refused rather than run once per rank,
+    and a rank other than 0 prints only errors of its own (:func:`_says_it`)."""
+    if fn is None:
+        return functools.partial(user_errors, ranked=ranked)
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        def stop(message: str, error: BaseException, code: int = EXIT_USER_ERROR) -> "typer.Exit":
+            if not _says_it(error):
+                return typer.Exit(code)
+            rank, world = torchrun_place()
+            return fail(message if rank == 0 or message.startswith("rank ") else f"rank {rank} of {world}: {message}")
+
         try:
+            if torchrun_place()[1] > 1 and not ranked:
+                raise CrfError("this command does not share its work over torchrun's ranks (train, render, eval recon "
+                               "and eval edits do); run it once, without torchrun")
             if Session.threads is not None:
                 from ..runtime import configure_threads
 
                 configure_threads(Session.threads)
             return fn(*args, **kwargs)
         except CrfError as e:
-            raise fail(str(e)) from None
+            raise stop(str(e), e) from None
         except KeyboardInterrupt as e:
-            typer.echo(f"interrupted{': ' + str(e) if str(e) else ''}", err=True)
+            if _says_it(e):
+                typer.echo(f"interrupted{': ' + str(e) if str(e) else ''}", err=True)
             raise typer.Exit(130) from None
-        except MemoryError:
-            raise fail("out of memory (try a smaller --res, --rays or --chunk)") from None
+        except MemoryError as e:
+            raise stop("out of memory (try a smaller --res, --rays or --chunk)", e) from None
         except BrokenPipeError:
             raise typer.Exit(1) from None
         except OSError as e:
             if debug_requested():
                 raise
-            raise fail(os_error_message(e)) from None
+            raise stop(os_error_message(e), e) from None
 
     return wrapper
 

@@ -535,6 +535,7 @@ def bake_cmd(
     edit: Annotated[list[Path], typer.Option("--edit", help="Edit file to fold in (repeatable, in the order they apply).")],
     out: Annotated[Path, typer.Option("--out", help="Model file to write (atomically).")],
     training_state: Annotated[bool, typer.Option("--training-state", help="Also copy the input's training state (default: the baked model is stripped).")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out model instead of refusing.")] = False,
 ) -> None:
     """Fold a stack of edits into a new model file (renders like the model with the stack applied).
 
@@ -543,7 +544,7 @@ def bake_cmd(
     from ..delta import bake
     from ..model import load_model, save_model
 
-    check_out_file(out, {"MODEL": model, "--edit": edit}, "baked model", "baked.safetensors", MODEL_FORMAT)
+    check_out_file(out, {"MODEL": model, "--edit": edit}, "baked model", "baked.safetensors", MODEL_FORMAT, overwrite)
     m, state = load_model(model, "cpu")
     baked = bake(m, edit)
     save_model(out, baked, state if training_state else None, extra_meta={"command": command_line()})

@@ -112,7 +112,7 @@ def _load(model: Path, data: Path, device: DeviceChoice, strict: bool, split: st
 
 
 @eval_app.command("recon")
-@user_errors
+@user_errors(ranked=True)
 def recon_cmd(
     model: ModelArg,
     data: DataArg,
@@ -176,7 +176,7 @@ TABLE_TITLES = {"color": "Table 2 (colour edits)", "remove": "Table 3 (shape edi
 
 
 @eval_app.command("edits")
-@user_errors
+@user_errors(ranked=True)
 def edits_cmd(
     model: ModelArg,
     data: DataArg,

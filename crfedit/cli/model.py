@@ -23,6 +23,7 @@ def _kb(n: int) -> str:
 def strip_cmd(
     model: Annotated[Path, typer.Argument(metavar="MODEL", help="Model file (.safetensors) written by crfedit train.")],
     out: Annotated[Path, typer.Option("--out", metavar="SMALL", help="Model file to write, without the training state.")],
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out model instead of refusing.")] = False,
 ) -> None:
     """Copy a model without its training state (optimizer moments, occupancy statistics).
 
@@ -30,7 +31,7 @@ def strip_cmd(
     """
     from ..modelfile import strip_model
 
-    check_out_file(out, {"MODEL": model}, "stripped model", "small.safetensors", MODEL_FORMAT)
+    check_out_file(out, {"MODEL": model}, "stripped model", "small.safetensors", MODEL_FORMAT, overwrite)
     before = model.stat().st_size if model.is_file() else 0
     sizes = strip_model(model, out)
     after = out.stat().st_size

@@ -11,7 +11,7 @@ from .common import DeviceChoice, DeviceOpt, app, user_errors
 
 
 @app.command("render")
-@user_errors
+@user_errors(ranked=True)
 def render_cmd(
     model: Annotated[Path, typer.Argument(metavar="MODEL", help="Model file (.safetensors).")],
     instance: Annotated[str, typer.Option("--instance", help="Instance to render: a name or an index.")],

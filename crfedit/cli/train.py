@@ -212,7 +212,7 @@ def _finished(step: int, steps: int, elapsed: float | None, minutes: float | Non
 
 
 @app.command("train")
-@user_errors
+@user_errors(ranked=True)
 def train_cmd(
     data: Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt), a NeRF-synthetic scene, or nerfstudio transforms.json scene(s).")],
     out: Annotated[Path, typer.Option("--out", metavar="MODEL", help="Model file to write, e.g. model.safetensors (its folder is created if missing).")],
