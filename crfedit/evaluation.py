@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -153,6 +154,7 @@ def score_model(
     lpips_weights: str | Path | None = None,
     chunk: int = DEFAULT_CHUNK,
     ranks: Ranks = SINGLE,
+    progress: Progress | None = None,
 ) -> dict:
     """PSNR / SSIM (and LPIPS when weights are configured) of the model's renders of ``split``.
 
@@ -167,7 +169,7 @@ def score_model(
 
     Means are over all scored views (each view counts once, whatever its instance).
     Under torchrun (``ranks``) each rank scores every ``world``-th instance and every rank
-    returns the gathered result.
+    returns the gathered result.  ``progress`` gets a line per instance scored (rank 0's).
     """
     if max_views is not None and max_views < 1:
         raise CrfError(f"--max-views {max_views}: must be at least 1")
@@ -179,13 +181,19 @@ def score_model(
         if missing:
             raise CrfError(f"instance {missing[0]!r} of the model is not in the dataset {category.root}")
     per_instance, note = {}, None
-    for k in ranks.shard(indices):
+    say = progress if progress is not None and ranks.main else (lambda _msg: None)
+    mine = ranks.shard(indices)
+    started = time.perf_counter()
+    for i, k in enumerate(mine):
         name = model.names[k]
         views = category.instance(name).splits.get(split, [])[:max_views]
         if views:
             score = score_instance(model, k, views, lpips_weights, chunk)
             note = score["lpips_note"]
             per_instance[name] = {key: score[key] for key in ("n", "psnr", "ssim", "lpips")}
+            elapsed = time.perf_counter() - started
+            say(f"{name} ({i + 1}/{len(mine)}{'' if ranks.world == 1 else ' on rank 0'}): {len(views)} views, "
+                f"PSNR {score['psnr']:.2f} dB, {elapsed / (i + 1):.2f} s per instance, ~{elapsed / (i + 1) * (len(mine) - i - 1):.0f} s left")
     if ranks.world > 1:
         parts = ranks.gather((per_instance, note), "gathering the scores")
         scored = {name: row for part, _ in parts for name, row in part.items()}
@@ -213,6 +221,7 @@ def evaluate_recon(
     max_views: int | None = None,
     lpips_weights: str | Path | None = None,
     ranks: Ranks = SINGLE,
+    progress: Progress | None = None,
 ) -> dict:
     """Held-out reconstruction scores of every model instance that ``category`` holds.
 
@@ -223,7 +232,7 @@ def evaluate_recon(
     """
     if split not in ("train", "val", "test"):
         raise CrfError(f"--split {split}: expected train, val or test")
-    score = score_model(model, category, split, max_views, lpips_weights=lpips_weights, ranks=ranks)
+    score = score_model(model, category, split, max_views, lpips_weights=lpips_weights, ranks=ranks, progress=progress)
     instances = score.pop("instances")
     match = fingerprint_warning(model, category) is None
     return {**score, "ssim_note": SSIM_NOTE, "dataset_match": match, "instances": instances}

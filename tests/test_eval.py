@@ -75,13 +75,16 @@ def test_recon_prints_a_table_per_instance_with_the_metric_notes(model_path, dat
     assert "SSIM: 11×11 Gaussian window, σ=1.5, on RGB" in out
     assert "LPIPS: skipped (no weights)" in out
     assert "LPIPS " not in out.split("SSIM: 11")[0]  # no LPIPS column without weights
-    assert result.stderr == ""  # the dataset is the model's: no warning
+    # the dataset is the model's: no warning, only a progress line per instance
+    assert [line.split(" (")[0] for line in result.stderr.splitlines()] == ["chair_000", "chair_001"], result.stderr
+    assert "(2/2): " in result.stderr and "s left" in result.stderr
 
 
 def test_recon_json_is_valid_json_with_the_expected_keys(model_path, data):
     result = invoke("eval", "recon", model_path, data, "--json", "--max-views", 1, "--device", "cpu")
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
+    assert result.stderr.count(" views, PSNR ") == 2  # progress on stderr, JSON alone on stdout
     assert {"model", "data", "split", "n", "psnr", "ssim", "lpips", "lpips_note", "ssim_note", "dataset_match", "instances"} <= set(report)
     assert report["split"] == "test" and report["n"] == 2 and report["dataset_match"] is True
     assert report["lpips"] is None and "no weights" in report["lpips_note"]

@@ -138,7 +138,7 @@ def recon_cmd(
     ranks = ranks or SINGLE
     m, category = _load(model, data, device, strict, split.value)
     with process_group(ranks, m.device):
-        score = evaluate_recon(m, category, split.value, max_views, lpips_weights, ranks)
+        score = evaluate_recon(m, category, split.value, max_views, lpips_weights, ranks, progress=_err)
     if not ranks.main:
         return
     if as_json:
