@@ -107,6 +107,14 @@ def spherical_eye(azimuth_deg: float, elevation_deg: float, radius: float) -> np
     return radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
 
 
+def eye_angles(eye: np.ndarray) -> tuple[float, float]:
+    """``(azimuth, elevation)`` in degrees of a point, the inverse of :func:`spherical_eye`:
+    azimuth in [0, 360) from +X towards +Y, elevation above the XY plane (0 at the origin)."""
+    x, y, z = (float(v) for v in np.asarray(eye, dtype=np.float64)[:3])
+    flat = math.hypot(x, y)
+    return math.degrees(math.atan2(y, x)) % 360.0, math.degrees(math.atan2(z, flat)) if flat or z else 0.0
+
+
 def orbit_cameras(
     n: int, elevation_deg: float, radius: float, focal: float, width: int, height: int
 ) -> list[Camera]:

@@ -15,6 +15,7 @@ from crfedit.cameras import (
     orbit_cameras,
     ray_directions_camera,
     rays_from_camera,
+    eye_angles,
     spherical_eye,
 )
 
@@ -79,6 +80,13 @@ def test_look_at_straight_down_is_still_a_rotation():
     assert np.isfinite(c2w).all()
     np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(r[:, 2], [0.0, 0.0, 1.0])
+
+
+def test_eye_angles_invert_spherical_eye():
+    for az, el in [(0.0, 0.0), (45.0, 30.0), (200.0, -70.0), (359.5, 89.0), (90.0, 10.0)]:
+        got = eye_angles(spherical_eye(az, el, 3.7))
+        assert got == pytest.approx((az, el), abs=1e-9)
+    assert eye_angles(np.zeros(3)) == (0.0, 0.0) and eye_angles(np.array([0.0, 0.0, -2.0])) == (0.0, -90.0)
 
 
 def test_spherical_eye_hand_values():

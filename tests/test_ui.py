@@ -162,7 +162,7 @@ def test_page_and_assets_are_served_with_the_token_and_fetch_nothing_else(ui):
 
 @pytest.mark.parametrize("method,path", [
     ("GET", "/"), ("GET", "/static/app.js"), ("GET", "/api/state"), ("GET", "/api/view?instance=0&view=train:0"),
-    ("GET", "/api/thumb?instance=0"), ("GET", "/api/photo?instance=0&split=train&index=0"), ("POST", "/api/select"),
+    ("GET", "/api/thumb?instance=0"), ("GET", "/api/angles?instance=0"), ("GET", "/api/photo?instance=0&split=train&index=0"), ("POST", "/api/select"),
     ("POST", "/api/select/clear"), ("POST", "/api/edit"), ("GET", "/api/job"), ("POST", "/api/cancel"),
     ("POST", "/api/stack/toggle"), ("POST", "/api/stack/move"), ("POST", "/api/stack/save"),
     ("GET", "/api/stack/download?id=1"), ("POST", "/api/bake"), ("GET", "/api/shell"), ("GET", "/api/ws"),
@@ -259,6 +259,14 @@ def test_state_views_thumbnails_and_photos(ui, edit_category):
     assert "elevation" in ui.error("GET", "/api/view?instance=0&az=0&el=95")
     assert "az=" in ui.error("GET", "/api/view?instance=0&az=x&el=0")
     assert "no view" in ui.error("GET", "/api/photo?instance=0&split=train&index=50")
+    # where each stored view looks from, for the page's orbit sliders
+    angles = json.loads(ui.get("/api/angles?instance=chair_001"))
+    assert set(angles) == set(model.views) and len(angles["train"]) == 8
+    for (az, el), cam in zip(angles["train"], model.views["train"].cameras(1)):
+        eye = cam.c2w[:3, 3]
+        assert abs(((np.degrees(np.arctan2(eye[1], eye[0])) - az) + 180) % 360 - 180) <= 0.5
+        assert abs(np.degrees(np.arcsin(eye[2] / np.linalg.norm(eye))) - el) <= 0.5
+    assert "unknown instance" in ui.error("GET", "/api/angles?instance=nobody")
 
 
 def test_select_tints_the_selection_over_any_view_until_cleared(ui, scene):

@@ -54,6 +54,13 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     drive.pick_view(p, "train:0")
     before = p.pixels()
     assert before.shape == (32, 32, 3) and p.error() == ""
+    # the orbit sliders move to where the stored view looks from, marked as near it
+    from crfedit.cameras import eye_angles
+
+    az, el = eye_angles(view.camera.c2w[:3, 3])
+    p.wait("return document.getElementById('az-out').textContent.startsWith('≈')", 30)
+    assert p.js("return [Number(document.getElementById('azimuth').value), Number(document.getElementById('elevation').value)]") \
+        == [round(az) % 360, round(el)]
 
     p.draw(stroke)
     drawn = p.js("return Strokes.toJson(marks().fg)")
@@ -69,6 +76,8 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     drive.apply_edit(p, "color")
     after = p.pixels()
     assert len(p.driver.find_elements("css selector", "#stack li")) == 1
+    said = p.driver.find_element("css selector", "#selection-info").text  # the old selection's count is gone
+    assert "recolour is applied" in said and "occupied cells" not in said, said
 
     under = strokes_json_mask(drawn, 32, 32, "stroke") & (view.parts == part)
     target = np.array([0x20, 0x40, 0xFF], dtype=float)
@@ -91,6 +100,12 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     drive.toggle_last(p, True)
     assert not np.array_equal(p.pixels(), before)
     assert p.error() == "" and p.console_errors() == []
+
+    # a reload of the tab keeps the strokes, the instance and the view (sessionStorage)
+    p.driver.refresh()
+    p.wait("return typeof S !== 'undefined' && S.info !== null && !S.viewBusy && performance.getEntriesByName('crfedit:view').length > 0", 60)
+    assert p.js("return [S.instance, S.view]") == [0, "train:0"]
+    assert p.js("return Strokes.toJson(marks().fg)") == drawn
 
     running.stop()  # a lost server is one sentence in the page
     p.wait("return !document.getElementById('error').hidden", 30)

@@ -138,6 +138,7 @@ class Server:
         r.add_get("/api/state", self.state)
         r.add_get("/api/view", self.view)
         r.add_get("/api/thumb", self.thumb)
+        r.add_get("/api/angles", self.angles)
         r.add_get("/api/photo", self.photo)
         r.add_post("/api/select", self.select)
         r.add_post("/api/select/clear", self.clear_selection)
@@ -262,6 +263,9 @@ class Server:
 
     async def thumb(self, request):
         return self._png(await self._run(self.session.thumbnail, request.query.get("instance", "")))
+
+    async def angles(self, request):
+        return web.json_response(await self._run(self.session.view_angles, request.query.get("instance", "")))
 
     async def photo(self, request):
         q = request.query

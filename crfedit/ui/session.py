@@ -28,6 +28,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from ..cameras import eye_angles
 from ..data.loading import Category
 from ..delta import Delta, apply_deltas, bake, delta_bytes, read_delta, restack, save_delta
 from ..edit import add, edit_color, remove, transfer
@@ -183,6 +184,14 @@ class UiSession:
             return png_bytes(out.rgb)
 
         return self._cached(self._renders, cache_key, make)
+
+    def view_angles(self, instance) -> dict:
+        """``{split: [[azimuth, elevation], ...]}``: where each stored view of ``instance`` looks
+        from, in whole degrees (:func:`~crfedit.cameras.eye_angles`), so the page's orbit sliders
+        and orbit tool go on from a stored view instead of from where they were."""
+        k = instance_of(self.base, instance)
+        return {split: [[round(a) % 360, round(e)] for a, e in (eye_angles(c.c2w[:3, 3]) for c in table.cameras(k))]
+                for split, table in self.base.views.items()}
 
     def thumbnail(self, instance) -> bytes:
         return self.render(instance, THUMB_VIEW)

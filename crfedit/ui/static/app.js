@@ -16,6 +16,7 @@ const S = {
   tool: "fg", radius: 1.5, tint: false, drag: null,
   viewBusy: false, viewAgain: false, turnSeq: 0,
   job: null, ws: null, lost: false,
+  angles: new Map(), // instance -> {split: [[azimuth, elevation], ...]} of its stored views (/api/angles)
 };
 
 // ------------------------------------------------------------------------------------ server
@@ -89,6 +90,30 @@ function viewQuery(view, instance) {
   return `${v}&instance=${instance}&s=${S.state}`;
 }
 
+// The strokes, the instance and the view outlive a reload of the tab (sessionStorage, this
+// tab only), for this model and image size.
+const storeKey = () => `crfedit:${S.info.model}:${S.info.width}x${S.info.height}`;
+
+function saveMarks() {
+  if (!S.info) return;
+  const marks = [...S.marks].filter(([, m]) => m.fg.length || m.bg.length);
+  try {
+    sessionStorage.setItem(storeKey(), JSON.stringify({ marks, instance: S.instance, view: S.view }));
+  } catch (e) { /* storage full or off: strokes live in the page only */ }
+}
+
+function restoreMarks() {
+  let saved = null;
+  try { saved = JSON.parse(sessionStorage.getItem(storeKey()) || "null"); } catch (e) { saved = null; }
+  if (!saved || !Array.isArray(saved.marks)) return null;
+  S.marks = new Map(saved.marks.filter((e) => Array.isArray(e) && e.length === 2 && e[1] && Array.isArray(e[1].fg) && Array.isArray(e[1].bg)));
+  const k = Number.isInteger(saved.instance) && saved.instance >= 0 && saved.instance < S.info.instances.length ? saved.instance : 0;
+  const v = saved.view;
+  const stored = typeof v === "string" && ((S.info.splits[v.slice(0, v.lastIndexOf(":"))] || [])[k] || 0) > Number(v.slice(v.lastIndexOf(":") + 1));
+  const view = stored || (v && typeof v === "object" && Number.isFinite(v.azimuth) && Number.isFinite(v.elevation)) ? v : null;
+  return { instance: k, view };
+}
+
 function marks(key = markKey()) {
   if (!S.marks.has(key)) S.marks.set(key, { fg: [], bg: [] });
   return S.marks.get(key);
@@ -136,7 +161,7 @@ function wipe() {
 // user clicked through several chairs) are dropped, not drawn among the newer chair's tiles.
 async function showTurntable() {
   const start = performance.now(), seq = ++S.turnSeq;
-  const el = typeof S.view === "string" ? 30 : S.view.elevation;
+  const el = (viewAngles() || { elevation: 30 }).elevation;
   const tint = S.tint ? "&tint=1" : "";
   const imgs = [...$("turntable").children];
   await Promise.all(imgs.map(async (img, i) => {
@@ -146,13 +171,35 @@ async function showTurntable() {
   if (seq === S.turnSeq) measure("turntable", start);
 }
 
+// Where a view looks from: an orbit view's own angles, a stored view's from /api/angles (null
+// until they have come).
+function viewAngles(view = S.view) {
+  if (typeof view !== "string") return view;
+  const [split, index] = [view.slice(0, view.lastIndexOf(":")), Number(view.slice(view.lastIndexOf(":") + 1))];
+  const a = ((S.angles.get(shownInstance()) || {})[split] || [])[index];
+  return a ? { azimuth: a[0], elevation: Math.max(-80, Math.min(80, a[1])) } : null;
+}
+
+// The sliders show where the view looks from (a stored view's angles with "≈": the orbit view
+// there is at the stored views' distance, not the view itself).
+function showSliders() {
+  const a = viewAngles();
+  if (!a) return;
+  const near = typeof S.view === "string" ? "≈" : "";
+  $("azimuth").value = a.azimuth; $("az-out").textContent = `${near}${a.azimuth}°`;
+  $("elevation").value = a.elevation; $("el-out").textContent = `${near}${a.elevation}°`;
+}
+
 function setView(view) {
   S.view = view;
-  if (typeof view !== "string") {
-    $("azimuth").value = view.azimuth; $("az-out").textContent = `${view.azimuth}°`;
-    $("elevation").value = view.elevation; $("el-out").textContent = `${view.elevation}°`;
-  }
+  showSliders();
+  saveMarks();
   showView();
+}
+
+async function loadAngles(k) {
+  if (!S.angles.has(k)) S.angles.set(k, await getJson(`/api/angles?instance=${k}`));
+  showSliders();
 }
 
 function orbitFromSliders() {
@@ -175,6 +222,7 @@ function redraw() {
   }
   const ctx = c.getContext("2d");
   ctx.clearRect(0, 0, c.width, c.height);
+  saveMarks();
   const scale = canvasScale();
   if (S.donorMode) {
     Strokes.draw(ctx, S.copy ? S.copy.strokes : [], "copy", scale);
@@ -227,8 +275,7 @@ function onDown(e) {
   $("strokes").setPointerCapture(e.pointerId);
   const p = pixelAt(e);
   if (S.tool === "orbit") {
-    const v = typeof S.view === "string" ? { azimuth: 45, elevation: 30 } : S.view;
-    S.drag = { x: e.clientX, y: e.clientY, view: v };
+    S.drag = { x: e.clientX, y: e.clientY, view: viewAngles() || { azimuth: 45, elevation: 30 } };
   } else if (S.tool === "paste") {
     S.paste = p;
     pasteInfo();
@@ -299,7 +346,9 @@ function pickInstance(k) {
   S.tint = false;
   $("tint").checked = false;
   buildSplitViews();
+  showSliders();
   showView();
+  attempt(() => loadAngles(k));
   attempt(showTurntable);
 }
 
@@ -380,7 +429,7 @@ async function start() {
   for (let i = 0; i < 8; i++) {
     const img = document.createElement("img");
     img.title = `orbit ${i * 45}°`;
-    img.addEventListener("click", () => setView({ azimuth: i * 45, elevation: typeof S.view === "string" ? 30 : S.view.elevation }));
+    img.addEventListener("click", () => setView({ azimuth: i * 45, elevation: (viewAngles() || { elevation: 30 }).elevation }));
     $("turntable").append(img);
   }
   S.radius = Math.max(1, S.info.width / 48);
@@ -389,7 +438,9 @@ async function start() {
   $("radius-out").textContent = `${S.radius.toFixed(2)} px`;
   renderStack(S.info.stack);
   connect();
-  pickInstance(0);
+  const restored = restoreMarks();
+  if (restored && restored.view) S.view = restored.view;
+  pickInstance(restored ? restored.instance : 0);
   refreshInstances();
 }
 

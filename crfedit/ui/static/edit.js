@@ -107,6 +107,9 @@ async function onJobMessage(msg) {
   S.state = msg.state;
   S.tint = false;
   $("tint").checked = false;
+  if (job.kind === "color" || job.kind === "remove" || job.kind === "add") {  // the selection shown was of the state before
+    $("selection-info").textContent = `The ${job.kind === "color" ? "recolour" : job.kind === "remove" ? "removal" : "addition"} is applied; Select again to see a selection on the edited chair.`;
+  }
   // The edit's render is of the view it was made on: shown only if that view is still on screen
   // (the user may have turned to another view or chair while it ran), else the view on screen
   // is rendered again in the new state.
