@@ -656,3 +656,22 @@ def test_paper_preset_edits_train_both_networks():
     with torch.no_grad():
         out = passes[-1].forward()
     torch.testing.assert_close(out.rgb, render_rays(field, rays, 1).rgb, rtol=0, atol=1e-5)
+
+
+def test_a_removal_of_nearly_all_the_object_needs_force(trained, tmp_path):
+    """A scribble over the whole object (e.g. drawn on another view than --view names) selects
+    every cell: the removal is refused, naming the view, unless --force; nothing is written."""
+    path, model, category = trained
+    view = category.instances[1].view("train:1")
+    opacity = render_camera(model.field_for(1), view.camera, 1).opacity.numpy().reshape(view.camera.height, view.camera.width)
+    whole = dilate(opacity > 0.5, 1)  # the object and a pixel around it
+    assert 0.05 < whole.mean() < 0.5
+    png = tmp_path / "whole.png"
+    Image.fromarray((whole * 255).astype(np.uint8)).save(png)
+    out = tmp_path / "gone.safetensors"
+    args = ["remove", path, "--instance", 1, "--view", "train:1", "--scribble", png, "--out", out, "--device", "cpu", "--steps", 3]
+    assert_user_error(invoke(*args), "nearly all of it", "view train:1", "--force")
+    assert not out.exists()
+    r = invoke(*args, "--force")
+    assert r.exit_code == 0 and out.is_file(), r.output
+    assert any(line.startswith("coverage: ") for line in r.stdout.splitlines()), r.stdout

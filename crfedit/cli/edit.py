@@ -48,7 +48,7 @@ MirrorOpt = Annotated[Optional[MirrorMode], typer.Option("--mirror", help="Mirro
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
 PreviewOpt = Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG renders of the edited instance from --views.")]
 PreviewViewsOpt = Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")]
-ForceOpt = Annotated[bool, typer.Option("--force", help="Accept a scribble that covers more than half the view.")]
+ForceOpt = Annotated[bool, typer.Option("--force", help="Accept a scribble that covers more than half the view (and, for remove, a selection of nearly all the object).")]
 
 
 def _scribbled_inputs(model: Path, edits, scribble, scribble_json, keep, keep_json, selection) -> dict[str, object]:
@@ -187,6 +187,12 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
     sel = _selection(selection, m, k, kind, mode, join_mode)
     if sel is None and method == EditMethod.selection:
         sel = _lifted(m, k, camera, fg, bg, kind, mode, join_mode)
+        from ..edit.selection import coverage_summary
+
+        if kind == "remove" and not force and coverage_summary(sel.meta) is not None:
+            raise CrfError(f"the removal's selection takes {sel.meta['selected_cells']} of the instance's {sel.meta['occupied_cells']} "
+                           f"occupied cells, nearly all of it: check that the scribble was drawn on view {label} of this instance "
+                           "(crfedit select --preview shows it), or pass --force to remove that much")
     return _Scribbled(m, k, shown, label, camera, fg, bg, mode, sel)
 
 
