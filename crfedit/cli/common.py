@@ -172,14 +172,18 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
         raise CrfError(f"--out {out}: folder {folder} is not writable")
 
 
-def torchrun_place() -> tuple[int, int]:
-    """``(rank, world)`` as torchrun sets them (``RANK``, ``WORLD_SIZE``); ``(0, 1)`` for a
-    plain run or values that are not numbers (:func:`~crfedit.distributed.ranks_from_env`
-    names those)."""
+def _torchrun():
+    """This process's :class:`~crfedit.distributed.Ranks` under torchrun, None for a plain run
+    (torch is imported only then).  Values torchrun would not set count as a plain run here: the
+    command's own :func:`~crfedit.distributed.ranks_from_env` names them."""
+    if "WORLD_SIZE" not in os.environ and "RANK" not in os.environ:
+        return None
+    from ..distributed import ranks_from_env
+
     try:
-        return int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1"))
-    except ValueError:
-        return 0, 1
+        return ranks_from_env()
+    except CrfError:
+        return None
 
 
 def _says_it(error: BaseException) -> bool:
@@ -187,14 +191,17 @@ def _says_it(error: BaseException) -> bool:
     about a user error met before its process group formed, and about Ctrl-C: it read the same
     arguments and files as rank 0, whose line says it (one line, not one per rank).  Errors of
     its own (a collective, its device, its disk) it prints, its rank named."""
-    rank, world = torchrun_place()
-    if rank == 0 or world <= 1:
+    ranks = _torchrun()
+    if ranks is None or ranks.main:
         return True
     if isinstance(error, KeyboardInterrupt):
         return False
-    dist = sys.modules.get("crfedit.distributed")
-    joined = "torch.distributed" in sys.modules and sys.modules["torch.distributed"].is_available() and sys.modules["torch.distributed"].is_initialized()
-    return not isinstance(error, CrfError) or joined or (dist is not None and isinstance(error, dist.DistributedError))
+    import torch.distributed as dist
+
+    from ..distributed import DistributedError
+
+    joined = dist.is_available() and dist.is_initialized()
+    return not isinstance(error, CrfError) or isinstance(error, DistributedError) or joined
 
 
 def user_errors(fn=None, *, ranked: bool = False):
@@ -209,14 +216,16 @@ def user_errors(fn=None, *, ranked: bool = False):
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        def stop(message: str, error: BaseException, code: int = EXIT_USER_ERROR) -> "typer.Exit":
+        def stop(message: str, error: BaseException) -> "typer.Exit":
             if not _says_it(error):
-                return typer.Exit(code)
-            rank, world = torchrun_place()
-            return fail(message if rank == 0 or message.startswith("rank ") else f"rank {rank} of {world}: {message}")
+                return typer.Exit(EXIT_USER_ERROR)
+            ranks = _torchrun()
+            named = ranks is None or ranks.main or message.startswith("rank ")
+            return fail(message if named else f"rank {ranks.rank} of {ranks.world}: {message}")
 
         try:
-            if torchrun_place()[1] > 1 and not ranked:
+            ranks = _torchrun()
+            if ranks is not None and ranks.world > 1 and not ranked:
                 raise CrfError("this command does not share its work over torchrun's ranks (train, render, eval recon "
                                "and eval edits do); run it once, without torchrun")
             if Session.threads is not None:
