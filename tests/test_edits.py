@@ -484,8 +484,12 @@ def test_element_penalty_frees_a_codes_only_edit(trained):
 def test_parse_color():
     assert parse_color("#f80") == parse_color("#ff8800") == (1.0, 136 / 255, 0.0)
     assert parse_color("red") == (1.0, 0.0, 0.0) and parse_color(" Navy ") == (0.0, 0.0, 128 / 255)
-    for bad in ("#12", "#ggg", "chartreuse-ish", "", "#1234567"):
-        with pytest.raises(CrfError, match="expected #rgb, #rrggbb or a colour name"):
+    # every CSS named colour, spelt with spaces or capitals too; rgb() in 0-255
+    assert parse_color("darkred") == parse_color("Dark Red") == parse_color("dark-red") == (139 / 255, 0.0, 0.0)
+    assert parse_color("gold") == (1.0, 215 / 255, 0.0) and parse_color("grey") == parse_color("gray")
+    assert parse_color("rgb(255, 0, 10)") == parse_color("RGB(255,0,10)") == (1.0, 0.0, 10 / 255)
+    for bad in ("#12", "#ggg", "chartreuse-ish", "", "#1234567", "#ff000080", "rgb(256, 0, 0)", "rgb(1, 2)", "255,0,0"):
+        with pytest.raises(CrfError, match=r"expected #rgb, #rrggbb, rgb\(R, G, B\) .* or a CSS colour name"):
             parse_color(bad)
 
 

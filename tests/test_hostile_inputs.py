@@ -558,7 +558,8 @@ CATALOGUE: list[Case] = [
     Case("color/unknown-name/edit-color", lambda e, t: edit_color(e, t, color="notacolor"), ("--color 'notacolor'",)),
     Case("color/five-hex-digits/edit-color", lambda e, t: edit_color(e, t, color="#12345"), ("--color '#12345'",)),
     Case("color/empty/edit-color", lambda e, t: edit_color(e, t, color=""), ("--color ''",)),
-    Case("color/css-function/edit-color", lambda e, t: edit_color(e, t, color="rgb(1,2,3)"), ("--color 'rgb(1,2,3)'",)),
+    Case("color/css-function-out-of-range/edit-color", lambda e, t: edit_color(e, t, color="rgb(1,2,300)"), ("--color 'rgb(1,2,300)'", "0 to 255")),
+    Case("color/with-alpha/edit-color", lambda e, t: edit_color(e, t, color="#ff000080"), ("--color '#ff000080'",)),
     # --- numbers -------------------------------------------------------------------------------------
     Case("number/steps-0/edit-color", lambda e, t: edit_color(e, t, "--steps", "0"), ("--steps 0", "at least 1")),
     Case("number/steps-negative/remove", lambda e, t: remove(e, t, "--steps", "-5"), ("--steps -5",)),

@@ -241,7 +241,7 @@ def edit_color_cmd(
     instance: InstanceOpt,
     view: ViewOpt,
     out: OutOpt,
-    color: Annotated[str, typer.Option("--color", help="Target colour: #rgb, #rrggbb or a name such as red, navy, orange; with --method selection, the colour the part should appear under the scribble.")],
+    color: Annotated[str, typer.Option("--color", help="Target colour: #rgb, #rrggbb, rgb(R, G, B) or a CSS colour name such as red, navy, darkred; with --method selection, the colour the part should appear under the scribble.")],
     scribble: ScribbleOpt = None,
     scribble_json: ScribbleJsonOpt = None,
     keep: KeepOpt = None,

@@ -18,25 +18,32 @@ from ..errors import CrfError
 from ..io import read_image, read_json
 from ..masks import strokes_mask
 
-CSS_COLORS = {
-    "black": "#000000", "silver": "#c0c0c0", "gray": "#808080", "grey": "#808080", "white": "#ffffff",
-    "maroon": "#800000", "red": "#ff0000", "purple": "#800080", "fuchsia": "#ff00ff", "magenta": "#ff00ff",
-    "green": "#008000", "lime": "#00ff00", "olive": "#808000", "yellow": "#ffff00", "navy": "#000080",
-    "blue": "#0000ff", "teal": "#008080", "aqua": "#00ffff", "cyan": "#00ffff", "orange": "#ffa500",
-}
-"""The CSS basic colour keywords (plus grey, magenta, cyan and orange)."""
+def _css_colors() -> dict[str, str]:
+    """The CSS named colours (all 148, as Pillow's ``ImageColor`` holds them) → ``#rrggbb``."""
+    from PIL import ImageColor
+
+    return dict(ImageColor.colormap)
+
+
+CSS_COLORS = _css_colors()
+"""The CSS named colours (red, navy, orange, darkred, gold, ...; grey and gray alike)."""
 
 
 def parse_color(text: str) -> tuple[float, float, float]:
-    """``#rgb``, ``#rrggbb`` or a CSS basic colour name → RGB in [0, 1].
+    """``#rgb``, ``#rrggbb``, ``rgb(R, G, B)`` (0–255) or a CSS colour name → RGB in [0, 1].
 
-    ``parse_color("#f80") == parse_color("#ff8800") == (1.0, 0.533…, 0.0)``; ``"red"`` → (1, 0, 0).
+    ``parse_color("#f80") == parse_color("#ff8800") == (1.0, 0.533…, 0.0)``; ``"red"`` → (1, 0, 0);
+    a name may carry spaces, hyphens or capitals (``"Dark Red"`` is ``darkred``).
     """
     value = str(text).strip().lower()
-    value = CSS_COLORS.get(value, value)
+    value = CSS_COLORS.get(re.sub(r"[\s_-]+", "", value), value)
+    m = re.fullmatch(r"rgb\(\s*(\d{1,3})\s*,\s*(\d{1,3})\s*,\s*(\d{1,3})\s*\)", value)
+    if m and all(int(c) <= 255 for c in m.groups()):
+        return tuple(int(c) / 255.0 for c in m.groups())  # type: ignore[return-value]
     m = re.fullmatch(r"#([0-9a-f]{3}|[0-9a-f]{6})", value)
     if not m:
-        raise CrfError(f"--color {text!r}: expected #rgb, #rrggbb or a colour name like red, navy, orange")
+        raise CrfError(f"--color {text!r}: expected #rgb, #rrggbb, rgb(R, G, B) with R, G, B from 0 to 255, "
+                       "or a CSS colour name (red, navy, darkred, gold, ...)")
     digits = m.group(1)
     if len(digits) == 3:
         digits = "".join(c * 2 for c in digits)
