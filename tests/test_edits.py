@@ -518,7 +518,7 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     out = tmp_path / "a.safetensors"
     # the provenance is the process's own command line (CliRunner leaves sys.argv as pytest's,
     # which a pytest-xdist worker empties): a shell's, here
-    monkeypatch.setattr(sys, "argv", ["/usr/bin/crfedit", "edit-color", "m.safetensors", "--color", "#00f"])
+    monkeypatch.setattr(sys, "argv", ["/usr/bin/crfedit", "edit-color", "my model.safetensors", "--color", "#00f"])
     r = invoke("edit-color", path, "--instance", model.names[1], "--view", f"train:{i}", "--scribble", fg_png,
                "--keep", keep_png, "--color", "#00f", "--out", out, "--device", "cpu", "--steps", 30)
     assert r.exit_code == 0, r.output
@@ -535,7 +535,7 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     assert any(line.startswith("colour join: ") for line in lines) and any(line.startswith("strokes: ") for line in lines)
     assert sel.meta["keep_points"] > 0 and not any(line.startswith("keep strokes: ") for line in lines)
     d = read_delta(out)
-    assert d.meta["view"] == f"train:{i}" and d.meta["command"] == "crfedit edit-color m.safetensors --color #00f"
+    assert d.meta["view"] == f"train:{i}" and d.meta["command"] == "crfedit edit-color 'my model.safetensors' --color '#00f'"
     shown = json.loads(invoke("edits", "show", out, "--json").stdout)
     assert shown["metadata"]["kind"] == "color" and shown["bytes"] == out.stat().st_size
     # a second edit on top: strokes JSON, removal, recorded parent
@@ -550,6 +550,12 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     assert read_delta(out2).meta["parent"] != "" and read_delta(out2).meta["kind"] == "remove"
     stacked = apply_edit_files(model, [out, out2])
     assert set(stacked.overrides) == {1}
+    # rendering another instance with only these edits says they leave it unchanged
+    r = invoke("render", path, "--instance", 0, "--views", "test:0", "--edit", out, "--edit", out2, "--out", tmp_path / "r0", "--device", "cpu")
+    assert r.exit_code == 0 and r.stderr.splitlines() == [f"note: {n} edits {model.names[1]}, not {model.names[0]}: it leaves this render unchanged"
+                                                          for n in ("a.safetensors", "b.safetensors")], r.stderr
+    r = invoke("render", path, "--instance", 1, "--views", "test:0", "--edit", out, "--edit", out2, "--out", tmp_path / "r1", "--device", "cpu")
+    assert r.exit_code == 0 and "note:" not in r.stderr
     assert invoke("edits", "check", path, "--edit", out, "--edit", out2).exit_code == 0
     assert_user_error(invoke("edits", "check", path, "--edit", out2), "b.safetensors", "order they were made")
 

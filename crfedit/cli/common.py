@@ -270,5 +270,8 @@ TwinSourcesOpt = Annotated[
 
 
 def command_line() -> str:
-    """The command line as typed, for edit/model metadata."""
-    return " ".join(["crfedit", *sys.argv[1:]])
+    """The command line as typed, for edit/model metadata, quoted for a POSIX shell
+    (``shlex.join``): a path with a space or a ``#rrggbb`` colour pastes back as one argument."""
+    import shlex
+
+    return shlex.join(["crfedit", *sys.argv[1:]])

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .common import DeviceChoice, DeviceOpt, app, user_errors
+from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
 
 
 @app.command("render")
@@ -43,11 +43,17 @@ def render_cmd(
     dev = resolve_device(device) if ranks is None else rank_device(device, ranks)
     ranks = ranks or SINGLE
     m, _ = load_model(model, dev)
+    deltas = []
     if edit:  # before the instance lookup: an edit may add the instance (fit-real)
-        from ..delta import apply_edit_files
+        from ..delta import apply_deltas, read_delta
 
-        m = apply_edit_files(m, list(edit))
+        deltas = [read_delta(p) for p in edit]
+        m = apply_deltas(m, deltas)
     k = m.instance_index(instance)
+    others = [(p, d.instance) for p, d in zip(edit or [], deltas) if d.instance != m.names[k]]
+    if deltas and len(others) == len(deltas) and ranks.main:  # a stack of other instances' edits alone: likely a slip
+        for p, whose in others:
+            typer.echo(printable(f"note: {p.name} edits {whose}, not {m.names[k]}: it leaves this render unchanged"), err=True)
     if shape_from is not None or color_from is not None:
         from ..edit.transfer import swap_codes
 
