@@ -495,6 +495,7 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     done = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)])
     assert done.exit_code == 0, done.output
     assert "b.safetensors: color edit of chair_0, re-pinned" in done.output and "ok: 2 edit(s)" in done.output
+    assert "note: a re-pinned edit keeps the change it was optimized for" in done.output
     kept = apply_edit_files(m, [out / "b.safetensors", out / "c.safetensors"])
     assert torch.equal(kept.field_for(0).occupancy[0], grid0 & ~high)  # the first removal's cells are back
     for name in ("b.safetensors", "c.safetensors"):  # the same change, a new place
@@ -502,7 +503,13 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
         assert new.fingerprint != old.fingerprint and all(torch.equal(new.tensors[n], t) for n, t in old.tensors.items())
     assert all(p.read_bytes() == data for p, data in inputs.items())
     again = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out-dir", str(out)])
-    assert again.exit_code == 0 and "unchanged (already in this place)" in again.output
+    assert again.exit_code == 0 and "unchanged (already in this place)" in again.output and "note:" not in again.output
+    again = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out-dir", str(out)])
+    assert again.exit_code == 0 and "a.safetensors: remove edit of chair_0, unchanged (already in this place), replacing the edit file there" in again.output
+    (out / "c.safetensors").write_text("notes, not an edit")  # a file of the same name that is not an edit: refused, kept
+    assert_user_error(runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)]),
+                      "c.safetensors", "not crfedit's")
+    assert (out / "c.safetensors").read_text() == "notes, not an edit"
     into_inputs = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--out-dir", str(tmp_path)])
     assert_user_error(into_inputs, "holds the input")
     assert b.read_bytes() == inputs[b]

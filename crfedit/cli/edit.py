@@ -522,6 +522,9 @@ def rebase_cmd(
     for p in edit:
         if p.parent.resolve() == out_dir.resolve():
             raise CrfError(f"--out-dir {out_dir}: holds the input {p} itself; write the re-pinned files to another folder")
+    there = [out_dir / p.name for p in edit if (out_dir / p.name).exists()]
+    for target in there:  # an edit may replace an edit, never another kind of file
+        check_out_file(target, {"--edit": edit}, "re-pinned edit")
     m, _ = load_model(model, "cpu")
     deltas = [read_delta(p) for p in edit]
     _, pinned = restack(m, deltas)  # everything checked before anything is written
@@ -530,8 +533,12 @@ def rebase_cmd(
         save_delta(out_dir / p.name, after.tensors, after.meta)
         how = "unchanged (already in this place)" if after is before else "re-pinned"
         old_grid = " (format version 1: its grid replaces the instance's)" if after.meta["version"] == "1" and "occupancy" in after.tensors else ""
-        typer.echo(printable(f"wrote {out_dir / p.name}: {after.kind} edit of {after.instance}, {how}{old_grid}"))
+        replaced = ", replacing the edit file there" if out_dir / p.name in there else ""
+        typer.echo(printable(f"wrote {out_dir / p.name}: {after.kind} edit of {after.instance}, {how}{old_grid}{replaced}"))
     typer.echo(f"ok: {len(pinned)} edit(s) apply to {model} in this order")
+    if any(after is not before for before, after in zip(deltas, pinned)):
+        typer.echo("note: a re-pinned edit keeps the change it was optimized for on its old stack; where an edit of the same "
+                   "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)")
 
 
 @edits_app.command("bake")
