@@ -548,6 +548,10 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
     assert any(ln.startswith("keep strokes: none on the object") for ln in r.stdout.splitlines()), r.stdout  # no --keep
     assert read_delta(out2).meta["parent"] != "" and read_delta(out2).meta["kind"] == "remove"
+    # the removal says how many cells it takes and how many leave the grid: edits show's count
+    said = next(line for line in r.stdout.splitlines() if line.startswith("removal: "))
+    taken, junction, left = (int(n) for n in re.fullmatch(r"removal: (\d+) cells, .*; (\d+) of them .*, so (\d+) leave the occupancy grid", said).groups())
+    assert taken - junction == left and f"occupancy     {left} cells emptied" in invoke("edits", "show", out2).stdout
     stacked = apply_edit_files(model, [out, out2])
     assert set(stacked.overrides) == {1}
     # rendering another instance with only these edits says they leave it unchanged

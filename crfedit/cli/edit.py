@@ -315,6 +315,11 @@ def remove_cmd(
     p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "remove", preview, views,
                    join)
     result = remove(p.model, p.instance, p.camera, p.scribble, p.keep, occluded, options, method.value, p.selection, p.mirror)
+    hyper = json.loads(result.meta.get("hyperparameters", "{}"))
+    if "removed_cells" in hyper:  # why the grid loses another count of cells than the selection holds
+        taken, junction = hyper["removed_cells"], hyper["junction_cells"]
+        typer.echo(f"removal: {taken} cells, the selection with the skin around it; {junction} of them touch a kept part and "
+                   f"lose only their side toward the selection, so {taken - junction} leave the occupancy grid")
     _write(result, out, p.label)
     _preview(result.model, p.instance, preview, p.shown, views)
 

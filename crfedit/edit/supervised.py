@@ -256,7 +256,7 @@ def remove_selected(
     extra, modules = edit.occupancy_delta(grid & ~core)
     hyper = {
         "method": "selection", "rays": int(rays.origins.shape[0]), "points": int(pts.shape[0]),
-        "selected_cells": int((core | junction).sum()),
+        "removed_cells": int((core | junction).sum()),  # the selection with its skin (removal_cells)
         "junction_cells": int(junction.sum()), "stage": passes[-1].stage,
         "cameras": [camera_meta(c) for c in cameras],
     }
