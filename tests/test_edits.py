@@ -501,6 +501,10 @@ def test_strokes_rasterize_at_the_view_resolution():
     for bad in ({"strokes": []}, [[["a", 1]]], {"strokes": [[[1, 2]]], "radius": -1}, [[[1, 2, 3]]]):
         with pytest.raises(CrfError, match="s.json"):
             strokes_json_mask(bad, 12, 10, "s.json")
+    # fractions of the view (0..1) are named as such, not read as a dot in the corner
+    with pytest.raises(CrfError, match="every point lies between 0 and 1.*pixels \\(x from 0 to 63, y from 0 to 47\\)"):
+        strokes_json_mask([[[0.41, 0.52], [0.45, 0.55]]], 64, 48, "norm.json")
+    assert strokes_json_mask([[[0, 0], [1, 1]]], 64, 48, "corner.json")[0, 0]  # whole pixels at the corner are pixels
 
 
 # ----------------------------------------------------------------------------- commands

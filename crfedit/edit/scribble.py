@@ -68,6 +68,7 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
     if not isinstance(strokes, list) or not strokes:
         raise CrfError(f"{where}: expected {{\"strokes\": [[[x, y], ...], ...], \"radius\": r}} or a list of strokes")
     mask = np.zeros((height, width), dtype=bool)
+    points = []
     for i, stroke in enumerate(strokes):
         r = radius
         if isinstance(stroke, dict):
@@ -81,6 +82,10 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
         if pts is None or not np.isfinite(pts).all():
             raise CrfError(f"{where}: stroke {i} is not a list of [x, y] pixel positions")
         mask |= strokes_mask((height, width), [pts], r)
+        points.append(pts)
+    if min(width, height) >= 8 and all(((p >= 0) & (p <= 1)).all() for p in points) and any((p % 1 != 0).any() for p in points):
+        raise CrfError(f"{where}: every point lies between 0 and 1, as fractions of the view would; stroke points are pixels "
+                       f"(x from 0 to {width - 1}, y from 0 to {height - 1})")
     if not mask.any():
         raise CrfError(f"{where}: every stroke lies outside the {width}x{height} view (x from 0 to {width - 1}, y from 0 to {height - 1})")
     return mask
