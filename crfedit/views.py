@@ -107,7 +107,8 @@ def _split_views(spec: str, split: str, rest: str, model, instance: int) -> list
     if not cams:
         have = [s for s in SPLITS if s in model.views and model.views[s].cameras(instance)]
         name = model.names[instance] if 0 <= instance < len(model.names) else instance
-        stored = f"its stored splits: {', '.join(have)}" if have else "it has no stored views (an instance fit-real added)"
+        stored = (f"its stored splits: {', '.join(have)}" if have
+                  else "it has no stored views: an instance fit-real added renders from its photo's camera with --views photo")
         raise CrfError(f"view spec {spec!r}: the model stores no {split} views of instance {name} ({stored}; orbit:N renders any instance)")
     indices = range(len(cams)) if not rest.strip() and ":" not in spec else parse_indices(spec, rest, len(cams))
     return [(f"{split}:{i}", cams[i]) for i in indices]

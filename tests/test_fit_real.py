@@ -241,6 +241,18 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     rendered = invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "orbit:2", "--out", tmp_path / "r", "--device", "cpu")
     assert rendered.exit_code == 0, rendered.output
     assert (tmp_path / "r" / "0001.png").is_file()
+    # from the photo's own camera: --views photo reads it from the fit-real edit
+    assert_user_error(invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "test", "--out", tmp_path / "t"), "--views photo")
+    shown = invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "photo", "--out", tmp_path / "p", "--device", "cpu")
+    assert shown.exit_code == 0, shown.output
+    fitted, _ = load_model(path)
+    fitted = apply_edit_files(fitted, [out])
+    k = fitted.instance_index("my_chair")
+    expected = render_camera(fitted.field_for(k), fitted.views["train"].cameras(0)[0], k).rgb.clamp(0, 1).numpy()
+    got = np.asarray(Image.open(tmp_path / "p" / "0000.png"), dtype=np.float64) / 255.0
+    assert got.shape == expected.shape and np.abs(got - expected).max() <= 1.0 / 255 + 1e-6
+    assert json.loads((tmp_path / "p" / "views.json").read_text())["views"][0]["view"] == "photo"
+    assert_user_error(invoke("render", path, "--instance", 0, "--edit", out, "--views", "photo", "--out", tmp_path / "q"), "no --edit is the fit-real edit")
     moved = tmp_path / "t.safetensors"
     transferred = invoke("transfer", path, "--instance", "my_chair", "--color-from", "chair_001", "--edit", out, "--out", moved, "--device", "cpu")
     assert transferred.exit_code == 0, transferred.output

@@ -15,7 +15,7 @@ from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
 def render_cmd(
     model: Annotated[Path, typer.Argument(metavar="MODEL", help="Model file (.safetensors).")],
     instance: Annotated[str, typer.Option("--instance", help="Instance to render: a name or an index.")],
-    views: Annotated[str, typer.Option("--views", help="Views: test, test:0-9, train:1,4,7, orbit:36, orbit:36@45, or a camera JSON file.")],
+    views: Annotated[str, typer.Option("--views", help="Views: test, test:0-9, train:1,4,7, orbit:36, orbit:36@45, a camera JSON file, or photo (the camera of the photo the --edit fit-real edit fitted this instance to).")],
     out: Annotated[Path, typer.Option("--out", help="Folder for NNNN.png (created if missing).")],
     res: Annotated[Optional[int], typer.Option("--res", help="Render at this width (height keeps the aspect ratio).")] = None,
     depth: Annotated[bool, typer.Option("--depth", help="Also write NNNN_depth.exr (Z = ray distance, +inf on background; A = opacity) and a colour-mapped NNNN_depth.png (near red, far blue).")] = False,
@@ -50,10 +50,6 @@ def render_cmd(
         deltas = [read_delta(p) for p in edit]
         m = apply_deltas(m, deltas)
     k = m.instance_index(instance)
-    others = [(p, d.instance) for p, d in zip(edit or [], deltas) if d.instance != m.names[k]]
-    if deltas and len(others) == len(deltas) and ranks.main:  # a stack of other instances' edits alone: likely a slip
-        for p, whose in others:
-            typer.echo(printable(f"note: {p.name} edits {whose}, not {m.names[k]}: it leaves this render unchanged"), err=True)
     if shape_from is not None or color_from is not None:
         from ..edit.transfer import swap_codes
 
@@ -62,8 +58,9 @@ def render_cmd(
             shape_from=None if shape_from is None else m.instance_index(shape_from),
             color_from=None if color_from is None else m.instance_index(color_from),
         )
+    cameras = _photo_camera(deltas, m, m.names[k]) if views.strip() == "photo" else None
     with process_group(ranks, dev):
-        result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks)
+        result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks, cameras)
     if not ranks.main:
         return
     per_view = result.seconds / max(result.count, 1)
@@ -77,3 +74,30 @@ def render_cmd(
         if video is not None and result.video != video:
             note = " (imageio-ffmpeg is not installed, so a GIF instead of MP4: pip install -e '.[video]')"
         typer.echo(f"wrote {kind} {result.video}{note}")
+    others = [(p, d.instance) for p, d in zip(edit or [], deltas) if d.instance != m.names[k]]
+    if deltas and len(others) == len(deltas):  # a stack of other instances' edits alone: likely a slip
+        for p, whose in others:
+            typer.echo(printable(f"note: {p.name} edits {whose}, not {m.names[k]}: it leaves this render unchanged"), err=True)
+
+
+
+def _photo_camera(deltas, model, name: str) -> list:
+    """``--views photo``: the camera of the photo that the fit-real edit adding instance
+    ``name`` was fitted to (recorded in the edit), as the one view to render; read as a camera
+    JSON file is (:func:`~crfedit.views.camera_from_json`), so a damaged record is one line."""
+    import json
+    import math
+
+    from ..errors import CrfError
+    from ..views import camera_from_json
+
+    fit = next((d for d in reversed(deltas) if d.kind == "fit-real" and d.instance == name), None)
+    if fit is None:
+        raise CrfError(f"--views photo: no --edit is the fit-real edit that added {name}; photo is the camera of its photo")
+    try:
+        cam = json.loads(fit.meta["hyperparameters"])["camera"]
+        data = {"transform_matrix": cam["c2w"], "width": cam["width"], "height": cam["height"],
+                "camera_angle_x": 2.0 * math.atan(cam["width"] / (2.0 * cam["focal"]))}
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):  # JSONDecodeError is a ValueError
+        raise CrfError(f"--views photo: the fit-real edit of {name} holds no readable record of the photo's camera") from None
+    return [("photo", camera_from_json(data, model, f"photo (the camera of {name}'s photo)"))]
