@@ -462,7 +462,7 @@ def grow(model: CategoryModel, name: str) -> CategoryModel:
         raise ValueError(f"grow: instance {name!r} exists")
     old = model.field
     k = old.n_instances
-    field = ConditionalRadianceField(old.cfg, k + 1, old.aabb.detach().clone()).to(model.device)
+    field = ConditionalRadianceField.to_load(old.cfg, k + 1, old.aabb.detach().clone()).to(model.device)
     state = {n: t.clone() for n, t in old.state_dict().items()}
     state = _pad(state, k)
     field.load_state_dict(state)
@@ -521,7 +521,9 @@ def apply_edit_files(model: CategoryModel, paths: Sequence[str | os.PathLike]) -
     """The model with the edit files applied in order.  Every file is read and checked (format,
     version, fingerprint, base model, parent chain, instance, tensor names, shapes, dtypes,
     finite values) before anything is applied; a problem is one :class:`ModelFileError` line
-    naming the file and what was expected."""
+    naming the file and what was expected.  One path alone is a stack of one."""
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]
     return apply_deltas(model, [read_delta(p) for p in paths])
 
 

@@ -278,6 +278,14 @@ class ConditionalRadianceField(FieldNet):
         # not the paper's: a part embedding for selections, trained from part maps (crfedit.parts)
         self.F_part = nn.Linear(cfg.width, cfg.part_dim) if cfg.part_dim else None
 
+    @classmethod
+    def to_load(cls, cfg: Config, n_instances: int, aabb: Tensor | None = None) -> "ConditionalRadianceField":
+        """A field whose tensors are about to be loaded (a model file, a grown model): built
+        without drawing from torch's global random stream, so loading leaves a script's
+        ``torch.manual_seed`` stream where it was (the random initial weights are overwritten)."""
+        with torch.random.fork_rng(devices=[]):
+            return cls(cfg, n_instances, aabb)
+
     @property
     def n_instances(self) -> int:
         return self.shape_codes.shape[0]

@@ -11,6 +11,28 @@ from typing import Sequence
 import numpy as np
 
 
+def as_mask(mask, what: str = "scribble") -> np.ndarray:
+    """A mask a caller handed the library as a bool ndarray [H, W]: a NumPy or torch array (or
+    nested lists) of bools, of integers (non-zero is set) or of floats (0.5 or more is set).
+    Any other shape or type is one :class:`~crfedit.errors.CrfError` line naming ``what``."""
+    from .errors import CrfError
+
+    if hasattr(mask, "detach") and hasattr(mask, "cpu"):  # a torch tensor, without importing torch here
+        mask = mask.detach().cpu().numpy()
+    try:
+        arr = np.asarray(mask)
+    except (TypeError, ValueError):
+        arr = np.asarray(None)
+    if arr.ndim != 2 or arr.dtype.kind not in "biuf":
+        raise CrfError(f"{what} mask: expected a [H, W] array of bools (or 0/1 numbers), got {type(mask).__name__} "
+                       f"of shape {list(arr.shape)} and type {arr.dtype}")
+    if arr.dtype.kind == "f":
+        if not np.isfinite(arr).all():
+            raise CrfError(f"{what} mask: holds NaN or infinite values")
+        return arr >= 0.5
+    return arr.astype(bool, copy=False) if arr.dtype.kind != "b" else arr
+
+
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """Binary dilation by a (2r+1)² square; outside the image counts as off."""
     return _square(mask, radius, np.zeros_like, np.bitwise_or)

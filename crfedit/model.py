@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import json
+import operator
 import os
 from dataclasses import dataclass, field as dc_field
 
@@ -52,7 +53,15 @@ class CategoryModel:
         return self.field.aabb.device
 
     def instance_index(self, key: str | int) -> int:
-        """An instance by name or index; unknown → one-line error naming a few valid ones."""
+        """An instance by name or index (a NumPy or torch integer too); unknown → one-line error
+        naming a few valid ones."""
+        if isinstance(key, (bool, np.bool_)) or not isinstance(key, (str, int)):
+            try:
+                if isinstance(key, (bool, np.bool_)) or getattr(key, "dtype", None) == torch.bool:
+                    raise TypeError
+                key = operator.index(key)  # np.int64 from np.argmax, a 0-d integer tensor
+            except TypeError:
+                raise CrfError(f"instance {key!r}: expected an instance name or an integer index") from None
         if isinstance(key, int) or (isinstance(key, str) and is_digits(key.lstrip("-")) and key not in self.names):
             k = int(key)
             if 0 <= k < len(self.names):
@@ -147,7 +156,11 @@ def save_model(
 
 
 def load_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> tuple[CategoryModel, dict[str, Tensor]]:
-    """(model, training state) from a model file, validated before anything is used."""
+    """(model, training state) from a model file, validated before anything is used, on
+    ``device`` (a ``torch.device``, or auto, cpu or cuda as ``--device`` takes)."""
+    from .runtime import resolve_device
+
+    device = resolve_device(device)
     header, meta = read_header(path)
     if meta.get("format") != FORMAT:
         kind = meta.get("format", "unknown")
@@ -167,7 +180,7 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> t
     if header.get("field.shape_codes", {}).get("shape", [None])[0] != k:
         raise ModelFileError(f"{path}: instance list does not match the stored codes")
     tensors, meta = read_safetensors(path)
-    field = ConditionalRadianceField(cfg, k)
+    field = ConditionalRadianceField.to_load(cfg, k)
     expected = {f"field.{n}": (tuple(v.shape), v.dtype) for n, v in field.state_dict().items()}
     params = {n: (tuple(p.shape), p.dtype) for n, p in field.state_dict().items()}
     core = {n: t for n, t in tensors.items() if n.startswith("field.")}

@@ -12,16 +12,20 @@ from .errors import CrfError
 
 def resolve_device(name: str = "auto") -> torch.device:
     """``auto`` → cuda when available, else cpu; asking for cuda without one is a user error.
-    A ``torch.device`` (a rank's, from :func:`crfedit.distributed.rank_device`) passes through."""
+    A ``torch.device`` (a rank's, from :func:`crfedit.distributed.rank_device`) passes through;
+    a script may also name one GPU, ``cuda:1``."""
     if isinstance(name, torch.device):
         return name
     name = getattr(name, "value", name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise CrfError("--device cuda: no CUDA device is available (use --device cpu or auto)")
-    if name not in ("cpu", "cuda"):
+    index = name[len("cuda:"):] if isinstance(name, str) and name.startswith("cuda:") else None
+    if name not in ("cpu", "cuda") and not (index is not None and index.isascii() and index.isdigit()):
         raise CrfError(f"--device {name}: expected auto, cpu or cuda")
+    if name != "cpu" and not torch.cuda.is_available():
+        raise CrfError(f"--device {name}: no CUDA device is available (use --device cpu or auto)")
+    if index is not None and int(index) >= torch.cuda.device_count():
+        raise CrfError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA devices")
     return torch.device(name)
 
 

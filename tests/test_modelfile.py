@@ -85,3 +85,16 @@ def test_bake_writes_a_stripped_model_by_default(tiny_model, tmp_path):
                    "--color", "blue", "--steps", 2, "--device", "cpu", "--out", out)
         assert r.exit_code == code, r.output
     assert "not crfedit's" in r.stderr and notes.read_text() == "not a model"
+
+
+def test_loading_and_growing_leave_the_global_random_stream(tiny_model):
+    """A script's ``torch.manual_seed`` stream is where it was after loading a model or adding an
+    instance to it (the fields built to be loaded draw no random numbers)."""
+    from crfedit.delta import grow
+
+    torch.manual_seed(123)
+    model, _ = load_model(tiny_model)
+    grow(model, "new_chair")
+    after = torch.rand(4)
+    torch.manual_seed(123)
+    assert torch.equal(after, torch.rand(4))

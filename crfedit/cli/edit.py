@@ -202,7 +202,8 @@ def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None, join: str 
     from ..edit.scribble import check_masks
     from ..edit.selection import select_for
 
-    sel = select_for(m, k, camera, fg, check_masks(fg, bg, camera.width, camera.height), kind, mirror, join=join)
+    fg, keep = check_masks(fg, bg, camera.width, camera.height)
+    sel = select_for(m, k, camera, fg, keep, kind, mirror, join=join)
     _echo_selection(sel)
     return sel
 

@@ -25,9 +25,9 @@ from ..errors import CrfError
 from ..names import EDIT_METHODS
 from ..renderer import render_rays
 from .cache import edit_passes
-from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays
+from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays, since
 from .losses import mse
-from .scribble import check_masks, parse_color, pick_pixels
+from .scribble import as_rgb, check_masks, pick_pixels
 from .selection import MIN_OPACITY, Selection, select_for
 from .supervised import recolor_selected
 
@@ -54,12 +54,13 @@ def edit_color(
     started = time.perf_counter()
     options = options.validated()
     k = model.instance_index(instance)
-    rgb = parse_color(color) if isinstance(color, str) else tuple(float(c) for c in color)
-    keep = check_masks(scribble, keep, camera.width, camera.height)
+    rgb = as_rgb(color)
+    scribble, keep = check_masks(scribble, keep, camera.width, camera.height)
     if method not in EDIT_METHODS:
         raise CrfError(f"--method {method}: expected one of {', '.join(EDIT_METHODS)}")
     if method == "selection":
-        return _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection, mirror)
+        result = _recolor_selection(model, k, camera, scribble, rgb, keep, options, selection, mirror)
+        return result if selection is not None else since(result, started)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator)
     edit = InstanceEdit(model, k, "color", options.strategy, options.penalty)

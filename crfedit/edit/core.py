@@ -100,7 +100,8 @@ class EditResult:
     meta: dict[str, str]
     final_loss: float
     seconds: float
-    """The whole edit's wall time (a given selection excluded)."""
+    """The whole edit's wall time: a selection the edit made from its scribbles included, one
+    it was given excluded (:func:`since`)."""
     optimize_seconds: float = dataclasses.field(default=0.0, kw_only=True)
     """Of which the optimization steps (:func:`optimize`); 0 for edits without any."""
 
@@ -248,3 +249,9 @@ def select_rays(camera: Camera, pixels: Tensor, device: torch.device) -> Rays:
     idx = pixels.to(device)
     return Rays(rays.origins[idx], rays.directions[idx])
 
+
+def since(result: EditResult, started: float) -> EditResult:
+    """``result`` timed from ``started``, its ``seconds`` and the delta's ``seconds`` record
+    alike: an edit that made its own selection counts it, as the whole edit's wall time."""
+    seconds = time.perf_counter() - started
+    return dataclasses.replace(result, meta={**result.meta, "seconds": f"{seconds:.3f}"}, seconds=seconds)

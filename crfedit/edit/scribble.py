@@ -16,7 +16,7 @@ from torch import Tensor
 
 from ..errors import CrfError
 from ..io import read_image, read_json
-from ..masks import strokes_mask
+from ..masks import as_mask, strokes_mask
 
 def _css_colors() -> dict[str, str]:
     """The CSS named colours (all 148, as Pillow's ``ImageColor`` holds them) → ``#rrggbb``."""
@@ -48,6 +48,20 @@ def parse_color(text: str) -> tuple[float, float, float]:
     if len(digits) == 3:
         digits = "".join(c * 2 for c in digits)
     return tuple(int(digits[i : i + 2], 16) / 255.0 for i in (0, 2, 4))  # type: ignore[return-value]
+
+
+def as_rgb(color) -> tuple[float, float, float]:
+    """An edit's target colour as RGB in [0, 1]: a string :func:`parse_color` reads, or three
+    numbers each from 0 to 1 (a 0–255 triple is refused, not trained toward)."""
+    if isinstance(color, str):
+        return parse_color(color)
+    try:
+        rgb = tuple(float(c) for c in color)
+    except (TypeError, ValueError):
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):  # NaN fails the range test too
+        raise CrfError(f"color {color!r}: expected a colour string or three numbers (R, G, B) from 0 to 1")
+    return rgb  # type: ignore[return-value]
 
 
 def default_radius(width: int) -> float:
@@ -173,8 +187,11 @@ def check_coverage(scribble: np.ndarray, force: bool = False) -> float:
     return fraction
 
 
-def check_masks(scribble: np.ndarray, keep: np.ndarray | None, width: int, height: int) -> np.ndarray | None:
-    """Validate an edit's masks; returns the keep mask minus the scribble (the scribble wins)."""
+def check_masks(scribble, keep, width: int, height: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Validate an edit's masks (any :func:`~crfedit.masks.as_mask` takes); returns the
+    scribble and the keep mask minus the scribble (the scribble wins) as bool ndarrays."""
+    scribble = as_mask(scribble, "scribble")
+    keep = None if keep is None else as_mask(keep, "keep")
     for what, mask in (("scribble", scribble), ("keep", keep)):
         if mask is not None and tuple(mask.shape) != (height, width):
             raise CrfError(f"{what} mask is {mask.shape[1]}x{mask.shape[0]} but the view is {width}x{height}")
@@ -183,13 +200,13 @@ def check_masks(scribble: np.ndarray, keep: np.ndarray | None, width: int, heigh
     if scribble.all():
         raise CrfError("the scribble covers the whole view: nothing is left to keep (scribble only the part to edit)")
     if keep is None:
-        return None
+        return scribble, None
     if keep.all():
         raise CrfError("the keep mask covers the whole view (an all-white mask?): scribble only what must not change")
     keep = keep & ~scribble
     if not keep.any():
         raise CrfError("the keep mask has no pixel outside the scribble (empty, or all under the scribble)")
-    return keep
+    return scribble, keep
 
 
 def pick_pixels(

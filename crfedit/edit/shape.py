@@ -46,6 +46,7 @@ from torch import Tensor
 from .. import occupancy
 from ..cameras import Camera, Rays
 from ..errors import CrfError
+from ..masks import as_mask
 from ..field import ConditionalRadianceField
 from ..names import ADD_METHODS, COLOR_CODES, EDIT_METHODS, is_digits
 from ..model import CategoryModel
@@ -53,7 +54,7 @@ from ..renderer import render_camera
 from ..rendering import composite_dense
 from ..sampling import grid_samples
 from .cache import EditPass, edit_passes
-from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize, select_rays
+from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize, select_rays, since
 from .losses import density_cross_entropy, density_entropy, log_density_drift, mse, visible_log_density
 from .params import used_code_tables
 from .scribble import check_masks, pick_pixels
@@ -110,15 +111,15 @@ def remove(
     started = time.perf_counter()
     options = options.validated()
     k = model.instance_index(instance)
-    keep = check_masks(scribble, keep, camera.width, camera.height)
+    scribble, keep = check_masks(scribble, keep, camera.width, camera.height)
     if method not in EDIT_METHODS:
         raise CrfError(f"--method {method}: expected one of {', '.join(EDIT_METHODS)}")
     if method == "selection":
         if occluded:
             raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
-        if selection is None:
-            selection = select_for(model, k, camera, scribble, keep, "remove", mirror)
-        return remove_selected(model, k, selection, [camera], options)
+        if selection is not None:
+            return remove_selected(model, k, selection, [camera], options)
+        return since(remove_selected(model, k, select_for(model, k, camera, scribble, keep, "remove", mirror), [camera], options), started)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(scribble, keep, options.rays, generator, also_random=True)
     n_fg = fg.numel()
@@ -244,6 +245,7 @@ def add(
     w, h = camera.width, camera.height
     if (donor_camera.width, donor_camera.height) != (w, h):
         raise CrfError(f"--donor-view is {donor_camera.width}x{donor_camera.height} but --view is {w}x{h}; use views of one size")
+    copy_mask = as_mask(copy_mask, "copy")
     if tuple(copy_mask.shape) != (h, w):
         raise CrfError(f"copy mask is {copy_mask.shape[1]}x{copy_mask.shape[0]} but the donor view is {w}x{h}")
     if not copy_mask.any():
@@ -261,15 +263,16 @@ def add(
         raise CrfError(f"--offset {dx},{dy} moves the whole copied region out of the {w}x{h} view")
     ys, xs = ys[inside], xs[inside]
     if method == "selection":
-        if selection is None:
-            selection = select_for(model, j, donor_camera, copy_mask, None, "add")
-            if on_selection is not None:
-                on_selection(selection)
-        return add_selected(model, k, j, selection, camera, offset, options)
+        if selection is not None:
+            return add_selected(model, k, j, selection, camera, offset, options)
+        selection = select_for(model, j, donor_camera, copy_mask, None, "add")
+        if on_selection is not None:
+            on_selection(selection)
+        return since(add_selected(model, k, j, selection, camera, offset, options), started)
     src_of = np.full(h * w, -1, dtype=np.int64)
     src_of[(ys + dy) * w + (xs + dx)] = ys * w + xs
     pasted = src_of.reshape(h, w) >= 0
-    keep = check_masks(pasted, keep, w, h)
+    pasted, keep = check_masks(pasted, keep, w, h)
     generator = torch.Generator().manual_seed(options.seed)
     fg, bg = pick_pixels(pasted, keep, options.rays, generator, also_random=True)
     n_fg = fg.numel()

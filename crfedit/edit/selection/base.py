@@ -12,6 +12,7 @@ from torch import Tensor
 from ... import occupancy
 from ...cameras import Camera
 from ...errors import CrfError
+from ...masks import as_mask
 from ...model import CategoryModel
 from .options import GROW_LOW
 from .refine import hysteresis
@@ -25,6 +26,11 @@ class ScribbleView:
     camera: Camera
     scribble: np.ndarray  # [H, W] bool
     keep: np.ndarray | None = None  # [H, W] bool
+
+    def __post_init__(self):  # any mask as_mask takes (a torch tensor, 0/1 numbers) becomes a bool ndarray
+        object.__setattr__(self, "scribble", as_mask(self.scribble, "scribble"))
+        if self.keep is not None:
+            object.__setattr__(self, "keep", as_mask(self.keep, "keep"))
 
 
 @dataclass

@@ -20,8 +20,12 @@ def preview(model: CategoryModel, sel: Selection, camera: Camera, strength: floa
             out: RenderOutput | None = None, field=None) -> np.ndarray:
     """The instance's render from ``camera`` [H, W, 3] with the selected surface tinted, so the
     user sees what an edit will change before any weight moves.  ``out``: that render, when the
-    caller has it (the page keeps its views'); ``field``: the instance's field, likewise."""
-    field = model.field_for(sel.instance) if field is None else field
+    caller has it (the page keeps its views'); ``field``: the instance's field, likewise (the
+    page, which checked the selection when it made it; without it the selection must be of
+    ``model``, :meth:`Selection.check_for`)."""
+    if field is None:
+        sel.check_for(model, sel.instance)
+        field = model.field_for(sel.instance)
     out = render_camera(field, camera, sel.instance) if out is None else out
     pts, on = surface_points(field, camera, sel.instance, out=out)
     hit = (sel.at(field.normalize(pts)) & on).reshape(camera.height, camera.width, 1)

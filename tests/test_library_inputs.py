@@ -1,0 +1,112 @@
+"""The library API under a script's inputs: masks as torch tensors or numbers, colours as
+tuples, instances as NumPy integers, one edit path alone; bad ones are one CrfError line, not
+a traceback from deep inside.  Loading leaves torch's global random stream alone
+(tests/test_modelfile.py) and an edit's seconds count the selection it made."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from crfedit.delta import apply_edit_files
+from crfedit.edit import EditOptions, edit_color, remove
+from crfedit.edit.scribble import as_rgb
+from crfedit.edit.selection import preview, select_for
+from crfedit.errors import CrfError
+from crfedit.masks import as_mask
+from crfedit.model import load_model
+from crfedit.renderer import render_camera
+
+FAST = EditOptions(steps=2, rays=128)
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_model):
+    model, _ = load_model(tiny_model)
+    camera = model.views["train"].cameras(0)[0]
+    opacity = render_camera(model.field, camera, 0).opacity.numpy()
+    ys, xs = np.nonzero(opacity > 0.5)
+    scribble = np.zeros_like(opacity, dtype=bool)
+    scribble[ys[: max(3, len(ys) // 4)], xs[: max(3, len(xs) // 4)]] = True
+    return model, camera, scribble
+
+
+def test_as_mask_takes_tensors_and_numbers_and_names_bad_input():
+    m = np.array([[True, False], [False, True]])
+    for given in (m, torch.from_numpy(m), m.astype(np.uint8), m.astype(np.float32), m.tolist()):
+        out = as_mask(given)
+        assert out.dtype == bool and np.array_equal(out, m)
+    assert np.array_equal(as_mask(np.array([[0.2, 0.7]])), [[False, True]])  # floats: 0.5 or more
+    with pytest.raises(CrfError, match=r"keep mask: expected a \[H, W\] array .* shape \[2, 2, 3\]"):
+        as_mask(np.zeros((2, 2, 3), bool), "keep")
+    with pytest.raises(CrfError, match="NaN"):
+        as_mask(np.array([[np.nan, 1.0]]))
+    with pytest.raises(CrfError, match="expected a \\[H, W\\] array"):
+        as_mask("not a mask")
+
+
+def test_an_edit_reads_a_torch_mask_as_the_numpy_one(scene):
+    model, camera, scribble = scene
+    a = edit_color(model, 0, camera, scribble, "red", options=FAST)
+    b = edit_color(model, 0, camera, torch.from_numpy(scribble), "red", options=FAST)
+    c = edit_color(model, np.int64(0), camera, scribble.astype(np.uint8), (1.0, 0.0, 0.0), options=FAST)
+    for other in (b, c):
+        assert other.tensors.keys() == a.tensors.keys() and all(torch.equal(other.tensors[n], t) for n, t in a.tensors.items())
+
+
+def test_colours_instances_renders_devices_and_paths_refuse_bad_input(scene, tiny_model, tmp_path):
+    model, camera, scribble = scene
+    assert as_rgb("#f00") == as_rgb((1, 0, 0)) == (1.0, 0.0, 0.0)
+    for bad in ((255, 0, 0), (1.0, 0.0), (float("nan"), 0, 0), 3):
+        with pytest.raises(CrfError, match="three numbers"):
+            as_rgb(bad)
+    with pytest.raises(CrfError, match="three numbers"):  # refused before any work, not trained toward
+        edit_color(model, 0, camera, scribble, (255, 0, 0), options=FAST)
+    for bad in (True, 0.0, None):
+        with pytest.raises(CrfError, match="expected an instance name or an integer index"):
+            model.instance_index(bad)
+    for bad in (99, -1, "chair_000", True):
+        with pytest.raises(CrfError, match="is not an index of the field's 2 instances"):
+            render_camera(model.field, camera, bad)
+    with pytest.raises(CrfError, match="chunk 0"):
+        render_camera(model.field, camera, 0, chunk=0)
+    assert torch.equal(render_camera(model.field, camera, np.int64(1)).rgb, render_camera(model.field, camera, 1).rgb)
+    with pytest.raises(CrfError, match="expected auto, cpu or cuda"):
+        load_model(tiny_model, "gpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(CrfError, match="no CUDA device"):
+            load_model(tiny_model, "cuda:0")
+    edit = tmp_path / "e.safetensors"
+    remove(model, 0, camera, scribble, options=FAST).save(edit)
+    assert 0 in apply_edit_files(model, edit).overrides  # one path alone is a stack of one
+
+
+def test_preview_refuses_another_model_s_selection(scene, tiny_model):
+    model, camera, scribble = scene
+    sel = select_for(model, 0, camera, scribble, None, "color")
+    other, _ = load_model(tiny_model)
+    with torch.no_grad():
+        other.field.F_dens.bias += 0.5
+    assert preview(model, sel, camera).shape == (camera.height, camera.width, 3)
+    with pytest.raises(CrfError, match="made for another model"):
+        preview(other, sel, camera)
+
+
+def test_an_edit_s_seconds_count_the_selection_it_made(scene, monkeypatch):
+    import crfedit.edit.shape as shape
+
+    model, camera, scribble = scene
+    slow = shape.select_for
+
+    def select_slowly(*args, **kwargs):
+        time.sleep(0.3)
+        return slow(*args, **kwargs)
+
+    monkeypatch.setattr(shape, "select_for", select_slowly)
+    result = remove(model, 0, camera, scribble, options=FAST)
+    assert result.seconds >= 0.3 and result.meta["seconds"] == f"{result.seconds:.3f}"
+    given = remove(model, 0, camera, scribble, options=FAST, selection=slow(model, 0, camera, scribble, None, "remove"))
+    assert given.seconds < 0.3 <= result.seconds
