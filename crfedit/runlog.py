@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import shutil
 import textwrap
 from pathlib import Path
@@ -82,10 +83,14 @@ class RunLog:
         if fresh:
             self.csv.writerow(COLUMNS)
         self.tb = _tensorboard_writer(self.paths["tensorboard"])
+        self._last: tuple | None = None  # the last on_step's arguments, and the last step written
+        self._logged: int | None = None
 
     def on_step(self, step: int, loss: float, psnr: float, rays_per_s: float) -> None:
+        self._last = (step, loss, psnr, rays_per_s)
         if step % self.every:
             return
+        self._logged = step
         seconds = self.cfg.rays * step / rays_per_s if rays_per_s > 0 else 0.0
         progress = None if self.budget is None else max(step / self.cfg.steps, seconds / self.budget)
         lr = self._lr(self.cfg, self.cfg.lr, step, progress)
@@ -94,6 +99,18 @@ class RunLog:
         if self.tb is not None:
             for name, value in zip(COLUMNS[1:], (loss, psnr, rays_per_s, lr, seconds)):
                 self.tb.add_scalar(f"train/{name}", value, step)
+
+    def end(self) -> None:
+        """A finished run's last step as a row too, when ``every`` did not land on it (a run
+        shorter than ``--log-every`` would otherwise leave the header alone).  Its loss and
+        PSNR are the last read-out's, a few steps before where the step is not a read step."""
+        last = self._last
+        if last is not None and self._logged != last[0] and math.isfinite(last[1]):
+            every, self.every = self.every, 1
+            try:
+                self.on_step(*last)
+            finally:
+                self.every = every
 
     def close(self) -> None:
         self.file.close()

@@ -11,7 +11,7 @@ from crfedit.data import load_category
 from crfedit.model import load_model
 from crfedit.train import train
 
-from cli_helpers import invoke
+from cli_helpers import assert_user_error, invoke
 
 TINY = ["--steps", "3", "--set", "rays=64", "--device", "cpu"]
 
@@ -145,12 +145,15 @@ def test_run_records_beside_the_model(tiny_chairs, tmp_path):
     run = json.loads((tmp_path / "m.run.json").read_text())
     assert run["config"] == json.loads(load_model(out)[0].cfg.to_json()) and run["seed"] == 0
     rows = list(csv.DictReader((tmp_path / "m.log.csv").open()))
-    assert [int(row["step"]) for row in rows] == [2, 4]
+    assert [int(row["step"]) for row in rows] == [2, 4, 5]  # the last step too, off the --log-every grid
     assert all(float(row["lr"]) > 0 and float(row["rays_per_s"]) > 0 and float(row["loss"]) > 0 for row in rows)
     assert float(rows[0]["lr"]) > float(rows[1]["lr"])  # the cosine schedule decays
     r = invoke("train", tiny_chairs, "--out", out, "--resume", "--steps", 8, "--log-every", 2, "--device", "cpu")
     assert r.exit_code == 0, r.output
-    assert [int(row["step"]) for row in csv.DictReader((tmp_path / "m.log.csv").open())] == [2, 4]  # stored steps=5: done
+    assert [int(row["step"]) for row in csv.DictReader((tmp_path / "m.log.csv").open())] == [2, 4, 5]  # stored steps=5: done
+    assert "ignored: steps 8 (stored 5)" in r.stdout and "rays" not in r.stdout.split("ignored:")[1]  # only what was typed
+    r = invoke("train", tiny_chairs, "--out", out, "--resume", "--device", "cpu")
+    assert r.exit_code == 0 and "nothing to resume" in r.stdout and "ignored" not in r.stdout, r.stdout
 
 
 def test_tensorboard_events_when_installed(tiny_chairs, tmp_path):
@@ -164,3 +167,16 @@ def test_tensorboard_events_when_installed(tiny_chairs, tmp_path):
     events.Reload()
     assert [e.step for e in events.Scalars("train/loss")] == [1, 2, 3]
     assert {"train/psnr", "train/rays_per_s", "train/lr", "train/seconds"} <= set(events.Tags()["scalars"])
+
+
+def test_resume_on_another_dataset_is_refused_before_any_set_up(tiny_chairs, tmp_path):
+    from crfedit.data.synth import SynthConfig, write_synth_category
+
+    out = tmp_path / "m.safetensors"
+    assert invoke("train", tiny_chairs, "--out", out, "--steps", 8, "--set", "rays=64", "--device", "cpu").exit_code == 0
+    other = tmp_path / "other"
+    write_synth_category(other, SynthConfig(instances=2, views=6, res=16, seed=7, twins=False))
+    before = out.read_bytes(), (tmp_path / "m.run.json").read_bytes()
+    r = invoke("train", other, "--out", out, "--resume", "--steps", 16, "--device", "cpu")
+    assert_user_error(r, "was trained on another dataset")
+    assert "config (also in" not in r.stdout and (out.read_bytes(), (tmp_path / "m.run.json").read_bytes()) == before

@@ -134,6 +134,7 @@ def run_training(
     category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int = 100, ranks=None,
     compile: bool = False,
     march: str = "auto",
+    given: frozenset[str] | None = None,
 ):
     """Train on a loaded category with a progress bar and run records (crfedit.runlog), both on
     rank 0 only under torchrun; return (model, TrainResult).  Training reads its loss back every
@@ -154,7 +155,7 @@ def run_training(
     if resume and out.is_file():
         stored = stored_training(out)
         stored_cfg, first_step = stored.cfg, stored.step
-        ignored = ignored_flags(part_config(category, cfg), stored_cfg)
+        ignored = ignored_flags(part_config(category, cfg), stored_cfg, given)
         if ignored and ranks.main:
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps); {ignored}")
         cfg = stored_cfg
@@ -183,6 +184,7 @@ def run_training(
                 on_step=on_step, extra_meta={"command": command_line()}, ranks=ranks, **options,
             )
             finished = True
+            log.end()
             return result
     finally:
         log.close()
@@ -190,11 +192,27 @@ def run_training(
             log.take_back()
 
 
-def ignored_flags(asked, stored) -> str:
-    """What ``--resume`` ignores: the settings asked for that differ from the stored run's
-    ("" when none do)."""
-    differ = [f"{k} {getattr(asked, k)} (stored {getattr(stored, k)})" for k in vars(asked) if getattr(asked, k) != getattr(stored, k)]
+def ignored_flags(asked, stored, given: frozenset[str] | None = None) -> str:
+    """What ``--resume`` ignores: the settings the command line gave (``given``: their config
+    keys, :func:`given_settings`; None: every setting) that differ from the stored run's ("" when
+    none do).  A default the user never typed is not "ignored"."""
+    keys = [k for k in vars(asked) if given is None or k in given]
+    differ = [f"{k} {getattr(asked, k)} (stored {getattr(stored, k)})" for k in keys if getattr(asked, k) != getattr(stored, k)]
     return f"ignored: {', '.join(differ)}" if differ else ""
+
+
+def given_settings(preset: str, overrides: dict, sets: list[str]) -> frozenset[str]:
+    """The config keys a train command line set: its options (``overrides``, None where not
+    given), its ``--set KEY=VALUE`` keys and, for a preset other than the default, every key
+    that preset sets."""
+    from ..config import PRESETS
+
+    keys = {k for k, v in overrides.items() if v is not None}
+    keys |= {item.partition("=")[0].strip().replace("-", "_") for item in sets}
+    if preset != "fast":
+        base, chosen = PRESETS["fast"], PRESETS[preset]
+        keys |= {k for k in vars(chosen) if getattr(chosen, k) != getattr(base, k)}
+    return frozenset(keys)
 
 
 def _finished(step: int, steps: int, elapsed: float | None, minutes: float | None) -> str:
@@ -262,9 +280,9 @@ def train_cmd(
     check_output_file(out, resume, overwrite)
     ranks = ranks_from_env()
     dev = resolve_device(device) if ranks is None else rank_device(device, ranks)
-    cfg = make_config(
-        preset.value, {"arch": arch.value if arch else None, "steps": steps, "view_reg": view_reg}, sets or [], dev.type
-    )
+    overrides = {"arch": arch.value if arch else None, "steps": steps, "view_reg": view_reg}
+    cfg = make_config(preset.value, overrides, sets or [], dev.type)
+    given = given_settings(preset.value, overrides, sets or [])
     if resume:
         if not out.is_file():
             raise CrfError(f"--resume: {out} does not exist (start without --resume)")
@@ -284,16 +302,16 @@ def train_cmd(
     with process_group(ranks, dev):
         labels = (stored.cfg if resume else cfg).part_dim > 0  # F_part trains from part maps and depth
         category = load_category(data, res=res, with_depth=labels, with_parts=labels)
+        if resume and stored.dataset != category.fingerprint:  # before any record, bar or set-up
+            raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {stored.dataset})")
         if resume and finished:  # rewriting it would only replace its records
-            if stored.dataset != category.fingerprint:
-                raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {stored.dataset})")
             from ..parts import part_config
 
-            ignored = ignored_flags(part_config(category, cfg), stored.cfg)
+            ignored = ignored_flags(part_config(category, cfg), stored.cfg, given)
             typer.echo(f"{out} {finished}" + (f"; {ignored}" if ignored else ""))
             return
         seed_everything(seed)  # train() draws the initial weights from torch's global generator
-        model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value)
+        model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value, given)
     if not ranks.main:
         return
     score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
