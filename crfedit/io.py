@@ -20,6 +20,41 @@ from .errors import CrfError
 
 
 @contextlib.contextmanager
+def writer_lock(path: str | os.PathLike, held: bool = True) -> Iterator[None]:
+    """Hold an exclusive lock on writing ``path`` for the duration (``held`` False: no lock, a
+    rank that does not write).  A second crfedit process asking for the same path is refused at
+    once, in one line, instead of both running and the later silently replacing the earlier's
+    file.  The lock is an advisory ``flock`` on a hidden ``.NAME.lock`` beside ``path``, removed
+    on release; the system drops the lock of a process that dies.  Without ``fcntl`` (Windows)
+    nothing is locked."""
+    try:
+        import fcntl
+    except ImportError:
+        fcntl = None
+    if not held or fcntl is None:
+        yield
+        return
+    path = Path(path)
+    lock = path.with_name(f".{path.name}.lock")
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+            raise CrfError(f"{path}: another crfedit process is writing it{f' (pid {holder})' if holder.isdigit() else ''}; "
+                           "wait for it to finish, or pick another name") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        try:
+            yield
+        finally:
+            lock.unlink(missing_ok=True)  # while still held: the next writer makes a fresh lock file
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success fsync and rename it onto ``path``.
 

@@ -180,3 +180,17 @@ def test_resume_on_another_dataset_is_refused_before_any_set_up(tiny_chairs, tmp
     r = invoke("train", other, "--out", out, "--resume", "--steps", 16, "--device", "cpu")
     assert_user_error(r, "was trained on another dataset")
     assert "config (also in" not in r.stdout and (out.read_bytes(), (tmp_path / "m.run.json").read_bytes()) == before
+
+
+def test_a_second_training_of_the_same_out_is_refused_while_one_runs(tiny_chairs, tmp_path):
+    """Two trainings on one --out: the second is refused at once (one line), the first's model
+    is kept; the lock goes with the run that held it."""
+    from crfedit.io import writer_lock
+
+    out = tmp_path / "m.safetensors"
+    with writer_lock(out):  # as a running `crfedit train --out m.safetensors` holds it
+        r = invoke("train", tiny_chairs, "--out", out, *TINY)
+        assert_user_error(r, "m.safetensors", "another crfedit process is writing it", f"pid {__import__('os').getpid()}")
+        assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # the lock file went with the lock
+    assert invoke("train", tiny_chairs, "--out", out, *TINY).exit_code == 0 and not (tmp_path / ".m.safetensors.lock").exists()

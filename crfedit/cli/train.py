@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..io import check_folder_target
+from ..io import check_folder_target, writer_lock
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from ..names import MODEL_FORMAT
@@ -299,7 +299,8 @@ def train_cmd(
             typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)")
         finished = _finished(stored.step, stored.cfg.steps, stored.elapsed, minutes)
     ranks = ranks or SINGLE
-    with process_group(ranks, dev):
+    with writer_lock(out, ranks.main), process_group(ranks, dev):
+        check_output_file(out, resume, overwrite)  # again, now that no other run can write it: one may have finished meanwhile
         labels = (stored.cfg if resume else cfg).part_dim > 0  # F_part trains from part maps and depth
         category = load_category(data, res=res, with_depth=labels, with_parts=labels)
         if resume and stored.dataset != category.fingerprint:  # before any record, bar or set-up
