@@ -326,6 +326,10 @@ def train(
         raise CrfError(f"{ranks.world} ranks: at most one rank per instance and per ray ({len(category.instances)} instances, rays={cfg.rays})")
     if read_every < 1:
         raise CrfError(f"read_every {read_every}: must be at least 1")
+    bare = [inst.name for inst in category.instances if not inst.splits.get("train")]
+    if bare:  # every listed instance gets codes, and codes learn only from train views
+        raise CrfError(f"{category.root}: instance {bare[0]} has no train views (transforms_train.json missing or empty)"
+                       + (f", nor do {len(bare) - 1} more" if len(bare) > 1 else "") + "; a category model trains every instance it lists")
     fixed_shapes = (device.type != "cpu" or compile) if fixed_shapes is None else fixed_shapes
     if compile and not fixed_shapes:
         raise CrfError("--compile compiles the fixed-shape march: it cannot be combined with --march exact")

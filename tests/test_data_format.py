@@ -253,7 +253,14 @@ def test_cli_info_json(tmp_path):
     assert result.exit_code == 0, result.output
     info = json.loads(result.stdout)
     assert info["instances"] == 2 and info["views"] == {"train": 6, "test": 2} and info["bbox"]["source"] == "depth"
-    assert info["fingerprint"] == load_category(tmp_path).fingerprint
+    assert info["fingerprint"] == load_category(tmp_path).fingerprint and info["without_train_views"] == []
+    # an instance without train views: counted as 0 per instance, named, and warned about
+    name = load_category(tmp_path).names[1]
+    (tmp_path / name / "transforms_train.json").unlink()
+    info = json.loads(invoke("dataset", "info", tmp_path, "--json").stdout)
+    assert info["without_train_views"] == [name] and info["views_per_instance"]["train"][0] == 0
+    text = invoke("dataset", "info", tmp_path)
+    assert text.exit_code == 0 and f"1 instance without train views ({name})" in text.stderr
 
 
 def test_unknown_instance_suggests_the_names_it_is_part_of():

@@ -206,6 +206,12 @@ def copy_data(env: Env, tmp: Path) -> Path:
     return tmp / "chairs"
 
 
+def without(path: Path) -> Path:
+    """Delete ``path``; returns the dataset folder it was in (its grandparent)."""
+    path.unlink()
+    return path.parent.parent
+
+
 def edit_transforms(data: Path, change: Callable[[dict], None], instance: str = "chair_000", split: str = "train") -> Path:
     path = data / instance / f"transforms_{split}.json"
     meta = json.loads(path.read_text())
@@ -630,6 +636,9 @@ CATALOGUE: list[Case] = [
          lambda e, t: (["dataset", "info", edit_transforms(copy_data(e, t), lambda m: m.update(camera_angle_x=0))], []),
          ("transforms_train.json", "camera_angle_x 0")),
     Case("data/nan-depth/dataset-info", lambda e, t: (["dataset", "info", nan_depth(e, t)], []), ("r_000_depth.exr", "depth has NaN pixels")),
+    Case("data/instance-without-train-views/train",
+         lambda e, t: train_cmd(e, t, data=without(copy_data(e, t) / "chair_001" / "transforms_train.json")),
+         ("instance chair_001 has no train views", "transforms_train.json missing or empty")),
     Case("data/nan-exr-image/train", lambda e, t: train_cmd(e, t, data=nan_exr_image(e, t)), ("r_000.exr", "NaN or infinite pixels")),
     Case("data/no-twins/eval-edits", lambda e, t: (["eval", "edits", e.model, e.data, "--steps", "1", *CPU], []), ("no ground-truth twins",)),
     Case("data/singular-pose/train", lambda e, t: train_cmd(e, t, data=pose([[1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])(e, t)),

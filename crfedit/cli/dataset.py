@@ -88,3 +88,7 @@ def info(
     ]
     for key, value in rows:
         typer.echo(f"{key:<12} {value}")
+    bare = meta["without_train_views"]
+    if bare:
+        typer.echo(f"warning: {len(bare)} instance{'s' * (len(bare) != 1)} without train views ({', '.join(bare[:4])}"
+                   f"{', ...' if len(bare) > 4 else ''}): train refuses the dataset until each has some", err=True)

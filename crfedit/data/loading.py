@@ -371,8 +371,8 @@ def dataset_info(category: Category) -> dict:
     """Instances, views per split, resolutions, bounding box, twins and fingerprint, as plain JSON types."""
     views, per_instance = {}, {}
     for split in SPLITS:
-        counts = [len(inst.splits[split]) for inst in category.instances if split in inst.splits]
-        if counts:
+        counts = [len(inst.splits.get(split, [])) for inst in category.instances]
+        if any(counts):
             views[split] = sum(counts)
             per_instance[split] = [min(counts), max(counts)]
     sizes = sorted({(v.camera.width, v.camera.height) for inst in category.instances for vs in inst.splits.values() for v in vs})
@@ -386,5 +386,6 @@ def dataset_info(category: Category) -> dict:
         "resolutions": [f"{w}x{h}" for w, h in sizes],
         "bbox": {"min": [round(float(x), 6) for x in lo], "max": [round(float(x), 6) for x in hi], "source": source},
         "twins": len(read_twin_specs(category.root)),
+        "without_train_views": [inst.name for inst in category.instances if not inst.splits.get("train")],
         "fingerprint": category.fingerprint,
     }
