@@ -3,6 +3,8 @@ video; what ``crfedit render`` and ``crfedit quickstart`` write."""
 
 from __future__ import annotations
 
+import json
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +34,24 @@ def prepare_folder(out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise CrfError(f"--out {out}: cannot create the folder ({e.strerror or e.__class__.__name__})") from None
+
+
+def _frame_files(i: int, depth: bool) -> list[str]:
+    """The files of frame ``i`` of a render: ``NNNN.png`` (and its depth EXR and preview)."""
+    return [f"{i:04d}.png", *([f"{i:04d}_depth.exr", f"{i:04d}_depth.png"] if depth else [])]
+
+
+def _earlier_frames(out: Path) -> set[str]:
+    """The frame files an earlier render wrote to ``out``, as its ``views.json`` lists them
+    (with their depth files), that are there: a new render removes those it does not write
+    again, so the folder holds one set of frames; files it did not write stay."""
+    try:
+        listed = json.loads((out / "views.json").read_text())["views"]
+        names = {r["file"] for r in listed if isinstance(r, dict) and isinstance(r.get("file"), str)}
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
+    frames = {n for f in names if re.fullmatch(r"\d{4}\.png", f) for n in _frame_files(int(f[:4]), True)}
+    return {n for n in frames if (out / n).is_file()}
 
 
 def render_to_folder(
@@ -70,10 +90,13 @@ def render_to_folder(
         if target != video and target.exists():  # the GIF in place of an MP4 is a file the user did not name
             raise CrfError(f"--video {video}: without the [video] extra (pip install -e '.[video]') this writes {target.name}, "
                            f"which exists already; give --video {target} to replace it")
-        if video.is_dir() or not video.parent.is_dir():
-            raise CrfError(f"--video {video}: needs a file name in an existing folder")
+        made = [out.absolute(), *out.absolute().parents]  # the folders --out's creation makes or finds
+        if video.is_dir() or not (video.parent.is_dir() or video.parent.absolute() in made):
+            raise CrfError(f"--video {video}: needs a file name in an existing folder (or in --out's)")
+    earlier: set[str] = set()
     if ranks.main:
         prepare_folder(out)
+        earlier = _earlier_frames(out)
     ranks.barrier("waiting for rank 0 to create the output folder")
     field = model.field_for(instance)
     frames, records, seconds = {}, {}, 0.0
@@ -111,6 +134,9 @@ def render_to_folder(
         if ranks.main:
             write_json(out / "views.json", {"instance": model.names[instance], "spec": spec, "views": [records[i] for i in sorted(records)]})
             video_written = write_video(video, [frames[i] for i in sorted(frames)], fps) if video is not None else None
+            now = {n for i in range(len(views)) for n in _frame_files(i, depth)}
+            for name in sorted(earlier - now):  # an earlier render's frames this one did not write: not this set's
+                (out / name).unlink(missing_ok=True)
     except BaseException:
         for path in written:
             path.unlink(missing_ok=True)

@@ -439,3 +439,18 @@ def test_depth_preview_colours_near_red_far_blue():
     assert np.allclose(rgb[0, 0], turbo(1.0)) and np.allclose(rgb[0, 2], turbo(0.0)) and (rgb[0, 3] == 1).all()
     assert rgb[0, 0, 0] > 2 * rgb[0, 0, 2] and turbo(0.15)[2] > 2 * turbo(0.15)[0]  # near is red, far is blue
     assert turbo(0.5)[1] > 0.95 and turbo(0.5)[1] > turbo(0.5)[0] > turbo(0.5)[2]  # green-yellow middle
+
+
+def test_a_render_into_a_used_folder_leaves_one_set_of_frames(model_path, tmp_path):
+    """The frames an earlier render listed in views.json and this one does not write again go;
+    files crfedit did not list stay.  A --video beside --out's new folder is fine."""
+    out = tmp_path / "r" / "s"
+    first = invoke("render", model_path, "--instance", 0, "--views", "orbit:4", "--out", out, "--depth",
+                   "--video", tmp_path / "r" / "s.gif", "--device", "cpu")
+    assert first.exit_code == 0 and (tmp_path / "r" / "s.gif").is_file(), first.output
+    (out / "notes.txt").write_text("mine")
+    (out / "0009.png").write_bytes(b"not listed")
+    again = invoke("render", model_path, "--instance", 0, "--views", "orbit:2", "--out", out, "--device", "cpu")
+    assert again.exit_code == 0, again.output
+    assert sorted(p.name for p in out.iterdir()) == ["0000.png", "0001.png", "0009.png", "notes.txt", "views.json"]
+    assert len(json.loads((out / "views.json").read_text())["views"]) == 2
