@@ -40,6 +40,9 @@ def read_header(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
     with open(path, "rb") as f:
         (n,) = struct.unpack("<Q", f.read(8))
         if n > MAX_HEADER_BYTES or n > size - 8:
+            if f.read(1) != b"{":  # no header length, and no JSON object after it: a mesh, an image, a text file
+                raise ModelFileError(f"{path}: not a safetensors file (crfedit reads models, edits and selections "
+                                     "in safetensors; this file's bytes are of another kind)")
             raise ModelFileError(f"{path}: corrupt safetensors header (length {n})")
         raw = f.read(n)
     try:

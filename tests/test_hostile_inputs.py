@@ -399,7 +399,7 @@ CATALOGUE: list[Case] = [
          ("huge_header.safetensors", f"corrupt safetensors header (length {MAX_HEADER_BYTES + 1})")),
     Case("model/header-not-json/eval-recon", lambda e, t: (["eval", "recon", header_not_json(t), e.data, *CPU], []),
          ("notjson.safetensors", "not JSON")),
-    Case("model/plain-text/edits-check", lambda e, t: check(text_file(t), e.delta), ("readme.safetensors", "corrupt safetensors header")),
+    Case("model/plain-text/edits-check", lambda e, t: check(text_file(t), e.delta), ("readme.safetensors", "not a safetensors file", "of another kind")),
     Case("model/metadata-not-strings/edits-bake",
          lambda e, t: bake(t, raw_safetensors(t, "meta.safetensors", {"__metadata__": {"format": {"x": 1}}}, b""), e.delta),
          ("meta.safetensors", "metadata must be a table of strings")),
