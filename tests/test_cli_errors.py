@@ -125,3 +125,12 @@ def test_interrupted_resynth_keeps_the_previous_dataset(tmp_path):
     result = write_synth_category(out, SynthConfig(instances=3, views=3, res=8, seed=1, twins=False))
     assert (out / "instances.txt").read_text().split() == result.names == ["chair_000", "chair_001", "chair_002"]
     assert [p.name for p in tmp_path.iterdir()] == ["ds"] and oct(out.stat().st_mode & 0o777) != "0o700"
+
+
+def test_synth_over_an_earlier_synth_output_says_it_replaced_it(tmp_path):
+    out = tmp_path / "ds"
+    first = invoke(*SYNTH[:2], out, *SYNTH[2:])
+    assert first.exit_code == 0 and "replaced" not in first.stdout, first.output
+    again = invoke(*SYNTH[:2], out, "--instances", "2", *SYNTH[4:])
+    assert again.exit_code == 0 and "(it replaced the dataset that was there)" in again.stdout, again.output
+    assert (out / "instances.txt").read_text().split() == ["chair_000", "chair_001"]

@@ -43,6 +43,7 @@ def synth(
 
     config = SynthConfig(instances=instances, views=views, res=res, seed=seed, twins=twins, aa=aa, twin_sources=twin_sources)
     check_synth_args(out, config)
+    replaced = (out / "instances.txt").is_file()  # check_synth_args let it through: an earlier synth output
     columns = (TextColumn("{task.description:<18}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
     with Progress(*columns) as bar:
         task = bar.add_task("chairs", total=synth_steps(config))
@@ -50,6 +51,7 @@ def synth(
     typer.echo(
         f"wrote {len(result.names)} chairs x {views} views at {res}x{res}"
         f" + {len(result.twins)} twins to {out} in {result.seconds:.1f} s"
+        + (" (it replaced the dataset that was there)" if replaced else "")
     )
 
 
