@@ -42,20 +42,28 @@ def default_level(field) -> float:
 
 
 def _marching_cubes(volume: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices in lattice coordinates [V, 3], faces [F, 3]) with PyMCubes, else scikit-image."""
+    """(vertices in lattice coordinates [V, 3], faces [F, 3] wound outward) with PyMCubes, else
+    scikit-image."""
     try:
         import mcubes
 
         verts, faces = mcubes.marching_cubes(volume, level)
-        return verts, faces.astype(np.int64)[:, ::-1]  # PyMCubes winds inward-facing; flip to outward
     except ImportError:
-        pass
-    try:
-        from skimage.measure import marching_cubes
-    except ImportError:
-        raise CrfError("mesh export needs PyMCubes or scikit-image: pip install -e '.[export]'") from None
-    verts, faces, _, _ = marching_cubes(volume, level, gradient_direction="ascent")
-    return verts, faces.astype(np.int64)
+        try:
+            from skimage.measure import marching_cubes
+        except ImportError:
+            raise CrfError("mesh export needs PyMCubes or scikit-image: pip install -e '.[export]'") from None
+        verts, faces, _, _ = marching_cubes(volume, level, gradient_direction="ascent")
+    return verts, outward(verts, faces.astype(np.int64))
+
+
+def outward(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``faces`` wound so that the closed surface encloses a positive volume (normals out, as
+    viewers with back-face culling need): the libraries' windings differ between versions
+    (PyMCubes 0.1.6 winds outward, where an earlier release was read as inward)."""
+    v0, v1, v2 = (verts[faces[:, i]] for i in range(3))
+    signed = float(np.einsum("ij,ij->i", v0, np.cross(v1, v2)).sum())
+    return faces if signed >= 0 else np.ascontiguousarray(faces[:, ::-1])
 
 
 def density_lattice(field, instance: int, res: int, chunk: int = 65536) -> np.ndarray:
@@ -120,7 +128,9 @@ def extract_mesh(model: CategoryModel, instance: int, res: int = 256, level: flo
 
 
 def write_mesh(mesh: Mesh, path: str | Path) -> None:
-    """Write ``mesh`` with trimesh (format from the suffix), atomically."""
+    """Write ``mesh`` with trimesh (format from the suffix), atomically.  crfedit's world is
+    Z-up; glTF (``.glb``) is Y-up by its specification, so there the vertices are turned
+    (x, y, z) → (x, z, −y) and the chair stands in a glTF viewer; the other formats keep Z-up."""
     from .io import atomic_path
 
     path = Path(path)
@@ -131,6 +141,9 @@ def write_mesh(mesh: Mesh, path: str | Path) -> None:
     except ImportError:
         raise CrfError("mesh export needs trimesh: pip install -e '.[export]'") from None
     rgba = np.concatenate([np.clip(np.round(mesh.colors * 255), 0, 255), np.full((len(mesh.colors), 1), 255)], axis=1)
-    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, vertex_colors=rgba.astype(np.uint8), process=False)
+    vertices = np.asarray(mesh.vertices)
+    if path.suffix.lower() == ".glb":
+        vertices = np.stack([vertices[:, 0], vertices[:, 2], -vertices[:, 1]], axis=1)  # a proper rotation: faces keep their winding
+    tm = trimesh.Trimesh(vertices, mesh.faces, vertex_colors=rgba.astype(np.uint8), process=False)
     with atomic_path(path) as tmp:
         tm.export(tmp, file_type=path.suffix.lower().lstrip("."))

@@ -82,3 +82,18 @@ def test_export_mesh_command_writes_vertex_colours(model_path, tmp_path, suffix)
     assert len(loaded.faces) > 50 and loaded.visual.vertex_colors.shape[0] == len(loaded.vertices)
     assert_user_error(invoke("export", "mesh", model_path, "--instance", "0", "--out", tmp_path / "c.txt"), ".ply")
     assert not (tmp_path / "c.txt").exists()
+
+
+def test_glb_is_y_up_and_the_other_formats_keep_z_up(model_path, tmp_path):
+    """glTF is Y-up: the .glb's vertices are the .ply's turned (x, y, z) → (x, z, −y), faces
+    and colours alike, so the chair stands in a glTF viewer."""
+    meshes = {}
+    for suffix in (".ply", ".glb"):
+        r = invoke("export", "mesh", model_path, "--instance", "chair_000", "--out", tmp_path / f"c{suffix}", "--res", "32", "--device", "cpu")
+        assert r.exit_code == 0, r.output
+        loaded = trimesh.load(tmp_path / f"c{suffix}", process=False, force="mesh")
+        meshes[suffix] = loaded
+    ply, glb = meshes[".ply"], meshes[".glb"]
+    turned = np.stack([ply.vertices[:, 0], ply.vertices[:, 2], -ply.vertices[:, 1]], axis=1)
+    assert np.allclose(glb.vertices, turned, atol=1e-6) and np.array_equal(glb.faces, ply.faces)
+    assert np.allclose(glb.volume, ply.volume, rtol=1e-5) and glb.volume > 0  # a rotation: the winding still faces out
