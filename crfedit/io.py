@@ -22,19 +22,36 @@ from .errors import CrfError
 @contextlib.contextmanager
 def writer_lock(path: str | os.PathLike, held: bool = True) -> Iterator[None]:
     """Hold an exclusive lock on writing ``path`` for the duration (``held`` False: no lock, a
-    rank that does not write).  A second crfedit process asking for the same path is refused at
-    once, in one line, instead of both running and the later silently replacing the earlier's
-    file.  The lock is an advisory ``flock`` on a hidden ``.NAME.lock`` beside ``path``, removed
-    on release; the system drops the lock of a process that dies.  Without ``fcntl`` (Windows)
-    nothing is locked."""
+    rank that does not write), ``path``'s missing folders created for it and removed again if
+    they are still empty at the end (a run that failed early leaves no empty folder).  A second
+    crfedit process asking for the same path is refused at once, in one line, instead of both
+    running and the later silently replacing the earlier's file.  The lock is an advisory
+    ``flock`` on a hidden ``.NAME.lock`` beside ``path``, removed on release; the system drops
+    the lock of a process that dies.  Without ``fcntl`` (Windows) nothing is locked."""
     try:
         import fcntl
     except ImportError:
         fcntl = None
-    if not held or fcntl is None:
-        yield
-        return
     path = Path(path)
+    made = [p for p in reversed(path.parents) if not p.exists()]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        if not held or fcntl is None:
+            yield
+            return
+        with _flocked(path, fcntl):
+            yield
+    finally:
+        for folder in reversed(made):  # deepest first; one that holds anything stays
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+@contextlib.contextmanager
+def _flocked(path: Path, fcntl) -> Iterator[None]:
+    """:func:`writer_lock`'s lock proper."""
     lock = path.with_name(f".{path.name}.lock")
     fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
     try:

@@ -132,6 +132,9 @@ def test_train_out_creates_its_folder(tiny_chairs, tmp_path):
     (tmp_path / "file").write_text("x")
     r = invoke("train", tiny_chairs, "--out", tmp_path / "file" / "m.safetensors", *TINY)
     assert r.exit_code == 2 and "is a file, not a folder" in r.stderr
+    # a run that fails before writing anything leaves no empty folder behind
+    r = invoke("train", tmp_path / "no-such-data", "--out", tmp_path / "other" / "deep" / "m.safetensors", *TINY)
+    assert r.exit_code == 2 and not (tmp_path / "other").exists(), r.output
 
 
 def test_run_records_beside_the_model(tiny_chairs, tmp_path):

@@ -109,8 +109,9 @@ def _clock(seconds: float) -> str:
 
 
 def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, what: str = "--out") -> None:
-    """``out`` is a file name whose folder is created if missing; an existing model there is
-    only continued (``resume``) or replaced (``overwrite``), never replaced silently."""
+    """``out`` is a file name whose folder may be missing (:func:`~crfedit.io.writer_lock`
+    creates it for the run); an existing model there is only continued (``resume``) or
+    replaced (``overwrite``), never replaced silently."""
     from ..safefile import file_format
 
     if out.is_dir():
@@ -119,10 +120,11 @@ def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, 
         raise CrfError(f"{what} {out}: exists; continue its training with --resume, or replace it with --overwrite")
     if out.exists() and file_format(out) != MODEL_FORMAT:
         raise CrfError(f"{what} {out}: exists and is not a crfedit model; --resume and --overwrite take only models (pick another name)")
-    folder = out.parent
-    if folder.exists() and not folder.is_dir():
-        raise CrfError(f"{what} {out}: {folder} is a file, not a folder")
-    folder.mkdir(parents=True, exist_ok=True)
+    for folder in out.parents:  # the first that exists must be a folder
+        if folder.exists():
+            if not folder.is_dir():
+                raise CrfError(f"{what} {out}: {folder} is a file, not a folder")
+            break
 
 
 def format_score(score: dict) -> str:
