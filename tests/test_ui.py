@@ -472,6 +472,33 @@ def test_a_removal_downloads_as_saved_and_nothing_is_overwritten(ui, scene, edit
     assert [Path(p).name for p in baked["edits"]] == [again.name]  # the file that holds the edit already
     assert (ui.workdir / model_name).read_bytes() == b"an earlier bake"
     assert "already in the work dir" in ui.error("POST", "/api/bake", {"name": "theirs.safetensors"})
+    # the same edit saved again, the same stack baked again: the files are left as they are
+    stamps = {p.name: p.stat().st_mtime_ns for p in ui.workdir.iterdir()}
+    assert Path(ui.post("/api/stack/save", {"id": entry})["path"]) == again
+    rebaked = ui.post("/api/bake", {})
+    assert rebaked["model"] == baked["model"] and rebaked["again"] is True and baked["again"] is False
+    assert {p.name: p.stat().st_mtime_ns for p in ui.workdir.iterdir()} == stamps
+
+
+def test_a_stack_change_reaches_every_open_page(ui, scene):
+    """A toggle in one tab is heard by another tab's WebSocket (type "stack", with the stack and
+    state), so its panel and views follow instead of going stale."""
+    import aiohttp
+
+    job = ui.edit(color_body(scene, steps=2))
+    entry = job["result"]["entry"]
+
+    async def run():
+        async with aiohttp.ClientSession(headers={"X-Crfedit-Token": ui.token}) as s:
+            async with s.ws_connect(f"{ui.base}/api/ws?client=tab2") as ws:
+                assert (await ws.receive_json())["type"] == "hello"
+                r = await s.post(f"{ui.base}/api/stack/toggle", json={"id": entry, "enabled": False})
+                reply = await r.json()
+                heard = await ws.receive_json()
+                return reply, heard
+
+    reply, heard = asyncio.run(run())
+    assert heard == {"type": "stack", "stack": reply["stack"], "state": reply["state"]} and reply["state"] == "base"
 
 
 @pytest.mark.parametrize("name", ["../escape.safetensors", "/tmp/abs.safetensors", "sub/dir.safetensors", "x.txt",

@@ -78,6 +78,10 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     assert len(p.driver.find_elements("css selector", "#stack li")) == 1
     said = p.driver.find_element("css selector", "#selection-info").text  # the old selection's count is gone
     assert "recolour is applied" in said and "occupied cells" not in said, said
+    # the strokes the recolour used are cleared (the next edit does not take them in), Ctrl+Z brings them back
+    assert p.js("return marks().fg.length") == 0
+    p.js("undo()")
+    assert p.js("return Strokes.toJson(marks().fg)") == drawn
 
     under = strokes_json_mask(drawn, 32, 32, "stroke") & (view.parts == part)
     target = np.array([0x20, 0x40, 0xFF], dtype=float)

@@ -354,12 +354,18 @@ class Server:
     async def toggle(self, request):
         self._busy()
         body = await self._json(request)
-        return web.json_response(await self._run(self.session.toggle, body.get("id"), body.get("enabled")))
+        return self._stack_changed(await self._run(self.session.toggle, body.get("id"), body.get("enabled")))
 
     async def move(self, request):
         self._busy()
         body = await self._json(request)
-        return web.json_response(await self._run(self.session.move, body.get("id"), body.get("to")))
+        return self._stack_changed(await self._run(self.session.move, body.get("id"), body.get("to")))
+
+    def _stack_changed(self, result: dict):
+        """The reply to a stack change, which every open page also hears (``type: stack``): a
+        second tab's stack and state follow it instead of going stale."""
+        self._broadcast({"type": "stack", "stack": result["stack"], "state": result["state"]})
+        return web.json_response(result)
 
     async def save(self, request):
         body = await self._json(request)

@@ -35,6 +35,7 @@ from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
 from ..edit.selection import SUMMARIES, CellPoints, ScribbleView, Selection, cell_points, options_for, preview, select
 from ..errors import CrfError
+from ..safefile import read_header
 from ..model import CategoryModel, save_model
 from ..renderer import render_camera
 from .recipe import EditRequest, Replay, ScribbleSet, instance_of, parse_scribbles, parse_view
@@ -89,6 +90,19 @@ class _Lru(OrderedDict):
         while len(self) > self.size:
             self.popitem(last=False)
         return value
+
+
+def _holds(path: Path, edit: Delta | None = None, model: str | None = None) -> bool:
+    """Whether the file at ``path`` already holds ``edit`` (its fingerprint) or the model of
+    fingerprint ``model`` (read from its header): Save and Bake then leave it as it is."""
+    try:
+        if edit is not None:
+            return read_delta(path).fingerprint == edit.fingerprint
+        if model is not None:
+            return read_header(path)[1].get("fingerprint") == model
+    except (CrfError, OSError):
+        return False
+    return False
 
 
 class UiSession:
@@ -402,16 +416,14 @@ class UiSession:
             raise CrfError(f"name {name}: must name a new file inside the work dir")
         return path
 
-    def free_target(self, name, default: str, edit: Delta | None = None, taken: Sequence[Path] = ()) -> Path:
+    def free_target(self, name, default: str, edit: Delta | None = None, taken: Sequence[Path] = (), model: str | None = None) -> Path:
         """Where a Save or Bake writes: :meth:`target` of ``name``, which must not exist yet, or
         with no name the first free one of ``default``, ``default-2``, … (none in ``taken``
-        either).  A file that already holds ``edit`` (the same fingerprint) is its place: saving
-        an edit twice writes one file.  Nothing in the work dir is ever overwritten."""
-        def holds_edit(path: Path) -> bool:
-            try:
-                return edit is not None and read_delta(path).fingerprint == edit.fingerprint
-            except (CrfError, OSError):
-                return False
+        either).  A file that already holds ``edit`` (the same fingerprint), or the model of
+        fingerprint ``model``, is its place: saving an edit or baking a stack twice gives one
+        file (:func:`_holds` tells the caller not to write it again).  Nothing in the work dir
+        is ever overwritten."""
+        holds_edit = lambda path: _holds(path, edit, model)
 
         if name is not None:
             path = self.target(name)
@@ -433,13 +445,15 @@ class UiSession:
 
     def save(self, entry_id, name=None) -> Path:
         """Write an edit into the work dir (atomically) as it applies in the stack now, under a
-        name no other file there has (:meth:`free_target`)."""
+        name no other file there has (:meth:`free_target`); a file that holds it already is
+        left as it is."""
         with self._lock:
             e = self._entry(entry_id)
             d = self.pinned.get(e.id, e.delta)
             path = self.free_target(name, self._default_name(self.entries.index(e), d), d)
         self.workdir.mkdir(parents=True, exist_ok=True)
-        save_delta(path, d.tensors, d.meta)
+        if not _holds(path, d):
+            save_delta(path, d.tensors, d.meta)
         return path
 
     def bake(self, name=None) -> dict:
@@ -452,16 +466,21 @@ class UiSession:
             for e in enabled:
                 d = self.pinned[e.id]
                 targets.append(self.free_target(None, self._default_name(self.entries.index(e), d), d, targets))
-            out = self.free_target(name, f"{self.model_path.stem}-baked.safetensors", taken=targets)
-            if out in targets:
-                raise CrfError(f"name {out.name}: is the file of an edit; pick another name for the model")
             files = [(t, self.pinned[e.id]) for t, e in zip(targets, enabled)]
         self.workdir.mkdir(parents=True, exist_ok=True)
         for path, d in files:
-            save_delta(path, d.tensors, d.meta)
+            if not _holds(path, d):
+                save_delta(path, d.tensors, d.meta)
         baked = bake(self.base, [p for p, _ in files])
-        save_model(out, baked, None, extra_meta={"command": "crfedit ui (bake)"})
-        return {"model": str(out), "edits": [str(p) for p, _ in files]}
+        fingerprint = baked.fingerprint()
+        with self._lock:
+            out = self.free_target(name, f"{self.model_path.stem}-baked.safetensors", taken=targets, model=fingerprint)
+        if out in targets:
+            raise CrfError(f"name {out.name}: is the file of an edit; pick another name for the model")
+        again = _holds(out, model=fingerprint)
+        if not again:
+            save_model(out, baked, None, extra_meta={"command": "crfedit ui (bake)"})
+        return {"model": str(out), "edits": [str(p) for p, _ in files], "again": again}
 
     def shell(self) -> str:
         """The ``crfedit`` command lines that replay the enabled edits in order."""

@@ -75,6 +75,7 @@ async function doApply() {
   if (!S.ws || S.ws.readyState !== WebSocket.OPEN) throw new Error("lost the server: is crfedit ui still running?");
   const body = editBody();
   const start = performance.now();
+  clearError();  // an earlier edit's error (a Cancel) is not this one's
   const reply = await postJson("/api/edit", body);
   S.job = { id: reply.job, kind: body.kind, start, steps: reply.steps, instance: body.instance, view: viewKey(body.view) };
   busy(true);
@@ -88,8 +89,22 @@ function busy(on) {
   if (on) $("progress").value = 0;
 }
 
+// The stack changed in another tab (or this one): follow the server's stack and state.
+async function followStack(msg) {
+  renderStack(msg.stack);
+  if (msg.state === S.state) return;
+  S.state = msg.state;
+  await showView();
+  await showTurntable();
+  refreshInstances();
+}
+
 async function onJobMessage(msg) {
-  if (!S.job || msg.job !== S.job.id) return;
+  if (msg.type === "stack") return followStack(msg);
+  if (!S.job || msg.job !== S.job.id) {
+    if (msg.type === "done" && msg.stack) await followStack(msg);  // another tab's edit
+    return;
+  }
   if (msg.type === "progress") {
     $("progress").value = msg.step / msg.steps;
     status(`${S.job.kind}: step ${msg.step} of ${msg.steps}`);
@@ -108,8 +123,10 @@ async function onJobMessage(msg) {
   S.tint = false;
   $("tint").checked = false;
   if (job.kind === "color" || job.kind === "remove" || job.kind === "add") {  // the selection shown was of the state before
-    $("selection-info").textContent = `The ${job.kind === "color" ? "recolour" : job.kind === "remove" ? "removal" : "addition"} is applied; Select again to see a selection on the edited chair.`;
+    $("selection-info").textContent = `The ${job.kind === "color" ? "recolour" : job.kind === "remove" ? "removal" : "addition"} is applied; `
+      + "its strokes are cleared (Ctrl+Z on a view brings them back); Select again to see a selection on the edited chair.";
   }
+  if (job.kind === "color" || job.kind === "remove") clearUsedStrokes(job.instance);
   // The edit's render is of the view it was made on: shown only if that view is still on screen
   // (the user may have turned to another view or chair while it ran), else the view on screen
   // is rendered again in the new state.
@@ -125,6 +142,18 @@ async function onJobMessage(msg) {
   await showCompare();
   await showTurntable();
   refreshThumb(job.instance);
+}
+
+// An applied recolour or removal used every stroke of its instance (scribbledViews): they are
+// cleared, each view's undo keeping them, so the next edit does not take them in again.
+function clearUsedStrokes(instance) {
+  for (const [key, m] of S.marks) {
+    if (Number(key.split("|")[0]) !== instance || (!m.fg.length && !m.bg.length)) continue;
+    if (!S.undo.has(key)) S.undo.set(key, []);
+    S.undo.get(key).push(JSON.stringify(m));
+    S.marks.set(key, { fg: [], bg: [] });
+  }
+  redraw();
 }
 
 // ------------------------------------------------------------------------------------ stack
@@ -178,7 +207,8 @@ async function stackOp(path, body) {
 
 async function bake() {
   const r = await postJson("/api/bake", {});
-  $("saved").textContent = `baked ${r.model} (from ${r.edits.length} edit file(s) saved beside it)`;
+  $("saved").textContent = r.again ? `${r.model} already holds this stack, baked (nothing written again)`
+    : `baked ${r.model} (from ${r.edits.length} edit file(s) saved beside it)`;
 }
 
 async function copyShell() {
