@@ -33,6 +33,7 @@ from torch import Tensor
 from .errors import CrfError
 
 DEFAULT_TIMEOUT_S = 300.0
+MAX_TIMEOUT_S = 7 * 24 * 3600.0
 
 
 class DistributedError(CrfError):
@@ -163,11 +164,19 @@ def _collective(ranks: Ranks, what: str) -> Iterator[None]:
         yield
     except RuntimeError as e:  # torch's DistBackendError and gloo/nccl errors are RuntimeErrors
         _BROKEN = True
-        first = str(e).strip().splitlines()[0][:160] if str(e).strip() else e.__class__.__name__
+        first = _clipped(str(e).strip().splitlines()[0]) if str(e).strip() else e.__class__.__name__
         raise DistributedError(
             f"rank {ranks.rank} of {ranks.world}: {what} failed, another rank stopped or the collective "
             f"timed out ({first}); the job stops"
         ) from None
+
+
+def _clipped(text: str, limit: int = 160) -> str:
+    """``text`` cut to about ``limit`` characters at a word boundary, "…" marking the cut."""
+    if len(text) <= limit:
+        return text
+    cut = text[:limit].rsplit(" ", 1)[0].rstrip(" ,;:")
+    return f"{cut}…"
 
 
 # ----------------------------------------------------------------------------- launching
@@ -208,10 +217,11 @@ def collective_timeout() -> float:
     value = os.environ.get("CRFEDIT_DIST_TIMEOUT", str(DEFAULT_TIMEOUT_S))
     try:
         seconds = float(value)
-        if not seconds > 0:
+        if not 0 < seconds <= MAX_TIMEOUT_S:  # False for NaN; inf and years overflow the backends' clocks
             raise ValueError
     except ValueError:
-        raise CrfError(f"CRFEDIT_DIST_TIMEOUT={value!r}: expected a positive number of seconds") from None
+        raise CrfError(f"CRFEDIT_DIST_TIMEOUT={value!r}: expected a number of seconds above 0 and at most "
+                       f"{MAX_TIMEOUT_S:.0f} (a week)") from None
     return seconds
 
 
@@ -231,7 +241,7 @@ def process_group(ranks: Ranks, device: torch.device, timeout_s: float | None = 
     try:
         dist.init_process_group(backend, rank=ranks.rank, world_size=ranks.world, timeout=timeout)
     except (RuntimeError, ValueError) as e:
-        raise DistributedError(f"rank {ranks.rank}: cannot join the process group ({str(e).strip()[:160]})") from None
+        raise DistributedError(f"rank {ranks.rank}: cannot join the process group ({_clipped(str(e).strip())})") from None
     try:
         yield ranks
     finally:

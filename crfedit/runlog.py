@@ -59,7 +59,7 @@ def run_record(path: Path, run: dict, cfg: Config, resume: bool) -> dict:
     if not isinstance(first, dict) or "command" not in first:
         return record
     resumes = first.get("resumes") if isinstance(first.get("resumes"), list) else []
-    keys = ("command", "device", "threads", "minutes", "resumed_at")
+    keys = ("command", "device", "threads", "minutes", "resumed_at", "world_size")
     return {**first, "resumes": [*resumes, {k: run.get(k) for k in keys}]}
 
 

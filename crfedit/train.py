@@ -69,6 +69,15 @@ class TrainResult:
     """Rays left out of a step's loss because their samples overflowed a march buffer."""
 
 
+def check_world(world: int, rays: int, instances: int) -> None:
+    """A one-line error unless ``world`` ranks can share the training: each rank samples its own
+    instances and draws its share of the ``rays`` of a step, so at most one rank per instance
+    and per ray."""
+    if world > min(rays, instances):
+        raise CrfError(f"{world} ranks: at most one rank per instance and per ray ({instances} instance{'s' * (instances != 1)}, "
+                       f"rays={rays}); launch at most {min(rays, instances)}")
+
+
 def scene_box(category: Category, res: int = 48, views_per_instance: int = 40) -> torch.Tensor:
     """The world box [6] around every instance's visual hull, carved inside a cube of half the
     nearest camera distance (which contains the object in object-centric captures)."""
@@ -322,8 +331,7 @@ def train(
     ``batches`` replaces that random sampler (e.g. to feed every world size the same rays).
     """
     out, device = Path(out), torch.device(device)
-    if ranks.world > min(cfg.rays, len(category.instances)):
-        raise CrfError(f"{ranks.world} ranks: at most one rank per instance and per ray ({len(category.instances)} instances, rays={cfg.rays})")
+    check_world(ranks.world, cfg.rays, len(category.instances))
     if read_every < 1:
         raise CrfError(f"read_every {read_every}: must be at least 1")
     bare = [inst.name for inst in category.instances if not inst.splits.get("train")]

@@ -292,3 +292,38 @@ def test_under_torchrun_one_line_per_job_and_unshared_commands_refused(tiny_mode
     monkeypatch.setenv("WORLD_SIZE", "1")  # torchrun --nproc-per-node 1: nothing to share, the command runs
     monkeypatch.setenv("RANK", "0")
     assert invoke(*export).exit_code == 0 and (tmp_path / "s.safetensors").is_file()
+
+
+def test_timeouts_world_checks_and_clipped_reasons(monkeypatch):
+    from crfedit.distributed import _clipped, collective_timeout
+    from crfedit.train import check_world
+
+    for bad in ("inf", "1e20", "nan", "0", "-5", "abc"):
+        monkeypatch.setenv("CRFEDIT_DIST_TIMEOUT", bad)
+        with pytest.raises(CrfError, match="above 0 and at most 604800"):
+            collective_timeout()
+    monkeypatch.setenv("CRFEDIT_DIST_TIMEOUT", "7.5")
+    assert collective_timeout() == 7.5
+    with pytest.raises(CrfError, match=r"2 ranks: .*\(1 instance, rays=128\); launch at most 1"):
+        check_world(2, 128, 1)
+    check_world(2, 128, 2)
+    reason = "Read error [127.0.0.1]:35741: Connection reset by peer. This is typically caused by a remote peer " * 3
+    clipped = _clipped(reason)
+    assert len(clipped) <= 161 and clipped.endswith("…") and reason.startswith(clipped[:-1]) and not clipped[-2].isspace()
+    assert _clipped("short") == "short"
+
+
+def test_usage_errors_under_torchrun_are_rank_0_s_line(monkeypatch, capsys):
+    """Every rank parses the same arguments: a usage error is printed by rank 0 alone."""
+    import sys
+
+    from crfedit.cli import main
+
+    for rank, expected in ((0, 1), (1, 0)):
+        monkeypatch.setenv("RANK", str(rank))
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        monkeypatch.setattr(sys, "argv", ["crfedit", "train", "data", "--out", "m.safetensors", "--bogus"])
+        with pytest.raises(SystemExit) as e:
+            main()
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and err.count("No such option: --bogus") == expected, err

@@ -146,7 +146,7 @@ def test_run_records_beside_the_model(tiny_chairs, tmp_path):
     assert r.exit_code == 0, r.output
     assert "config (also in" in r.stdout and "rays=64" in r.stdout and "steps=5" in r.stdout
     run = json.loads((tmp_path / "m.run.json").read_text())
-    assert run["config"] == json.loads(load_model(out)[0].cfg.to_json()) and run["seed"] == 0
+    assert run["config"] == json.loads(load_model(out)[0].cfg.to_json()) and run["seed"] == 0 and run["world_size"] == 1
     rows = list(csv.DictReader((tmp_path / "m.log.csv").open()))
     assert [int(row["step"]) for row in rows] == [2, 4, 5]  # the last step too, off the --log-every grid
     assert all(float(row["lr"]) > 0 and float(row["rays_per_s"]) > 0 and float(row["loss"]) > 0 for row in rows)

@@ -71,7 +71,14 @@ def _main() -> None:
 
     from ..errors import CrfError
     from ..threads import threads_choice
-    from .common import Session, debug_requested
+    from .common import Session, debug_requested, torchrun_ranks
+
+    def say(line: str) -> None:
+        """An error line of the command line's own; under torchrun rank 0's alone (every rank
+        parsed the same arguments)."""
+        ranks = torchrun_ranks()
+        if ranks is None or ranks.main:
+            print(line, file=sys.stderr)
 
     # Typer 0.29 vendors click without its Abort; typer.Abort is what it raises on Ctrl-C.
     aborts = tuple({typer.Abort, getattr(click_errors, "Abort", typer.Abort)})
@@ -79,20 +86,21 @@ def _main() -> None:
         Session.threads, Session.threads_why = threads_choice()
         code = app(standalone_mode=False)
     except CrfError as e:
-        print(f"error: {e}", file=sys.stderr)
+        say(f"error: {e}")
         raise SystemExit(2) from None
     except getattr(click_errors, "NoArgsIsHelpError", ()) as e:  # a group or command called bare: its help
-        e.show()
+        if torchrun_ranks() is None or torchrun_ranks().main:
+            e.show()
         raise SystemExit(2) from None
     except click_errors.UsageError as e:
         hint = f" (see '{e.ctx.command_path} --help')" if e.ctx is not None else ""
-        print(f"error: {' '.join(e.format_message().split())}{hint}", file=sys.stderr)
+        say(f"error: {' '.join(e.format_message().split())}{hint}")
         raise SystemExit(2) from None
     except click_errors.ClickException as e:
-        print(f"error: {' '.join(e.format_message().split())}", file=sys.stderr)
+        say(f"error: {' '.join(e.format_message().split())}")
         raise SystemExit(e.exit_code) from None
     except (*aborts, KeyboardInterrupt):
-        print("error: aborted", file=sys.stderr)
+        say("error: aborted")
         raise SystemExit(130) from None
     except Exception as e:
         if debug_requested():

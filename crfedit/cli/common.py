@@ -172,7 +172,7 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
         raise CrfError(f"--out {out}: folder {folder} is not writable")
 
 
-def _torchrun():
+def torchrun_ranks():
     """This process's :class:`~crfedit.distributed.Ranks` under torchrun, None for a plain run
     (torch is imported only then).  Values torchrun would not set count as a plain run here: the
     command's own :func:`~crfedit.distributed.ranks_from_env` names them."""
@@ -191,7 +191,7 @@ def _says_it(error: BaseException) -> bool:
     about a user error met before its process group formed, and about Ctrl-C: it read the same
     arguments and files as rank 0, whose line says it (one line, not one per rank).  Errors of
     its own (a collective, its device, its disk) it prints, its rank named."""
-    ranks = _torchrun()
+    ranks = torchrun_ranks()
     if ranks is None or ranks.main:
         return True
     if isinstance(error, KeyboardInterrupt):
@@ -219,12 +219,12 @@ def user_errors(fn=None, *, ranked: bool = False):
         def stop(message: str, error: BaseException) -> "typer.Exit":
             if not _says_it(error):
                 return typer.Exit(EXIT_USER_ERROR)
-            ranks = _torchrun()
+            ranks = torchrun_ranks()
             named = ranks is None or ranks.main or message.startswith("rank ")
             return fail(message if named else f"rank {ranks.rank} of {ranks.world}: {message}")
 
         try:
-            ranks = _torchrun()
+            ranks = torchrun_ranks()
             if ranks is not None and ranks.world > 1 and not ranked:
                 raise CrfError("this command does not share its work over torchrun's ranks (train, render, eval recon "
                                "and eval edits do); run it once, without torchrun")

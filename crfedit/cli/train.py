@@ -167,7 +167,8 @@ def run_training(
         return train(category, cfg, out, device, seed=seed, minutes=minutes, resume=resume, ranks=ranks, **options)
     threads = torch.get_num_threads()  # what this process computes with (the CLI set it at start, :class:`Session`)
     run = {"command": command_line(), "dataset": str(category.root), "dataset_fingerprint": category.fingerprint,
-           "seed": seed, "device": str(device), "threads": threads, "minutes": minutes, "resumed_at": first_step}
+           "seed": seed, "device": str(device), "threads": threads, "minutes": minutes, "resumed_at": first_step,
+           "world_size": ranks.world}  # torchrun's processes (1: one process)
     paths = record_paths(out)
     typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}")
     typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""))
@@ -268,6 +269,7 @@ def train_cmd(
     from ..evaluation import held_out_split, score_model
     from ..modelfile import stored_training
     from ..runtime import resolve_device, seed_everything
+    from ..train import check_world
     from ..views import parse_resolution
 
     if steps is not None and steps < 1:
@@ -298,11 +300,13 @@ def train_cmd(
             raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
         if minutes is None and stored.minutes is not None:  # the run's schedule ends on its own clock
             minutes = stored.minutes
-            typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)")
+            if ranks is None or ranks.main:
+                typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)")
         finished = _finished(stored.step, stored.cfg.steps, stored.elapsed, minutes)
     ranks = ranks or SINGLE
-    with writer_lock(out, ranks.main), process_group(ranks, dev):
+    with writer_lock(out, ranks.main):
         check_output_file(out, resume, overwrite)  # again, now that no other run can write it: one may have finished meanwhile
+        # the data and the run checked before the ranks join: a problem every rank finds is rank 0's one line
         labels = (stored.cfg if resume else cfg).part_dim > 0  # F_part trains from part maps and depth
         category = load_category(data, res=res, with_depth=labels, with_parts=labels)
         if resume and stored.dataset != category.fingerprint:  # before any record, bar or set-up
@@ -311,10 +315,13 @@ def train_cmd(
             from ..parts import part_config
 
             ignored = ignored_flags(part_config(category, cfg), stored.cfg, given)
-            typer.echo(f"{out} {finished}" + (f"; {ignored}" if ignored else ""))
+            if ranks.main:
+                typer.echo(f"{out} {finished}" + (f"; {ignored}" if ignored else ""))
             return
-        seed_everything(seed)  # train() draws the initial weights from torch's global generator
-        model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value, given)
+        check_world(ranks.world, (stored.cfg if resume else cfg).rays, len(category.instances))
+        with process_group(ranks, dev):
+            seed_everything(seed)  # train() draws the initial weights from torch's global generator
+            model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value, given)
     if not ranks.main:
         return
     score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
