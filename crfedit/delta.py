@@ -527,11 +527,12 @@ def apply_edit_files(model: CategoryModel, paths: Sequence[str | os.PathLike]) -
     return apply_deltas(model, [read_delta(p) for p in paths])
 
 
-def bake(model: CategoryModel, paths: Sequence[str | os.PathLike]) -> CategoryModel:
+def bake(model: CategoryModel, edits: Sequence[str | os.PathLike | Delta]) -> CategoryModel:
     """The stack folded into a model of its own: the edited tensors become ``overrides`` (which
     :func:`~crfedit.model.save_model` writes as ``override.<k>.<name>``).  The baked model is a new
-    base: edits made on the unbaked stack do not apply to it."""
-    applied = apply_edit_files(model, paths)
+    base: edits made on the unbaked stack do not apply to it.  ``edits``: edit files, or edits
+    already read (the page bakes before it writes anything)."""
+    applied = apply_deltas(model, [e if isinstance(e, Delta) else read_delta(e) for e in edits])
     base, stack = stack_of(applied)
     meta = {k: v for k, v in applied.meta.items() if k not in STACK_KEYS}
     meta.update(baked_from=base, baked_edits=json.dumps(stack))

@@ -467,16 +467,18 @@ class UiSession:
                 d = self.pinned[e.id]
                 targets.append(self.free_target(None, self._default_name(self.entries.index(e), d), d, targets))
             files = [(t, self.pinned[e.id]) for t, e in zip(targets, enabled)]
-        self.workdir.mkdir(parents=True, exist_ok=True)
-        for path, d in files:
-            if not _holds(path, d):
-                save_delta(path, d.tensors, d.meta)
-        baked = bake(self.base, [p for p, _ in files])
+            if name is not None:
+                self.target(name)  # a bad name is refused before the stack is baked
+        baked = bake(self.base, [d for _, d in files])  # in memory: nothing is written before every check passed
         fingerprint = baked.fingerprint()
         with self._lock:
             out = self.free_target(name, f"{self.model_path.stem}-baked.safetensors", taken=targets, model=fingerprint)
         if out in targets:
             raise CrfError(f"name {out.name}: is the file of an edit; pick another name for the model")
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        for path, d in files:
+            if not _holds(path, d):
+                save_delta(path, d.tensors, d.meta)
         again = _holds(out, model=fingerprint)
         if not again:
             save_model(out, baked, None, extra_meta={"command": "crfedit ui (bake)"})
