@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import json
-import operator
 import os
 from dataclasses import dataclass, field as dc_field
 
@@ -25,7 +24,7 @@ from .cameras import Camera
 from .config import Config
 from .errors import CrfError, ModelFileError
 from .field import ConditionalRadianceField
-from .names import did_you_mean, is_digits
+from .names import did_you_mean, is_digits, whole_number
 from .safefile import MODEL_FORMAT, check_tensors, fingerprint, other_kind, read_header, read_safetensors, write_safetensors
 
 FORMAT = MODEL_FORMAT
@@ -55,13 +54,10 @@ class CategoryModel:
     def instance_index(self, key: str | int) -> int:
         """An instance by name or index (a NumPy or torch integer too); unknown → one-line error
         naming a few valid ones."""
-        if isinstance(key, (bool, np.bool_)) or not isinstance(key, (str, int)):
-            try:
-                if isinstance(key, (bool, np.bool_)) or getattr(key, "dtype", None) == torch.bool:
-                    raise TypeError
-                key = operator.index(key)  # np.int64 from np.argmax, a 0-d integer tensor
-            except TypeError:
-                raise CrfError(f"instance {key!r}: expected an instance name or an integer index") from None
+        if not isinstance(key, str):
+            if whole_number(key) is None:  # np.int64 from np.argmax and 0-d integer tensors pass; bools do not
+                raise CrfError(f"instance {key!r}: expected an instance name or an integer index")
+            key = whole_number(key)
         if isinstance(key, int) or (isinstance(key, str) and is_digits(key.lstrip("-")) and key not in self.names):
             k = int(key)
             if 0 <= k < len(self.names):

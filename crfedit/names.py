@@ -48,6 +48,19 @@ scribbled views' mirror images lending their strokes, or the selection taking it
 image."""
 
 
+def whole_number(value) -> int | None:
+    """``value`` as an ``int`` when it is an integer of Python's, NumPy's or torch's kinds (a
+    0-d tensor too), None otherwise: a bool (NumPy's, torch's), a float, a string."""
+    import operator
+
+    if isinstance(value, bool) or "bool" in str(getattr(value, "dtype", "")):
+        return None
+    try:
+        return operator.index(value)
+    except TypeError:
+        return None
+
+
 def is_digits(text: str) -> bool:
     """Whether ``text`` is a whole number in ASCII digits ("12", not "" or "²"): ``str.isdigit``
     also passes superscripts and other digit characters that ``int`` refuses."""

@@ -20,7 +20,6 @@ back and a GPU never waits for the host.  Both give the same colours to float ro
 from __future__ import annotations
 
 import math
-import operator
 from dataclasses import dataclass
 
 import torch
@@ -29,6 +28,7 @@ from torch import Tensor
 from . import occupancy
 from .cameras import Camera, Rays, rays_from_camera
 from .errors import CrfError
+from .names import whole_number
 from .field import ConditionalRadianceField, FieldNet
 from .rendering import composite_packed, composite_packed_as_dense, distortion_packed
 from .sampling import (
@@ -324,15 +324,11 @@ def render_camera(
     an index into the field's instances (a model's :meth:`~crfedit.model.CategoryModel.instance_index`
     turns a name into one); a bad index or chunk is one :class:`CrfError` line.
     """
-    if isinstance(instance, bool) or not isinstance(instance, int) or not 0 <= instance < field.n_instances:
-        try:
-            ok = not isinstance(instance, bool) and 0 <= operator.index(instance) < field.n_instances
-        except TypeError:
-            ok = False
-        if not ok:
-            raise CrfError(f"render: instance {instance!r} is not an index of the field's {field.n_instances} instances "
-                           "(CategoryModel.instance_index reads a name)")
-        instance = operator.index(instance)
+    k = whole_number(instance)
+    if k is None or not 0 <= k < field.n_instances:
+        raise CrfError(f"render: instance {instance!r} is not an index of the field's {field.n_instances} instances "
+                       "(CategoryModel.instance_index reads a name)")
+    instance = k
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise CrfError(f"render: chunk {chunk!r} must be a whole number of rays, at least 1")
     device = field.aabb.device
