@@ -531,10 +531,41 @@ def bake(model: CategoryModel, edits: Sequence[str | os.PathLike | Delta]) -> Ca
     """The stack folded into a model of its own: the edited tensors become ``overrides`` (which
     :func:`~crfedit.model.save_model` writes as ``override.<k>.<name>``).  The baked model is a new
     base: edits made on the unbaked stack do not apply to it.  ``edits``: edit files, or edits
-    already read (the page bakes before it writes anything)."""
-    applied = apply_deltas(model, [e if isinstance(e, Delta) else read_delta(e) for e in edits])
+    already read (the page bakes before it writes anything).  The cameras of the photos that
+    fit-real edits fitted their instances to go with them (:func:`photo_cameras`)."""
+    deltas = [e if isinstance(e, Delta) else read_delta(e) for e in edits]
+    applied = apply_deltas(model, deltas)
     base, stack = stack_of(applied)
     meta = {k: v for k, v in applied.meta.items() if k not in STACK_KEYS}
     meta.update(baked_from=base, baked_edits=json.dumps(stack))
+    cameras = photo_cameras(model, deltas)
+    if cameras:
+        meta[PHOTO_CAMERAS] = json.dumps(cameras, sort_keys=True)
     return dataclasses.replace(applied, names=list(applied.names), meta=meta)
+
+
+PHOTO_CAMERAS = "photo_cameras"
+"""A baked model's metadata key: {instance name: camera} of the instances fit-real added."""
+
+
+def photo_cameras(model: CategoryModel, deltas: Sequence[Delta] = ()) -> dict:
+    """{instance name: camera record (``c2w``, ``focal``, ``width``, ``height``)} of the instances
+    that fit-real edits added: the camera each was fitted from, as ``render --views photo``
+    renders it; from ``model``'s metadata (a baked model's) and then ``deltas`` (the later
+    wins).  A record that cannot be read is left out."""
+    out = {}
+    try:
+        stored = json.loads(model.meta.get(PHOTO_CAMERAS, "{}"))
+        out.update({k: v for k, v in stored.items() if isinstance(k, str) and isinstance(v, dict)} if isinstance(stored, dict) else {})
+    except ValueError:
+        pass
+    for d in deltas:
+        if d.kind == "fit-real":
+            try:
+                camera = json.loads(d.meta["hyperparameters"])["camera"]
+            except (KeyError, TypeError, ValueError):
+                continue
+            if isinstance(camera, dict):
+                out[d.instance] = camera
+    return out
 

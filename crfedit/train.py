@@ -69,10 +69,16 @@ class TrainResult:
     """Rays left out of a step's loss because their samples overflowed a march buffer."""
 
 
-def check_world(world: int, rays: int, instances: int) -> None:
-    """A one-line error unless ``world`` ranks can share the training: each rank samples its own
-    instances and draws its share of the ``rays`` of a step, so at most one rank per instance
-    and per ray."""
+def check_trainable(category: Category, world: int, rays: int) -> None:
+    """A one-line error unless ``world`` ranks can train ``category`` with ``rays`` a step:
+    every instance it lists has train views (each gets codes, and codes learn only from train
+    views), and at most one rank per instance and per ray (each rank samples its own instances
+    and draws its share of a step's rays)."""
+    bare = [inst.name for inst in category.instances if not inst.splits.get("train")]
+    if bare:
+        raise CrfError(f"{category.root}: instance {bare[0]} has no train views (transforms_train.json missing)"
+                       + (f", nor do {len(bare) - 1} more" if len(bare) > 1 else "") + "; a category model trains every instance it lists")
+    instances = len(category.instances)
     if world > min(rays, instances):
         raise CrfError(f"{world} ranks: at most one rank per instance and per ray ({instances} instance{'s' * (instances != 1)}, "
                        f"rays={rays}); launch at most {min(rays, instances)}")
@@ -331,13 +337,9 @@ def train(
     ``batches`` replaces that random sampler (e.g. to feed every world size the same rays).
     """
     out, device = Path(out), torch.device(device)
-    check_world(ranks.world, cfg.rays, len(category.instances))
+    check_trainable(category, ranks.world, cfg.rays)
     if read_every < 1:
         raise CrfError(f"read_every {read_every}: must be at least 1")
-    bare = [inst.name for inst in category.instances if not inst.splits.get("train")]
-    if bare:  # every listed instance gets codes, and codes learn only from train views
-        raise CrfError(f"{category.root}: instance {bare[0]} has no train views (transforms_train.json missing or empty)"
-                       + (f", nor do {len(bare) - 1} more" if len(bare) > 1 else "") + "; a category model trains every instance it lists")
     fixed_shapes = (device.type != "cpu" or compile) if fixed_shapes is None else fixed_shapes
     if compile and not fixed_shapes:
         raise CrfError("--compile compiles the fixed-shape march: it cannot be combined with --march exact")

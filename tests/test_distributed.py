@@ -296,7 +296,9 @@ def test_under_torchrun_one_line_per_job_and_unshared_commands_refused(tiny_mode
 
 def test_timeouts_world_checks_and_clipped_reasons(monkeypatch):
     from crfedit.distributed import _clipped, collective_timeout
-    from crfedit.train import check_world
+    from types import SimpleNamespace
+
+    from crfedit.train import check_trainable
 
     for bad in ("inf", "1e20", "nan", "0", "-5", "abc"):
         monkeypatch.setenv("CRFEDIT_DIST_TIMEOUT", bad)
@@ -304,9 +306,10 @@ def test_timeouts_world_checks_and_clipped_reasons(monkeypatch):
             collective_timeout()
     monkeypatch.setenv("CRFEDIT_DIST_TIMEOUT", "7.5")
     assert collective_timeout() == 7.5
+    one = SimpleNamespace(root="d", instances=[SimpleNamespace(name="a", splits={"train": [0]})])
     with pytest.raises(CrfError, match=r"2 ranks: .*\(1 instance, rays=128\); launch at most 1"):
-        check_world(2, 128, 1)
-    check_world(2, 128, 2)
+        check_trainable(one, 2, 128)
+    check_trainable(one, 1, 128)
     reason = "Read error [127.0.0.1]:35741: Connection reset by peer. This is typically caused by a remote peer " * 3
     clipped = _clipped(reason)
     assert len(clipped) <= 161 and clipped.endswith("…") and reason.startswith(clipped[:-1]) and not clipped[-2].isspace()

@@ -252,7 +252,12 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     got = np.asarray(Image.open(tmp_path / "p" / "0000.png"), dtype=np.float64) / 255.0
     assert got.shape == expected.shape and np.abs(got - expected).max() <= 1.0 / 255 + 1e-6
     assert json.loads((tmp_path / "p" / "views.json").read_text())["views"][0]["view"] == "photo"
-    assert_user_error(invoke("render", path, "--instance", 0, "--edit", out, "--views", "photo", "--out", tmp_path / "q"), "no --edit is the fit-real edit")
+    assert_user_error(invoke("render", path, "--instance", 0, "--edit", out, "--views", "photo", "--out", tmp_path / "q"),
+                      "was not added by a fit-real edit")
+    # a model that baked the fit keeps the photo's camera: the same render without the edit
+    assert invoke("edits", "bake", path, "--edit", out, "--out", tmp_path / "baked.safetensors").exit_code == 0
+    again = invoke("render", tmp_path / "baked.safetensors", "--instance", "my_chair", "--views", "photo", "--out", tmp_path / "pb", "--device", "cpu")
+    assert again.exit_code == 0 and (tmp_path / "pb" / "0000.png").read_bytes() == (tmp_path / "p" / "0000.png").read_bytes(), again.output
     moved = tmp_path / "t.safetensors"
     transferred = invoke("transfer", path, "--instance", "my_chair", "--color-from", "chair_001", "--edit", out, "--out", moved, "--device", "cpu")
     assert transferred.exit_code == 0, transferred.output

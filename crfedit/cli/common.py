@@ -135,7 +135,7 @@ def os_error_message(e: OSError) -> str:
 
 
 def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", example: str = "edit.safetensors",
-                   writes: str = EDIT_FORMAT, overwrite: bool = False) -> None:
+                   writes: str = EDIT_FORMAT, overwrite: bool = False, label: str | None = None) -> None:
     """A command's one ``--out`` file, checked before any work: not one of the files the command
     reads (``inputs``: the option's name → a path, a list of paths or None; ``MODEL`` for the
     model argument), since the finished write would replace it; not a folder, device or pipe;
@@ -143,33 +143,35 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
     file of another kind than the one it ``writes`` (an edit written over a copy of a model); not
     a model when it writes one, unless ``overwrite`` (a model took training to make, as
     ``train --overwrite``); in a folder that exists and can be written.  An edit or selection
-    replaces one of its own kind, or an empty file (``mktemp``): both are seconds to remake."""
+    replaces one of its own kind, or an empty file (``mktemp``): both are seconds to remake.
+    ``label`` starts the error lines (default ``--out OUT``)."""
+    label = label or f"--out {out}"
     if out.exists():
         for option, given in inputs.items():
             for path in [given] if isinstance(given, (str, Path)) else list(given or []):
                 if Path(path).exists() and os.path.samefile(out, path):
                     name = "the model file" if option == "MODEL" else f"the {option} file"
-                    raise CrfError(f"--out {out}: is {name}; pick another name for the {what}")
+                    raise CrfError(f"{label}: is {name}; pick another name for the {what}")
         if out.is_dir():
-            raise CrfError(f"--out {out}: is a folder; give a file name such as {example}")
+            raise CrfError(f"{label}: is a folder; give a file name such as {example}")
         if not out.is_file():
-            raise CrfError(f"--out {out}: is not a regular file (a device or pipe); give a file name such as {example}")
+            raise CrfError(f"{label}: is not a regular file (a device or pipe); give a file name such as {example}")
         from ..safefile import file_format
 
         held = file_format(out)  # None: not a crfedit file
         kinds = {MODEL_FORMAT: "model", EDIT_FORMAT: "edit", SELECTION_FORMAT: "selection"}
         if held not in kinds and out.stat().st_size > 0:
-            raise CrfError(f"--out {out}: holds a file that is not crfedit's, which the {what} would replace; pick another name")
+            raise CrfError(f"{label}: holds a file that is not crfedit's, which the {what} would replace; pick another name")
         if held != writes:
             if held in kinds:
-                raise CrfError(f"--out {out}: is a crfedit {kinds[held]} file, which the {what} would replace; pick another name")
+                raise CrfError(f"{label}: is a crfedit {kinds[held]} file, which the {what} would replace; pick another name")
         elif held == MODEL_FORMAT and not overwrite:
-            raise CrfError(f"--out {out}: is a crfedit model already; replace it with --overwrite, or pick another name")
+            raise CrfError(f"{label}: is a crfedit model already; replace it with --overwrite, or pick another name")
     folder = out.parent if str(out.parent) else Path(".")
     if not folder.is_dir():
-        raise CrfError(f"--out {out}: folder {folder} does not exist")
+        raise CrfError(f"{label}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK):
-        raise CrfError(f"--out {out}: folder {folder} is not writable")
+        raise CrfError(f"{label}: folder {folder} is not writable")
 
 
 def torchrun_ranks():

@@ -81,23 +81,25 @@ def render_cmd(
 
 
 
+
 def _photo_camera(deltas, model, name: str) -> list:
     """``--views photo``: the camera of the photo that the fit-real edit adding instance
-    ``name`` was fitted to (recorded in the edit), as the one view to render; read as a camera
-    JSON file is (:func:`~crfedit.views.camera_from_json`), so a damaged record is one line."""
-    import json
+    ``name`` was fitted to (recorded in the edit, or in a model that baked it), as the one view
+    to render; read as a camera JSON file is (:func:`~crfedit.views.camera_from_json`), so a
+    damaged record is one line."""
     import math
 
+    from ..delta import photo_cameras
     from ..errors import CrfError
     from ..views import camera_from_json
 
-    fit = next((d for d in reversed(deltas) if d.kind == "fit-real" and d.instance == name), None)
-    if fit is None:
-        raise CrfError(f"--views photo: no --edit is the fit-real edit that added {name}; photo is the camera of its photo")
+    cam = photo_cameras(model, deltas).get(name)
+    if cam is None:
+        raise CrfError(f"--views photo: {name} was not added by a fit-real edit in --edit or baked into the model; "
+                       "photo is the camera of its photo")
     try:
-        cam = json.loads(fit.meta["hyperparameters"])["camera"]
         data = {"transform_matrix": cam["c2w"], "width": cam["width"], "height": cam["height"],
                 "camera_angle_x": 2.0 * math.atan(cam["width"] / (2.0 * cam["focal"]))}
-    except (KeyError, TypeError, ValueError, ZeroDivisionError):  # JSONDecodeError is a ValueError
-        raise CrfError(f"--views photo: the fit-real edit of {name} holds no readable record of the photo's camera") from None
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
+        raise CrfError(f"--views photo: the record of {name}'s photo camera cannot be read") from None
     return [("photo", camera_from_json(data, model, f"photo (the camera of {name}'s photo)"))]

@@ -218,6 +218,29 @@ def given_settings(preset: str, overrides: dict, sets: list[str]) -> frozenset[s
     return frozenset(keys)
 
 
+def _resumed(out: Path, res: int | None, minutes: float | None, ranks):
+    """``--resume``'s reading of the stored run, before the dataset loads or any run record is
+    written: (the stored run, the resolution, the time budget, why nothing is left to train or
+    "").  A stripped or baked model, or another resolution, is a one-line error."""
+    from ..modelfile import stored_training
+
+    if not out.is_file():
+        raise CrfError(f"--resume: {out} does not exist (start without --resume)")
+    stored = stored_training(out)
+    if not stored.resumable:
+        raise CrfError(f"--resume: {out} holds no training state (it was baked or stripped)")
+    stored_width = (stored.sizes.get("train") or [None])[0]
+    if res is None:
+        res = stored_width
+    elif stored_width is not None and res != stored_width:
+        raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
+    if minutes is None and stored.minutes is not None:  # the run's schedule ends on its own clock
+        minutes = stored.minutes
+        if ranks.main:
+            typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)")
+    return stored, res, minutes, _finished(stored.step, stored.cfg.steps, stored.elapsed, minutes)
+
+
 def _finished(step: int, steps: int, elapsed: float | None, minutes: float | None) -> str:
     """The line that says a stored run has nothing left to train ("" when it has): its last
     step reached, or its time budget spent."""
@@ -269,7 +292,7 @@ def train_cmd(
     from ..evaluation import held_out_split, score_model
     from ..modelfile import stored_training
     from ..runtime import resolve_device, seed_everything
-    from ..train import check_world
+    from ..train import check_trainable
     from ..views import parse_resolution
 
     if steps is not None and steps < 1:
@@ -287,25 +310,11 @@ def train_cmd(
     overrides = {"arch": arch.value if arch else None, "steps": steps, "view_reg": view_reg}
     cfg = make_config(preset.value, overrides, sets or [], dev.type)
     given = given_settings(preset.value, overrides, sets or [])
-    if resume:
-        if not out.is_file():
-            raise CrfError(f"--resume: {out} does not exist (start without --resume)")
-        stored = stored_training(out)
-        if not stored.resumable:  # before the dataset loads or any run record is written
-            raise CrfError(f"--resume: {out} holds no training state (it was baked or stripped)")
-        stored_width = (stored.sizes.get("train") or [None])[0]
-        if res is None:
-            res = stored_width
-        elif stored_width is not None and res != stored_width:
-            raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
-        if minutes is None and stored.minutes is not None:  # the run's schedule ends on its own clock
-            minutes = stored.minutes
-            if ranks is None or ranks.main:
-                typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)")
-        finished = _finished(stored.step, stored.cfg.steps, stored.elapsed, minutes)
     ranks = ranks or SINGLE
     with writer_lock(out, ranks.main):
         check_output_file(out, resume, overwrite)  # again, now that no other run can write it: one may have finished meanwhile
+        if resume:  # read under the lock: a run still writing the file is named as such
+            stored, res, minutes, finished = _resumed(out, res, minutes, ranks)
         # the data and the run checked before the ranks join: a problem every rank finds is rank 0's one line
         labels = (stored.cfg if resume else cfg).part_dim > 0  # F_part trains from part maps and depth
         category = load_category(data, res=res, with_depth=labels, with_parts=labels)
@@ -318,7 +327,7 @@ def train_cmd(
             if ranks.main:
                 typer.echo(f"{out} {finished}" + (f"; {ignored}" if ignored else ""))
             return
-        check_world(ranks.world, (stored.cfg if resume else cfg).rays, len(category.instances))
+        check_trainable(category, ranks.world, (stored.cfg if resume else cfg).rays)
         with process_group(ranks, dev):
             seed_everything(seed)  # train() draws the initial weights from torch's global generator
             model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value, given)
