@@ -139,6 +139,29 @@ def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height
     return photo
 
 
+WHITE_BORDER = 0.9
+"""A photo without an object mask is taken whole; :func:`photo_warnings` expects its border
+(the outermost pixels) to average at least this (a chair shot on white)."""
+
+
+def photo_warnings(image: np.ndarray, mask: np.ndarray | None, width: int, height: int) -> list[str]:
+    """What makes a fit to this photo doubtful, one line each ([] when nothing does): no object
+    mask and a border that is not white (the background is fitted as part of the object), or a
+    photo smaller than the view it is fitted in (it is upscaled: its PSNR flatters the fit)."""
+    out = []
+    h, w = image.shape[:2]
+    if mask is None and image.shape[2] != 4:
+        border = np.concatenate([image[0, :, :3], image[-1, :, :3], image[:, 0, :3], image[:, -1, :3]])
+        if float(border.mean()) < WHITE_BORDER:
+            out.append(f"the photo has no alpha channel and no --mask, and its border is not white (mean {float(border.mean()):.2f}): "
+                       "the whole photo, background included, is fitted as the object; give --mask, or a photo on white")
+    crop_w, crop_h = (min(w, round(h * width / height)), h) if w * height >= h * width else (w, min(h, round(w * height / width)))
+    if crop_w < width or crop_h < height:
+        out.append(f"the photo gives {crop_w}x{crop_h} pixels for the {width}x{height} view: it is upscaled, and its PSNR "
+                   "measures the fit to a blurred photo")
+    return out
+
+
 def read_photo(path: str | Path, mask_path: str | Path | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """(image [H, W, 3|4] float32, mask [H, W] bool or None) from a PNG/JPEG and an optional mask
     file, checked: readable, not empty, the mask the photo's size and not empty."""

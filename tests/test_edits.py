@@ -319,6 +319,8 @@ def test_add_by_selection_copies_the_part_in_3d_and_holds_the_rest(trained):
     assert torch.equal(render(result.model, 1, other).rgb, render(model, 1, other).rgb)
     with pytest.raises(CrfError, match="moves the whole copied region out of the 32x32 view"):
         add(model, k, donor_view.camera, j, mask, (40, 0), donor_view.camera)
+    with pytest.raises(CrfError, match="is its own donor at offset 0,0: the part is already there"):
+        add(model, j, donor_view.camera, j, mask, (0, 0), donor_view.camera)
 
 
 def test_an_addition_fits_the_donor_between_its_points(trained, monkeypatch):

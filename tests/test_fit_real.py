@@ -201,6 +201,23 @@ def test_center_crop_and_area_resize():
     np.testing.assert_allclose(masked.rgb[:, 1], [[0, 0, 0]] * 2)
 
 
+def test_photo_warnings_name_a_background_fitted_as_the_object_and_an_upscaled_photo():
+    from crfedit.fit_real import photo_warnings
+
+    on_white = np.ones((64, 64, 3), np.float32)
+    on_white[20:40, 20:40] = 0.3
+    assert photo_warnings(on_white, None, 64, 64) == []
+    on_black = np.where(on_white > 0.5, 0.0, on_white).astype(np.float32)
+    [line] = photo_warnings(on_black, None, 64, 64)
+    assert "no alpha channel and no --mask" in line and "border is not white (mean 0.00)" in line
+    assert photo_warnings(on_black, on_black[..., 0] > 0.1, 64, 64) == []  # a mask says what the object is
+    with_alpha = np.concatenate([on_black, np.ones((64, 64, 1), np.float32)], axis=-1)
+    assert photo_warnings(with_alpha, None, 64, 64) == []
+    [line] = photo_warnings(on_white[:8, :8], None, 64, 64)
+    assert "gives 8x8 pixels for the 64x64 view: it is upscaled" in line
+    assert photo_warnings(np.ones((48, 200, 3), np.float32), None, 32, 32) == []  # a wide photo crops to 48x48
+
+
 def test_read_photo_with_mask_file(tmp_path):
     rgb = np.full((6, 8, 3), 80, np.uint8)
     Image.fromarray(rgb).save(tmp_path / "p.jpg")

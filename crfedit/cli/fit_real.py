@@ -84,7 +84,7 @@ def fit_real_cmd(
     """Fit a new instance to a photo of a real object: its codes first, then codes and a copy of
     the weights; writes a fit-real edit that adds the instance (the model file is untouched)."""
     from ..delta import apply_edit_files
-    from ..fit_real import FitOptions, check_new_name, fit_real, prepare_photo, read_photo
+    from ..fit_real import FitOptions, check_new_name, fit_real, photo_warnings, prepare_photo, read_photo
     from ..model import load_model
     from ..runtime import resolve_device
     from ..views import resolve_views
@@ -107,6 +107,8 @@ def fit_real_cmd(
         raise CrfError(f"--pose {pose}: names {len(views)} views; the photo has exactly one (e.g. train:5)")
     label, camera = views[0]
     prepared = prepare_photo(image, object_mask, camera.width, camera.height, str(mask or photo))
+    for line in photo_warnings(image, object_mask, camera.width, camera.height):
+        typer.echo(f"warning: {line}", err=True)
     with FitProgress(options.steps_codes + options.steps_joint) as progress:
         result = fit_real(m, prepared, camera, name, options, progress.on_step, progress.on_stage)
     result.save(out, command=command_line(), photo=str(photo), pose=label, **({"mask": str(mask)} if mask else {}))

@@ -241,6 +241,8 @@ def add(
     if method not in ADD_METHODS:
         raise CrfError(f"--method {method}: expected one of {', '.join(ADD_METHODS)}")
     k, j = model.instance_index(instance), model.instance_index(donor)
+    if k == j and tuple(offset) == (0, 0):
+        raise CrfError(f"add: {model.names[k]} is its own donor at offset 0,0: the part is already there (give another --donor, or an --offset)")
     donor_camera = donor_camera or camera
     w, h = camera.width, camera.height
     if (donor_camera.width, donor_camera.height) != (w, h):
