@@ -19,6 +19,19 @@ import numpy as np
 from .errors import CrfError
 
 
+def hidden_stem(path: Path) -> str:
+    """``path``'s name for the hidden files written beside it (temporaries, locks): the name
+    itself, or for a long one (a legal 255-byte name would overflow with the extra parts) its
+    first 100 characters and a hash of the rest, so the error of a failed write never names a
+    file the user did not type."""
+    name = path.name
+    if len(name.encode("utf-8", "surrogateescape")) <= 150:
+        return name
+    import hashlib
+
+    return f"{name[:100]}~{hashlib.sha1(name.encode('utf-8', 'surrogateescape')).hexdigest()[:12]}"
+
+
 @contextlib.contextmanager
 def writer_lock(path: str | os.PathLike, held: bool = True) -> Iterator[None]:
     """Hold an exclusive lock on writing ``path`` for the duration (``held`` False: no lock, a
@@ -52,7 +65,7 @@ def writer_lock(path: str | os.PathLike, held: bool = True) -> Iterator[None]:
 @contextlib.contextmanager
 def _flocked(path: Path, fcntl) -> Iterator[None]:
     """:func:`writer_lock`'s lock proper."""
-    lock = path.with_name(f".{path.name}.lock")
+    lock = path.with_name(f".{hidden_stem(path)}.lock")
     fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         try:
@@ -91,7 +104,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         raise CrfError(f"{path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK):
         raise CrfError(f"{path}: folder {folder} is not writable")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=(path.suffix if suffix is None else suffix) + ".tmp", dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=f".{hidden_stem(path)}.", suffix=(path.suffix if suffix is None else suffix) + ".tmp", dir=folder)
     os.close(fd)
     tmp_path = Path(tmp)
     umask = os.umask(0)
@@ -129,7 +142,7 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
     parent = path.parent if str(path.parent) else Path(".")
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=parent))
+        tmp = Path(tempfile.mkdtemp(prefix=f".{hidden_stem(path)}.", suffix=".partial", dir=parent))
     except OSError as e:  # name the user's folder, not the hidden one
         raise OSError(e.errno, e.strerror, str(path)) from None
     umask = os.umask(0)
@@ -139,7 +152,7 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         old = None
         if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=parent))
+            old = Path(tempfile.mkdtemp(prefix=f".{hidden_stem(path)}.", suffix=".old", dir=parent))
             os.replace(path, old / path.name)
         os.replace(tmp, path)
         if old is not None:
@@ -193,6 +206,8 @@ def read_json(path: str | os.PathLike):
         return json.loads(text)
     except json.JSONDecodeError as e:
         raise CrfError(f"{path}: malformed JSON ({e.msg} at line {e.lineno})") from None
+    except (RecursionError, ValueError) as e:  # nested past Python's stack, or an integer past 4300 digits
+        raise CrfError(f"{path}: malformed JSON ({'nested too deeply' if isinstance(e, RecursionError) else 'a number too long'})") from None
 
 
 def _write_with(path: str | os.PathLike, writer: Callable[[Path], None]) -> None:
@@ -232,6 +247,8 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
             return np.asarray(im, dtype=np.float32) / 255.0
     except FileNotFoundError:
         raise CrfError(f"{path}: file not found") from None
+    except Image.DecompressionBombError as e:  # before its pixels are decoded
+        raise CrfError(f"{path}: image too large to read ({' '.join(str(e).split()[:4])})") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
         raise CrfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 

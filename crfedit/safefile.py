@@ -8,6 +8,7 @@ before safetensors touches the data, and metadata is only ever treated as string
 from __future__ import annotations
 
 import json
+import re
 import os
 import struct
 from pathlib import Path
@@ -25,6 +26,32 @@ from .names import EDIT_FORMAT, MODEL_FORMAT, SELECTION_FORMAT
 MAX_HEADER_BYTES = 16 * 1024 * 1024
 MAX_FILE_BYTES = 4 * 1024**3
 DTYPES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1, "BOOL": 1}
+
+
+MAX_META_DEPTH = 64
+"""How deep the JSON in a metadata value may nest (crfedit's own nest 4 deep)."""
+MAX_META_DIGITS = 1000
+"""A run of this many digits in a metadata value is refused (Python reads at most 4300)."""
+
+
+def _unreadable_json(text: str) -> bool:
+    """Whether JSON ``text`` nests past :data:`MAX_META_DEPTH` or holds a number of
+    :data:`MAX_META_DIGITS` digits: a shared file's metadata that would make ``json.loads``
+    raise RecursionError or ValueError, not a one-line error.  Brackets inside strings count
+    too, which only makes it stricter."""
+    if re.search(rf"\d{{{MAX_META_DIGITS}}}", text):
+        return True
+    if text.count("[") + text.count("{") <= MAX_META_DEPTH:
+        return False
+    depth = 0
+    for ch in text:
+        if ch in "[{":
+            depth += 1
+            if depth > MAX_META_DEPTH:
+                return True
+        elif ch in "]}":
+            depth -= 1
+    return False
 
 
 def read_header(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
@@ -54,6 +81,10 @@ def read_header(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
     meta = header.pop("__metadata__", {}) or {}
     if not isinstance(meta, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in meta.items()):
         raise ModelFileError(f"{path}: metadata must be a table of strings")
+    for key, value in meta.items():  # what the loaders' json.loads could not read back (RecursionError, ValueError)
+        if _unreadable_json(value):
+            raise ModelFileError(f"{path}: bad metadata ({key[:40]!r} nests more than {MAX_META_DEPTH} deep or holds a number "
+                                 f"of {MAX_META_DIGITS} digits or more)")
     data_len = size - 8 - n
     for name, info in header.items():
         ok = isinstance(info, dict) and info.get("dtype") in DTYPES and isinstance(info.get("shape"), list)

@@ -105,6 +105,11 @@ def recent_siblings(window: float = RECENT, proc: Path = Path("/proc")) -> int:
     return count
 
 
+MAX_THREADS = 1024
+"""The most CPU threads ``CRFEDIT_THREADS`` / ``OMP_NUM_THREADS`` may ask for: 100 000 made the
+OpenMP runtime fail to create them (a segmentation fault, or libgomp's own two lines)."""
+
+
 def threads_choice() -> tuple[int, str]:
     """(threads, why): ``CRFEDIT_THREADS`` when set, else ``OMP_NUM_THREADS`` when set, else
     :func:`default_threads`, with what decided it in words (``train`` prints it).
@@ -118,10 +123,10 @@ def threads_choice() -> tuple[int, str]:
             continue
         try:
             n = int(value.split(",")[0] if name == "OMP_NUM_THREADS" else value)
-            if n < 1:
+            if not 1 <= n <= MAX_THREADS:
                 raise ValueError
         except ValueError:
-            raise CrfError(f"{name}={value!r}: expected a positive integer") from None
+            raise CrfError(f"{name}={value!r}: expected a positive integer, at most {MAX_THREADS}") from None
         return n, f"{name}={value.strip()}"
     cores, load, siblings = usable_cores(), busy_cores(), recent_siblings()
     why = f"{cores} usable cores, load average {load:.1f}"

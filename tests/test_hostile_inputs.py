@@ -206,6 +206,14 @@ def copy_data(env: Env, tmp: Path) -> Path:
     return tmp / "chairs"
 
 
+def bomb_png(tmp: Path) -> Path:
+    """A 20 000 × 20 000 PNG of 390 KB: past Pillow's decompression-bomb limit."""
+    from PIL import Image
+
+    Image.new("L", (20000, 20000), 0).save(tmp / "huge.png")
+    return tmp / "huge.png"
+
+
 def without(path: Path) -> Path:
     """Delete ``path``; returns the dataset folder it was in (its grandparent)."""
     path.unlink()
@@ -639,6 +647,13 @@ CATALOGUE: list[Case] = [
     Case("data/instance-without-train-views/train",
          lambda e, t: train_cmd(e, t, data=without(copy_data(e, t) / "chair_001" / "transforms_train.json")),
          ("instance chair_001 has no train views", "transforms_train.json missing")),
+    Case("data/decompression-bomb/edit-color", lambda e, t: edit_color(e, t, scribble=bomb_png(t)), ("huge.png", "image too large to read")),
+    Case("data/json-nested-too-deep/render", lambda e, t: render(e, t, "--views", write(t / "deep.json", "[" * 100000 + "]" * 100000)),
+         ("deep.json", "malformed JSON (nested too deeply)")),
+    Case("number/edit-rays-huge/edit-color", lambda e, t: edit_color(e, t, "--rays", "1000000000"), ("--rays 1000000000", "at most 4194304")),
+    Case("model/metadata-nested-too-deep/info",
+         lambda e, t: (["info", raw_safetensors(t, "deep.safetensors", {"__metadata__": {"format": "crfedit-model", "instances": "[" * 5000 + "]" * 5000}}, b"")], []),
+         ("deep.safetensors", "bad metadata", "nests more than 64 deep")),
     Case("data/nan-exr-image/train", lambda e, t: train_cmd(e, t, data=nan_exr_image(e, t)), ("r_000.exr", "NaN or infinite pixels")),
     Case("data/no-twins/eval-edits", lambda e, t: (["eval", "edits", e.model, e.data, "--steps", "1", *CPU], []), ("no ground-truth twins",)),
     Case("data/singular-pose/train", lambda e, t: train_cmd(e, t, data=pose([[1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])(e, t)),

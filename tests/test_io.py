@@ -349,3 +349,15 @@ def test_read_image_16_bit_color(tmp_path, color_type, channels, out_channels):
         expected = np.concatenate([np.repeat(expected[..., :1], 3, axis=2), expected[..., 1:]], axis=2)
     assert np.abs(got - expected).max() <= 1 / 255  # Pillow keeps the high byte
 
+
+
+def test_a_long_legal_name_is_written_through_short_hidden_files(tmp_path):
+    """A 250-byte file name is legal; the temporary beside it must not overflow 255 bytes."""
+    from crfedit.io import atomic_path, hidden_stem, writer_lock
+
+    long = tmp_path / ("b" * 238 + ".safetensors")
+    assert len(long.name) == 250 and len(hidden_stem(long)) == 113
+    with writer_lock(long), atomic_path(long) as tmp:
+        tmp.write_bytes(b"x")
+    assert long.read_bytes() == b"x" and sorted(p.name for p in tmp_path.iterdir()) == [long.name]
+    assert hidden_stem(tmp_path / "m.safetensors") == "m.safetensors"

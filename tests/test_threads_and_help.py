@@ -41,6 +41,10 @@ def test_threads_choice_says_what_decided_it(monkeypatch):
     monkeypatch.setenv("CRFEDIT_THREADS", "3")
     monkeypatch.setenv("OMP_NUM_THREADS", "5")
     assert threads_choice() == (3, "CRFEDIT_THREADS=3")
+    for many in ("100000", "99999999999"):  # the OpenMP runtime could not create them: a segfault, not a line
+        monkeypatch.setenv("CRFEDIT_THREADS", many)
+        with pytest.raises(CrfError, match="expected a positive integer, at most 1024"):
+            threads_choice()
     monkeypatch.delenv("CRFEDIT_THREADS")
     assert threads_choice() == (5, "OMP_NUM_THREADS=5")
     monkeypatch.delenv("OMP_NUM_THREADS")

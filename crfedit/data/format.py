@@ -198,6 +198,8 @@ def _read_rgba(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as im:
             mode = im.mode
+    except Image.DecompressionBombError:
+        raise DataError(f"{path}: image too large to read (past Pillow's limit on pixels)") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
         raise DataError(f"{path}: not a readable image ({e.__class__.__name__})") from None
     if mode not in IMAGE_MODES:

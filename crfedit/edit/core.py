@@ -34,6 +34,10 @@ from .losses import PENALTIES, add_weight_penalty_grad_, weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
 
 
+MAX_EDIT_RAYS = 1 << 22
+"""An edit's ``--rays`` at most (as ``train``'s ``rays``): a billion ran a 256-pixel view out of memory."""
+
+
 @dataclass(frozen=True)
 class EditOptions:
     """How an edit optimizes.  Defaults follow the paper's editing protocol."""
@@ -80,7 +84,7 @@ class EditOptions:
             (self.strategy in STRATEGIES, f"--strategy {self.strategy}: expected one of {', '.join(STRATEGIES)}"),
             (self.steps >= 1, f"--steps {self.steps}: need at least 1"),
             (np.isfinite(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a positive number"),
-            (self.rays >= 2, f"--rays {self.rays}: need at least 2"),
+            (2 <= self.rays <= MAX_EDIT_RAYS, f"--rays {self.rays}: need at least 2 and at most {MAX_EDIT_RAYS} (the most rays a step can hold)"),
             (min(self.lambda_reg, self.lambda_dens, self.lambda_surface, self.lambda_match) >= 0, "loss weights must be ≥ 0"),
             (self.penalty in PENALTIES, f"--penalty {self.penalty}: expected one of {', '.join(PENALTIES)}"),
             (self.recolor in RECOLOR_RULES, f"--recolor {self.recolor}: expected one of {', '.join(RECOLOR_RULES)}"),
