@@ -15,7 +15,7 @@ const S = {
   paste: null, donorMode: false,
   tool: "fg", radius: 1.5, tint: false, drag: null,
   viewBusy: false, viewAgain: false, turnSeq: 0,
-  job: null, ws: null, lost: false,
+  job: null, ws: null, lost: false, ownOps: 0, // ownOps: this tab's stack changes in flight (their replies update it)
   angles: new Map(), // instance -> {split: [[azimuth, elevation], ...]} of its stored views (/api/angles)
 };
 
@@ -52,7 +52,12 @@ async function imageUrl(path) {
 async function setImage(img, url) {
   const old = img.src;
   img.src = url;
-  await img.decode();
+  try {
+    await img.decode();
+  } catch (e) {
+    if (img.src !== url) return;  // a newer image took its place mid-decode: not an error
+    throw e;
+  }
   if (old.startsWith("blob:") && old !== url) URL.revokeObjectURL(old);
 }
 

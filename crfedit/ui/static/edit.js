@@ -91,6 +91,7 @@ function busy(on) {
 
 // The stack changed in another tab (or this one): follow the server's stack and state.
 async function followStack(msg) {
+  if (S.ownOps > 0) return;  // this tab's own change: its reply updates the page
   renderStack(msg.stack);
   if (msg.state === S.state) return;
   S.state = msg.state;
@@ -196,7 +197,13 @@ function button(label, disabled, fn) {
 
 async function stackOp(path, body) {
   if (S.job) throw new Error("an edit is running: wait for it or press Cancel");
-  const r = await postJson(path, body);
+  S.ownOps += 1;
+  let r;
+  try {
+    r = await postJson(path, body);
+  } finally {
+    S.ownOps -= 1;
+  }
   S.state = r.state;
   renderStack(r.stack);
   clearError();
