@@ -35,7 +35,7 @@ from crfedit.config import make_config
 from crfedit.data import load_category
 from crfedit.delta import apply_edit_files, delta_fingerprint, pack_grid_change, read_delta
 from crfedit.edit import transfer
-from crfedit.errors import ModelFileError
+from crfedit.errors import CrfError, ModelFileError
 from crfedit.io import write_exr
 from crfedit.model import load_model
 from crfedit.safefile import MAX_HEADER_BYTES, read_header, read_safetensors
@@ -1045,3 +1045,21 @@ def test_info_on_a_selection_with_a_hand_edited_record(tmp_path: Path):
     assert result.exit_code == 0, result.output
     assert "cells         64 of 4^3 selected (value >= 0.5), 64 with a value above 0" in result.output
     assert "made from     unknown" in result.output and "mirror" not in result.output and "\x1b" not in result.output
+
+
+def test_special_paths_and_a_nan_threshold_are_named(env: Env, tmp_path: Path):
+    """A device, a symlink loop and a selection whose threshold is NaN: each gets the line that
+    says what it is, not "not found" or "empty"."""
+    from crfedit.edit.selection import load_selection
+    from crfedit.safefile import read_safetensors, safetensors_bytes
+
+    assert_user_error(invoke("info", "/dev/zero"), "/dev/zero", "not a regular file")
+    (tmp_path / "loop.safetensors").symlink_to(tmp_path / "loop.safetensors")
+    assert_user_error(invoke("info", tmp_path / "loop.safetensors"), "symbolic link that leads nowhere")
+    sel = tmp_path / "sel.safetensors"
+    r = invoke("select", env.model, "--instance", "0", "--view", "train:0", "--scribble", env.scribble, "--out", sel, *CPU)
+    assert r.exit_code == 0, r.output
+    tensors, meta = read_safetensors(sel)
+    (tmp_path / "nan.safetensors").write_bytes(safetensors_bytes(tensors, {**meta, "threshold": "nan"}))
+    with pytest.raises(CrfError, match="corrupt selection metadata \\(threshold 'nan'"):
+        load_selection(tmp_path / "nan.safetensors")

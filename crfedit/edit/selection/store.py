@@ -118,4 +118,6 @@ def load_selection(path: str | Path) -> Selection:
         index = int(meta.get("instance_index", "-1"))
     except ValueError as e:
         raise CrfError(f"{path}: corrupt selection metadata ({e})") from None
+    if not 0.0 < threshold <= 1.0:  # False for NaN: every cell would count as unselected
+        raise CrfError(f"{path}: corrupt selection metadata (threshold {meta.get('threshold')!r}: expected a number in (0, 1])")
     return Selection(values.float() / 255.0, index, meta.get("instance", ""), meta.get("model_fingerprint", ""), info, threshold)
