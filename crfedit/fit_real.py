@@ -26,6 +26,7 @@ import dataclasses
 import json
 import math
 import time
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -250,8 +251,10 @@ def check_new_name(model: CategoryModel, name: str, what: str = "--name") -> str
         raise CrfError(f"{what} {name!r}: must not hold / or \\ (it names files)")
     if name.lstrip("-").isdigit():
         raise CrfError(f"{what} {name}: must not be a number (numbers select instances by index); pick a name with --name")
-    if name in model.names:
-        raise CrfError(f"{what} {name}: the model already has an instance of that name (pick another with --name)")
+    same = [n for n in model.names if unicodedata.normalize("NFC", n) == unicodedata.normalize("NFC", name)]
+    if same:  # "café" typed with é or with e and a combining accent: one name to a reader
+        alike = "" if same[0] == name else f" ({same[0]!r}, spelt with other Unicode code points)"
+        raise CrfError(f"{what} {name}: the model already has an instance of that name{alike} (pick another with --name)")
     return name
 
 

@@ -19,6 +19,8 @@ def resolve_device(name: str = "auto") -> torch.device:
     name = getattr(name, "value", name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cpu:0":  # the one CPU device torch numbers
+        name = "cpu"
     index = name[len("cuda:"):] if isinstance(name, str) and name.startswith("cuda:") else None
     if name not in ("cpu", "cuda") and not (index is not None and index.isascii() and index.isdigit()):
         raise CrfError(f"--device {name}: expected auto, cpu or cuda")

@@ -238,6 +238,11 @@ def test_check_new_name(setup):
     for bad, fragment in (("chair_000", "already has"), ("7", "not be a number"), ("", "non-empty"), (" x", "non-empty")):
         with pytest.raises(CrfError, match=fragment):
             check_new_name(model, bad)
+    import dataclasses
+
+    with_cafe = dataclasses.replace(model, names=[*model.names, "caf\u00e9"])  # é as one code point
+    with pytest.raises(CrfError, match="already has an instance of that name .*other Unicode code points"):
+        check_new_name(with_cafe, "cafe\u0301")  # e and a combining accent: the same name to a reader
 
 
 # ----------------------------------------------------------------------------- the command

@@ -1056,6 +1056,14 @@ def test_special_paths_and_a_nan_threshold_are_named(env: Env, tmp_path: Path):
     assert_user_error(invoke("info", "/dev/zero"), "/dev/zero", "not a regular file")
     (tmp_path / "loop.safetensors").symlink_to(tmp_path / "loop.safetensors")
     assert_user_error(invoke("info", tmp_path / "loop.safetensors"), "symbolic link that leads nowhere")
+    data = copy_data(env, tmp_path)  # a dataset image that is a symlink loop, or a folder
+    image = data / "chair_000" / "train" / "r_000.png"
+    image.unlink()
+    image.symlink_to(image)
+    assert_user_error(invoke("dataset", "info", data), "r_000.png", "symbolic link that leads nowhere")
+    image.unlink()
+    image.mkdir()
+    assert_user_error(invoke("dataset", "info", data), "r_000.png", "is a folder, not an image")
     sel = tmp_path / "sel.safetensors"
     r = invoke("select", env.model, "--instance", "0", "--view", "train:0", "--scribble", env.scribble, "--out", sel, *CPU)
     assert r.exit_code == 0, r.output

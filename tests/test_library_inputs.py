@@ -76,6 +76,7 @@ def test_colours_instances_renders_devices_and_paths_refuse_bad_input(scene, tin
     assert torch.equal(render_camera(model.field, camera, np.int64(1)).rgb, render_camera(model.field, camera, 1).rgb)
     with pytest.raises(CrfError, match="expected auto, cpu or cuda"):
         load_model(tiny_model, "gpu")
+    assert load_model(tiny_model, "cpu:0")[0].device == torch.device("cpu")
     if not torch.cuda.is_available():
         with pytest.raises(CrfError, match="no CUDA device"):
             load_model(tiny_model, "cuda:0")

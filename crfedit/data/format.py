@@ -194,7 +194,9 @@ def _read_rgba(path: Path) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
     if not path.is_file():
-        raise DataError(f"{path}: image not found")
+        why = ("is a folder, not an image" if path.is_dir() else "is not a regular file (a device or pipe)" if path.exists()
+               else "is a symbolic link that leads nowhere (a loop, or its target is missing)" if path.is_symlink() else "image not found")
+        raise DataError(f"{path}: {why}")
     try:
         with Image.open(path) as im:
             mode = im.mode
