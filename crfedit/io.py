@@ -19,6 +19,18 @@ import numpy as np
 from .errors import CrfError
 
 
+def not_a_file(path: Path, missing: str = "file not found") -> str:
+    """Why ``path`` (not a regular file) cannot be read, for an error line: a folder, a device
+    or pipe, a symbolic link that leads nowhere, or ``missing``."""
+    if path.is_dir():
+        return "is a folder, not a file"
+    if path.exists():
+        return "is not a regular file (a device or pipe)"
+    if path.is_symlink():
+        return "is a symbolic link that leads nowhere (a loop, or its target is missing)"
+    return missing
+
+
 def hidden_stem(path: Path) -> str:
     """``path``'s name for the hidden files written beside it (temporaries, locks): the name
     itself, or for a long one (a legal 255-byte name would overflow with the extra parts) its

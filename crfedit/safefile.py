@@ -58,13 +58,9 @@ def read_header(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
     """Validated (tensor table, metadata) of a safetensors file, reading only its header."""
     path = Path(path)
     if not path.is_file():
-        if path.is_dir():
-            raise ModelFileError(f"{path}: is a folder, not a file")
-        if path.exists():
-            raise ModelFileError(f"{path}: is not a regular file (a device or pipe)")
-        if path.is_symlink():
-            raise ModelFileError(f"{path}: is a symbolic link that leads nowhere (a loop, or its target is missing)")
-        raise ModelFileError(f"{path}: file not found")
+        from .io import not_a_file
+
+        raise ModelFileError(f"{path}: {not_a_file(path)}")
     size = path.stat().st_size
     if size < 8:
         raise ModelFileError(f"{path}: not a safetensors file (only {size} bytes)")

@@ -1063,7 +1063,7 @@ def test_special_paths_and_a_nan_threshold_are_named(env: Env, tmp_path: Path):
     assert_user_error(invoke("dataset", "info", data), "r_000.png", "symbolic link that leads nowhere")
     image.unlink()
     image.mkdir()
-    assert_user_error(invoke("dataset", "info", data), "r_000.png", "is a folder, not an image")
+    assert_user_error(invoke("dataset", "info", data), "r_000.png", "is a folder, not a file")
     sel = tmp_path / "sel.safetensors"
     r = invoke("select", env.model, "--instance", "0", "--view", "train:0", "--scribble", env.scribble, "--out", sel, *CPU)
     assert r.exit_code == 0, r.output

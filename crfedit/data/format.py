@@ -27,7 +27,7 @@ import numpy as np
 
 from ..cameras import Camera, subpixel_offsets
 from ..errors import CrfError, DataError
-from ..io import atomic_write_text, read_exr, read_image, read_json, write_exr, write_json, write_png
+from ..io import atomic_write_text, not_a_file, read_exr, read_image, read_json, write_exr, write_json, write_png
 
 SPLITS = ("train", "val", "test")
 IMAGE_MODES = ("RGB", "RGBA", "L", "LA", "P", "PA", "1", "I", "I;16", "I;16L", "I;16B")
@@ -194,9 +194,7 @@ def _read_rgba(path: Path) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
     if not path.is_file():
-        why = ("is a folder, not an image" if path.is_dir() else "is not a regular file (a device or pipe)" if path.exists()
-               else "is a symbolic link that leads nowhere (a loop, or its target is missing)" if path.is_symlink() else "image not found")
-        raise DataError(f"{path}: {why}")
+        raise DataError(f"{path}: {not_a_file(path, 'image not found')}")
     try:
         with Image.open(path) as im:
             mode = im.mode
