@@ -30,7 +30,7 @@ def as_mask(mask, what: str = "scribble") -> np.ndarray:
         if not np.isfinite(arr).all():
             raise CrfError(f"{what} mask: holds NaN or infinite values")
         return arr >= 0.5
-    return arr.astype(bool, copy=False) if arr.dtype.kind != "b" else arr
+    return arr.astype(bool, copy=False)
 
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:

@@ -55,9 +55,10 @@ class CategoryModel:
         """An instance by name or index (a NumPy or torch integer too); unknown → one-line error
         naming a few valid ones."""
         if not isinstance(key, str):
-            if whole_number(key) is None:  # np.int64 from np.argmax and 0-d integer tensors pass; bools do not
+            index = whole_number(key)  # np.int64 from np.argmax and 0-d integer tensors pass; bools do not
+            if index is None:
                 raise CrfError(f"instance {key!r}: expected an instance name or an integer index")
-            key = whole_number(key)
+            key = index
         if isinstance(key, int) or (isinstance(key, str) and is_digits(key.lstrip("-")) and key not in self.names):
             k = int(key)
             if 0 <= k < len(self.names):

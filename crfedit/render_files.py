@@ -111,17 +111,18 @@ def render_to_folder(
                 output = render_camera(field, camera, instance, chunk=chunk)
                 seconds += time.perf_counter() - t0
                 rgb = output.rgb.clamp(0.0, 1.0).cpu().numpy()
-                written.append(out / f"{i:04d}.png")
-                write_png(written[-1], rgb)
+                files = [out / name for name in _frame_files(i, depth)]
+                written.append(files[0])
+                write_png(files[0], rgb)
                 if depth:
                     z = ray_distance(output).cpu().numpy()
-                    written += [out / f"{i:04d}_depth.exr", out / f"{i:04d}_depth.png"]
-                    write_exr(written[-2], {"Z": z, "A": output.opacity.cpu().numpy()})
-                    write_png(written[-1], depth_preview(z, output.opacity.cpu().numpy()))
+                    written += files[1:]
+                    write_exr(files[1], {"Z": z, "A": output.opacity.cpu().numpy()})
+                    write_png(files[2], depth_preview(z, output.opacity.cpu().numpy()))
                 if video is not None:
                     frames[i] = to_uint8(rgb)
                 records[i] = {
-                    "file": f"{i:04d}.png", "view": label, "width": camera.width, "height": camera.height,
+                    "file": files[0].name, "view": label, "width": camera.width, "height": camera.height,
                     "camera_angle_x": camera.camera_angle_x, "transform_matrix": camera.c2w.tolist(),
                 }
                 bar.update(task, advance=1, description=label)

@@ -8,8 +8,8 @@ before safetensors touches the data, and metadata is only ever treated as string
 from __future__ import annotations
 
 import json
-import re
 import os
+import re
 import struct
 from pathlib import Path
 

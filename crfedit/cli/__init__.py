@@ -73,11 +73,14 @@ def _main() -> None:
     from ..threads import threads_choice
     from .common import Session, debug_requested, torchrun_ranks
 
-    def say(line: str) -> None:
-        """An error line of the command line's own; under torchrun rank 0's alone (every rank
-        parsed the same arguments)."""
+    def rank_0() -> bool:
+        """Whether this process says the command line's own errors: under torchrun rank 0
+        alone (every rank parsed the same arguments)."""
         ranks = torchrun_ranks()
-        if ranks is None or ranks.main:
+        return ranks is None or ranks.main
+
+    def say(line: str) -> None:
+        if rank_0():
             print(line, file=sys.stderr)
 
     # Typer 0.29 vendors click without its Abort; typer.Abort is what it raises on Ctrl-C.
@@ -89,7 +92,7 @@ def _main() -> None:
         say(f"error: {e}")
         raise SystemExit(2) from None
     except getattr(click_errors, "NoArgsIsHelpError", ()) as e:  # a group or command called bare: its help
-        if torchrun_ranks() is None or torchrun_ranks().main:
+        if rank_0():
             e.show()
         raise SystemExit(2) from None
     except click_errors.UsageError as e:

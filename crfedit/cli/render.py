@@ -80,8 +80,6 @@ def render_cmd(
             typer.echo(printable(f"note: {p.name} edits {whose}, not {m.names[k]}: it leaves this render unchanged"), err=True)
 
 
-
-
 def _photo_camera(deltas, model, name: str) -> list:
     """``--views photo``: the camera of the photo that the fit-real edit adding instance
     ``name`` was fitted to (recorded in the edit, or in a model that baked it), as the one view

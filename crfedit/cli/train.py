@@ -290,7 +290,6 @@ def train_cmd(
     from ..data.loading import load_category
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..evaluation import held_out_split, score_model
-    from ..modelfile import stored_training
     from ..runtime import resolve_device, seed_everything
     from ..train import check_trainable
     from ..views import parse_resolution

@@ -421,8 +421,8 @@ class UiSession:
         with no name the first free one of ``default``, ``default-2``, … (none in ``taken``
         either).  A file that already holds ``edit`` (the same fingerprint), or the model of
         fingerprint ``model``, is its place: saving an edit or baking a stack twice gives one
-        file (:func:`_holds` tells the caller not to write it again).  Nothing in the work dir
-        is ever overwritten."""
+        file (an existing path returned holds it already: the caller does not write it again).
+        Nothing in the work dir is ever overwritten."""
         holds_edit = lambda path: _holds(path, edit, model)
 
         if name is not None:
@@ -452,7 +452,7 @@ class UiSession:
             d = self.pinned.get(e.id, e.delta)
             path = self.free_target(name, self._default_name(self.entries.index(e), d), d)
         self.workdir.mkdir(parents=True, exist_ok=True)
-        if not _holds(path, d):
+        if not path.exists():  # free_target gives an existing file only when it holds the edit already
             save_delta(path, d.tensors, d.meta)
         return path
 
@@ -477,9 +477,9 @@ class UiSession:
             raise CrfError(f"name {out.name}: is the file of an edit; pick another name for the model")
         self.workdir.mkdir(parents=True, exist_ok=True)
         for path, d in files:
-            if not _holds(path, d):
+            if not path.exists():  # free_target gives an existing file only when it holds the edit already
                 save_delta(path, d.tensors, d.meta)
-        again = _holds(out, model=fingerprint)
+        again = out.exists()  # likewise: the same stack's baked model
         if not again:
             save_model(out, baked, None, extra_meta={"command": "crfedit ui (bake)"})
         return {"model": str(out), "edits": [str(p) for p, _ in files], "again": again}
