@@ -41,6 +41,38 @@ class Camera:
         return replace(self, focal=self.focal * width / self.width, width=width, height=height)
 
 
+RIGID_TOLERANCE = 1e-3
+"""Largest |RᵀR − I| entry a camera-to-world rotation may have: float32 storage and rounded
+exports stay far below it, a scaled or sheared matrix does not."""
+
+
+def c2w_problem(value) -> tuple[np.ndarray | None, str | None]:
+    """``value`` (a 4×4 nested list, or 16 numbers row-major) as a float64 camera-to-world
+    matrix, and what is wrong with it as a camera (``None`` if nothing): the rotation must be
+    orthonormal and right-handed and the last row 0 0 0 1, or the rays come out skewed,
+    stretched or mirrored without any error (a pinhole camera is a rigid motion)."""
+    try:
+        m = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        return None, "is not a 4x4 matrix (or 16 numbers, row-major)"
+    if m.shape == (16,):
+        m = m.reshape(4, 4)
+    if m.shape != (4, 4):
+        return None, "is not a 4x4 matrix (or 16 numbers, row-major)"
+    if not np.isfinite(m).all():
+        return None, "has non-finite values"
+    r = m[:3, :3]
+    if abs(np.linalg.det(r)) < 1e-8:
+        return None, "is not invertible"
+    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOLERANCE:
+        return None, "has a last row other than 0 0 0 1"
+    if np.abs(r.T @ r - np.eye(3)).max() > RIGID_TOLERANCE:
+        return None, "is not a rigid camera-to-world matrix (its rotation is scaled or sheared)"
+    if np.linalg.det(r) < 0:
+        return None, "is not a rigid camera-to-world matrix (its rotation mirrors: the determinant is -1)"
+    return m, None
+
+
 def focal_from_angle(camera_angle_x: float, width: int) -> float:
     """``f = 0.5 W / tan(0.5 camera_angle_x)``."""
     return 0.5 * width / math.tan(0.5 * camera_angle_x)

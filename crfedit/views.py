@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, focal_from_angle, orbit_cameras
+from .cameras import Camera, c2w_problem, focal_from_angle, orbit_cameras
 from .errors import CrfError
 from .io import read_json
 
@@ -153,16 +153,9 @@ def _orbit_views(spec: str, model, instance: int) -> list[tuple[str, Camera]]:
 
 
 def _matrix(spec: str, where: str, value) -> np.ndarray:
-    try:
-        m = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        m = None
-    if m is not None and m.shape == (16,):
-        m = m.reshape(4, 4)
-    if m is None or m.shape != (4, 4):
-        raise CrfError(f"view spec {spec!r}: {where} is not a 4x4 matrix (or 16 numbers, row-major)")
-    if not np.isfinite(m).all() or abs(np.linalg.det(m[:3, :3])) < 1e-8:
-        raise CrfError(f"view spec {spec!r}: {where} is not a finite, invertible camera-to-world matrix")
+    m, problem = c2w_problem(value)
+    if problem:
+        raise CrfError(f"view spec {spec!r}: {where} {problem}")
     return m
 
 

@@ -658,6 +658,8 @@ CATALOGUE: list[Case] = [
     Case("data/no-twins/eval-edits", lambda e, t: (["eval", "edits", e.model, e.data, "--steps", "1", *CPU], []), ("no ground-truth twins",)),
     Case("data/singular-pose/train", lambda e, t: train_cmd(e, t, data=pose([[1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])(e, t)),
          ("transforms_train.json", "frames[1].transform_matrix is not invertible")),
+    Case("data/sheared-pose/dataset-info", lambda e, t: (["dataset", "info", pose([[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]])(e, t)], []),
+         ("transforms_train.json", "frames[1].transform_matrix is not a rigid camera-to-world matrix")),
     Case("data/nan-pose/dataset-info", lambda e, t: (["dataset", "info", pose([[float("nan")] * 4] * 4)(e, t)], []),
          ("transforms_train.json", "non-finite")),
     Case("data/pose-not-4x4/eval-recon", lambda e, t: (["eval", "recon", e.model, pose([[1, 0, 0], [0, 1, 0]])(e, t), *CPU], []),

@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..cameras import Camera, focal_from_angle, rays_from_camera
+from ..cameras import Camera, c2w_problem, focal_from_angle, rays_from_camera
 from ..errors import DataError
 from ..names import did_you_mean, is_digits
 from .format import (
@@ -97,17 +97,9 @@ class Category:
 
 
 def _matrix(path: Path, k: int, frame) -> np.ndarray:
-    m = frame.get("transform_matrix") if isinstance(frame, dict) else None
-    try:
-        c2w = np.array(m, dtype=np.float64)
-    except (TypeError, ValueError):
-        c2w = None
-    if c2w is None or c2w.shape != (4, 4):
-        raise DataError(f"{path}: frames[{k}].transform_matrix is not a 4x4 matrix")
-    if not np.isfinite(c2w).all():
-        raise DataError(f"{path}: frames[{k}].transform_matrix has non-finite values")
-    if abs(np.linalg.det(c2w[:3, :3])) < 1e-8 or abs(np.linalg.det(c2w)) < 1e-8:
-        raise DataError(f"{path}: frames[{k}].transform_matrix is not invertible")
+    c2w, problem = c2w_problem(frame.get("transform_matrix") if isinstance(frame, dict) else None)
+    if problem:
+        raise DataError(f"{path}: frames[{k}].transform_matrix {problem}")
     return c2w
 
 
