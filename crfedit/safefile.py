@@ -114,9 +114,25 @@ def read_safetensors(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], 
 
 
 def safetensors_bytes(tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> bytes:
-    """The bytes of a safetensors file of ``tensors`` (moved to CPU, made contiguous) with string metadata."""
+    """The bytes of a safetensors file of ``tensors`` (moved to CPU, made contiguous) with string
+    metadata, the same bytes for the same contents in every process (:func:`canonical_header`)."""
     cpu = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
-    return st_save(cpu, metadata={k: str(v) for k, v in metadata.items()})
+    return canonical_header(st_save(cpu, metadata={k: str(v) for k, v in metadata.items()}))
+
+
+def canonical_header(raw: bytes) -> bytes:
+    """``raw`` (a safetensors file) with its metadata keys in sorted order.  safetensors writes
+    them from a hash map in an order that changes from process to process, so two runs of the
+    same edit would differ in bytes, not just in their timings; the tensor entries and the data
+    are kept as they are (their offsets count from the end of the header, which is padded with
+    spaces to 8 bytes, as safetensors pads it)."""
+    (n,) = struct.unpack("<Q", raw[:8])
+    header = json.loads(raw[8 : 8 + n])
+    meta = header.pop("__metadata__", None)
+    ordered = ({"__metadata__": dict(sorted(meta.items()))} if meta is not None else {}) | header
+    text = json.dumps(ordered, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    text += b" " * (-len(text) % 8)
+    return struct.pack("<Q", len(text)) + text + raw[8 + n :]
 
 
 def write_safetensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:

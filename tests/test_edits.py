@@ -566,6 +566,10 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
                                                           for n in ("a.safetensors", "b.safetensors")], r.stderr
     r = invoke("render", path, "--instance", 1, "--views", "test:0", "--edit", out, "--edit", out2, "--out", tmp_path / "r1", "--device", "cpu")
     assert r.exit_code == 0 and "note:" not in r.stderr
+    # ... but not when the render takes the edited instance's codes, which carry its edits along
+    for option in ("--shape-from", "--color-from"):
+        r = invoke("render", path, "--instance", 0, option, 1, "--views", "test:0", "--edit", out, "--edit", out2, "--out", tmp_path / "r2", "--device", "cpu")
+        assert r.exit_code == 0 and "note:" not in r.stderr, r.stderr
     assert invoke("edits", "check", path, "--edit", out, "--edit", out2).exit_code == 0
     assert_user_error(invoke("edits", "check", path, "--edit", out2), "b.safetensors", "order they were made")
 

@@ -98,3 +98,26 @@ def test_loading_and_growing_leave_the_global_random_stream(tiny_model):
     after = torch.rand(4)
     torch.manual_seed(123)
     assert torch.equal(after, torch.rand(4))
+
+
+def test_files_are_the_same_bytes_in_every_process():
+    """safetensors orders metadata keys from a hash map seeded per process; the files crfedit
+    writes sort them, so the same contents give the same bytes (the pixels of an edit file, a
+    re-pinned stack, a baked model), and the header stays one safetensors reads back."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, torch; from crfedit.safefile import safetensors_bytes; "
+        "meta = {f'key{i}': f'value {i} \\u00e9' for i in range(12)}; "
+        "sys.stdout.buffer.write(safetensors_bytes({'w': torch.arange(5.0), 'g': torch.ones(3, dtype=torch.uint8)}, meta))"
+    )
+    runs = [subprocess.run([sys.executable, "-c", script], capture_output=True, check=True).stdout for _ in range(3)]
+    assert runs[0] == runs[1] == runs[2]
+    from safetensors.torch import load
+
+    tensors = load(runs[0])
+    assert torch.equal(tensors["w"], torch.arange(5.0)) and torch.equal(tensors["g"], torch.ones(3, dtype=torch.uint8))
+    n = int.from_bytes(runs[0][:8], "little")
+    meta = json.loads(runs[0][8 : 8 + n])["__metadata__"]
+    assert list(meta) == sorted(meta) and meta["key3"] == "value 3 é" and (8 + n) % 8 == 0

@@ -74,10 +74,12 @@ def render_cmd(
         if video is not None and result.video != video:
             note = " (imageio-ffmpeg is not installed, so a GIF instead of MP4: pip install -e '.[video]')"
         typer.echo(f"wrote {kind} {result.video}{note}")
-    others = [(p, d.instance) for p, d in zip(edit or [], deltas) if d.instance != m.names[k]]
+    # the instances this render reads: its own, and those whose codes (and grid) --shape-from/--color-from take
+    read = {m.names[k], *(m.names[m.instance_index(i)] for i in (shape_from, color_from) if i is not None)}
+    others = [(p, d.instance) for p, d in zip(edit or [], deltas) if d.instance not in read]
     if deltas and len(others) == len(deltas):  # a stack of other instances' edits alone: likely a slip
         for p, whose in others:
-            typer.echo(printable(f"note: {p.name} edits {whose}, not {m.names[k]}: it leaves this render unchanged"), err=True)
+            typer.echo(printable(f"note: {p.name} edits {whose}, not {' or '.join(sorted(read))}: it leaves this render unchanged"), err=True)
 
 
 def _photo_camera(deltas, model, name: str) -> list:
