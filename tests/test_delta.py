@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shlex
 import struct
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -498,9 +500,18 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     assert "note: a re-pinned edit keeps the change it was optimized for" in done.output
     kept = apply_edit_files(m, [out / "b.safetensors", out / "c.safetensors"])
     assert torch.equal(kept.field_for(0).occupancy[0], grid0 & ~high)  # the first removal's cells are back
-    for name in ("b.safetensors", "c.safetensors"):  # the same change, a new place
+    for name in ("b.safetensors", "c.safetensors"):  # the same change, a new place, and the command that put it there
         old, new = read_delta(tmp_path / name), read_delta(out / name)
         assert new.fingerprint != old.fingerprint and all(torch.equal(new.tensors[n], t) for n, t in old.tensors.items())
+        assert new.meta["rebased"] == shlex.join(["crfedit", *sys.argv[1:]]) and "rebased" not in old.meta  # CliRunner keeps pytest's argv
+    assert "rebased       crfedit " in runner.invoke(app, ["edits", "show", str(out / "c.safetensors")]).output
+    first = (out / "c.safetensors").read_bytes()  # the same command again: the same bytes
+    assert runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)]).exit_code == 0
+    assert (out / "c.safetensors").read_bytes() == first
+    typo = tmp_path / "no-such-folder" / "rebased"  # the folder is made, a missing one above it is a typo
+    assert_user_error(runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--out-dir", str(typo)]),
+                      "no-such-folder does not exist")
+    assert not typo.parent.exists()
     assert all(p.read_bytes() == data for p, data in inputs.items())
     again = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out-dir", str(out)])
     assert again.exit_code == 0 and "unchanged (already in this place)" in again.output and "note:" not in again.output

@@ -428,7 +428,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
     meta = delta.meta
     rows = [(key, meta.get(key, "")) for key in ("kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint")]
     rows = [(k, v if v else "(none)" if k == "parent" else v) for k, v in rows if v or k == "parent"]
-    rows += [(key, meta[key]) for key in ("final_loss", "seconds", "view", "command") if meta.get(key)]
+    rows += [(key, meta[key]) for key in ("final_loss", "seconds", "view", "command", "rebased") if meta.get(key)]
     if meta.get("hyperparameters"):
         try:
             hyper = json.loads(meta["hyperparameters"])
@@ -508,7 +508,7 @@ def check_cmd(
 def rebase_cmd(
     model: ModelArg,
     edit: Annotated[list[Path], typer.Option("--edit", help="Edit file (repeatable), in the new order; leave out the ones to drop.")],
-    out_dir: Annotated[Path, typer.Option("--out-dir", help="Folder for the re-pinned files (made if missing), named as the inputs; never an input's own folder.")],
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="Folder for the re-pinned files (made if missing, in a folder that exists), named as the inputs; never an input's own folder.")],
 ) -> None:
     """Re-pin edits to a new stack: drop one from the middle, reorder them, or share one alone.
 
@@ -525,6 +525,9 @@ def rebase_cmd(
         raise CrfError(f"--edit: {twice[0]} is given twice (or two files share the name); --out-dir names the outputs after the inputs")
     if out_dir.exists() and not out_dir.is_dir():
         raise CrfError(f"--out-dir {out_dir}: is a file, not a folder")
+    parent = out_dir.parent if str(out_dir.parent) else Path(".")
+    if not out_dir.exists() and not parent.is_dir():  # the folder itself is made; a typo above it is an error
+        raise CrfError(f"--out-dir {out_dir}: folder {parent} does not exist")
     for p in edit:
         if p.parent.resolve() == out_dir.resolve():
             raise CrfError(f"--out-dir {out_dir}: holds the input {p} itself; write the re-pinned files to another folder")
@@ -536,7 +539,9 @@ def rebase_cmd(
     _, pinned = restack(m, deltas)  # everything checked before anything is written
     out_dir.mkdir(parents=True, exist_ok=True)
     for p, before, after in zip(edit, deltas, pinned):
-        save_delta(out_dir / p.name, after.tensors, after.meta)
+        # a re-pinned file's `command` still names the stack it was made on: say where it went since
+        meta = after.meta if after is before else {**after.meta, "rebased": command_line()}
+        save_delta(out_dir / p.name, after.tensors, meta)
         how = "unchanged (already in this place)" if after is before else "re-pinned"
         old_grid = " (format version 1: its grid replaces the instance's)" if after.meta["version"] == "1" and "occupancy" in after.tensors else ""
         replaced = ", replacing the edit file there" if out_dir / p.name in there else ""
