@@ -117,7 +117,14 @@ def safetensors_bytes(tensors: dict[str, torch.Tensor], metadata: dict[str, str]
     """The bytes of a safetensors file of ``tensors`` (moved to CPU, made contiguous) with string
     metadata, the same bytes for the same contents in every process (:func:`canonical_header`)."""
     cpu = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
-    return canonical_header(st_save(cpu, metadata={k: str(v) for k, v in metadata.items()}))
+    return canonical_header(st_save(cpu, metadata={k: utf8(str(v)) for k, v in metadata.items()}))
+
+
+def utf8(text: str) -> str:
+    """``text`` with anything UTF-8 cannot hold written as a backslash escape: a file name that
+    is not UTF-8 (in the recorded command line, Python's surrogate escapes) would otherwise fail
+    the write after all the work is done."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def canonical_header(raw: bytes) -> bytes:

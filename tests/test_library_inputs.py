@@ -96,6 +96,21 @@ def test_preview_refuses_another_model_s_selection(scene, tiny_model):
         preview(other, sel, camera)
 
 
+def test_a_selection_made_without_the_stack_s_edits_says_so(scene, tmp_path):
+    """A selection of the bare model used on the model with an earlier edit applied (README's
+    recolour, then a removal with --selection): the error says which edits are missing, not
+    that the model is another one."""
+    from crfedit.edit import transfer
+
+    model, camera, scribble = scene
+    sel = select_for(model, 0, camera, scribble, None, "color")
+    transfer(model, 0, color_from=1).save(tmp_path / "t.safetensors")
+    stacked = apply_edit_files(model, [tmp_path / "t.safetensors"])
+    with pytest.raises(CrfError, match=r"made on the model without the 1 earlier edit\(s\) applied here; make it with the same --edit files"):
+        sel.check_for(stacked, 0)
+    sel.check_for(model, 0)  # the model it was made on
+
+
 def test_an_edit_s_seconds_count_the_selection_it_made(scene, monkeypatch):
     import crfedit.edit.shape as shape
 

@@ -121,3 +121,13 @@ def test_files_are_the_same_bytes_in_every_process():
     n = int.from_bytes(runs[0][:8], "little")
     meta = json.loads(runs[0][8 : 8 + n])["__metadata__"]
     assert list(meta) == sorted(meta) and meta["key3"] == "value 3 é" and (8 + n) % 8 == 0
+
+
+def test_metadata_that_is_not_utf8_is_escaped_not_a_crash():
+    """A file name that is not UTF-8 reaches the recorded command line as a surrogate escape;
+    the write escapes it (it used to fail after the edit had run)."""
+    from crfedit.safefile import safetensors_bytes
+
+    data = safetensors_bytes({"w": torch.zeros(2)}, {"command": "crfedit edit-color --scribble scr\udce9.png"})
+    n = int.from_bytes(data[:8], "little")
+    assert json.loads(data[8 : 8 + n])["__metadata__"]["command"] == "crfedit edit-color --scribble scr\\udce9.png"

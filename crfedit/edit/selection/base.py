@@ -71,7 +71,15 @@ class Selection:
     def check_for(self, model: CategoryModel, instance: int) -> None:
         """A one-line error unless this selection was made for ``model``'s ``instance``."""
         if self.model_fingerprint != model.fingerprint():
-            raise CrfError(f"the selection was made for another model (fingerprint {self.model_fingerprint[:12]}…, this model {model.fingerprint()[:12]}…)")
+            from ...delta import stack_of
+
+            base, stack = stack_of(model)
+            if stack and self.model_fingerprint == base:
+                raise CrfError(f"the selection was made on the model without the {len(stack)} earlier edit(s) applied here; "
+                               "make it with the same --edit files as the edit (crfedit select ... --edit ...)")
+            raise CrfError(f"the selection was made for another model, or the same one with other --edit files (fingerprint "
+                           f"{self.model_fingerprint[:12]}…, this model{' with its edits' if stack else ''} {model.fingerprint()[:12]}…); "
+                           "make it with the same model and --edit files as the edit")
         if self.instance_name != model.names[instance]:
             raise CrfError(f"the selection is of instance {self.instance_name!r}, not {model.names[instance]!r}")
         if tuple(self.values.shape) != (model.cfg.occ_res,) * 3:
