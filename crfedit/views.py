@@ -39,7 +39,17 @@ DEFAULT_ELEVATION = 30.0
 MAX_RESOLUTION = 16384
 MAX_ORBIT = 100_000
 
-_ORBIT = re.compile(r"^orbit:(\d+)(?:@([+-]?(?:\d+\.?\d*|\.\d+)))?$")
+_ORBIT = re.compile(r"^orbit:(\d+)(?:@([+-]?(?:\d+\.?\d*|\.\d+)))?(?::(.*))?$")
+
+
+def one_view_hint(spec: str) -> str:
+    """How to name one view of a spec that names several: ``train`` → ``train:0``,
+    ``orbit:36@30`` → ``orbit:36@30:0``; other specs (index lists, camera files) get the
+    generic example."""
+    spec = str(spec).strip()
+    if spec in SPLITS or (_ORBIT.match(spec) and _ORBIT.match(spec).group(3) is None):
+        return f"e.g. {spec}:0 for its first view"
+    return "e.g. train:5"
 
 
 def parse_resolution(value: str | int | None, option: str = "--res") -> int | None:
@@ -72,7 +82,7 @@ def resolve_views(spec: str, model, instance: int, res: int | None = None) -> li
     else:
         raise CrfError(
             f"view spec {spec!r}: expected train, val or test (optionally :INDEX, :A-B or :I,J,K), "
-            "orbit:N[@ELEVATION], or a camera JSON file"
+            "orbit:N[@ELEVATION][:INDEX], or a camera JSON file"
         )
     res = parse_resolution(res)
     if res is not None:
@@ -133,7 +143,8 @@ def _stored_cameras(model, instance: int) -> list[Camera]:
 def _orbit_views(spec: str, model, instance: int) -> list[tuple[str, Camera]]:
     m = _ORBIT.match(spec)
     if not m:
-        raise CrfError(f"view spec {spec!r}: expected orbit:N or orbit:N@ELEVATION (degrees), e.g. orbit:36@45")
+        raise CrfError(f"view spec {spec!r}: expected orbit:N or orbit:N@ELEVATION (degrees), e.g. orbit:36@45, "
+                       "optionally :INDEX, :A-B or :I,J,K of its views (orbit:36@30:5)")
     n = int(m.group(1))
     elevation = float(m.group(2)) if m.group(2) is not None else DEFAULT_ELEVATION
     if not 1 <= n <= MAX_ORBIT:
@@ -146,7 +157,8 @@ def _orbit_views(spec: str, model, instance: int) -> list[tuple[str, Camera]]:
     radius = float(np.median([np.linalg.norm(c.center) for c in stored]))
     focal = float(np.median([c.focal for c in stored]))
     cams = orbit_cameras(n, elevation, radius, focal, stored[0].width, stored[0].height)
-    return [(f"orbit:{k}", cam) for k, cam in enumerate(cams)]
+    indices = range(n) if m.group(3) is None else parse_indices(spec, m.group(3), n)
+    return [(f"orbit:{k}", cams[k]) for k in indices]
 
 
 # ----------------------------------------------------------------------------- camera files

@@ -550,7 +550,7 @@ CATALOGUE: list[Case] = [
          ("chair_000", "--name")),
     Case("photo/name-with-line-break/fit-real", lambda e, t: fit_real(e, t, "--name", "a\nerror: fake"), ("--name", "line breaks")),
     Case("photo/name-with-a-slash/fit-real", lambda e, t: fit_real(e, t, "--name", "a/b"), ("--name 'a/b'", "must not hold /")),
-    Case("photo/pose-several-views/fit-real", lambda e, t: fit_real(e, t, pose_spec="train"), ("--pose train", "names 4 views")),
+    Case("photo/pose-several-views/fit-real", lambda e, t: fit_real(e, t, pose_spec="train"), ("--pose train", "names 4 views", "e.g. train:0 for its first view")),
     # --- instance and view SPECs ---------------------------------------------------------------------
     Case("spec/unknown-instance/render", lambda e, t: render(e, t, instance="chair_999"), ("unknown instance 'chair_999'",)),
     Case("spec/path-like-instance/render", lambda e, t: render(e, t, instance="../../etc/passwd"), ("unknown instance '../../etc/passwd'",)),
@@ -560,7 +560,7 @@ CATALOGUE: list[Case] = [
     Case("spec/view-out-of-range/edit-color", lambda e, t: edit_color(e, t, view="train:99"), ("train:99", "index 99 out of range")),
     Case("spec/view-gibberish/render", lambda e, t: render(e, t, views="bogus"), ("view spec 'bogus'",)),
     Case("spec/view-range-backwards/render", lambda e, t: render(e, t, views="train:3-1"), ("range 3-1 runs backwards",)),
-    Case("spec/several-views-for-an-edit/remove", lambda e, t: remove(e, t, "--view", "train"), ("--view train", "names 4 views")),
+    Case("spec/several-views-for-an-edit/remove", lambda e, t: remove(e, t, "--view", "train"), ("--view train", "names 4 views", "e.g. train:0 for its first view")),
     Case("spec/orbit-zero/render", lambda e, t: render(e, t, views="orbit:0"), ("orbit:0", "between 1 and")),
     Case("spec/orbit-pole/render", lambda e, t: render(e, t, views="orbit:3@90"), ("orbit:3@90", "elevation 90")),
     Case("spec/camera-json-malformed/render", lambda e, t: render(e, t, views=str(write(t / "cam.json", "{"))), ("cam.json", "malformed JSON")),

@@ -90,6 +90,8 @@ def test_parse_indices_expands_ranges_in_order(items):
         ("orbit:0", "between 1 and"),
         ("orbit:4@90", "strictly between -90 and 90"),
         ("orbit:4@x", "expected orbit:N"),
+        ("orbit:4:4", "index 4 out of range (0-3)"),
+        ("orbit:4@20:x", "'x' is not an index"),
         ("", "view spec is empty"),
     ],
 )
@@ -116,6 +118,11 @@ def test_orbit_radius_focal_elevation(model):
     assert math.isclose(cam.center[2], 3.0 * math.sin(math.radians(45.0)), abs_tol=1e-12)
     _, cam = resolve_views("orbit:2@-10.5", model, 0)[0]
     assert cam.center[2] < 0
+    # some of an orbit's views by index: the same cameras and labels as in the whole orbit
+    whole = resolve_views("orbit:36@20", model, 0)
+    some = resolve_views("orbit:36@20:5,30-31", model, 0)
+    assert labels(some) == ["orbit:5", "orbit:30", "orbit:31"]
+    assert all(np.array_equal(cam.c2w, whole[int(label[6:])][1].c2w) for label, cam in some)
 
 
 def test_res_resizes_width_and_focal_keeps_aspect(model):

@@ -59,7 +59,7 @@ app = typer.Typer(
     rich_markup_mode=None,
 )
 dataset_app = typer.Typer(help="Make and inspect category datasets.", no_args_is_help=True)
-edits_app = typer.Typer(help="Inspect, check and bake edit files.", no_args_is_help=True)
+edits_app = typer.Typer(help="Inspect, check, re-pin (rebase) and bake edit files.", no_args_is_help=True)
 eval_app = typer.Typer(help="Evaluate reconstruction and edits against ground truth.", no_args_is_help=True)
 
 

@@ -29,7 +29,7 @@ JoinMode = enum.Enum("JoinMode", {m: m for m in JOIN_MODES}, type=str)
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors).")]
 InstanceOpt = Annotated[str, typer.Option("--instance", help="Instance to edit: a name or an index.")]
-ViewOpt = Annotated[str, typer.Option("--view", help="The one view the scribbles belong to: train:5, test:0, orbit:36@30 with one view, or a camera JSON.")]
+ViewOpt = Annotated[str, typer.Option("--view", help="The one view the scribbles belong to: train:5, test:0, orbit:36@30:5 (the sixth of 36 orbit views, frame 0005 of render --views orbit:36@30), or a camera JSON.")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Edit file to write (.safetensors); written atomically.")]
 PriorOpt = Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")]
 StrategyOpt = Annotated[Strategy, typer.Option("--strategy", help="What to train: hybrid (the paper's), codes (the instance's code only) or all (every weight).")]
@@ -67,11 +67,11 @@ def _load(model: Path, edits: list[Path] | None, device: DeviceChoice):
 
 
 def _one_view(model, spec: str, instance: int, option: str = "--view"):
-    from ..views import resolve_views
+    from ..views import one_view_hint, resolve_views
 
     views = resolve_views(spec, model, instance)
     if len(views) != 1:
-        raise CrfError(f"{option} {spec}: names {len(views)} views; an edit is drawn on exactly one (e.g. train:5)")
+        raise CrfError(f"{option} {spec}: names {len(views)} views; an edit is drawn on exactly one ({one_view_hint(spec)})")
     return views[0]
 
 

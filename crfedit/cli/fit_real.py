@@ -66,7 +66,7 @@ class FitProgress:
 def fit_real_cmd(
     model: Annotated[Path, typer.Argument(help="Model file (.safetensors).")],
     photo: Annotated[Path, typer.Argument(help="Photo of an object of the category (PNG or JPEG; an alpha channel marks the object).")],
-    pose: Annotated[str, typer.Option("--pose", help="Camera of the photo: one view of a training instance with a similar pose (train:5, orbit:36 with one view …) or a camera JSON file.")],
+    pose: Annotated[str, typer.Option("--pose", help="Camera of the photo: one view of a training instance with a similar pose (train:5, orbit:36:5 …) or a camera JSON file.")],
     out: Annotated[Path, typer.Option("--out", help="Edit file to write (.safetensors); written atomically.")],
     mask: Annotated[Optional[Path], typer.Option("--mask", help="Object mask, the photo's size: alpha > 0, else non-black pixels are the object (replaces the photo's alpha).")] = None,
     name: Annotated[Optional[str], typer.Option("--name", help="Name of the new instance (default: the photo's file name without extension).")] = None,
@@ -88,7 +88,7 @@ def fit_real_cmd(
     from ..fit_real import FitOptions, check_new_name, fit_real, photo_warnings, prepare_photo, read_photo
     from ..model import load_model
     from ..runtime import resolve_device
-    from ..views import resolve_views
+    from ..views import one_view_hint, resolve_views
 
     options = FitOptions(
         steps_codes=steps_codes, steps_joint=steps_joint, weights=weights.value, lr_codes=lr_codes,
@@ -105,7 +105,7 @@ def fit_real_cmd(
     train = m.views.get("train")
     views = resolve_views(pose, m, j, train.width if train is not None else None)
     if len(views) != 1:
-        raise CrfError(f"--pose {pose}: names {len(views)} views; the photo has exactly one (e.g. train:5)")
+        raise CrfError(f"--pose {pose}: names {len(views)} views; the photo has exactly one ({one_view_hint(pose)})")
     label, camera = views[0]
     prepared = prepare_photo(image, object_mask, camera.width, camera.height, str(mask or photo))
     for line in photo_warnings(image, object_mask, camera.width, camera.height):
