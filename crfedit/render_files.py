@@ -101,7 +101,7 @@ def render_to_folder(
     field = model.field_for(instance)
     frames, records, seconds = {}, {}, 0.0
     columns = (TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    console = Console()
+    console = Console(stderr=True)
     written: list[Path] = []  # this run's files: a run that fails (a full disk, Ctrl-C) removes them again
     try:
         with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:

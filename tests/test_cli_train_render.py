@@ -54,17 +54,18 @@ def model_path(trained) -> Path:
 
 
 def test_training_written_to_a_file_prints_progress_lines(data, tmp_path, monkeypatch):
-    """Not a terminal (CliRunner's output, like `> train.log`): plain progress lines while it
-    trains, not only the bar's last state at the end."""
+    """Not a terminal (CliRunner's output, like `2> train.log`): plain progress lines while it
+    trains, not only the bar's last state at the end, on stderr: stdout keeps the results."""
     from crfedit.cli.train import TrainProgress
 
     monkeypatch.setattr(TrainProgress, "LINE_SECONDS", 0.0)
     result = invoke("train", data, "--out", tmp_path / "m.safetensors", "--steps", 6, *TINY)
     assert result.exit_code == 0, result.output
     line = re.compile(r"\s*(\d+)/6  loss (\S+)  PSNR +(\S+)  \S+ rays/s  \d+:\d\d:\d\d  ETA \d+:\d\d:\d\d")
-    lines = [m for m in map(line.fullmatch, result.stdout.splitlines()) if m]
-    assert [int(m[1]) for m in lines] == [1, 2, 3, 4, 5, 6], result.stdout
-    assert lines[0][2] == "-" and float(lines[-1][2]) > 0 and float(lines[-1][3]) > 0, result.stdout  # loss read out by the end
+    lines = [m for m in map(line.fullmatch, result.stderr.splitlines()) if m]
+    assert [int(m[1]) for m in lines] == [1, 2, 3, 4, 5, 6], result.stderr
+    assert lines[0][2] == "-" and float(lines[-1][2]) > 0 and float(lines[-1][3]) > 0, result.stderr  # loss read out by the end
+    assert not any(map(line.fullmatch, result.stdout.splitlines())) and "━" not in result.stdout
 
 
 def test_training_end_score_is_score_model_on_val(trained, data):

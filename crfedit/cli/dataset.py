@@ -37,6 +37,7 @@ def synth(
     aa: AaOpt = 3,
 ) -> None:
     """Render procedural chairs with depth, part maps and edit twins."""
+    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from ..data.synth import SynthConfig, check_synth_args, synth_steps, write_synth_category
@@ -45,7 +46,8 @@ def synth(
     check_synth_args(out, config)
     replaced = (out / "instances.txt").is_file()  # check_synth_args let it through: an earlier synth output
     columns = (TextColumn("{task.description:<18}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
-    with Progress(*columns) as bar:
+    console = Console(stderr=True)  # progress on stderr, and only on a terminal: a log or an error line stays clean
+    with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
         task = bar.add_task("chairs", total=synth_steps(config))
         result = write_synth_category(out, config, lambda label: bar.update(task, advance=1, description=label))
     typer.echo(

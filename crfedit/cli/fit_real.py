@@ -27,7 +27,7 @@ class FitProgress:
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-        console = Console()
+        console = Console(stderr=True)
         self.bar = Progress(
             TextColumn("{task.description:<6}"),
             BarColumn(),

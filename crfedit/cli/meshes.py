@@ -42,6 +42,7 @@ def from_meshes(
     Each mesh is centered, scaled to unit size and turned Z-up; a sidecar <stem>.meta.json may
     give its attribution (written to ATTRIBUTION.txt) and a rotation.  Needs the [meshes] extra.
     """
+    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from ..data.meshes import MeshDatasetConfig, mesh_steps, write_mesh_category
@@ -49,7 +50,8 @@ def from_meshes(
 
     config = MeshDatasetConfig(views=views, res=res, seed=seed, palette=palette.value, up=up.value, twins=twins, aa=aa, twin_sources=twin_sources)
     columns = (TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
-    with Progress(*columns) as bar:
+    console = Console(stderr=True)  # progress on stderr, and only on a terminal: a log or an error line stays clean
+    with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
         task = bar.add_task("loading meshes", total=mesh_steps(len(meshes), config))
         result = write_mesh_category(out, meshes, config, lambda label: bar.update(task, advance=1, description=label))
     typer.echo(

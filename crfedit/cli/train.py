@@ -46,6 +46,7 @@ class TrainProgress:
     """Seconds between the plain progress lines printed when the output is not a terminal."""
 
     def __init__(self, cfg, minutes: float | None, first_step: int = 0):
+        from rich.console import Console
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         self.cfg, self.budget, self.first_step = cfg, None if minutes is None else 60.0 * minutes, first_step
@@ -56,6 +57,7 @@ class TrainProgress:
             TextColumn("loss {task.fields[loss]}  PSNR {task.fields[psnr]}  {task.fields[rate]} rays/s"),
             TimeElapsedColumn(),
             TextColumn("ETA {task.fields[eta]}"),
+            console=Console(stderr=True),  # progress on stderr, as every command's: stdout keeps the results
         )
         self.task = self.bar.add_task("train", total=1.0, step=first_step, steps=cfg.steps, loss="-", psnr="-", rate="-", eta="-")
         self.lines = not self.bar.console.is_terminal
