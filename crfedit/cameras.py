@@ -16,6 +16,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from .errors import CrfError
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -108,8 +110,31 @@ def subpixel_offsets(n: int) -> list[tuple[float, float]]:
     return sorted(grid, key=lambda o: (o != (0.5, 0.5),))
 
 
+def camera_problem(camera: Camera) -> str | None:
+    """What makes ``camera`` unusable (``None`` if nothing): a matrix :func:`c2w_problem`
+    refuses, a focal length that is not a positive number, a size that is not a whole number
+    of pixels from 1 to 16384.  Cameras from files are checked where they are read; this
+    catches one a script builds (a NaN pose rendered silently white)."""
+    if not isinstance(camera, Camera):
+        return f"expected a Camera, not {type(camera).__name__}"
+    _, problem = c2w_problem(camera.c2w)
+    if problem:
+        return f"c2w {problem}"
+    focal = camera.focal
+    if isinstance(focal, bool) or not isinstance(focal, (int, float, np.floating)) or not math.isfinite(focal) or focal <= 0:
+        return f"focal {focal!r} must be a positive number of pixels"
+    for name, side in (("width", camera.width), ("height", camera.height)):
+        if isinstance(side, bool) or not isinstance(side, (int, np.integer)) or not 1 <= side <= 16384:
+            return f"{name} {side!r} must be a whole number of pixels from 1 to 16384"
+    return None
+
+
 def rays_from_camera(camera: Camera, device: torch.device | str = "cpu") -> Rays:
-    """All rays of ``camera`` in row-major pixel order, float32 on ``device``."""
+    """All rays of ``camera`` in row-major pixel order, float32 on ``device``; a camera
+    :func:`camera_problem` refuses is a one-line :class:`~crfedit.errors.CrfError`."""
+    problem = camera_problem(camera)
+    if problem:
+        raise CrfError(f"camera: {problem}")
     d_cam = ray_directions_camera(camera.width, camera.height, camera.focal)
     c2w = torch.as_tensor(camera.c2w, dtype=torch.float64)
     d = d_cam @ c2w[:3, :3].T

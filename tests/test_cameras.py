@@ -18,6 +18,7 @@ from crfedit.cameras import (
     eye_angles,
     spherical_eye,
 )
+from crfedit.errors import CrfError
 
 
 def test_ray_directions_docstring_example():
@@ -126,3 +127,22 @@ def test_focal_from_angle_round_trips_camera_angle_x():
     f = focal_from_angle(0.6911112070083618, 800)
     assert f == pytest.approx(1111.1110311937682)
     assert Camera(np.eye(4), f, 800, 800).camera_angle_x == pytest.approx(0.6911112070083618)
+
+
+@pytest.mark.parametrize(
+    "camera, message",
+    [
+        (Camera(np.full((4, 4), np.nan), 50.0, 8, 8), "c2w has non-finite values"),
+        (Camera(np.diag([2.0, 2.0, 2.0, 1.0]), 50.0, 8, 8), "scaled or sheared"),
+        (Camera(np.eye(3), 50.0, 8, 8), "not a 4x4 matrix"),
+        (Camera(np.eye(4), float("nan"), 8, 8), "focal nan must be a positive number"),
+        (Camera(np.eye(4), -3.0, 8, 8), "focal -3.0 must be a positive number"),
+        (Camera(np.eye(4), 50.0, 0, 8), "width 0 must be a whole number of pixels"),
+        (Camera(np.eye(4), 50.0, 8, 2.5), "height 2.5 must be a whole number of pixels"),
+    ],
+)
+def test_a_camera_a_script_builds_is_checked_before_its_rays(camera, message):
+    """A NaN pose used to render all white, a zero width to fail inside torch.cat."""
+    with pytest.raises(CrfError) as e:
+        rays_from_camera(camera)
+    assert str(e.value).startswith("camera: ") and message in str(e.value) and "\n" not in str(e.value)
