@@ -513,6 +513,9 @@ def apply_deltas(model: CategoryModel, deltas: Sequence[Delta]) -> CategoryModel
         out = apply_one(out, d)
     stack = [*applied, *(d.fingerprint for d in deltas)]
     out.meta.update(edit_base=base, edit_stack=json.dumps(stack))
+    cameras = photo_cameras(model, deltas)  # so that the view spec `photo` finds them (views.resolve_views), and bake keeps them
+    if cameras:
+        out.meta[PHOTO_CAMERAS] = json.dumps(cameras, sort_keys=True)
     out.meta["edit_state"] = out.fingerprint()
     return out
 
@@ -532,20 +535,19 @@ def bake(model: CategoryModel, edits: Sequence[str | os.PathLike | Delta]) -> Ca
     :func:`~crfedit.model.save_model` writes as ``override.<k>.<name>``).  The baked model is a new
     base: edits made on the unbaked stack do not apply to it.  ``edits``: edit files, or edits
     already read (the page bakes before it writes anything).  The cameras of the photos that
-    fit-real edits fitted their instances to go with them (:func:`photo_cameras`)."""
+    fit-real edits fitted their instances to go with them (:func:`photo_cameras`, which
+    :func:`apply_deltas` records in the model's metadata)."""
     deltas = [e if isinstance(e, Delta) else read_delta(e) for e in edits]
     applied = apply_deltas(model, deltas)
     base, stack = stack_of(applied)
     meta = {k: v for k, v in applied.meta.items() if k not in STACK_KEYS}
     meta.update(baked_from=base, baked_edits=json.dumps(stack))
-    cameras = photo_cameras(model, deltas)
-    if cameras:
-        meta[PHOTO_CAMERAS] = json.dumps(cameras, sort_keys=True)
     return dataclasses.replace(applied, names=list(applied.names), meta=meta)
 
 
 PHOTO_CAMERAS = "photo_cameras"
-"""A baked model's metadata key: {instance name: camera} of the instances fit-real added."""
+"""A model's metadata key: {instance name: camera} of the instances fit-real added (a baked
+model's, and one :func:`apply_deltas` returns)."""
 
 
 def photo_cameras(model: CategoryModel, deltas: Sequence[Delta] = ()) -> dict:

@@ -14,7 +14,7 @@ from .io import write_exr, write_json, write_png
 from .preview import depth_preview
 from .renderer import ray_distance, render_camera
 from .video import check_fps, video_path, write_video
-from .views import parse_resolution, resolve_views
+from .views import resolve_views
 
 
 @dataclass
@@ -56,7 +56,7 @@ def _earlier_frames(out: Path) -> set[str]:
 
 def render_to_folder(
     model, instance: int, spec: str, out: Path, res: int | None = None, depth: bool = False,
-    video: Path | None = None, chunk: int = 16384, fps: float = 12.0, ranks=None, cameras: list | None = None,
+    video: Path | None = None, chunk: int = 16384, fps: float = 12.0, ranks=None,
 ) -> RenderResult:
     """Render the views ``spec`` names and write ``out/NNNN.png`` (+ ``NNNN_depth.exr`` with float32
     channels Z = ray distance, +inf where opacity ≤ 1e-3, and A = opacity, and a colour-mapped
@@ -67,8 +67,7 @@ def render_to_folder(
     gathers the camera records (and frames) and writes ``views.json`` and the video, so the
     folder is the same as a single process writes.  ``seconds`` is then the slowest rank's.
     A run that fails part way (a full disk, Ctrl-C) removes the files it wrote, so no partial
-    set of frames is left to pass for a render.  ``cameras``: (label, camera) pairs rendered in
-    place of those ``spec`` names (``--views photo``, which the edit files hold, not the model)."""
+    set of frames is left to pass for a render."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -79,11 +78,7 @@ def render_to_folder(
 
     if chunk < 1:
         raise CrfError(f"--chunk {chunk}: must be at least 1")
-    if cameras is None:
-        views = resolve_views(spec, model, instance, res)
-    else:
-        res = parse_resolution(res)
-        views = [(label, cam if res is None else cam.resized(res)) for label, cam in cameras]
+    views = resolve_views(spec, model, instance, res)
     if video is not None:
         target = video_path(video)  # a bad suffix or frame rate fails before any rendering
         check_fps(fps)

@@ -73,7 +73,9 @@ def resolve_views(spec: str, model, instance: int, res: int | None = None) -> li
     if not spec:
         raise CrfError("view spec is empty (expected e.g. test, test:0-4, orbit:36 or a camera JSON file)")
     name, _, rest = spec.partition(":")
-    if name in SPLITS:
+    if spec == "photo":
+        views = _photo_views(model, instance)
+    elif name in SPLITS:
         views = _split_views(spec, name, rest, model, instance)
     elif name == "orbit":
         views = _orbit_views(spec, model, instance)
@@ -82,7 +84,7 @@ def resolve_views(spec: str, model, instance: int, res: int | None = None) -> li
     else:
         raise CrfError(
             f"view spec {spec!r}: expected train, val or test (optionally :INDEX, :A-B or :I,J,K), "
-            "orbit:N[@ELEVATION][:INDEX], or a camera JSON file"
+            "orbit:N[@ELEVATION][:INDEX], photo (an instance fit-real added), or a camera JSON file"
         )
     res = parse_resolution(res)
     if res is not None:
@@ -122,6 +124,25 @@ def _split_views(spec: str, split: str, rest: str, model, instance: int) -> list
         raise CrfError(f"view spec {spec!r}: the model stores no {split} views of instance {name} ({stored}; orbit:N renders any instance)")
     indices = range(len(cams)) if not rest.strip() and ":" not in spec else parse_indices(spec, rest, len(cams))
     return [(f"{split}:{i}", cams[i]) for i in indices]
+
+
+def _photo_views(model, instance: int) -> list[tuple[str, Camera]]:
+    """``photo``: the camera of the photo that the fit-real edit adding ``instance`` was fitted
+    to (recorded in the model's metadata by :func:`~crfedit.delta.apply_deltas`, or by a model
+    that baked it), read as a camera JSON file is, so a damaged record is one line."""
+    from .delta import photo_cameras
+
+    name = model.names[instance] if 0 <= instance < len(model.names) else instance
+    cam = photo_cameras(model).get(name)
+    if cam is None:
+        raise CrfError(f"view spec 'photo': {name} was not added by a fit-real edit in --edit or baked into the model; "
+                       "photo is the camera of its photo")
+    try:
+        data = {"transform_matrix": cam["c2w"], "width": cam["width"], "height": cam["height"],
+                "camera_angle_x": 2.0 * math.atan(cam["width"] / (2.0 * cam["focal"]))}
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
+        raise CrfError(f"view spec 'photo': the record of {name}'s photo camera cannot be read") from None
+    return [("photo", camera_from_json(data, model, f"photo (the camera of {name}'s photo)"))]
 
 
 # ----------------------------------------------------------------------------- orbit

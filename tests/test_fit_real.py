@@ -289,7 +289,7 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     assert rendered.exit_code == 0, rendered.output
     assert (tmp_path / "r" / "0001.png").is_file()
     # from the photo's own camera: --views photo reads it from the fit-real edit
-    assert_user_error(invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "test", "--out", tmp_path / "t"), "--views photo")
+    assert_user_error(invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "test", "--out", tmp_path / "t"), "with --views photo")
     shown = invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "photo", "--out", tmp_path / "p", "--device", "cpu")
     assert shown.exit_code == 0, shown.output
     fitted, _ = load_model(path)
@@ -305,6 +305,14 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     assert invoke("edits", "bake", path, "--edit", out, "--out", tmp_path / "baked.safetensors").exit_code == 0
     again = invoke("render", tmp_path / "baked.safetensors", "--instance", "my_chair", "--views", "photo", "--out", tmp_path / "pb", "--device", "cpu")
     assert again.exit_code == 0 and (tmp_path / "pb" / "0000.png").read_bytes() == (tmp_path / "p" / "0000.png").read_bytes(), again.output
+    # the photo's view is a view spec of every command: scribble on it, preview from it
+    opacity = render_camera(fitted.field_for(k), fitted.views["train"].cameras(0)[0], k).opacity.numpy()
+    scribble = tmp_path / "scribble.png"
+    Image.fromarray(((opacity > 0.5) * 255).astype(np.uint8)).save(scribble)
+    recoloured = invoke("edit-color", path, "--instance", "my_chair", "--edit", out, "--view", "photo", "--scribble", scribble,
+                        "--color", "red", "--out", tmp_path / "red.safetensors", "--steps", 2, "--preview", tmp_path / "rp",
+                        "--views", "photo", "--device", "cpu")
+    assert recoloured.exit_code == 0 and (tmp_path / "rp" / "0000.png").is_file(), recoloured.output
     moved = tmp_path / "t.safetensors"
     transferred = invoke("transfer", path, "--instance", "my_chair", "--color-from", "chair_001", "--edit", out, "--out", moved, "--device", "cpu")
     assert transferred.exit_code == 0, transferred.output

@@ -58,9 +58,8 @@ def render_cmd(
             shape_from=None if shape_from is None else m.instance_index(shape_from),
             color_from=None if color_from is None else m.instance_index(color_from),
         )
-    cameras = _photo_camera(deltas, m, m.names[k]) if views.strip() == "photo" else None
     with process_group(ranks, dev):
-        result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks, cameras)
+        result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks)
     if not ranks.main:
         return
     per_view = result.seconds / max(result.count, 1)
@@ -80,26 +79,3 @@ def render_cmd(
     if deltas and len(others) == len(deltas):  # a stack of other instances' edits alone: likely a slip
         for p, whose in others:
             typer.echo(printable(f"note: {p.name} edits {whose}, not {' or '.join(sorted(read))}: it leaves this render unchanged"), err=True)
-
-
-def _photo_camera(deltas, model, name: str) -> list:
-    """``--views photo``: the camera of the photo that the fit-real edit adding instance
-    ``name`` was fitted to (recorded in the edit, or in a model that baked it), as the one view
-    to render; read as a camera JSON file is (:func:`~crfedit.views.camera_from_json`), so a
-    damaged record is one line."""
-    import math
-
-    from ..delta import photo_cameras
-    from ..errors import CrfError
-    from ..views import camera_from_json
-
-    cam = photo_cameras(model, deltas).get(name)
-    if cam is None:
-        raise CrfError(f"--views photo: {name} was not added by a fit-real edit in --edit or baked into the model; "
-                       "photo is the camera of its photo")
-    try:
-        data = {"transform_matrix": cam["c2w"], "width": cam["width"], "height": cam["height"],
-                "camera_angle_x": 2.0 * math.atan(cam["width"] / (2.0 * cam["focal"]))}
-    except (KeyError, TypeError, ValueError, ZeroDivisionError):
-        raise CrfError(f"--views photo: the record of {name}'s photo camera cannot be read") from None
-    return [("photo", camera_from_json(data, model, f"photo (the camera of {name}'s photo)"))]
