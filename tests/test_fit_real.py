@@ -284,7 +284,7 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
         assert any(line.startswith(stage) and "PSNR" in line for line in result.stdout.splitlines()), result.stdout
     assert "adding instance my_chair" in result.stdout
     delta = read_delta(out)
-    assert delta.meta["pose"] == "train:0" and delta.meta["photo"] == str(photo)
+    assert delta.meta["pose"] == "train:0 of chair_000" and delta.meta["photo"] == str(photo)  # --pose-instance's default, 0
     rendered = invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "orbit:2", "--out", tmp_path / "r", "--device", "cpu")
     assert rendered.exit_code == 0, rendered.output
     assert (tmp_path / "r" / "0001.png").is_file()

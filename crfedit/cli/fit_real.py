@@ -112,7 +112,9 @@ def fit_real_cmd(
         typer.echo(f"warning: {line}", err=True)
     with FitProgress(options.steps_codes + options.steps_joint) as progress:
         result = fit_real(m, prepared, camera, name, options, progress.on_step, progress.on_stage)
-    result.save(out, command=command_line(), photo=str(photo), pose=label, **({"mask": str(mask)} if mask else {}))
+    split_view = label.partition(":")[0] in ("train", "val", "test")  # a stored view is a view of one instance
+    result.save(out, command=command_line(), photo=str(photo), pose=f"{label} of {m.names[j]}" if split_view else label,
+                **({"mask": str(mask)} if mask else {}))
     typer.echo(
         f"wrote {out}: fit-real edit adding instance {name} ({len(result.tensors)} tensors, "
         f"{out.stat().st_size / 1024:.1f} KiB), photo PSNR {result.stages[-1].psnr:.2f} dB, {result.seconds:.2f} s"
