@@ -243,6 +243,26 @@ def test_photo_warnings_name_a_background_fitted_as_the_object_and_an_upscaled_p
     assert photo_warnings(np.ones((48, 200, 3), np.float32), None, 32, 32) == []  # a wide photo crops to 48x48
 
 
+def test_a_photo_on_white_takes_its_outline_from_the_white_around_it(setup):
+    """No alpha, no mask: the white background connected to the border is not the object, a
+    white part the object encloses is; a photo with no white border stays whole."""
+    _, _, held = setup
+    view = held.splits["train"][0]
+    on_white = view.rgb * view.alpha[..., None] + (1.0 - view.alpha[..., None])  # RGB, no alpha
+    photo = prepare_photo(on_white.astype(np.float32), None, RES, RES)
+    assert photo.silhouette == "white background"
+    assert photo.mask[view.alpha >= 0.5].all() and not photo.mask[view.alpha == 0].any()  # faint edges may go either way
+    ring = np.ones((9, 9, 3), np.float32)
+    ring[2:7, 2:7] = 0.2
+    ring[4, 4] = 1.0  # white, but enclosed by the dark square
+    outline = prepare_photo(ring, None, 9, 9)
+    assert outline.silhouette == "white background" and outline.mask.sum() == 25 and outline.mask[4, 4]
+    grey = prepare_photo(np.full((6, 6, 3), 0.5, np.float32), None, 6, 6)
+    assert grey.silhouette == "whole photo" and grey.mask.all()
+    rgba = np.concatenate([on_white, view.alpha[..., None]], axis=-1).astype(np.float32)
+    assert prepare_photo(rgba, None, RES, RES).silhouette == "alpha"
+
+
 def test_read_photo_with_mask_file(tmp_path):
     rgb = np.full((6, 8, 3), 80, np.uint8)
     Image.fromarray(rgb).save(tmp_path / "p.jpg")

@@ -110,6 +110,9 @@ def fit_real_cmd(
     prepared = prepare_photo(image, object_mask, camera.width, camera.height, str(mask or photo))
     for line in photo_warnings(image, object_mask, camera.width, camera.height):
         typer.echo(f"warning: {line}", err=True)
+    if prepared.silhouette == "white background":
+        typer.echo(f"note: no alpha channel and no --mask: the object is what the photo's white background surrounds "
+                   f"({prepared.mask.mean():.0%} of the view); give --mask to outline it yourself", err=True)
     with FitProgress(options.steps_codes + options.steps_joint) as progress:
         result = fit_real(m, prepared, camera, name, options, progress.on_step, progress.on_stage)
     split_view = label.partition(":")[0] in ("train", "val", "test")  # a stored view is a view of one instance
