@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import ModelFileError, NonFiniteError
+from .errors import CrfError, ModelFileError, NonFiniteError
 from .field import ConditionalRadianceField
 from .io import atomic_write_bytes
 from .model import CategoryModel
@@ -241,7 +241,11 @@ def make_delta(
 def delta_bytes(tensors: Mapping[str, Tensor], metadata: Mapping[str, str]) -> bytes:
     """The bytes of an edit file, in the version its metadata names: a version-3 file's grid
     change is bit-packed, an older one (a re-pinned file keeps its version) stores it as it is.
-    What :func:`save_delta` writes, and what the page's Download gives."""
+    What :func:`save_delta` writes, and what the page's Download gives.  A tensor with NaN or
+    inf is refused here, as :func:`read_delta` would refuse the file."""
+    for name, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise CrfError(f"edit tensor {name} contains NaN or inf: not written (no edit file could be read back with it)")
     out, meta = dict(tensors), {k: str(v) for k, v in metadata.items() if k != PACKED_SHAPE}
     if grid_packed(meta.get("version", VERSION)) and GRID in out:
         packed, shape = pack_grid_change(out.pop(GRID))

@@ -539,3 +539,17 @@ def test_edits_show_table_shortens_hyperparameters():
     assert _short([0.5, 1 / 3, 7]) == "[0.5, 0.3333, 7]"
     assert _short([{"c2w": [[1.0]]}]) == "[1 record]" and _short([{}, {}]) == "[2 records]"
     assert _short("selection") == "selection" and _short(True) == "True" and _short([]) == "[]"
+
+
+def test_an_edit_with_nan_is_refused_when_written_not_when_read(tmp_path, model):
+    """save_delta checks what read_delta would refuse, so no unreadable edit file is made."""
+    from crfedit.errors import CrfError
+
+    save_model(tmp_path / "m.safetensors", model)
+    m, _ = load_model(tmp_path / "m.safetensors")
+    good = delta_file(tmp_path, "good.safetensors", m, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    d = read_delta(good)
+    bad = {**d.tensors, "F_rad.out.bias": torch.full_like(d.tensors["F_rad.out.bias"], float("nan"))}
+    with pytest.raises(CrfError, match="F_rad.out.bias contains NaN or inf: not written"):
+        save_delta(tmp_path / "bad.safetensors", bad, d.meta)
+    assert not (tmp_path / "bad.safetensors").exists()
