@@ -186,3 +186,10 @@ def test_add_reads_the_copy_mask_as_drawn(view, tiny_model, tmp_path):
     assert r.exit_code == 0, r.output
     assert sorted(p.name for p in (tmp_path / "prev").iterdir()) == ["0000.png", "0001.png"]
     assert r.stdout.splitlines()[-1] == f"wrote previews of the edited chair_000 (orbit:2) to {tmp_path / 'prev'}/"
+    assert "note:" not in r.stderr
+    # a donor whose shape an earlier edit changed: the copy comes from it as edited, and a note says so
+    removal = tmp_path / "rm.safetensors"
+    assert invoke("remove", tiny_model, "--instance", 1, "--view", "train:0", "--scribble", tmp_path / "wob.png", "--steps", 2,
+                  "--out", removal, "--device", "cpu").exit_code == 0
+    r = invoke(*base, "--copy", tmp_path / "wob.png", "--edit", removal, "--out", tmp_path / "after.safetensors")
+    assert r.exit_code == 0 and "note: an earlier --edit changed chair_001's shape" in r.stderr, r.output

@@ -361,6 +361,9 @@ def add_cmd(
     check_out_file(out, {**_scribbled_inputs(model, edit, None, None, keep, keep_json, selection), "--copy": copy_mask})
     m = _load(model, edit, device)
     k, j = m.instance_index(instance), m.instance_index(donor)
+    if "occupancy" in m.overrides.get(j, {}):  # a removal (or addition) of the donor earlier in the stack
+        typer.echo(f"note: an earlier --edit changed {m.names[j]}'s shape: the part is copied from the donor as edited "
+                   "(a part it removed is not there to copy; check the preview)", err=True)
     shown = _preview_views(m, k, preview, views)
     label, camera = _one_view(m, view, k)
     donor_camera = camera if donor_view is None else _one_view(m, donor_view, j, "--donor-view")[1]
