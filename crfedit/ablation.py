@@ -118,7 +118,7 @@ def run_ablation(
     if minutes is None and steps is None:
         raise CrfError("ablation: give a time budget (--minutes) or a step budget (--steps)")
     if minutes is not None and not (minutes > 0 and math.isfinite(minutes)):
-        raise CrfError(f"--minutes {minutes:g}: must be a positive number")
+        raise CrfError(f"--minutes {minutes:g}: must be a finite positive number")
     if steps is not None and steps < 1:
         raise CrfError(f"--steps {steps}: must be at least 1")
     base = base or make_config("fast")

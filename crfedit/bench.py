@@ -95,7 +95,7 @@ class BenchSettings:
     def validated(self) -> "BenchSettings":
         checks = [
             (len(self.presets) > 0, "--presets: give at least one preset"),
-            (self.minutes > 0 and math.isfinite(self.minutes), f"--minutes {self.minutes:g}: must be a positive number"),
+            (self.minutes > 0 and math.isfinite(self.minutes), f"--minutes {self.minutes:g}: must be a finite positive number"),
             (self.steps is None or self.steps >= 1, f"--steps {self.steps}: must be at least 1"),
             (self.checkpoints >= 1, f"--checkpoints {self.checkpoints}: must be at least 1"),
             (all(v > 0 for v in (*self.train_steps_per_cell, *self.render_steps_per_cell)), "samples per cell must be > 0"),

@@ -211,7 +211,7 @@ def edits_cmd(
     if nerf_steps < 1:
         raise CrfError(f"--nerf-steps {nerf_steps}: must be at least 1")
     if nerf_minutes is not None and not (nerf_minutes > 0 and math.isfinite(nerf_minutes)):
-        raise CrfError(f"--nerf-minutes {nerf_minutes:g}: must be a positive number")
+        raise CrfError(f"--nerf-minutes {nerf_minutes:g}: must be a finite positive number")
     ranks = ranks_from_env()
     if ranks is not None:
         device = rank_device(device, ranks)

@@ -301,7 +301,7 @@ def train_cmd(
     if log_every < 1:
         raise CrfError(f"--log-every {log_every}: must be at least 1")
     if minutes is not None and not (minutes > 0 and math.isfinite(minutes)):
-        raise CrfError(f"--minutes {minutes:g}: must be a positive number")
+        raise CrfError(f"--minutes {minutes:g}: must be a finite positive number")
     if view_reg is not None and not (view_reg >= 0 and math.isfinite(view_reg)):
         raise CrfError(f"--view-reg {view_reg:g}: must be 0 or more")
     res = parse_resolution(res)
@@ -469,7 +469,7 @@ def quickstart_cmd(
     from ..runtime import resolve_device, seed_everything
 
     if not (minutes > 0 and math.isfinite(minutes)):
-        raise CrfError(f"--minutes {minutes:g}: must be a positive number")
+        raise CrfError(f"--minutes {minutes:g}: must be a finite positive number")
     check_folder_target(out, "--out")
     synth = SynthConfig(instances=instances, views=50, res=res, seed=seed, twins=edits, twin_sources=1)
     check_synth_args(out / "data", synth)

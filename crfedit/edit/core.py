@@ -83,7 +83,7 @@ class EditOptions:
         checks = [
             (self.strategy in STRATEGIES, f"--strategy {self.strategy}: expected one of {', '.join(STRATEGIES)}"),
             (self.steps >= 1, f"--steps {self.steps}: need at least 1"),
-            (np.isfinite(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a positive number"),
+            (np.isfinite(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a finite positive number"),
             (2 <= self.rays <= MAX_EDIT_RAYS, f"--rays {self.rays}: need at least 2 and at most {MAX_EDIT_RAYS} (the most rays a step can hold)"),
             (min(self.lambda_reg, self.lambda_dens, self.lambda_surface, self.lambda_match) >= 0, "loss weights must be ≥ 0"),
             (self.penalty in PENALTIES, f"--penalty {self.penalty}: expected one of {', '.join(PENALTIES)}"),
