@@ -59,6 +59,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--steps-codes", type=int, default=FitOptions.steps_codes)
     p.add_argument("--steps-joint", type=int, default=FitOptions.steps_joint)
     p.add_argument("--weights", choices=tuple(JOINT), default=FitOptions.weights)
+    p.add_argument("--distortion", type=float, default=FitOptions.distortion, help="Weight of fit-real's distortion loss (0: off).")
     p.add_argument("--rays", type=int, default=FitOptions.rays)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--seed", type=int, default=0)
@@ -141,9 +142,10 @@ def run(args: argparse.Namespace) -> dict:
     res = train.width if train is not None else None
     configs = {
         "mean code": FitOptions(steps_codes=0, steps_joint=0),
-        "codes only": FitOptions(steps_codes=args.steps_codes, steps_joint=0, rays=args.rays, seed=args.seed),
+        "codes only": FitOptions(steps_codes=args.steps_codes, steps_joint=0, rays=args.rays, distortion=args.distortion, seed=args.seed),
         "codes + weights": FitOptions(
-            steps_codes=args.steps_codes, steps_joint=args.steps_joint, weights=args.weights, rays=args.rays, seed=args.seed
+            steps_codes=args.steps_codes, steps_joint=args.steps_joint, weights=args.weights, rays=args.rays,
+            distortion=args.distortion, seed=args.seed,
         ),
     }
     per_instance: dict[str, dict] = {}
@@ -178,7 +180,7 @@ def run(args: argparse.Namespace) -> dict:
         "photo_view": args.view,
         "pose": args.pose,
         "options": {
-            "steps_codes": args.steps_codes, "steps_joint": args.steps_joint, "weights": args.weights,
+            "steps_codes": args.steps_codes, "steps_joint": args.steps_joint, "weights": args.weights, "distortion": args.distortion,
             "rays": args.rays, "seed": args.seed,
         },
         "device": str(device),
@@ -198,7 +200,7 @@ def markdown(report: dict) -> str:
     o = report["options"]
     lines = [
         f"fit-real on {len(report['holdout'])} held-out instance(s), photo = {report['photo_view']}, pose = {report['pose']}, "
-        f"{o['steps_codes']} code steps + {o['steps_joint']} joint steps ({o['weights']}), {report['device']}",
+        f"{o['steps_codes']} code steps + {o['steps_joint']} joint steps ({o['weights']}), distortion {o['distortion']:g}, {report['device']}",
         "",
         "| fit | PSNR other views (dB) | SSIM other views | PSNR photo (dB) | seconds |",
         "|---|---:|---:|---:|---:|",
