@@ -566,7 +566,7 @@ CATALOGUE: list[Case] = [
     Case("spec/camera-json-malformed/render", lambda e, t: render(e, t, views=str(write(t / "cam.json", "{"))), ("cam.json", "malformed JSON")),
     Case("spec/camera-json-singular/edit-color",
          lambda e, t: edit_color(e, t, view=str(write(t / "cam.json", json.dumps({"transform_matrix": [[0] * 4] * 4, "camera_angle_x": 0.7})))),
-         ("cam.json", "not a finite, invertible camera-to-world matrix")),
+         ("cam.json", "transform_matrix is not invertible")),
     Case("spec/pose-instance-out-of-range/fit-real", lambda e, t: fit_real(e, t, "--pose-instance", "9"), ("instance 9", "out of range")),
     # --- colours -------------------------------------------------------------------------------------
     Case("color/unknown-name/edit-color", lambda e, t: edit_color(e, t, color="notacolor"), ("--color 'notacolor'",)),

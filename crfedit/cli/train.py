@@ -51,16 +51,18 @@ class TrainProgress:
 
         self.cfg, self.budget, self.first_step = cfg, None if minutes is None else 60.0 * minutes, first_step
         self.t0 = time.perf_counter()
+        console = Console(stderr=True)  # progress on stderr, as every command's: stdout keeps the results
         self.bar = Progress(
             TextColumn("{task.fields[step]:>6}/{task.fields[steps]}"),
             BarColumn(),
             TextColumn("loss {task.fields[loss]}  PSNR {task.fields[psnr]}  {task.fields[rate]} rays/s"),
             TimeElapsedColumn(),
             TextColumn("ETA {task.fields[eta]}"),
-            console=Console(stderr=True),  # progress on stderr, as every command's: stdout keeps the results
+            console=console,
+            disable=not console.is_terminal,  # a log gets plain lines instead (on_step), and no last frame before an error line
         )
         self.task = self.bar.add_task("train", total=1.0, step=first_step, steps=cfg.steps, loss="-", psnr="-", rate="-", eta="-")
-        self.lines = not self.bar.console.is_terminal
+        self.lines = not console.is_terminal
         self.last_line = self.t0
 
     def __enter__(self) -> "TrainProgress":
