@@ -238,12 +238,13 @@ class FitOptions:
     lambda_reg: float = 10.0
     """Weight of Σ_tensors mean((θ − θ₀)²) towards the shared weights in stage 2."""
     distortion: float = 0.1
-    """Weight of Mip-NeRF 360's distortion loss on the photo's rays, both stages (grid sampler;
+    """Weight of Mip-NeRF 360's distortion loss on the photo's rays in stage 2 (grid sampler;
     :func:`~crfedit.rendering.distortion_packed`).  One view leaves the depth along each ray
-    free, and without it the fit spreads each surface over ~5 cells of depth: a recolour's
-    selection then held 0.47 of the scribbled pixels' weight and the seat came out olive, not
-    red; at 0.1 it held 0.96 and the seat turned red, other views within 0.25 dB
-    (docs/benchmarks.md, sixty-second session)."""
+    free, and the heads stage 2 opens spread each surface over ~5 cells of depth without it: a
+    recolour's selection then held 0.47 of the scribbled pixels' weight and the seat came out
+    olive, not red; at 0.1 it held 0.98 and the seat turned red.  Held-out chairs' other views
+    scored within 0.1 dB of the fit without it; in stage 1 too it cost the codes-only fit
+    0.47 dB (docs/benchmarks.md, sixty-second session)."""
     seed: int = 0
     """Seeds the rays, the sample jitter and the occupancy probes."""
 
@@ -438,7 +439,9 @@ def fit_real(
     t0 = time.perf_counter()
     for p in codes:
         p.requires_grad_(True)
+    fitter.distortion = 0.0  # the codes keep the category's shapes; the heads of stage 2 can spread one in depth
     _run_stage("codes", fitter, [{"params": codes, "lr": options.lr_codes}], options.steps_codes, None, on_step)
+    fitter.distortion = distortion
     report("codes", options.steps_codes, t0, field)
 
     prefixes: tuple[str, ...] = ()

@@ -77,7 +77,7 @@ def fit_real_cmd(
     lr_codes: Annotated[float, typer.Option("--lr-codes", help="Adam learning rate of the codes.")] = 1e-2,
     lr_weights: Annotated[float, typer.Option("--lr-weights", help="Adam learning rate of the weights (stage 2).")] = 1e-3,
     rays: Annotated[int, typer.Option("--rays", help="Rays per step, drawn from the photo's pixels (all of them at 64x64 by default).")] = 4096,
-    distortion: Annotated[float, typer.Option("--distortion", help="Weight of the distortion loss that gathers each ray's density into one surface (one photo leaves depth free; 0: off).")] = 0.1,
+    distortion: Annotated[float, typer.Option("--distortion", help="Stage 2: weight of the distortion loss that gathers each ray's density into one surface (one photo leaves depth free; 0: off).")] = 0.1,
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")] = None,
     device: DeviceOpt = DeviceChoice.auto,
     seed: SeedOpt = 0,
