@@ -105,6 +105,28 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     assert not np.array_equal(p.pixels(), before)
     assert p.error() == "" and p.console_errors() == []
 
+    # a toggle the page refuses (an edit is running) leaves the box as the stack is
+    p.js("S.job = {id: 'running'}; document.querySelector('#stack input.toggle').click()")
+    p.wait("return !document.getElementById('error').hidden", 30)
+    assert p.error().startswith("an edit is running") and p.js("return document.querySelector('#stack input.toggle').checked")
+    p.js("S.job = null; clearError()")
+    # a Select the server refuses (no strokes on this chair) leaves the status at ready, not "selecting…"
+    n = p.count("view")
+    p.js("pickInstance(1)")
+    p.wait(f"return performance.getEntriesByName('crfedit:view').length > {n} && !S.viewBusy", 60)
+    p.click("#select")
+    p.wait("return !document.getElementById('error').hidden", 60)
+    assert p.js("return document.getElementById('status-text').textContent") == "ready"
+    p.js("clearError()")
+    # the thumbnails take the keyboard: Tab reaches them, Enter picks one
+    assert p.js("return [...document.querySelectorAll('#instances img, #turntable img')].every(i => i.tabIndex === 0)")
+    p.js("document.querySelectorAll('#turntable img')[2].dispatchEvent(new KeyboardEvent('keydown', {key: 'Enter'}))")
+    p.wait("return typeof S.view === 'object' && S.view.azimuth === 90", 30)
+    n = p.count("view")
+    p.js("pickInstance(0)")
+    p.wait(f"return performance.getEntriesByName('crfedit:view').length > {n} && !S.viewBusy", 60)
+    drive.pick_view(p, "train:0")
+
     # a reload of the tab keeps the strokes, the instance and the view (sessionStorage)
     p.driver.refresh()
     p.wait("return typeof S !== 'undefined' && S.info !== null && !S.viewBusy && performance.getEntriesByName('crfedit:view').length > 0", 60)

@@ -76,6 +76,17 @@ function clearError() { $("error").hidden = true; }
 
 function status(text) { $("status-text").textContent = text; }
 
+// A thumbnail image that acts as a button: reachable with Tab, chosen with Enter or Space too.
+function clickable(el, fn) {
+  el.addEventListener("click", fn);
+  if (el.tagName === "BUTTON") return;
+  el.tabIndex = 0;
+  el.setAttribute("role", "button");
+  el.addEventListener("keydown", (ev) => {
+    if (ev.key === "Enter" || ev.key === " ") { ev.preventDefault(); fn(); }
+  });
+}
+
 async function attempt(fn) {
   try {
     await fn();
@@ -374,7 +385,7 @@ function buildSplitViews() {
       const el = document.createElement(photos ? "img" : "button");
       if (!photos) el.textContent = i;
       el.title = `${split}:${i}`;
-      el.addEventListener("click", () => setView(`${split}:${i}`));
+      clickable(el, () => setView(`${split}:${i}`));
       list.append(el);
     }
     det.addEventListener("toggle", () => {
@@ -428,13 +439,13 @@ async function start() {
     const img = document.createElement("img");
     img.dataset.k = k;
     img.title = n;
-    img.addEventListener("click", () => pickInstance(k));
+    clickable(img, () => pickInstance(k));
     $("instances").append(img);
   });
   for (let i = 0; i < 8; i++) {
     const img = document.createElement("img");
     img.title = `orbit ${i * 45}°`;
-    img.addEventListener("click", () => setView({ azimuth: i * 45, elevation: (viewAngles() || { elevation: 30 }).elevation }));
+    clickable(img, () => setView({ azimuth: i * 45, elevation: (viewAngles() || { elevation: 30 }).elevation }));
     $("turntable").append(img);
   }
   S.radius = Math.max(1, S.info.width / 48);

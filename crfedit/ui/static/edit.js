@@ -25,7 +25,12 @@ async function doSelect() {
   const kind = $("edit-kind").value;  // recolours select a little more (one material): crfedit.edit.selection.options_for
   const body = { instance: S.instance, views: scribbledViews(S.instance) };
   if (kind === "color" || kind === "remove" || kind === "add") body.kind = kind;
-  const info = await postJson("/api/select", body);
+  let info;
+  try {
+    info = await postJson("/api/select", body);
+  } finally {
+    status("ready");  // a refused selection (an empty scribble) leaves no "selecting…" behind
+  }
   S.tint = true;
   $("tint").checked = true;
   $("selection-info").textContent = `${info.selected_cells} of ${info.occupied_cells} occupied cells selected from ${info.views} view(s) (${info.seconds.toFixed(2)} s)`
@@ -114,6 +119,10 @@ async function onJobMessage(msg) {
   const job = S.job;
   S.job = null;
   busy(false);
+  if (msg.type === "cancelled") {  // what the user asked for: a status line, not the error banner
+    status(msg.message);
+    return;
+  }
   if (msg.type !== "done") {
     status("ready");
     showError(msg.message);
@@ -126,6 +135,8 @@ async function onJobMessage(msg) {
   if (job.kind === "color" || job.kind === "remove" || job.kind === "add") {  // the selection shown was of the state before
     $("selection-info").textContent = `The ${job.kind === "color" ? "recolour" : job.kind === "remove" ? "removal" : "addition"} is applied; `
       + "its strokes are cleared (Ctrl+Z on a view brings them back); Select again to see a selection on the edited chair.";
+  } else {
+    $("selection-info").textContent = "The transfer is applied; Select to see a selection on the edited chair.";
   }
   if (job.kind === "color" || job.kind === "remove") clearUsedStrokes(job.instance);
   // The edit's render is of the view it was made on: shown only if that view is still on screen
@@ -169,7 +180,14 @@ function renderStack(rows) {
     li.dataset.id = row.id;
     const on = document.createElement("input");
     on.type = "checkbox"; on.checked = row.enabled; on.className = "toggle"; on.title = "on / off";
-    on.addEventListener("change", () => attempt(() => stackOp("/api/stack/toggle", { id: row.id, enabled: on.checked })));
+    on.addEventListener("change", () => attempt(async () => {
+      try {
+        await stackOp("/api/stack/toggle", { id: row.id, enabled: on.checked });
+      } catch (err) {
+        on.checked = !on.checked;  // refused (an edit is running, the server said no): the box shows the stack as it is
+        throw err;
+      }
+    }));
     const text = document.createElement("span");
     text.textContent = `${row.kind} · ${row.instance} · ${kb(row.bytes)} · ${row.seconds.toFixed(2)} s — ${row.label}`;
     const up = button("↑", !row.up, () => stackOp("/api/stack/move", { id: row.id, to: row.position - 1 }));
