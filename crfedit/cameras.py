@@ -39,6 +39,9 @@ class Camera:
 
     def resized(self, width: int, height: int | None = None) -> "Camera":
         """The same camera at another resolution (focal scaled with the width)."""
+        for name, side in (("width", width), ("height", height), ("this camera's width", self.width)):
+            if side is not None and (isinstance(side, bool) or not isinstance(side, (int, np.integer)) or side < 1):
+                raise CrfError(f"camera: {name} {side!r} must be a whole number of pixels, at least 1")
         height = height if height is not None else round(self.height * width / self.width)
         return replace(self, focal=self.focal * width / self.width, width=width, height=height)
 
@@ -48,11 +51,22 @@ RIGID_TOLERANCE = 1e-3
 exports stay far below it, a scaled or sheared matrix does not."""
 
 
+def _numbers(value):
+    """Whether each leaf of nested lists is a number (bool is not), one flag per leaf."""
+    for v in value:
+        if isinstance(v, (list, tuple)):
+            yield from _numbers(v)
+        else:
+            yield isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+
+
 def c2w_problem(value) -> tuple[np.ndarray | None, str | None]:
     """``value`` (a 4×4 nested list, or 16 numbers row-major) as a float64 camera-to-world
     matrix, and what is wrong with it as a camera (``None`` if nothing): the rotation must be
     orthonormal and right-handed and the last row 0 0 0 1, or the rays come out skewed,
     stretched or mirrored without any error (a pinhole camera is a rigid motion)."""
+    if isinstance(value, (list, tuple)) and not all(_numbers(value)):  # JSON: "0.5" is a string, not a number
+        return None, "is not a 4x4 matrix (or 16 numbers, row-major): it holds something other than numbers"
     try:
         m = np.array(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):

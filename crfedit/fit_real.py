@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from . import occupancy
-from .cameras import Camera, Rays, rays_from_camera
+from .cameras import Camera, Rays, camera_problem, rays_from_camera
 from .data.format import resize_area
 from .delta import Delta, apply_deltas, grow, make_delta
 from .edit.core import EditResult, camera_meta
@@ -137,11 +137,18 @@ def white_background(rgb: np.ndarray, level: float = WHITE_LEVEL) -> np.ndarray:
         reached = grown
 
 
+def has_transparency(image: np.ndarray) -> bool:
+    """Whether ``image`` [H, W, C] has an alpha channel that marks anything transparent: an
+    editor's RGBA export with alpha 1 everywhere outlines nothing (as ``--mask`` reads it)."""
+    return image.shape[2] == 4 and bool((image[..., 3] < 1.0).any())
+
+
 def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height: int, where: str = "photo") -> Photo:
     """Crop ``image`` [H, W, 3|4] (floats in [0, 1]) to the aspect width/height, area-resize it
     to (width, height) and composite it on white.
 
-    The object is ``mask`` [H, W] bool when given, else the image's alpha channel, else, for a
+    The object is ``mask`` [H, W] bool when given, else the image's alpha channel where it has
+    transparency (:func:`has_transparency`), else, for a
     photo on white, everything but the white background around it (:func:`white_background`
     at the view's size, where an edge pixel blended with white is already below the level: on a
     tester's photo the outline equals the one its mask file gives.  The outline carves the
@@ -156,11 +163,11 @@ def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height
         if tuple(mask.shape) != (h, w):
             raise CrfError(f"{where}: mask is {mask.shape[1]}x{mask.shape[0]} but the photo is {w}x{h}")
         alpha = mask.astype(np.float32)
-    elif image.shape[2] == 4:
+    elif has_transparency(image):
         alpha = image[..., 3].astype(np.float32)
     else:
         alpha = np.ones((h, w), np.float32)
-    silhouette = "mask" if mask is not None else "alpha" if image.shape[2] == 4 else "whole photo"
+    silhouette = "mask" if mask is not None else "alpha" if has_transparency(image) else "whole photo"
     if not (alpha > 0).any():
         raise CrfError(f"{where}: the object mask is empty (every pixel is transparent)")
     rgb = image[..., :3] * alpha[..., None] + (1.0 - alpha[..., None])
@@ -168,7 +175,10 @@ def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height
     out = np.clip(resize_area(stacked, width, height), 0.0, 1.0)
     if silhouette == "whole photo":
         background = white_background(out[..., :3])
-        if background.any() and not background.all():
+        if background.all():
+            raise CrfError(f"{where}: the photo is white all over at the view's size: no object to fit "
+                           "(an object as white as its background needs --mask or an alpha channel)")
+        if background.any():
             out[..., 3] = ~background
             silhouette = "white background"
     photo = Photo(np.ascontiguousarray(out[..., :3]), np.ascontiguousarray(out[..., 3]), silhouette)
@@ -177,9 +187,11 @@ def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height
     return photo
 
 
-WHITE_BORDER = 0.9
-"""A photo without an object mask is taken whole; :func:`photo_warnings` expects its border
-(the outermost pixels) to average at least this (a chair shot on white)."""
+WHITE_BORDER = 0.5
+"""A photo without an object mask takes its outline from the white around it
+(:func:`white_background`); :func:`photo_warnings` warns unless at least this share of its
+border (the outermost pixels) is white at :data:`WHITE_LEVEL`, where the outline would be
+missing or partial and the background fitted as part of the object."""
 
 
 def photo_warnings(image: np.ndarray, mask: np.ndarray | None, width: int, height: int) -> list[str]:
@@ -188,11 +200,12 @@ def photo_warnings(image: np.ndarray, mask: np.ndarray | None, width: int, heigh
     photo smaller than the view it is fitted in (it is upscaled: its PSNR flatters the fit)."""
     out = []
     h, w = image.shape[:2]
-    if mask is None and image.shape[2] != 4:
+    if mask is None and not has_transparency(image):
         border = np.concatenate([image[0, :, :3], image[-1, :, :3], image[:, 0, :3], image[:, -1, :3]])
-        if float(border.mean()) < WHITE_BORDER:
-            out.append(f"the photo has no alpha channel and no --mask, and its border is not white (mean {float(border.mean()):.2f}): "
-                       "the whole photo, background included, is fitted as the object; give --mask, or a photo on white")
+        if float((border.min(axis=-1) >= WHITE_LEVEL).mean()) < WHITE_BORDER:
+            out.append(f"the photo has no alpha channel and no --mask, and its border is not white (mean {float(border.mean()):.2f}; "
+                       f"white is every channel at least {WHITE_LEVEL}): the background is fitted as part of the object; "
+                       "give --mask, or a photo on white")
     crop_w, crop_h = (min(w, round(h * width / height)), h) if w * height >= h * width else (w, min(h, round(w * height / width)))
     if crop_w < width or crop_h < height:
         out.append(f"the photo gives {crop_w}x{crop_h} pixels for the {width}x{height} view: it is upscaled, and its PSNR "
@@ -404,6 +417,9 @@ def fit_real(
     """
     started = time.perf_counter()
     options = options.validated()
+    problem = camera_problem(camera)  # before the hull, whose carving would blame --pose for a NaN pose
+    if problem:
+        raise CrfError(f"camera: {problem}")
     check_new_name(model, name)
     if photo.rgb.shape[:2] != (camera.height, camera.width):
         raise CrfError(

@@ -42,6 +42,13 @@ MAX_ORBIT = 100_000
 _ORBIT = re.compile(r"^orbit:(\d+)(?:@([+-]?(?:\d+\.?\d*|\.\d+)))?(?::(.*))?$")
 
 
+def one_view_label(spec: str, label: str) -> str:
+    """What an edit records as the view it was drawn on: ``label``, except for an orbit view,
+    whose label (``orbit:5``) drops the orbit's size and elevation and would name another
+    camera as a spec; the spec itself (``orbit:36@30:5``) names it again."""
+    return str(spec).strip() if label.startswith("orbit:") else label
+
+
 def one_view_hint(spec: str) -> str:
     """How to name one view of a spec that names several: ``train`` → ``train:0``,
     ``orbit:36@30`` → ``orbit:36@30:0``; other specs (index lists, camera files) get the

@@ -146,3 +146,11 @@ def test_a_camera_a_script_builds_is_checked_before_its_rays(camera, message):
     with pytest.raises(CrfError) as e:
         rays_from_camera(camera)
     assert str(e.value).startswith("camera: ") and message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_resizing_a_camera_of_no_pixels_is_one_line():
+    with pytest.raises(CrfError, match="this camera's width 0 must be a whole number"):
+        Camera(np.eye(4), 50.0, 0, 8).resized(32)
+    with pytest.raises(CrfError, match="height -2 must be a whole number"):
+        Camera(np.eye(4), 50.0, 8, 8).resized(32, -2)
+    assert Camera(np.eye(4), 50.0, 8, 4).resized(16).focal == 100.0

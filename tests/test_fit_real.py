@@ -234,10 +234,14 @@ def test_photo_warnings_name_a_background_fitted_as_the_object_and_an_upscaled_p
     assert photo_warnings(on_white, None, 64, 64) == []
     on_black = np.where(on_white > 0.5, 0.0, on_white).astype(np.float32)
     [line] = photo_warnings(on_black, None, 64, 64)
-    assert "no alpha channel and no --mask" in line and "border is not white (mean 0.00)" in line
+    assert "no alpha channel and no --mask" in line and "border is not white (mean 0.00;" in line
     assert photo_warnings(on_black, on_black[..., 0] > 0.1, 64, 64) == []  # a mask says what the object is
-    with_alpha = np.concatenate([on_black, np.ones((64, 64, 1), np.float32)], axis=-1)
+    with_alpha = np.concatenate([on_black, (on_white[..., :1] < 0.5).astype(np.float32)], axis=-1)
     assert photo_warnings(with_alpha, None, 64, 64) == []
+    opaque = np.concatenate([on_black, np.ones((64, 64, 1), np.float32)], axis=-1)  # an editor's RGBA: outlines nothing
+    assert len(photo_warnings(opaque, None, 64, 64)) == 1
+    grey = np.where(on_white > 0.5, 0.92, on_white).astype(np.float32)  # light grey, but no white: no outline, so a warning
+    assert len(photo_warnings(grey, None, 64, 64)) == 1
     [line] = photo_warnings(on_white[:8, :8], None, 64, 64)
     assert "gives 8x8 pixels for the 64x64 view: it is upscaled" in line
     assert photo_warnings(np.ones((48, 200, 3), np.float32), None, 32, 32) == []  # a wide photo crops to 48x48
@@ -261,6 +265,19 @@ def test_a_photo_on_white_takes_its_outline_from_the_white_around_it(setup):
     assert grey.silhouette == "whole photo" and grey.mask.all()
     rgba = np.concatenate([on_white, view.alpha[..., None]], axis=-1).astype(np.float32)
     assert prepare_photo(rgba, None, RES, RES).silhouette == "alpha"
+    opaque = np.concatenate([on_white, np.ones_like(view.alpha[..., None])], axis=-1).astype(np.float32)
+    assert prepare_photo(opaque, None, RES, RES).silhouette == "white background"  # alpha 1 everywhere outlines nothing
+    with pytest.raises(CrfError, match="white all over at the view's size: no object to fit"):
+        prepare_photo(np.full((8, 8, 3), 0.97, np.float32), None, 8, 8)
+
+
+def test_a_nan_pose_is_named_as_the_camera_not_as_a_silhouette_off_the_object(setup):
+    _, model, held = setup
+    view = held.splits["train"][0]
+    c2w = view.camera.c2w.copy()
+    c2w[0, 0] = np.nan
+    with pytest.raises(CrfError, match="^camera: c2w has non-finite values$"):
+        fit_real(model, photo_of(view), Camera(c2w, view.camera.focal, view.camera.width, view.camera.height), "x", FitOptions(steps_codes=1, steps_joint=0))
 
 
 def test_read_photo_with_mask_file(tmp_path):

@@ -166,6 +166,21 @@ def test_single_camera_file_and_transforms_file(model, tmp_path):
     assert labels(resolve_views(str(frames), model, 0)) == [f"transforms_test.json:{i}" for i in range(3)]
 
 
+def test_an_orbit_view_is_recorded_as_its_spec():
+    """An edit records the spec of an orbit view, not its label: ``orbit:5`` alone is another camera."""
+    from crfedit.views import one_view_label
+
+    assert one_view_label(" orbit:36@30:5 ", "orbit:5") == "orbit:36@30:5"
+    assert one_view_label("train:5", "train:5") == "train:5" and one_view_label("cam.json", "cam.json:0") == "cam.json:0"
+
+
+def test_strings_are_not_numbers_in_a_camera_matrix(model, tmp_path):
+    path = tmp_path / "cams.json"
+    path.write_text(json.dumps({"transform_matrix": [[str(v) for v in row] for row in np.eye(4).tolist()], "camera_angle_x": 0.5}))
+    with pytest.raises(CrfError, match="holds something other than numbers"):
+        resolve_views(str(path), model, 0)
+
+
 @pytest.mark.parametrize(
     "content, message",
     [

@@ -67,12 +67,13 @@ def _load(model: Path, edits: list[Path] | None, device: DeviceChoice):
 
 
 def _one_view(model, spec: str, instance: int, option: str = "--view"):
-    from ..views import one_view_hint, resolve_views
+    from ..views import one_view_hint, one_view_label, resolve_views
 
     views = resolve_views(spec, model, instance)
     if len(views) != 1:
         raise CrfError(f"{option} {spec}: names {len(views)} views; an edit is drawn on exactly one ({one_view_hint(spec)})")
-    return views[0]
+    label, camera = views[0]
+    return one_view_label(spec, label), camera
 
 
 def _require_scribble(scribble: Path | None, scribble_json: Path | None, what: str) -> None:

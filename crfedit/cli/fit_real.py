@@ -88,7 +88,7 @@ def fit_real_cmd(
     from ..fit_real import FitOptions, check_new_name, fit_real, photo_warnings, prepare_photo, read_photo
     from ..model import load_model
     from ..runtime import resolve_device
-    from ..views import one_view_hint, resolve_views
+    from ..views import one_view_hint, one_view_label, resolve_views
 
     options = FitOptions(
         steps_codes=steps_codes, steps_joint=steps_joint, weights=weights.value, lr_codes=lr_codes,
@@ -107,6 +107,7 @@ def fit_real_cmd(
     if len(views) != 1:
         raise CrfError(f"--pose {pose}: names {len(views)} views; the photo has exactly one ({one_view_hint(pose)})")
     label, camera = views[0]
+    label = one_view_label(pose, label)
     prepared = prepare_photo(image, object_mask, camera.width, camera.height, str(mask or photo))
     for line in photo_warnings(image, object_mask, camera.width, camera.height):
         typer.echo(f"warning: {line}", err=True)
