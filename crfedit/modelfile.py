@@ -75,6 +75,7 @@ class StoredRun(NamedTuple):
     minutes: float | None  # the run's --minutes budget; None: none, or written before the key
     dataset: str  # fingerprint of the dataset it was trained on
     resumable: bool  # it holds training state (not baked or stripped)
+    seed: int | None = None  # the run's --seed; None: written before the key
 
 
 def stored_training(path: str | os.PathLike) -> StoredRun:
@@ -95,7 +96,8 @@ def stored_training(path: str | os.PathLike) -> StoredRun:
         return value if math.isfinite(value) and value >= 0 else None
 
     return StoredRun(cfg, step, sizes if isinstance(sizes, dict) else {}, number("elapsed"), number("minutes"),
-                     meta.get("dataset_fingerprint", ""), any(tensor_kind(n) == "training state" for n in header))
+                     meta.get("dataset_fingerprint", ""), any(tensor_kind(n) == "training state" for n in header),
+                     int(meta["seed"]) if is_digits(meta.get("seed", "")) else None)
 
 
 MODULE_ORDER = (*MODULES, *CODE_TABLES)

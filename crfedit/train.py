@@ -52,6 +52,7 @@ from .field import ConditionalRadianceField
 from .optim import StepLog, adam_step, check_finite, check_losses
 from .parts import labelled_instances, labelled_points, part_config, part_contrastive_loss, sample_parts
 from .model import CategoryModel, ViewTable, load_model, save_model
+from .names import is_digits
 from .renderer import FixedMarch, render_rays
 
 FG_FRACTION = 0.75
@@ -354,6 +355,10 @@ def train(
             raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {model.dataset_fingerprint})")
         if model.cfg.to_json() != cfg.to_json():
             cfg = model.cfg  # resuming keeps the stored config, whatever the preset flags say
+        stored_seed = model.meta.get("seed", "")
+        if is_digits(stored_seed):  # ... and its seed, which the part points and a fresh stream read
+            seed = int(stored_seed)
+            generator.manual_seed(seed)
         field = model.field
         hulls, ema = state["hull"].to(device), state["occ_ema"].to(device).clone()
         step, elapsed = int(state["step"]), float(state["elapsed"])
@@ -392,7 +397,7 @@ def train(
         parts = None if parts is None else parts.to(device)
         n_labels = 0 if parts is None else int(parts.labels.max()) + 1
     weight = n_rays * ranks.world / cfg.rays  # this rank's part of the step's mean loss, times world
-    meta = dict(extra_meta or {})
+    meta = {**(extra_meta or {}), "seed": str(seed)}  # the run's seed: --resume goes on with it
     if field.F_part is not None:  # whose part maps the head learned: `eval edits` warns when a twin's source is among them
         meta["part_labelled"] = json.dumps(learned)
     march = FixedMarch(field, compile) if cfg.sampler == "grid" and fixed_shapes else None

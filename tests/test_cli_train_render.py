@@ -123,9 +123,11 @@ def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path):
     with interrupted_at(11):
         result = invoke("train", data, "--out", part, *args)
     assert result.exit_code == 130 and "interrupted: checkpoint at step 11" in result.stderr
-    assert load_model(part)[0].meta["step"] == "11"
-    result = invoke("train", data, "--out", part, *args, "--resume")
+    assert load_model(part)[0].meta["step"] == "11" and load_model(part)[0].meta["seed"] == "5"
+    other_seed = [*args[:2], "--seed", 6, *args[4:]]  # the run goes on with its own seed, and says so
+    result = invoke("train", data, "--out", part, *other_seed, "--resume")
     assert result.exit_code == 0, result.output
+    assert "ignored: seed 6 (stored 5)" in result.stdout, result.stdout
 
     (a, state_a), (b, state_b) = load_model(full), load_model(part)
     assert b.meta["step"] == "20"

@@ -115,6 +115,26 @@ def test_single_blender_scene_loads_as_one_instance(tmp_path):
     assert info["resolutions"] == ["32x32"] and info["twins"] == 0
 
 
+def test_windows_separators_in_file_paths_load(tmp_path, tiny_chairs):
+    """``train\\r_0`` (written on Windows) names the same image as ``train/r_0``, in both formats."""
+    blender_scene(tmp_path / "lego")
+    _edit_json(tmp_path / "lego" / "transforms_train.json",
+               lambda m: [f.update(file_path=f["file_path"].replace("/", "\\")) for f in m["frames"]])
+    assert "\\" in json.loads((tmp_path / "lego" / "transforms_train.json").read_text())["frames"][0]["file_path"]
+    assert len(load_category(tmp_path / "lego").instances[0].splits["train"]) == 2
+    from test_nerfstudio import to_nerfstudio
+
+    to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "scene", with_mask=True, listed=True)
+    plain = load_category(tmp_path / "scene")
+    _edit_json(tmp_path / "scene" / "transforms.json", lambda m: [
+        *[f.update(file_path=f["file_path"].replace("/", "\\"), mask_path=f["mask_path"].replace("/", "\\")) for f in m["frames"]],
+        *[m.update({key: [n.replace("/", "\\") for n in m[key]]}) for key in ("train_filenames", "test_filenames")]])
+    windows = load_category(tmp_path / "scene")
+    for split in ("train", "test"):
+        a, b = plain.instances[0].splits[split], windows.instances[0].splits[split]
+        assert len(a) == len(b) and all(np.array_equal(x.rgb, y.rgb) for x, y in zip(a, b))
+
+
 def test_focal_in_pixels_and_16bit_png(tmp_path):
     blender_scene(tmp_path / "s")
     path = tmp_path / "s" / "transforms_train.json"

@@ -162,6 +162,8 @@ def run_training(
         stored = stored_training(out)
         stored_cfg, first_step = stored.cfg, stored.step
         ignored = ignored_flags(part_config(category, cfg), stored_cfg, given)
+        if given is not None and "seed" in given and stored.seed is not None and seed != stored.seed:
+            ignored = f"{ignored or 'ignored:'}{',' if ignored else ''} seed {seed} (stored {stored.seed})"
         if ignored and ranks.main:
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps); {ignored}")
         cfg = stored_cfg
@@ -269,7 +271,7 @@ def train_cmd(
     steps: Annotated[Optional[int], typer.Option("--steps", help="Training steps (default: the preset's).")] = None,
     minutes: Annotated[Optional[float], typer.Option("--minutes", help="Stop after this much training time; the learning-rate schedule ends there.")] = None,
     res: Annotated[Optional[int], typer.Option("--res", help="Train at this image width (images are area-resized); default: as stored.")] = None,
-    seed: SeedOpt = 0,
+    seed: Annotated[Optional[int], typer.Option("--seed", min=0, max=2**63 - 1, help="Random seed; the same seed gives the same result (--resume goes on with the run's own).", show_default="0")] = None,
     device: DeviceOpt = DeviceChoice.auto,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run stored in --out from its last checkpoint (stored config and resolution).")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out model instead of refusing.")] = False,
@@ -313,6 +315,10 @@ def train_cmd(
     overrides = {"arch": arch.value if arch else None, "steps": steps, "view_reg": view_reg}
     cfg = make_config(preset.value, overrides, sets or [], dev.type)
     given = given_settings(preset.value, overrides, sets or [])
+    if seed is None:
+        seed = 0
+    else:
+        given |= {"seed"}  # typed: a resume that goes on with the stored seed says so
     ranks = ranks or SINGLE
     with writer_lock(out, ranks.main):
         check_output_file(out, resume, overwrite)  # again, now that no other run can write it: one may have finished meanwhile

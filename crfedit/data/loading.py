@@ -103,6 +103,13 @@ def _matrix(path: Path, k: int, frame) -> np.ndarray:
     return c2w
 
 
+def posix_path(file_path: str) -> str:
+    """A transforms file's relative path with Windows separators read as ``/`` (files written
+    on Windows, or by tools built there, say ``images\\r_0.png``); a backslash inside a POSIX
+    file name is rare enough to give up for it."""
+    return file_path.replace("\\", "/")
+
+
 def _image_path(instance_dir: Path, file_path: str) -> Path:
     """``file_path`` + ``.png``, unless it already ends in an image extension."""
     path = instance_dir / file_path
@@ -142,6 +149,7 @@ def _load_split(
         file_path = frame.get("file_path") if isinstance(frame, dict) else None
         if not isinstance(file_path, str) or not file_path:
             raise DataError(f"{path}: frames[{k}] has no file_path")
+        file_path = posix_path(file_path)
         c2w = _matrix(path, k, frame)
         image_path = _image_path(instance_dir, file_path)
         image = _read_rgba(image_path)

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..cameras import Camera
 from .format import DataError, _read_json, _read_rgba, resize_area
-from .loading import Category, InstanceData, View, _matrix
+from .loading import Category, InstanceData, View, _matrix, posix_path
 
 TRANSFORMS = "transforms.json"
 INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -57,9 +57,9 @@ def _intrinsics(path: Path, meta: dict, frame: dict, k: int) -> dict[str, float]
 def _split_of(meta: dict, names: list[str]) -> list[str]:
     """The split of each frame, from ``*_filenames`` lists, else every 10th frame (at least the
     last one) for test."""
-    listed = {split: set(meta.get(f"{split}_filenames") or []) for split in ("train", "val", "test")}
+    listed = {split: {posix_path(f) for f in meta.get(f"{split}_filenames") or [] if isinstance(f, str)} for split in ("train", "val", "test")}
     if any(listed.values()):
-        return [next((s for s, files in listed.items() if n in files), "train") for n in names]
+        return [next((s for s, files in listed.items() if isinstance(n, str) and posix_path(n) in files), "train") for n in names]
     split = ["test" if i % 10 == 9 else "train" for i in range(len(names))]
     if "test" not in split and len(split) > 1:
         split[-1] = "test"
@@ -69,14 +69,14 @@ def _split_of(meta: dict, names: list[str]) -> list[str]:
 def _view(folder: Path, path: Path, meta: dict, frame, k: int, res: int | None) -> View:
     if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
         raise DataError(f"{path}: frames[{k}] has no file_path")
-    image = _read_rgba(folder / frame["file_path"])
+    image = _read_rgba(folder / posix_path(frame["file_path"]))
     h, w = image.shape[:2]
     intr = _intrinsics(path, meta, frame, k)
     if (intr["w"], intr["h"]) != (w, h):
         raise DataError(f"{folder / frame['file_path']}: image is {w}x{h} but transforms.json says {intr['w']:g}x{intr['h']:g}")
     alpha = image[..., 3] if image.shape[2] == 4 else np.ones((h, w), np.float32)
     if isinstance(frame.get("mask_path"), str):
-        mask = _read_rgba(folder / frame["mask_path"])
+        mask = _read_rgba(folder / posix_path(frame["mask_path"]))
         if mask.shape[:2] != (h, w):
             raise DataError(f"{folder / frame['mask_path']}: mask size differs from its image")
         alpha = alpha * (mask[..., :3].mean(axis=-1) >= 0.5)
