@@ -43,7 +43,7 @@ def trained(data, tmp_path_factory) -> tuple[Path, str]:
     assert result.exit_code == 0, result.output
     assert "held-out val (2 views): PSNR" in result.stdout
     assert "trained 2 instances for 30 steps" in result.stdout
-    assert f"CPU threads: {torch.get_num_threads()}\n" in result.stdout  # what it computes with
+    assert f"CPU threads: {torch.get_num_threads()}\n" in result.stderr  # what it computes with (a note: stderr)
     assert json.loads(out.with_name("model.run.json").read_text())["threads"] == torch.get_num_threads()
     return out, result.stdout
 
@@ -127,7 +127,7 @@ def test_resume_after_an_interrupt_is_bit_identical(data, tmp_path):
     other_seed = [*args[:2], "--seed", 6, *args[4:]]  # the run goes on with its own seed, and says so
     result = invoke("train", data, "--out", part, *other_seed, "--resume")
     assert result.exit_code == 0, result.output
-    assert "ignored: seed 6 (stored 5)" in result.stdout, result.stdout
+    assert "ignored: seed 6 (stored 5)" in result.stderr, result.stderr
 
     (a, state_a), (b, state_b) = load_model(full), load_model(part)
     assert b.meta["step"] == "20"
@@ -168,7 +168,7 @@ def test_resume_keeps_the_time_budget(data, tmp_path):
     before = out.read_bytes()
     again = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
     assert again.exit_code == 0, again.output
-    assert "with its time budget, --minutes 0.01" in again.stdout
+    assert "with its time budget, --minutes 0.01" in again.stderr
     assert f"has trained its --minutes 0.01 ({elapsed:.0f} s, step {step} of 100000): nothing to resume" in again.stdout
     assert out.read_bytes() == before
     more = invoke("train", data, "--out", out, "--resume", "--minutes", 0.03, "--device", "cpu")

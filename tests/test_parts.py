@@ -344,3 +344,16 @@ def test_select_prints_whether_it_read_the_part_head(headed, tiny_model, tmp_pat
                "--out", tmp_path / "t.safetensors")
     assert r.exit_code == 0, r.output
     assert "wrote " in r.stdout and "part head" not in r.stdout
+
+
+def test_train_says_why_a_dataset_with_part_maps_gets_no_part_head(tmp_path):
+    """Two chairs, both twin sources: part_labels=not-twins leaves every part map out, and the
+    fast preset's head is dropped with a note (it used to be dropped silently)."""
+    write_synth_category(tmp_path / "d", SynthConfig(instances=2, views=4, res=16, seed=0, twins=True, twin_sources=2))
+    r = invoke("train", tmp_path / "d", "--out", tmp_path / "m.safetensors", "--steps", 1, "--set", "rays=64", "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    assert "note: no part head: every instance with part maps is left out by part_labels=not-twins" in r.stderr, r.stderr
+    assert load_model(tmp_path / "m.safetensors")[0].cfg.part_dim == 0
+    r = invoke("train", tmp_path / "d", "--out", tmp_path / "a.safetensors", "--steps", 1, "--set", "rays=64",
+               "--set", "part_labels=all", "--device", "cpu")
+    assert r.exit_code == 0 and "no part head" not in r.stderr and load_model(tmp_path / "a.safetensors")[0].cfg.part_dim > 0

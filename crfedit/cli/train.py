@@ -149,7 +149,7 @@ def run_training(
 
     from ..distributed import SINGLE
     from ..modelfile import stored_training
-    from ..parts import part_config
+    from ..parts import has_labels, part_config
     from ..runlog import RunLog, config_block, record_paths
     from ..train import READ_EVERY, train
 
@@ -165,10 +165,15 @@ def run_training(
         if given is not None and "seed" in given and stored.seed is not None and seed != stored.seed:
             ignored = f"{ignored or 'ignored:'}{',' if ignored else ''} seed {seed} (stored {stored.seed})"
         if ignored and ranks.main:
-            typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps); {ignored}")
+            typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps); {ignored}", err=True)
         cfg = stored_cfg
     else:
+        asked = cfg.part_dim
         cfg = part_config(category, cfg)  # what train() will store, for the records
+        if asked and not cfg.part_dim and ranks.main and has_labels(category, range(len(category.instances))):
+            typer.echo(f"note: no part head: every instance with part maps is left out by part_labels={cfg.part_labels} "
+                       "(the twins' sources, so that an edit benchmark scores parts the model was never told about); "
+                       "--set part_labels=all learns them", err=True)
     if not ranks.main:
         return train(category, cfg, out, device, seed=seed, minutes=minutes, resume=resume, ranks=ranks, **options)
     threads = torch.get_num_threads()  # what this process computes with (the CLI set it at start, :class:`Session`)
@@ -176,8 +181,9 @@ def run_training(
            "seed": seed, "device": str(device), "threads": threads, "minutes": minutes, "resumed_at": first_step,
            "world_size": ranks.world}  # torchrun's processes (1: one process)
     paths = record_paths(out)
-    typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}")
-    typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""))
+    # notes on stderr, as the progress: stdout keeps the results (the scores, where the model went)
+    typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}", err=True)
+    typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""), err=True)
     # a run that fails before its first checkpoint takes its records back (RunLog.take_back)
     stamp = lambda: (out.stat().st_mtime_ns, out.stat().st_size) if out.is_file() else None
     model_before, finished = stamp(), False
@@ -243,7 +249,7 @@ def _resumed(out: Path, res: int | None, minutes: float | None, ranks):
     if minutes is None and stored.minutes is not None:  # the run's schedule ends on its own clock
         minutes = stored.minutes
         if ranks.main:
-            typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)")
+            typer.echo(f"resuming {out} with its time budget, --minutes {minutes:g} (pass --minutes to change it)", err=True)
     return stored, res, minutes, _finished(stored.step, stored.cfg.steps, stored.elapsed, minutes)
 
 
@@ -502,6 +508,7 @@ def quickstart_cmd(
 
     typer.echo(f"4/{steps} scoring every held-out test view")
     score = score_model(model, category, "test")
+    typer.echo(f"held-out test ({score['n']} views): {format_score(score)}")  # under its own step, not the next one's
     demo, skipped = None, None
     if edits:
         typer.echo(f"5/{steps} editing chair 0 from the dataset's scribbles: a recolour and a removal")
@@ -514,7 +521,6 @@ def quickstart_cmd(
     write_json(out / "score.json", {**score, "steps": result.steps, "train_seconds": result.seconds,
                                     **({"edits": demo["edits"]} if demo else {}), **({"edits_skipped": skipped} if skipped else {})})
 
-    typer.echo(f"held-out test ({score['n']} views): {format_score(score)}")
     typer.echo(f"dataset    {out / 'data'}")
     typer.echo(f"model      {model_path} ({result.steps} steps in {result.seconds:.0f} s; crfedit info {model_path})")
     typer.echo(f"turntable  {frames_dir}/0000.png .. {turntable.count - 1:04d}.png and {turntable.video}")
