@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The README's usage tour, end to end on CPU: procedural chairs → train → render → recolor a
-# part from a twin's scribble → render the edit → inspect and bake it.
+# The README's usage tour, end to end on CPU: procedural chairs → train → render → recolour a
+# part from a twin's scribble and keep strokes → remove another on top → inspect and bake.
 #
 #   examples/quickstart.sh [--work DIR] [--minutes M] [--instances N] [--views V] [--res R]
 #
@@ -41,25 +41,30 @@ crfedit render "$model" --instance chair_000 --views orbit:24 --out "$work/rende
 
 # 4. Recolor the part the first color twin scribbles, on the view it was drawn on: first see
 #    what the scribble selects in 3-D (tinted previews), then edit.
-read -r source view scribble < <(python - "$data" <<'PY'
+twin() {  # source, view, scribble and keep strokes of the dataset's first twin of kind $1
+    python - "$data" "$1" <<'PY'
 import sys
 from pathlib import Path
 
 from crfedit.data.loading import read_twin_specs
 
 root = Path(sys.argv[1])
-spec = next(t for t in read_twin_specs(root) if t.kind == "color")
-print(spec.source, spec.view, root / spec.scribble)
+spec = next(t for t in read_twin_specs(root) if t.kind == sys.argv[2])
+print(spec.source, spec.view, root / spec.scribble, root / spec.keep)
 PY
-)
+}
+read -r source view scribble keep < <(twin color)
 edit="$work/recolor.safetensors"
-crfedit select "$model" --instance "$source" --view "$view" --scribble "$scribble" --out "$work/part.sel.safetensors" \
-    --preview "$work/render/selection" --views orbit:8
-crfedit edit-color "$model" --instance "$source" --view "$view" --scribble "$scribble" --color '#d03030' \
+crfedit select "$model" --instance "$source" --view "$view" --scribble "$scribble" --keep "$keep" \
+    --out "$work/part.sel.safetensors" --preview "$work/render/selection" --views orbit:8
+crfedit edit-color "$model" --instance "$source" --view "$view" --scribble "$scribble" --keep "$keep" --color '#d03030' \
     --selection "$work/part.sel.safetensors" --out "$edit"
+read -r rsource rview rscribble rkeep < <(twin remove)
+crfedit remove "$model" --instance "$rsource" --view "$rview" --scribble "$rscribble" --keep "$rkeep" --edit "$edit" \
+    --out "$work/removed.safetensors" --preview "$work/render/removed" --views orbit:8
 
 # 5. The edited chair from every side, then the edit file itself and a model with it baked in.
 crfedit render "$model" --instance "$source" --edit "$edit" --views orbit:24 --out "$work/render/recolored" --video "$work/render/recolored.gif"
 crfedit edits show "$edit"
 crfedit edits bake "$model" --edit "$edit" --out "$work/chairs-recolored.safetensors"
-echo "done: renders in $work/render (orbit.gif, selection/, recolored.gif)"
+echo "done: renders in $work/render (orbit.gif, selection/, recolored.gif, removed/)"

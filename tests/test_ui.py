@@ -633,7 +633,7 @@ def test_the_server_shares_the_cpu_threads_between_its_two_compute_threads(scene
 
 def test_ui_command_without_the_extra_names_the_install(monkeypatch, scene):
     monkeypatch.setitem(sys.modules, "aiohttp", None)
-    assert_user_error(invoke("ui", scene[0]), "pip install 'crfedit[ui]'")
+    assert_user_error(invoke("ui", scene[0]), "pip install -e '.[ui]'")
 
 
 def test_ui_command_warns_when_bound_beyond_this_machine(monkeypatch, scene, tmp_path):

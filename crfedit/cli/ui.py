@@ -32,7 +32,7 @@ def ui_cmd(
     try:
         import aiohttp  # noqa: F401
     except ImportError:
-        raise CrfError("crfedit ui needs the web server of the [ui] extra: pip install 'crfedit[ui]'") from None
+        raise CrfError("crfedit ui needs the web server of the [ui] extra: pip install -e '.[ui]' in the repository (pip install 'crfedit[ui]' from an index)") from None
     if not 0 <= port <= 65535:
         raise CrfError(f"--port {port}: expected 0-65535")
     if workdir.exists() and not workdir.is_dir():
