@@ -43,7 +43,7 @@ def trained(data, tmp_path_factory) -> tuple[Path, str]:
     assert result.exit_code == 0, result.output
     assert "held-out val (2 views): PSNR" in result.stdout
     assert "trained 2 instances for 30 steps" in result.stdout
-    assert f"CPU threads: {torch.get_num_threads()}\n" in result.stderr  # what it computes with (a note: stderr)
+    assert f"CPU threads: {torch.get_num_threads()}\n" in result.stdout  # what it computes with
     assert json.loads(out.with_name("model.run.json").read_text())["threads"] == torch.get_num_threads()
     return out, result.stdout
 

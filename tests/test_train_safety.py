@@ -144,7 +144,7 @@ def test_run_records_beside_the_model(tiny_chairs, tmp_path):
     out = tmp_path / "m.safetensors"
     r = invoke("train", tiny_chairs, "--out", out, "--log-every", 2, "--steps", 5, "--set", "rays=64", "--device", "cpu")
     assert r.exit_code == 0, r.output
-    assert "config (also in" in r.stderr and "rays=64" in r.stderr and "steps=5" in r.stderr
+    assert "config (also in" in r.stdout and "rays=64" in r.stdout and "steps=5" in r.stdout
     run = json.loads((tmp_path / "m.run.json").read_text())
     assert run["config"] == json.loads(load_model(out)[0].cfg.to_json()) and run["seed"] == 0 and run["world_size"] == 1
     rows = list(csv.DictReader((tmp_path / "m.log.csv").open()))
@@ -182,7 +182,7 @@ def test_resume_on_another_dataset_is_refused_before_any_set_up(tiny_chairs, tmp
     before = out.read_bytes(), (tmp_path / "m.run.json").read_bytes()
     r = invoke("train", other, "--out", out, "--resume", "--steps", 16, "--device", "cpu")
     assert_user_error(r, "was trained on another dataset")
-    assert "config (also in" not in r.stderr and (out.read_bytes(), (tmp_path / "m.run.json").read_bytes()) == before
+    assert "config (also in" not in r.stdout and (out.read_bytes(), (tmp_path / "m.run.json").read_bytes()) == before
 
 
 def test_a_second_training_of_the_same_out_is_refused_while_one_runs(tiny_chairs, tmp_path):

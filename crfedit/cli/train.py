@@ -181,9 +181,10 @@ def run_training(
            "seed": seed, "device": str(device), "threads": threads, "minutes": minutes, "resumed_at": first_step,
            "world_size": ranks.world}  # torchrun's processes (1: one process)
     paths = record_paths(out)
-    # notes on stderr, as the progress: stdout keeps the results (the scores, where the model went)
-    typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}", err=True)
-    typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""), err=True)
+    # on stdout with the results: what the run computes with belongs in a log of it (`> run.txt`);
+    # an error during training is then still the one line on stderr
+    typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}")
+    typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""))
     # a run that fails before its first checkpoint takes its records back (RunLog.take_back)
     stamp = lambda: (out.stat().st_mtime_ns, out.stat().st_size) if out.is_file() else None
     model_before, finished = stamp(), False
