@@ -372,9 +372,9 @@ class _Fitter:
         out = render_rays(self.field, rays, self.k, generator=self.generator, early_stop=self.field.cfg.train_early_stop,
                           distortion=self.distortion > 0)
         loss = mse(out.rgb, self.target[idx])
+        photometric = float(loss.detach())  # the batch's colour error alone, what the progress reports
         if self.distortion > 0:
             loss = loss + self.distortion * out.distortion.mean()
-        photometric = float(loss.detach())
         if out.coarse_rgb is not None:
             loss = loss + mse(out.coarse_rgb, self.target[idx])
         return loss, photometric
