@@ -147,14 +147,13 @@ def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height
     """Crop ``image`` [H, W, 3|4] (floats in [0, 1]) to the aspect width/height, area-resize it
     to (width, height) and composite it on white.
 
-    The object is ``mask`` [H, W] bool when given, else the image's alpha channel where it has
-    transparency (:func:`has_transparency`), else, for a
-    photo on white, everything but the white background around it (:func:`white_background`
-    at the view's size, where an edge pixel blended with white is already below the level: on a
-    tester's photo the outline equals the one its mask file gives.  The outline carves the
-    starting grid; without it a photo on white fitted a haze over the whole view), else the
-    whole photo.  Compositing happens before resizing (straight alpha),
-    so edge pixels blend with white as the training images do.
+    The object is ``mask`` [H, W] bool when given; else the image's alpha channel where it has
+    transparency (:func:`has_transparency`); else, for a photo on white, everything but the
+    white background around it (:func:`white_background` at the view's size: on a tester's
+    photo the same outline as its mask file's; without it a photo on white fitted a haze over
+    the whole view, since the outline carves the starting grid); else the whole photo.
+    Compositing happens before resizing (straight alpha), so edge pixels blend with white as
+    the training images do.  A photo white all over is an error.
     """
     if image.ndim != 3 or image.shape[0] == 0 or image.shape[1] == 0:
         raise CrfError(f"{where}: image is empty (0 pixels)")
