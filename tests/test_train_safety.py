@@ -197,3 +197,27 @@ def test_a_second_training_of_the_same_out_is_refused_while_one_runs(tiny_chairs
         assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == []  # the lock file went with the lock
     assert invoke("train", tiny_chairs, "--out", out, *TINY).exit_code == 0 and not (tmp_path / ".m.safetensors.lock").exists()
+
+
+def test_views_of_several_sizes_train_with_a_note(tiny_chairs, tmp_path):
+    """One chair's images at another size: training reads each view at its own size, and a note
+    says the model file keeps one size per split (its first view's)."""
+    import shutil
+
+    from PIL import Image
+
+    data = tmp_path / "mixed"
+    shutil.copytree(tiny_chairs, data)
+    for png in (data / "chair_001").rglob("r_*.png"):
+        if png.stem.endswith("_parts"):
+            png.unlink()
+            continue
+        with Image.open(png) as im:
+            im.resize((im.width * 3 // 2, im.height * 3 // 2), Image.BILINEAR).save(png)
+    for exr in (data / "chair_001").rglob("*_depth.exr"):
+        exr.unlink()
+    r = invoke("train", data, "--out", tmp_path / "m.safetensors", "--steps", 1, "--set", "rays=64", "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    assert "note: the views come in 2 sizes" in r.stderr and "--res R trains every view at width R" in r.stderr, r.stderr
+    r = invoke("train", data, "--out", tmp_path / "r.safetensors", "--steps", 1, "--res", 16, "--set", "rays=64", "--device", "cpu")
+    assert r.exit_code == 0 and "sizes" not in r.stderr, r.output
