@@ -174,6 +174,47 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+SIGNATURES = {
+    ".ply": (b"ply",), ".glb": (b"glTF",), ".off": (b"OFF", b"COFF", b"NOFF"), ".gif": (b"GIF87a", b"GIF89a"),
+    ".csv": (b"step,", b"group,", b"kind,", b"preset,"), ".png": (b"\x89PNG",),
+}
+"""How a file of each kind another command's output replaces begins (``.obj``, ``.stl``,
+``.md`` and ``.mp4``: see :func:`check_replaceable`)."""
+
+
+def check_replaceable(out: Path, option: str, suffixes: tuple[str, ...]) -> None:
+    """An output file that is not crfedit's own kind (a mesh, a video, a CSV or page of the
+    bench): its name ends in one of ``suffixes``, its folder exists, and a file already there
+    is one of that kind, not a model, an edit, a photo or notes lost to a typo (as
+    :func:`check_out_file` guards crfedit's files).  Called before any work."""
+    suffix = out.suffix.lower()
+    if suffix not in suffixes or out.is_dir():
+        raise CrfError(f"{option} {out}: expected a file name ending in {', '.join(suffixes)}")
+    folder = out.parent if str(out.parent) else Path(".")
+    if not folder.is_dir():
+        raise CrfError(f"{option} {out}: folder {folder} does not exist")
+    if not out.exists() or (out.is_file() and out.stat().st_size == 0):
+        return
+    if not out.is_file():
+        raise CrfError(f"{option} {out}: is not a regular file")
+    with open(out, "rb") as f:
+        head = f.read(512)
+    if suffix in SIGNATURES:
+        ok = head.startswith(SIGNATURES[suffix])
+    elif suffix == ".mp4":
+        ok = head[4:8] == b"ftyp"
+    elif suffix == ".stl":
+        ok = head.startswith(b"solid") or (len(head) >= 84 and out.stat().st_size == 84 + 50 * int.from_bytes(head[80:84], "little"))
+    else:  # .obj and .md: text crfedit can have written (a mesh's vertices, a page with the bench's markers)
+        try:
+            text = out.read_text("utf-8")
+        except (UnicodeDecodeError, OSError):
+            text = None
+        ok = text is not None and (suffix != ".obj" or text.lstrip().startswith(("#", "v ", "o ", "mtllib")))
+    if not ok:
+        raise CrfError(f"{option} {out}: holds a file that is not a {suffix[1:].upper()} file, which this would replace; pick another name")
+
+
 def check_folder_target(path: str | os.PathLike, what: str = "") -> None:
     """``path`` is a folder or can be made one: it is not a file and no existing ancestor is.
 

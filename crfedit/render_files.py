@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import CrfError
-from .io import write_exr, write_json, write_png
+from .io import check_replaceable, write_exr, write_json, write_png
 from .preview import depth_preview
 from .renderer import ray_distance, render_camera
 from .video import check_fps, video_path, write_video
@@ -85,6 +85,8 @@ def render_to_folder(
         if target != video and target.exists():  # the GIF in place of an MP4 is a file the user did not name
             raise CrfError(f"--video {video}: without the [video] extra (pip install -e '.[video]') this writes {target.name}, "
                            f"which exists already; give --video {target} to replace it")
+        if target.is_file():  # a video replaces a video, not notes or a photo that took a typo's name
+            check_replaceable(target, "--video", (target.suffix.lower(),))
         made = [out.absolute(), *out.absolute().parents]  # the folders --out's creation makes or finds
         if video.is_dir() or not (video.parent.is_dir() or video.parent.absolute() in made):
             raise CrfError(f"--video {video}: needs a file name in an existing folder (or in --out's)")

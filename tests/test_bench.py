@@ -15,7 +15,7 @@ from crfedit.machine import machine_info
 from crfedit.report import BEGIN, CSV_COLUMNS, END, PLOT_SIZE, emit_table, log_ticks, nice_ticks, plot_curves, update_markdown
 from crfedit.errors import CrfError
 
-from cli_helpers import invoke
+from cli_helpers import assert_user_error, invoke
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +27,8 @@ def tiny_run(tmp_path_factory):
     md.parent.mkdir()
     md.write_text(f"# Benchmarks\n\nIntro kept.\n\n{BEGIN}\nold numbers\n{END}\n\n## Other section\n\nKept too.\n")
     csv_path = folder / "docs" / "benchmarks" / "bench.csv"
+    assert_user_error(invoke("bench", "--tiny", "--csv", csv_path, "--md", md, "--device", "cpu"), "benchmarks does not exist")  # a typo's folder
+    csv_path.parent.mkdir()  # as in the repository
     result = invoke("bench", "--tiny", "--csv", csv_path, "--md", md, "--device", "cpu")
     assert result.exit_code == 0, result.output
     return result, csv_path, md

@@ -82,6 +82,13 @@ def test_export_mesh_command_writes_vertex_colours(model_path, tmp_path, suffix)
     assert len(loaded.faces) > 50 and loaded.visual.vertex_colors.shape[0] == len(loaded.vertices)
     assert_user_error(invoke("export", "mesh", model_path, "--instance", "0", "--out", tmp_path / "c.txt"), ".ply")
     assert not (tmp_path / "c.txt").exists()
+    # a mesh replaces a mesh of its kind (the same command again), never notes that took its name
+    again = invoke("export", "mesh", model_path, "--instance", "chair_000", "--out", out, "--res", "32", "--device", "cpu")
+    assert again.exit_code == 0, again.output
+    notes = tmp_path / f"notes{suffix}"
+    notes.write_text("my notes")
+    assert_user_error(invoke("export", "mesh", model_path, "--instance", "0", "--out", notes), "is not a")
+    assert notes.read_text() == "my notes"
 
 
 def test_glb_is_y_up_and_the_other_formats_keep_z_up(model_path, tmp_path):

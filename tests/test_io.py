@@ -361,3 +361,25 @@ def test_a_long_legal_name_is_written_through_short_hidden_files(tmp_path):
         tmp.write_bytes(b"x")
     assert long.read_bytes() == b"x" and sorted(p.name for p in tmp_path.iterdir()) == [long.name]
     assert hidden_stem(tmp_path / "m.safetensors") == "m.safetensors"
+
+
+def test_an_output_of_another_kind_replaces_only_its_own_kind(tmp_path):
+    """Meshes, videos and the bench's CSV and page are not crfedit files, but a typo must not
+    put one over a model, a photo or notes (bench --csv MODEL replaced a model with a CSV)."""
+    from crfedit.io import check_replaceable
+
+    (tmp_path / "notes.ply").write_text("my notes")
+    (tmp_path / "m.csv").write_bytes(b"\x00\x01 a model")
+    (tmp_path / "ok.ply").write_text("ply\nformat ascii 1.0\n")
+    (tmp_path / "ok.csv").write_text("group,curve,knob\n")
+    (tmp_path / "page.md").write_text("# notes\n")
+    (tmp_path / "empty.gif").write_bytes(b"")
+    for name, suffixes in (("notes.ply", (".ply",)), ("m.csv", (".csv",))):
+        with pytest.raises(CrfError, match="holds a file that is not a"):
+            check_replaceable(tmp_path / name, "--out", suffixes)
+    for name, suffixes in (("ok.ply", (".ply",)), ("ok.csv", (".csv",)), ("page.md", (".md",)), ("empty.gif", (".gif",)), ("new.stl", (".stl",))):
+        check_replaceable(tmp_path / name, "--out", suffixes)
+    with pytest.raises(CrfError, match="expected a file name ending in .csv"):
+        check_replaceable(tmp_path / "model.safetensors", "--csv", (".csv",))
+    with pytest.raises(CrfError, match="folder .*nodir does not exist"):
+        check_replaceable(tmp_path / "nodir" / "b.csv", "--csv", (".csv",))

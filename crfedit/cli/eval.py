@@ -15,8 +15,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..io import check_folder_target
 from ..errors import CrfError
+from ..io import check_folder_target, check_replaceable
 from ..names import is_digits
 from .common import DeviceChoice, DeviceOpt, SeedOpt, app, eval_app, user_errors
 from .train import PresetChoice
@@ -399,10 +399,16 @@ def bench_cmd(
         "sets": None if sets is None else tuple(settings.sets) + tuple(sets), "seed": seed,
     }
     settings = dataclasses.replace(settings, **{k: v for k, v in changes.items() if v is not None}).validated()
-    for option, path in (("--csv", csv_path), ("--md", md_path)):
+    for option, path, default, suffix in (("--csv", csv_path, "runs/bench/bench.csv", ".csv"), ("--md", md_path, "runs/bench/benchmarks.md", ".md")):
         if path.is_dir():
             raise CrfError(f"{option} {path}: is a folder; give a file name")
-        check_folder_target(path.parent, option)
+        if path == Path(default):
+            check_folder_target(path.parent, option)  # the default folder is made
+        else:
+            check_replaceable(path, option, (suffix,))
+        if suffix == ".csv":  # the plots go beside it: <stem>_<group>.png
+            for plot in path.parent.glob(f"{path.stem}_*.png") if path.parent.is_dir() else []:
+                check_replaceable(plot, f"{option} {path}: its plot", (".png",))
     dev = resolve_device(device)
     with tempfile.TemporaryDirectory(prefix="crfedit-tiny-") as tmp:
         if data is not None:

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..errors import CrfError
+from ..io import check_replaceable
 from .common import DeviceChoice, DeviceOpt, app, user_errors
 
 export_app = typer.Typer(help="Export an instance as a mesh.", no_args_is_help=True)
@@ -31,16 +31,15 @@ def mesh_cmd(
     from ..model import load_model
     from ..runtime import resolve_device
 
-    if out.suffix.lower() not in MESH_SUFFIXES or out.is_dir():
-        raise CrfError(f"--out {out}: expected a mesh file name ending in {', '.join(MESH_SUFFIXES)}")
-    if not out.parent.is_dir():
-        raise CrfError(f"--out {out}: folder {out.parent} does not exist")
+    check_replaceable(out, "--out", MESH_SUFFIXES)
     m, _ = load_model(model, resolve_device(device))
     if edit:
         from ..delta import apply_edit_files
 
         m = apply_edit_files(m, list(edit))
     k = m.instance_index(instance)
+    if edit and k not in m.overrides:  # as render says it: likely a slip
+        typer.echo(f"note: the --edit files edit other instances than {m.names[k]}: they leave this mesh unchanged", err=True)
     mesh = extract_mesh(m, k, res, level)
     write_mesh(mesh, out)
     lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
