@@ -164,6 +164,7 @@ def run_training(
         ignored = ignored_flags(part_config(category, cfg), stored_cfg, given)
         if given is not None and "seed" in given and stored.seed is not None and seed != stored.seed:
             ignored = f"{ignored or 'ignored:'}{',' if ignored else ''} seed {seed} (stored {stored.seed})"
+        seed = seed if stored.seed is None else stored.seed  # what train() goes on with, for the run record too
         if ignored and ranks.main:
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps); {ignored}", err=True)
         cfg = stored_cfg
