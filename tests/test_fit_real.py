@@ -100,7 +100,7 @@ def depth_spread(model, k: int, camera: Camera) -> float:
     from crfedit.renderer import render_rays
 
     out = render_rays(model.field_for(k), rays_from_camera(camera), k, distortion=True)
-    return float(out.distortion[out.opacity > 0.5].mean())  # the renderer's own measure of spread
+    return float(out.distortion[out.opacity > 0.5].mean().detach())  # the renderer's own measure of spread
 
 
 def test_the_distortion_loss_gathers_the_fit_into_a_surface(setup, fitted):
