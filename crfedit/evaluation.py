@@ -380,15 +380,20 @@ def below_unedited(rows: list[dict]) -> int | None:
 def edit_tables(runs: list[dict], methods: Sequence[str]) -> dict[str, list[dict]]:
     """Tables 2 and 3 from per-twin ``runs``: per kind, one row per method (in ``methods``'
     order) with PSNR, SSIM, LPIPS and seconds averaged over that kind's twins, and the count of
-    twins that end below unedited (:func:`below_unedited`)."""
+    twins that end below unedited (:func:`below_unedited`).  ``gap_closed`` averages the twins
+    whose gap is defined (ceiling above unedited), ``gap_closed_n`` of them."""
     tables: dict[str, list[dict]] = {}
     for kind in ("color", "remove"):
         rows = []
         for method in methods:
             sel = [r for r in runs if r["kind"] == kind and r["method"] == method]
             if sel:
-                rows.append({"method": method, "n": len(sel), **{key: _mean(sel, key) for key in TABLE_KEYS},
-                             "below_unedited": below_unedited(sel)})
+                row = {"method": method, "n": len(sel), **{key: _mean(sel, key) for key in TABLE_KEYS}, "below_unedited": below_unedited(sel)}
+                # a twin whose model reconstructs it no better than unedited has no gap to close: left out of the mean, counted
+                defined = [r for r in sel if r.get("gap_closed") is not None]
+                row["gap_closed"] = _mean(defined, "gap_closed") if defined else None
+                row["gap_closed_n"] = len(defined)
+                rows.append(row)
         if rows:
             tables[kind] = rows
     return tables
@@ -482,7 +487,7 @@ def evaluate_edits(
         record(case, UNEDITED, model, 0.0)
         context[case.spec.name]["psnr_before"] = runs[-1]["psnr"]
         runs[-1]["psnr_before"] = runs[-1]["psnr"]
-        runs[-1]["gap_closed"] = 0.0
+        runs[-1]["gap_closed"] = gap_closed(runs[-1]["psnr"], runs[-1]["psnr"], context[case.spec.name]["psnr_ceiling"])  # 0, or None with no gap
         appear = twin_appearance(category, case)
         sel = twin_selection(model, case)
         iou = {"selection_iou": selection_iou(model, sel, source_dir, source_views, case.spec.part)}

@@ -261,6 +261,17 @@ def test_below_unedited_counts_the_twins_an_edit_harmed():
     assert [r["below_unedited"] for r in table] == [0, 1]
 
 
+def test_the_gap_closed_averages_the_twins_whose_gap_is_defined():
+    """A twin the model reconstructs no better than unedited (ceiling ≤ before) has no gap:
+    None on each of its rows, left out of the mean, which says over how many it is."""
+    rows = [{"kind": "color", "method": "hybrid", "psnr": 20.0, "ssim": 0.5, "lpips": None, "seconds": 0.0, "gap_closed": g}
+            for g in (0.5, None, 0.9)]
+    row = edit_tables(rows, ["hybrid"])["color"][0]
+    assert row["gap_closed"] == pytest.approx(0.7) and row["gap_closed_n"] == 2 and row["n"] == 3
+    none = edit_tables(rows[1:2], ["hybrid"])["color"][0]
+    assert none["gap_closed"] is None and none["gap_closed_n"] == 0
+
+
 # ----------------------------------------------------------------------------- ablation
 
 

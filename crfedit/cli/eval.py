@@ -248,7 +248,7 @@ def edits_cmd(
     for entry in result["skipped"]:
         typer.echo(f"skipped {entry['method']} for {entry['kind']} twins: {entry['reason']}")
     typer.echo("unedited: the model's renders of the source before editing, scored against the twin (reference)")
-    typer.echo("gap closed: (PSNR − unedited) / (ceiling − unedited), ceiling = the source's reconstruction on the same poses")
+    typer.echo("gap closed: (PSNR − unedited) / (ceiling − unedited), ceiling = the source's reconstruction on the same poses; averaged over the twins whose ceiling lies above unedited (gap_closed_n in --json)")
     typer.echo("below: twins the edit left with a lower PSNR than no edit at all")
     typer.echo("inside / outside: PSNR (dB) on the pixels where the twin differs from the source / on the rest")
     typer.echo("sel. IoU: the 3-D selection of the scribbles against the part's pixels of the test views")
