@@ -321,3 +321,11 @@ def test_run_ablation_trains_each_arch_and_scores_held_out(data, tmp_path):
 
 def test_ablation_command_needs_a_budget(data):
     assert_user_error(invoke("eval", "ablation", data), "--minutes")
+
+
+def test_ablation_says_lpips_is_not_computed(data, tmp_path):
+    r = invoke("eval", "ablation", data, "--steps", 1, "--max-views", 1, "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    assert "LPIPS: skipped (the ablation does not compute it;" in r.stdout
+    report = json.loads(invoke("eval", "ablation", data, "--steps", 1, "--max-views", 1, "--json", "--device", "cpu").stdout)
+    assert report["lpips_note"].startswith("the ablation does not compute it") and all(row["lpips"] is None for row in report["rows"])

@@ -304,8 +304,11 @@ def ablation_cmd(
     rows = run_ablation(
         category, minutes, steps, seed, dev, base=base, max_views=max_views, workdir=models, progress=_err,
     )
+    from ..evaluation import LPIPS_SKIPPED
+
+    lpips_note = "the ablation does not compute it; eval recon MODEL DATA --lpips-weights W scores a variant kept with --models"
     if as_json:
-        _echo_json({"data": str(data), "preset": preset.value, "minutes": minutes, "steps": steps, "rows": rows})
+        _echo_json({"data": str(data), "preset": preset.value, "minutes": minutes, "steps": steps, "rows": rows, "lpips_note": lpips_note})
         return
     split = rows[0]["split"] if rows else "test"
     body = [
@@ -320,6 +323,7 @@ def ablation_cmd(
     )
     typer.echo("params: network parameters without the per-instance codes and the shared feature grid")
     typer.echo(SSIM_NOTE)
+    typer.echo(f"{LPIPS_SKIPPED.split(' (')[0]} ({lpips_note})")  # skipped, said so, never another metric in its place
 
 
 # ----------------------------------------------------------------------------- bench
