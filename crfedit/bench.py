@@ -334,7 +334,7 @@ def run_bench(
         else:
             notes.append(f"no edit curves: {category.root} has no ground-truth twins (twins.json)")
     resolution = category.instances[0].splits["train"][0].camera.width if "train" in category.instances[0].splits else 0
-    data = f"{category.root} ({len(category.instances)} instances, {resolution} px)"
+    data = f"`{category.root}` ({len(category.instances)} instances, {resolution} px)"
     return BenchReport(rows, machine_info(device), settings, data, notes)
 
 

@@ -183,7 +183,7 @@ def write_plots(rows: Sequence[BenchRow], stem: str | Path) -> dict[str, Path]:
 def _settings_line(s: BenchSettings) -> str:
     parts = [
         f"presets {', '.join(s.presets)}", f"{s.minutes:g} min per training curve" + (f" (at most {s.steps} steps)" if s.steps else ""),
-        f"{s.checkpoints} checkpoints + end", f"held-out scores on {s.eval_views} view(s) of the first {s.eval_instances} instance(s)",
+        f"{s.checkpoints} points along each run at equal fractions of it, the last at its end", f"held-out scores on {s.eval_views} view(s) of the first {s.eval_instances} instance(s)",
         f"seed {s.seed}",
     ]
     if s.sets:
@@ -207,10 +207,10 @@ def markdown_section(report: BenchReport, csv_path: Path, plots: dict[str, Path]
         BEGIN,
         "## Speed against error",
         "",
-        f"Measured {m['date']} on {m['cpu']} ({m['cores']} cores, {m['threads']} torch threads, device {m['device']}), "
+        f"Measured {m['date']} on {m['cpu']} ({m['cores']} cores, {m['threads']} torch thread{'s' * (str(m['threads']) != '1')}, device {m['device']}), "
         f"torch {m['torch']}, Python {m['python']}, crfedit revision `{m['revision']}`.",
         "",
-        f"Data: `{report.data}`. Settings: {_settings_line(report.settings)}. Raw numbers: [{csv_path.name}]({rel(csv_path)}).",
+        f"Data: {report.data}. Settings: {_settings_line(report.settings)}. Raw numbers: [{csv_path.name}]({rel(csv_path)}).",
         "",
     ]
     lines += [f"- {note}" for note in report.notes] + ([""] if report.notes else [])

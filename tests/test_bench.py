@@ -75,6 +75,9 @@ def test_tiny_bench_rewrites_only_its_markdown_section(tiny_run):
     assert "## Speed against error" in section and "torch " in section and "revision `" in section
     assert "](benchmarks/bench_train.png)" in section and "](benchmarks/bench.csv)" in section
     assert "| curve |" in section and "| fast | step = 24 |" in section
+    # the data it ran on is named as what it was, not as a temporary folder gone by now
+    assert "Data: the `--tiny` category, made in a temporary folder (2 instances, " in section and "crfedit-tiny-" not in section
+    assert "2 points along each run at equal fractions of it, the last at its end" in section
 
 
 def test_emit_table_prints_and_writes_the_lines(tmp_path, capsys):

@@ -422,6 +422,8 @@ def bench_cmd(
         else:
             raise CrfError("give a DATA folder (a category with twins, e.g. from crfedit dataset synth), or --tiny")
         report = run_bench(category, settings, dev, workdir=work, progress=_err)
+        if data is None:  # not a folder anyone can open once this command ends
+            report = dataclasses.replace(report, data=report.data.replace(f"`{category.root}`", "the `--tiny` category, made in a temporary folder"))
         written = write_outputs(report, csv_path, md_path)
     for path in written:
         typer.echo(f"wrote {path}")
