@@ -508,6 +508,11 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     first = (out / "c.safetensors").read_bytes()  # the same command again: the same bytes
     assert runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)]).exit_code == 0
     assert (out / "c.safetensors").read_bytes() == first
+    # re-pinned again (c alone): the earlier rebase's record stays, the new one after it
+    assert runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(out / "c.safetensors"),
+                               "--out-dir", str(tmp_path / "alone")]).exit_code == 0
+    argv = shlex.join(["crfedit", *sys.argv[1:]])
+    assert read_delta(tmp_path / "alone" / "c.safetensors").meta["rebased"] == f"{argv}; then {argv}"
     typo = tmp_path / "no-such-folder" / "rebased"  # the folder is made, a missing one above it is a typo
     assert_user_error(runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--out-dir", str(typo)]),
                       "no-such-folder does not exist")

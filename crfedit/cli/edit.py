@@ -544,7 +544,8 @@ def rebase_cmd(
     out_dir.mkdir(parents=True, exist_ok=True)
     for p, before, after in zip(edit, deltas, pinned):
         # a re-pinned file's `command` still names the stack it was made on: say where it went since
-        meta = after.meta if after is before else {**after.meta, "rebased": command_line()}
+        earlier = after.meta.get("rebased")  # a file re-pinned before keeps that record too, oldest first
+        meta = after.meta if after is before else {**after.meta, "rebased": f"{earlier}; then {command_line()}" if earlier else command_line()}
         save_delta(out_dir / p.name, after.tensors, meta)
         how = "unchanged (already in this place)" if after is before else "re-pinned"
         old_grid = " (format version 1: its grid replaces the instance's)" if after.meta["version"] == "1" and "occupancy" in after.tensors else ""
