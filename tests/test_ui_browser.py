@@ -118,6 +118,15 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     p.wait("return !document.getElementById('error').hidden", 60)
     assert p.js("return document.getElementById('status-text').textContent") == "ready"
     p.js("clearError()")
+    # a quick eraser swipe across a stroke erases it: the path between two pointer events counts
+    left = p.js("""
+        const r = document.getElementById('strokes').getBoundingClientRect();
+        const at = (x, y) => ({clientX: r.left + (x + 0.5) * r.width / S.info.width, clientY: r.top + (y + 0.5) * r.height / S.info.height});
+        marks().fg.push({points: [[6, 12], [20, 12]], radius: 1});
+        const radius = S.radius; S.radius = 1;
+        S.drag = {erase: true, last: [13, 6]}; onMove(at(13, 18)); S.drag = null; S.radius = radius;
+        return marks().fg.length""")
+    assert left == 0
     # the thumbnails take the keyboard: Tab reaches them, Enter picks one
     assert p.js("return [...document.querySelectorAll('#instances img, #turntable img')].every(i => i.tabIndex === 0)")
     p.js("document.querySelectorAll('#turntable img')[2].dispatchEvent(new KeyboardEvent('keydown', {key: 'Enter'}))")

@@ -298,7 +298,7 @@ function onDown(e) {
     redraw();
   } else if (S.tool === "erase") {
     snapshot();
-    S.drag = { erase: true };
+    S.drag = { erase: true, last: p };
     erase(p);
   } else {
     snapshot();
@@ -316,7 +316,10 @@ function onMove(e) {
     const pts = S.drag.stroke.points, last = pts[pts.length - 1];
     if (Math.hypot(p[0] - last[0], p[1] - last[1]) >= 0.35) { pts.push(p); redraw(); }
   } else if (S.drag.erase) {
-    erase(p);
+    // the path between two pointer events too: a quick swipe's events lie pixels apart
+    const [x0, y0] = S.drag.last, n = Math.max(1, Math.ceil(Math.hypot(p[0] - x0, p[1] - y0) / Math.max(0.5, S.radius)));
+    for (let i = 1; i <= n; i++) erase([x0 + (p[0] - x0) * i / n, y0 + (p[1] - y0) * i / n], i === n);
+    S.drag.last = p;
   } else if (S.drag.view) {
     const az = Math.round(((S.drag.view.azimuth - (e.clientX - S.drag.x) * 0.5) % 360 + 360) % 360);
     const el = Math.round(Math.max(-80, Math.min(80, S.drag.view.elevation + (e.clientY - S.drag.y) * 0.4)));
@@ -326,7 +329,7 @@ function onMove(e) {
 
 function onUp() { S.drag = null; }
 
-function erase(p) {
+function erase(p, draw = true) {
   const r = S.radius;
   if (S.donorMode) {
     if (S.copy) S.copy.strokes = S.copy.strokes.filter((s) => !Strokes.touches(s, p, r));
@@ -335,7 +338,7 @@ function erase(p) {
     m.fg = m.fg.filter((s) => !Strokes.touches(s, p, r));
     m.bg = m.bg.filter((s) => !Strokes.touches(s, p, r));
   }
-  redraw();
+  if (draw) redraw();
 }
 
 function clearStrokes() {
@@ -420,8 +423,22 @@ function connect() {
     S.lost = true;
     status("lost the server");
     showError("lost the server: is crfedit ui still running? (retrying)");
-    setTimeout(connect, 2000);
+    setTimeout(retry, 2000);
   };
+}
+
+// Reconnect while the server is away; a server that answers but refuses this page's token is
+// another one (crfedit ui started again prints a new URL): say so and stop retrying.
+async function retry() {
+  let resp = null;
+  try { resp = await fetch("/api/state", { headers: { "X-Crfedit-Token": TOKEN } }); } catch (e) { /* still away */ }
+  if (resp && resp.status === 403) {
+    status("another server");
+    showError("crfedit ui was started again: this page's session token is the old one's; open the URL it printed now");
+    return;
+  }
+  if (resp && resp.ok) { connect(); return; }
+  setTimeout(retry, 2000);
 }
 
 async function start() {
@@ -448,7 +465,7 @@ async function start() {
     clickable(img, () => setView({ azimuth: i * 45, elevation: (viewAngles() || { elevation: 30 }).elevation }));
     $("turntable").append(img);
   }
-  S.radius = Math.max(1, S.info.width / 48);
+  S.radius = Math.max(1, Math.round(S.info.width / 48 * 4) / 4);  // on the slider's 0.25 steps, so it can be chosen again
   $("radius").max = Math.max(8, S.info.width / 8);
   $("radius").value = S.radius;
   $("radius-out").textContent = `${S.radius.toFixed(2)} px`;

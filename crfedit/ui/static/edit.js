@@ -14,6 +14,16 @@ function scribbledViews(instance) {
   return out;
 }
 
+// Views of this instance with keep strokes but no "edit here" strokes: their keep strokes are
+// not sent (a view's keep strokes count with its own part strokes, as `crfedit select` takes them).
+function keepOnlyViews(instance) {
+  const out = [];
+  for (const [key, m] of S.marks) {
+    if (Number(key.split("|")[0]) === instance && !m.fg.length && m.bg.length) out.push(key.slice(key.indexOf("|") + 1));
+  }
+  return out;
+}
+
 function parseOrbit(key) {
   const [az, el] = key.slice(6).split("@").map(Number);
   return { azimuth: az, elevation: el };
@@ -33,8 +43,10 @@ async function doSelect() {
   }
   S.tint = true;
   $("tint").checked = true;
+  const unused = keepOnlyViews(S.instance);
   $("selection-info").textContent = `${info.selected_cells} of ${info.occupied_cells} occupied cells selected from ${info.views} view(s) (${info.seconds.toFixed(2)} s)`
-    + info.summaries.map(([label, line]) => `; ${label}: ${line}`).join("");  // select's lines (crfedit.edit.selection.SUMMARIES)
+    + info.summaries.map(([label, line]) => `; ${label}: ${line}`).join("")  // select's lines (crfedit.edit.selection.SUMMARIES)
+    + (unused.length ? `; keep strokes on ${unused.join(", ")} not used: a view's keep strokes count with its own "edit here" strokes` : "");
   await showView();
   measure("select", start);
   clearError();
@@ -133,12 +145,19 @@ async function onJobMessage(msg) {
   S.tint = false;
   $("tint").checked = false;
   if (job.kind === "color" || job.kind === "remove" || job.kind === "add") {  // the selection shown was of the state before
-    $("selection-info").textContent = `The ${job.kind === "color" ? "recolour" : job.kind === "remove" ? "removal" : "addition"} is applied; `
-      + "its strokes are cleared (Ctrl+Z on a view brings them back); Select again to see a selection on the edited chair.";
+    $("selection-info").textContent = job.kind === "add"
+      ? "The addition is applied; its copy strokes and paste point are cleared; Select to see a selection on the edited chair."
+      : `The ${job.kind === "color" ? "recolour" : "removal"} is applied; `
+        + "its strokes are cleared (Ctrl+Z on a view brings them back); Select again to see a selection on the edited chair.";
   } else {
     $("selection-info").textContent = "The transfer is applied; Select to see a selection on the edited chair.";
   }
   if (job.kind === "color" || job.kind === "remove") clearUsedStrokes(job.instance);
+  if (job.kind === "add") {  // the copy and the paste point were used: a second Apply would paste the part again
+    S.copy = null; S.paste = null;
+    pasteInfo();
+    redraw();
+  }
   // The edit's render is of the view it was made on: shown only if that view is still on screen
   // (the user may have turned to another view or chair while it ran), else the view on screen
   // is rendered again in the new state.
