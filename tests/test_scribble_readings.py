@@ -193,3 +193,19 @@ def test_add_reads_the_copy_mask_as_drawn(view, tiny_model, tmp_path):
                   "--out", removal, "--device", "cpu").exit_code == 0
     r = invoke(*base, "--copy", tmp_path / "wob.png", "--edit", removal, "--out", tmp_path / "after.safetensors")
     assert r.exit_code == 0 and "note: an earlier --edit changed chair_001's shape" in r.stderr, r.output
+
+
+def test_keep_strokes_over_the_scribble_are_warned_of():
+    """Keep strokes mark what must not change: over the scribbled part they hold the part back."""
+    from crfedit.edit.scribble import keep_overlap
+
+    fg = np.zeros((8, 8), bool)
+    fg[2:4, 2:6] = True
+    assert keep_overlap(fg, None) is None and keep_overlap(fg, np.zeros_like(fg)) is None
+    near = np.zeros_like(fg)
+    near[4:6, 2:6] = True  # beside the scribble: fine
+    assert keep_overlap(fg, near) is None
+    assert "cover 100% of the scribbled pixels" in keep_overlap(fg, fg)
+    half = np.zeros_like(fg)
+    half[2:4, 2:4] = True
+    assert "cover 50%" in keep_overlap(fg, half)

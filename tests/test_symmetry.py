@@ -181,3 +181,11 @@ def test_mirror_options_and_commands(edit_category, tmp_path):
                             "--out", str(tmp_path / "e.safetensors")])
     assert_user_error(r, "give it to `crfedit select`")
     assert not (tmp_path / "e.safetensors").exists()
+
+
+def test_mirror_off_keeps_a_removal_to_the_scribbled_side():
+    """--mirror off is one side only: a removal's loose pieces (the other arm is one) are not taken."""
+    from crfedit.edit.selection import options_for
+
+    assert options_for("remove").free_pieces > 0 and options_for("remove", "views").free_pieces > 0
+    assert options_for("remove", "off").free_pieces == 0.0 and options_for("remove", "off").mirror == "off"

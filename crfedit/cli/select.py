@@ -52,6 +52,7 @@ def select_cmd(
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
+    from ..edit.scribble import keep_overlap
     from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
     from ..io import write_png
 
@@ -68,7 +69,11 @@ def select_cmd(
     for i, spec in enumerate(view):
         _, camera = _one_view(m, spec, k)
         bg = _mask(keep[i], m, k, camera, "keep") if keep else None
-        scribbles.append(ScribbleView(camera, _mask(scribble[i], m, k, camera, "scribble"), bg))
+        fg = _mask(scribble[i], m, k, camera, "scribble")
+        overlap = keep_overlap(fg, bg)
+        if overlap:
+            typer.echo(f"warning: {spec}: {overlap}", err=True)
+        scribbles.append(ScribbleView(camera, fg, bg))
     sel = select(m, k, scribbles, options)
     sel.meta["for"] = kind
     save_selection(out, sel)

@@ -187,6 +187,23 @@ def check_coverage(scribble: np.ndarray, force: bool = False) -> float:
     return fraction
 
 
+KEEP_OVERLAP = 0.25
+"""Share of the scribbled pixels the keep strokes may cover before :func:`keep_overlap` warns."""
+
+
+def keep_overlap(scribble: np.ndarray, keep: np.ndarray | None) -> str | None:
+    """A warning when the keep strokes cover much of the scribble (None otherwise): keep
+    strokes mark what must *not* change, and over the part they make the selection leave the
+    part itself out (a tester's keep drawn as the scribble grown by 3 px: seat IoU 0.87 → 0.32)."""
+    if keep is None or not scribble.any():
+        return None
+    share = float((scribble & keep).sum()) / float(scribble.sum())
+    if share <= KEEP_OVERLAP:
+        return None
+    return (f"the keep strokes cover {share:.0%} of the scribbled pixels: keep strokes mark what must not change, so the "
+            "part you scribbled is held back; draw them on the other parts")
+
+
 def check_masks(scribble, keep, width: int, height: int) -> tuple[np.ndarray, np.ndarray | None]:
     """Validate an edit's masks (any :func:`~crfedit.masks.as_mask` takes); returns the
     scribble and the keep mask minus the scribble (the scribble wins) as bool ndarrays."""

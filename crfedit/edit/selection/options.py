@@ -730,7 +730,9 @@ def options_for(kind: str, mirror: str | None = None, join: str | None = None) -
     :data:`REMOVE_PALE_VETO` below their join's saturation).  Both let keep strokes win near them
     (:data:`REMOVE_KEEP_RATIO`, :data:`COLOR_KEEP_RATIO`), snap a scribble that lies mostly off
     the object onto it (:data:`STROKE_SNAP`), and read the instance's mirror symmetry
-    (:data:`REMOVE_MIRROR`, :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise.
+    (:data:`REMOVE_MIRROR`, :data:`COLOR_MIRROR`) unless ``mirror`` says otherwise; ``off``
+    (the scribbled side only) also keeps a removal from taking loose pieces of its part
+    (:attr:`SelectOptions.free_pieces`), which would be the other side's.
     All three lift their strokes' centres (:data:`STROKE_CENTRES`).  ``join`` (``auto``, the
     default; ``always``; ``never``) overrides the chromaticity join's cap: a part that is most
     of the instance can hold more of its colour than the cap lets the join take."""
@@ -743,6 +745,8 @@ def options_for(kind: str, mirror: str | None = None, join: str | None = None) -
     options = _kind_options(kind)
     if mirror is not None:
         options = dataclasses.replace(options, mirror=mirror)
+    if mirror == "off":  # the scribbled side only: a removal's loose pieces would take the other side's arm back
+        options = dataclasses.replace(options, free_pieces=0.0)
     if join == "always":
         options = dataclasses.replace(options, chroma_union=JOIN_ALWAYS, pale_union=0.0)
     elif join == "never":
