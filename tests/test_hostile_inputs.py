@@ -1045,7 +1045,7 @@ def test_info_on_a_selection_with_a_hand_edited_record(tmp_path: Path):
     save_file({"values": torch.full((4, 4, 4), 200, dtype=torch.uint8)}, str(path), metadata=meta)
     result = invoke("info", path)
     assert result.exit_code == 0, result.output
-    assert "cells         64 of 4^3 selected (value >= 0.5), 64 with a value above 0" in result.output
+    assert "cells         64 of 4^3 cells selected (value >= 0.5; a 4^3 grid), 64 with a value above 0" in result.output
     assert "made from     unknown" in result.output and "mirror" not in result.output and "\x1b" not in result.output
 
 

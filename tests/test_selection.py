@@ -1089,13 +1089,16 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "n.safetensors").meta and "colour join:" not in r.output
     r = runner.invoke(app, [*args, "--colour-join", "sometimes", "--out", str(tmp_path / "x.safetensors")])
     assert r.exit_code == 2 and not (tmp_path / "x.safetensors").exists()
+    r = runner.invoke(app, [*args, "--colour-join", "never", "--out", str(tmp_path / "never.safetensors")])  # the mode is named
+    assert r.exit_code == 0 and "colour join: off (--colour-join never)" in r.output, r.output
     # `crfedit info` reads a selection file: its instance, model and cells, as the file holds them
     sel = load_selection(out)
     shown = runner.invoke(app, ["info", str(out)])
     assert shown.exit_code == 0, shown.output
     assert f"strokes       their centres lifted ({edge_points} edge points" in shown.output
     assert f"instance      {model.names[1]} (index 1)" in shown.output and f"model         {model.fingerprint()}" in shown.output
-    assert f"cells         {int(sel.mask.sum())} of {model.cfg.occ_res}^3 selected (value >= 0.3), {int((sel.values > 0).sum())} with a value above 0" in shown.output, shown.output
+    assert (f"cells         {int(sel.mask.sum())} of the instance's {sel.meta['occupied_cells']} occupied cells selected (value >= 0.3; "
+            f"a {model.cfg.occ_res}^3 grid), {int((sel.values > 0).sum())} with a value above 0") in shown.output, shown.output
     as_json = json.loads(runner.invoke(app, ["info", str(out), "--json"]).output)
     assert (as_json["selected_cells"], as_json["info"]["for"], as_json["threshold"]) == (int(sel.mask.sum()), "color", 0.3)
     edit_out = tmp_path / "e.safetensors"

@@ -76,6 +76,8 @@ def select_cmd(
         scribbles.append(ScribbleView(camera, fg, bg))
     sel = select(m, k, scribbles, options)
     sel.meta["for"] = kind
+    if join is not None:
+        sel.meta["colour_join"] = join.value  # the mode asked for, which join_summary names
     save_selection(out, sel)
     info = sel.meta
     typer.echo(
@@ -116,7 +118,8 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
         ("instance", f"{sel.instance_name} (index {sel.instance})"),
         ("model", sel.model_fingerprint or "(none)"),
         ("for", info.get("for", "unknown")),
-        ("cells", f"{selected} of {res}^3 selected (value >= {sel.threshold:g}), {nonzero} with a value above 0"),
+        ("cells", (f"{selected} of the instance's {info['occupied_cells']} occupied cells" if type(info.get("occupied_cells")) is int
+                   else f"{selected} of {res}^3 cells") + f" selected (value >= {sel.threshold:g}; a {res}^3 grid), {nonzero} with a value above 0"),
         ("made from", ", ".join(counts) or "unknown"),
     ]
     if isinstance(features, list):

@@ -117,10 +117,16 @@ orange seat along with the orange back that was scribbled (2.6×)."""
 def join_summary(meta: dict) -> str | None:
     """What a selection's metadata says of the chromaticity join
     (:attr:`~.options.SelectOptions.chroma_union`), in a line (None: not asked).  A refused
-    join is what leaves a large part half selected; the line says what to do about it."""
+    join is what leaves a large part half selected; the line says what to do about it.
+    ``meta["colour_join"]``: the ``--colour-join`` mode asked for, when one was."""
+    mode = meta.get("colour_join")
+    if mode == "never":
+        return "off (--colour-join never)"
     info = meta.get("chroma_union")
     if info is None:
         return None
+    if mode == "always" and info.get("joined"):
+        return f"took the cells of the scribbled colour, as --colour-join always asks ({info['cells']} by chromaticity alone)"
     if info["cells"] is None:
         return f"not tried (the scribbled colour is near-grey: saturation {info['saturation']:.2f})"
     if info["joined"]:

@@ -503,4 +503,7 @@ def select_for(
     """The selection a ``kind`` edit makes from one view's scribbles (:func:`.options.options_for`
     with the ``mirror`` and ``join`` modes): what ``edit-color``, ``remove`` and ``add`` compute
     when not given one, and what the commands print before they edit."""
-    return select(model, instance, [ScribbleView(camera, scribble, keep)], options_for(kind, mirror, join), renders=renders)
+    sel = select(model, instance, [ScribbleView(camera, scribble, keep)], options_for(kind, mirror, join), renders=renders)
+    if join is not None:
+        sel.meta["colour_join"] = join  # the mode asked for, which join_summary names
+    return sel
