@@ -126,7 +126,7 @@ def join_summary(meta: dict) -> str | None:
     if info is None:
         return None
     if mode == "always" and info.get("joined"):
-        return f"took the cells of the scribbled colour, as --colour-join always asks ({info['cells']} by chromaticity alone)"
+        return f"took the cells of the scribbled colour ({info['cells']} by chromaticity alone, as --colour-join always asks)"
     if info["cells"] is None:
         return f"not tried (the scribbled colour is near-grey: saturation {info['saturation']:.2f})"
     if info["joined"]:
