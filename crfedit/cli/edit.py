@@ -95,7 +95,7 @@ def _view_render(model, instance: int, camera):
 
 def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camera, force: bool):
     """(scribble mask, keep mask or None), each image read as drawn (one line says how)."""
-    from ..edit.scribble import check_coverage, keep_overlap, load_mask
+    from ..edit.scribble import check_coverage, check_masks, keep_overlap, load_mask
 
     render = _view_render(model, instance, camera)
     fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble", render)
@@ -104,6 +104,7 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
     bg = load_mask(keep, keep_json, camera.width, camera.height, "keep", render)
     if bg is not None:
         typer.echo(f"keep: {bg.reading}, {int(bg.mask.sum())} pixels")
+        check_masks(fg.mask, bg.mask, camera.width, camera.height)  # a keep mask that is wrong is an error before any warning
         overlap = keep_overlap(fg.mask, bg.mask)
         if overlap:
             typer.echo(f"warning: {overlap}", err=True)
