@@ -52,7 +52,7 @@ def select_cmd(
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
-    from ..edit.scribble import check_masks, keep_overlap
+    from ..edit.scribble import keep_overlap
     from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
     from ..io import write_png
 
@@ -70,7 +70,6 @@ def select_cmd(
         _, camera = _one_view(m, spec, k)
         bg = _mask(keep[i], m, k, camera, "keep") if keep else None
         fg = _mask(scribble[i], m, k, camera, "scribble")
-        check_masks(fg, bg, camera.width, camera.height)  # a keep mask that is wrong is an error before any warning
         overlap = keep_overlap(fg, bg)
         if overlap:
             typer.echo(f"warning: {spec}: {overlap}", err=True)
