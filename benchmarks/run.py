@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from crfedit.bench import BenchSettings, benchmark_category, run_bench
+from crfedit.bench import TINY_LABEL, BenchSettings, benchmark_category, run_bench
 from crfedit.report import write_outputs
 from crfedit.errors import CrfError
 from crfedit.runtime import resolve_device
@@ -56,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory(prefix="crfedit-bench-data-") as tmp:
             category = benchmark_category(args.data, args.tiny, tmp, ROOT / "runs" / "bench" / "chairs",
                                           lambda m: print(m, file=sys.stderr))
-            report = run_bench(category, settings, device, workdir=args.work, progress=lambda m: print(m, file=sys.stderr))
+            report = run_bench(category, settings, device, workdir=args.work, progress=lambda m: print(m, file=sys.stderr),
+                               data_label=TINY_LABEL if args.tiny and args.data is None else None)
             written = write_outputs(report, args.csv, args.md)
     except CrfError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -285,14 +285,21 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
 # ----------------------------------------------------------------------------- the sweep
 
 
+TINY_LABEL = "the `--tiny` category, made in a temporary folder"
+"""How the page names the ``--tiny`` category (:func:`run_bench`'s ``data_label``)."""
+
+
 def run_bench(
     category: Category,
     settings: BenchSettings = BenchSettings(),
     device: torch.device | str = "cpu",
     workdir: str | Path | None = None,
     progress: Progress | None = None,
+    data_label: str | None = None,
 ) -> BenchReport:
     """Measure every curve of ``settings`` on ``category`` (see the module docstring).
+    ``data_label`` names the data on the page (default: its folder; the ``--tiny`` category's
+    is a temporary one, gone once the command ends).
 
     Model files go to ``workdir`` (kept) or a temporary folder (deleted).  The first preset's
     final model is edited (when the dataset has twins); the first final model of each sampler
@@ -334,7 +341,7 @@ def run_bench(
         else:
             notes.append(f"no edit curves: {category.root} has no ground-truth twins (twins.json)")
     resolution = category.instances[0].splits["train"][0].camera.width if "train" in category.instances[0].splits else 0
-    data = f"`{category.root}` ({len(category.instances)} instances, {resolution} px)"
+    data = f"{data_label or f'`{category.root}`'} ({len(category.instances)} instances, {resolution} px)"
     return BenchReport(rows, machine_info(device), settings, data, notes)
 
 

@@ -158,15 +158,15 @@ def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height
     if image.ndim != 3 or image.shape[0] == 0 or image.shape[1] == 0:
         raise CrfError(f"{where}: image is empty (0 pixels)")
     h, w = image.shape[:2]
-    if mask is not None:
-        if tuple(mask.shape) != (h, w):
-            raise CrfError(f"{where}: mask is {mask.shape[1]}x{mask.shape[0]} but the photo is {w}x{h}")
+    if mask is not None and tuple(mask.shape) != (h, w):
+        raise CrfError(f"{where}: mask is {mask.shape[1]}x{mask.shape[0]} but the photo is {w}x{h}")
+    silhouette = "mask" if mask is not None else "alpha" if has_transparency(image) else "whole photo"
+    if silhouette == "mask":
         alpha = mask.astype(np.float32)
-    elif has_transparency(image):
+    elif silhouette == "alpha":
         alpha = image[..., 3].astype(np.float32)
     else:
         alpha = np.ones((h, w), np.float32)
-    silhouette = "mask" if mask is not None else "alpha" if has_transparency(image) else "whole photo"
     if not (alpha > 0).any():
         raise CrfError(f"{where}: the object mask is empty (every pixel is transparent)")
     rgb = image[..., :3] * alpha[..., None] + (1.0 - alpha[..., None])
@@ -353,10 +353,12 @@ def photo_error(field: ConditionalRadianceField, camera: Camera, instance: int, 
 class _Fitter:
     """The photometric loss of instance ``k`` of ``field`` on random photo rays."""
 
-    def __init__(self, field: ConditionalRadianceField, k: int, camera: Camera, photo: Photo, rays: int, generator: torch.Generator,
-                 distortion: float = 0.0):
+    distortion = 0.0
+    """Weight of the distortion loss on the batch's rays (stage 2 sets it: :attr:`FitOptions.distortion`)."""
+
+    def __init__(self, field: ConditionalRadianceField, k: int, camera: Camera, photo: Photo, rays: int, generator: torch.Generator):
         device = field.aabb.device
-        self.field, self.k, self.rays, self.generator, self.distortion = field, k, rays, generator, distortion
+        self.field, self.k, self.rays, self.generator = field, k, rays, generator
         self.all_rays = rays_from_camera(camera, device)
         self.target = torch.from_numpy(photo.rgb.reshape(-1, 3)).to(device)
 
@@ -441,7 +443,7 @@ def fit_real(
         p.requires_grad_(False)
     generator = torch.Generator().manual_seed(options.seed)
     distortion = options.distortion if grid_sampler else 0.0  # the distortion loss reads the grid sampler's intervals
-    fitter = _Fitter(field, k, camera, photo, options.rays, generator, distortion)
+    fitter = _Fitter(field, k, camera, photo, options.rays, generator)
     codes = [getattr(field, t) for t in tables]
     reports: list[StageReport] = []
 
@@ -454,10 +456,9 @@ def fit_real(
     t0 = time.perf_counter()
     for p in codes:
         p.requires_grad_(True)
-    fitter.distortion = 0.0  # the codes keep the category's shapes; the heads of stage 2 can spread one in depth
     _run_stage("codes", fitter, [{"params": codes, "lr": options.lr_codes}], options.steps_codes, None, on_step)
-    fitter.distortion = distortion
     report("codes", options.steps_codes, t0, field)
+    fitter.distortion = distortion  # the codes keep the category's shapes; the heads of stage 2 can spread one in depth
 
     prefixes: tuple[str, ...] = ()
     if options.steps_joint > 0:

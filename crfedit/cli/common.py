@@ -174,6 +174,16 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
         raise CrfError(f"{label}: folder {folder} is not writable")
 
 
+def stderr_progress(*columns):
+    """A rich progress bar of ``columns`` on stderr, drawn only on a terminal and gone when it
+    ends: stdout keeps the command's results, and a log or an error line stays clean."""
+    from rich.console import Console
+    from rich.progress import Progress
+
+    console = Console(stderr=True)
+    return Progress(*columns, console=console, transient=True, disable=not console.is_terminal)
+
+
 def torchrun_ranks():
     """This process's :class:`~crfedit.distributed.Ranks` under torchrun, None for a plain run
     (torch is imported only then).  Values torchrun would not set count as a plain run here: the

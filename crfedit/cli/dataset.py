@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, user_errors
+from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, stderr_progress, user_errors
 
 
 def _rate_column():
@@ -37,8 +37,7 @@ def synth(
     aa: AaOpt = 3,
 ) -> None:
     """Render procedural chairs with depth, part maps and edit twins."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
     from ..data.synth import SynthConfig, check_synth_args, synth_steps, write_synth_category
 
@@ -46,8 +45,7 @@ def synth(
     check_synth_args(out, config)
     replaced = (out / "instances.txt").is_file()  # check_synth_args let it through: an earlier synth output
     columns = (TextColumn("{task.description:<18}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
-    console = Console(stderr=True)  # progress on stderr, and only on a terminal: a log or an error line stays clean
-    with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
+    with stderr_progress(*columns) as bar:
         task = bar.add_task("chairs", total=synth_steps(config))
         result = write_synth_category(out, config, lambda label: bar.update(task, advance=1, description=label))
     typer.echo(

@@ -304,8 +304,6 @@ def ablation_cmd(
     rows = run_ablation(
         category, minutes, steps, seed, dev, base=base, max_views=max_views, workdir=models, progress=_err,
     )
-    from ..evaluation import LPIPS_SKIPPED
-
     lpips_note = "the ablation does not compute it; eval recon MODEL DATA --lpips-weights W scores a variant kept with --models"
     if as_json:
         _echo_json({"data": str(data), "preset": preset.value, "minutes": minutes, "steps": steps, "rows": rows, "lpips_note": lpips_note})
@@ -323,7 +321,7 @@ def ablation_cmd(
     )
     typer.echo("params: network parameters without the per-instance codes and the shared feature grid")
     typer.echo(SSIM_NOTE)
-    typer.echo(f"{LPIPS_SKIPPED.split(' (')[0]} ({lpips_note})")  # skipped, said so, never another metric in its place
+    typer.echo(_lpips_line(False, lpips_note))  # skipped, said so, never another metric in its place
 
 
 # ----------------------------------------------------------------------------- bench
@@ -387,7 +385,7 @@ def bench_cmd(
     import dataclasses
     import tempfile
 
-    from ..bench import BenchSettings, run_bench, tiny_category
+    from ..bench import TINY_LABEL, BenchSettings, run_bench, tiny_category
     from ..report import write_outputs
     from ..data.loading import load_category
     from ..runtime import resolve_device
@@ -421,9 +419,7 @@ def bench_cmd(
             category = tiny_category(Path(tmp) / "chairs")
         else:
             raise CrfError("give a DATA folder (a category with twins, e.g. from crfedit dataset synth), or --tiny")
-        report = run_bench(category, settings, dev, workdir=work, progress=_err)
-        if data is None:  # not a folder anyone can open once this command ends
-            report = dataclasses.replace(report, data=report.data.replace(f"`{category.root}`", "the `--tiny` category, made in a temporary folder"))
+        report = run_bench(category, settings, dev, workdir=work, progress=_err, data_label=None if data is not None else TINY_LABEL)
         written = write_outputs(report, csv_path, md_path)
     for path in written:
         typer.echo(f"wrote {path}")

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from .common import DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, user_errors
+from .common import DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, stderr_progress, user_errors
 
 
 class JointWeights(str, enum.Enum):
@@ -24,19 +24,14 @@ class FitProgress:
     """
 
     def __init__(self, total: int):
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-        console = Console(stderr=True)
-        self.bar = Progress(
+        self.bar = stderr_progress(
             TextColumn("{task.description:<6}"),
             BarColumn(),
             MofNCompleteColumn(),
             TextColumn("loss {task.fields[loss]}  PSNR {task.fields[psnr]}"),
             TimeElapsedColumn(),
-            console=console,
-            transient=True,
-            disable=not console.is_terminal,
         )
         self.task = self.bar.add_task("codes", total=max(total, 1), loss="-", psnr="-")
 
@@ -88,7 +83,7 @@ def fit_real_cmd(
     from ..fit_real import FitOptions, check_new_name, fit_real, photo_warnings, prepare_photo, read_photo
     from ..model import load_model
     from ..runtime import resolve_device
-    from ..views import one_view_hint, one_view_label, resolve_views
+    from ..views import SPLITS, one_view_hint, one_view_label, resolve_views
 
     options = FitOptions(
         steps_codes=steps_codes, steps_joint=steps_joint, weights=weights.value, lr_codes=lr_codes,
@@ -116,7 +111,7 @@ def fit_real_cmd(
                    f"({prepared.mask.mean():.0%} of the view); give --mask to outline it yourself", err=True)
     with FitProgress(options.steps_codes + options.steps_joint) as progress:
         result = fit_real(m, prepared, camera, name, options, progress.on_step, progress.on_stage)
-    split_view = label.partition(":")[0] in ("train", "val", "test")  # a stored view is a view of one instance
+    split_view = label.partition(":")[0] in SPLITS  # a stored view is a view of one instance
     result.save(out, command=command_line(), photo=str(photo), pose=f"{label} of {m.names[j]}" if split_view else label,
                 **({"mask": str(mask)} if mask else {}))
     typer.echo(

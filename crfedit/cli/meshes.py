@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, user_errors
+from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, stderr_progress, user_errors
 
 
 class PaletteChoice(str, enum.Enum):
@@ -42,16 +42,14 @@ def from_meshes(
     Each mesh is centered, scaled to unit size and turned Z-up; a sidecar <stem>.meta.json may
     give its attribution (written to ATTRIBUTION.txt) and a rotation.  Needs the [meshes] extra.
     """
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
     from ..data.meshes import MeshDatasetConfig, mesh_steps, write_mesh_category
     from .dataset import _rate_column
 
     config = MeshDatasetConfig(views=views, res=res, seed=seed, palette=palette.value, up=up.value, twins=twins, aa=aa, twin_sources=twin_sources)
     columns = (TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
-    console = Console(stderr=True)  # progress on stderr, and only on a terminal: a log or an error line stays clean
-    with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
+    with stderr_progress(*columns) as bar:
         task = bar.add_task("loading meshes", total=mesh_steps(len(meshes), config))
         result = write_mesh_category(out, meshes, config, lambda label: bar.update(task, advance=1, description=label))
     typer.echo(
