@@ -99,9 +99,12 @@ def part_labels_warning(model: CategoryModel, cases: Sequence["TwinCase"]) -> st
 
 
 def model_width(model: CategoryModel, split: str = "test") -> int | None:
-    """The image width the model's views of ``split`` were stored at (else its training width)."""
+    """The image width the model's views of ``split`` were stored at (else its training width);
+    None (each view at its own size) for views of several widths."""
     table = model.views.get(split) or model.views.get("train") or next(iter(model.views.values()), None)
-    return None if table is None else table.width
+    if table is None or (table.sizes is not None and len(set(table.sizes[:, 0].tolist())) > 1):
+        return None
+    return table.width
 
 
 def load_category_for(model: CategoryModel, data: str | Path, split: str = "test") -> Category:

@@ -100,17 +100,25 @@ class CategoryModel:
 
 @dataclass
 class ViewTable:
-    """The cameras of one split of every instance, flattened in instance then view order."""
+    """The cameras of one split of every instance, flattened in instance then view order.
+
+    ``width``/``height`` are the first view's size; ``sizes`` ([V, 2] int64 width, height) is
+    set only when the views come in several sizes, each focal then at its own view's size (a
+    table of one size is stored as before, the same bytes)."""
 
     c2w: Tensor  # [V, 4, 4] float64
-    focal: Tensor  # [V] float64, pixels at (width, height)
+    focal: Tensor  # [V] float64, pixels at the view's size
     instance: Tensor  # [V] int64
     width: int
     height: int
+    sizes: Tensor | None = None  # [V, 2] int64 (width, height), None: every view width × height
+
+    def size(self, row: int) -> tuple[int, int]:
+        return (self.width, self.height) if self.sizes is None else tuple(int(x) for x in self.sizes[row])
 
     def cameras(self, instance: int) -> list[Camera]:
         rows = (self.instance == instance).nonzero().squeeze(-1).tolist()
-        return [Camera(self.c2w[i].numpy().copy(), float(self.focal[i]), self.width, self.height) for i in rows]
+        return [Camera(self.c2w[i].numpy().copy(), float(self.focal[i]), *self.size(i)) for i in rows]
 
     @classmethod
     def from_category(cls, category, split: str) -> "ViewTable | None":
@@ -118,13 +126,19 @@ class ViewTable:
         if not views:
             return None
         w, h = views[0][1].width, views[0][1].height
+        sizes = [(c.width, c.height) for _, c in views]
         return cls(
             torch.tensor(np.stack([c.c2w for _, c in views]), dtype=torch.float64),
-            torch.tensor([c.focal * w / c.width for _, c in views], dtype=torch.float64),
+            torch.tensor([c.focal for _, c in views], dtype=torch.float64),
             torch.tensor([k for k, _ in views], dtype=torch.int64),
             w,
             h,
+            None if len(set(sizes)) == 1 else torch.tensor(sizes, dtype=torch.int64),
         )
+
+    def tensors(self, split: str) -> dict[str, Tensor]:
+        out = {f"views.{split}.c2w": self.c2w, f"views.{split}.focal": self.focal, f"views.{split}.instance": self.instance}
+        return out if self.sizes is None else {**out, f"views.{split}.size": self.sizes}
 
 
 def save_model(
@@ -136,7 +150,7 @@ def save_model(
     """Write the model atomically (temp file, fsync, rename)."""
     tensors = model.state()
     for split, table in model.views.items():
-        tensors.update({f"views.{split}.c2w": table.c2w, f"views.{split}.focal": table.focal, f"views.{split}.instance": table.instance})
+        tensors.update(table.tensors(split))
     tensors.update({f"train.{k}": v for k, v in (train_state or {}).items()})
     meta = dict(model.meta)
     meta.update(extra_meta or {})
@@ -218,7 +232,10 @@ def _read_views(path, tensors: dict[str, Tensor], meta: dict[str, str], n_instan
         ok = ok and focal.shape == (c2w.shape[0],) and inst.shape == (c2w.shape[0],) and inst.dtype == torch.int64
         ok = ok and bool(torch.isfinite(c2w).all()) and bool((focal > 0).all())
         ok = ok and bool(((inst >= 0) & (inst < n_instances)).all())
+        each = tensors.get(f"views.{split}.size")  # views of several sizes
+        ok = ok and (each is None or (each.dtype == torch.int64 and tuple(each.shape) == (c2w.shape[0], 2)
+                                      and bool(((each > 0) & (each <= 16384)).all())))
         if not ok:
             raise ModelFileError(f"{path}: bad camera table for split {split!r}")
-        out[split] = ViewTable(c2w, focal, inst, size[0], size[1])
+        out[split] = ViewTable(c2w, focal, inst, size[0], size[1], each)
     return out

@@ -49,6 +49,15 @@ def size_breakdown(path: str | os.PathLike) -> dict[str, int]:
     return sizes
 
 
+def _view_summary(table) -> dict:
+    """``info``'s record of a split's cameras: their count, the first view's size and, for
+    views of several sizes, every size (width, height) they come in."""
+    out = {"count": int(table.focal.numel()), "size": [table.width, table.height]}
+    if table.sizes is not None:
+        out["sizes"] = [list(size) for size in sorted({tuple(row) for row in table.sizes.tolist()})]
+    return out
+
+
 def strip_model(path: str | os.PathLike, out: str | os.PathLike) -> dict[str, int]:
     """Write ``out``: the model at ``path`` without its training state (it renders, edits and
     bakes the same, bit for bit, but cannot be resumed).  Returns ``out``'s size breakdown."""
@@ -153,7 +162,7 @@ def model_info(path: str | os.PathLike) -> dict:
             "fill": dict(zip(model.names, fill)),
         },
         "scene_box": {"min": field.aabb[:3].tolist(), "max": field.aabb[3:].tolist()},
-        "views": {split: {"count": int(t.focal.numel()), "size": [t.width, t.height]} for split, t in model.views.items()},
+        "views": {split: _view_summary(t) for split, t in model.views.items()},
         "baked_instances": [model.names[k] for k in sorted(model.overrides)],
         "baked_edits": _baked_edits(meta),
         "baked_from": meta.get("baked_from"),

@@ -183,8 +183,9 @@ def _orbit_views(spec: str, model, instance: int) -> list[tuple[str, Camera]]:
     if not stored:
         raise CrfError(f"view spec {spec!r}: the model stores no cameras to take the orbit's distance and focal from")
     radius = float(np.median([np.linalg.norm(c.center) for c in stored]))
-    focal = float(np.median([c.focal for c in stored]))
-    cams = orbit_cameras(n, elevation, radius, focal, stored[0].width, stored[0].height)
+    width, height = stored[0].width, stored[0].height
+    focal = float(np.median([c.focal if c.width == width else c.focal * width / c.width for c in stored]))  # at the first size
+    cams = orbit_cameras(n, elevation, radius, focal, width, height)
     indices = range(n) if m.group(3) is None else parse_indices(spec, m.group(3), n)
     return [(f"orbit:{k}", cams[k]) for k in indices]
 

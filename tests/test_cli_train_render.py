@@ -457,3 +457,38 @@ def test_a_render_into_a_used_folder_leaves_one_set_of_frames(model_path, tmp_pa
     assert again.exit_code == 0, again.output
     assert sorted(p.name for p in out.iterdir()) == ["0000.png", "0001.png", "0009.png", "notes.txt", "views.json"]
     assert len(json.loads((out / "views.json").read_text())["views"]) == 2
+
+
+def test_views_of_several_sizes_keep_their_own_size(tiny_chairs, model_path, tmp_path):
+    """A category whose second chair is 24×24 (the first 16×16, the same field of view): the model
+    stores each view's size and focal, so `train:0` of the second chair renders at 24×24 from its
+    dataset camera; a category of one size stores no size tensor (the same file as before)."""
+    import shutil
+
+    from crfedit.data.synth import SynthConfig, write_synth_category
+    from crfedit.safefile import read_safetensors
+
+    big = tmp_path / "big"
+    write_synth_category(big, SynthConfig(instances=2, views=6, res=24, seed=0, twins=False))
+    data = tmp_path / "mixed"
+    shutil.copytree(tiny_chairs, data)
+    shutil.rmtree(data / "chair_001")
+    shutil.copytree(big / "chair_001", data / "chair_001")
+    out = tmp_path / "model.safetensors"
+    result = invoke("train", data, "--out", out, "--steps", 4, *TINY)
+    assert result.exit_code == 0, result.output
+    category = load_category(data)
+    model, _ = load_model(out)
+    for k, inst in enumerate(category.instances):
+        for split, views in inst.splits.items():
+            stored = model.views[split].cameras(k)
+            assert [(c.width, c.height) for c in stored] == [(v.camera.width, v.camera.height) for v in views]
+            assert np.allclose([c.focal for c in stored], [v.camera.focal for v in views], rtol=1e-12)
+    rendered = tmp_path / "r"
+    assert invoke("render", out, "--instance", 1, "--views", "train:0", "--out", rendered, "--device", "cpu").exit_code == 0
+    assert read_image(rendered / "0000.png").shape[:2] == (24, 24)
+    info = invoke("info", out, "--json")
+    assert json.loads(info.stdout)["views"]["train"] == {"count": 8, "size": [16, 16], "sizes": [[16, 16], [24, 24]]}
+    assert "train 8 at 16x16 / 24x24" in invoke("info", out).stdout
+    tensors, _ = read_safetensors(out)
+    assert "views.train.size" in tensors and "views.train.size" not in read_safetensors(model_path)[0]

@@ -453,6 +453,10 @@ CATALOGUE: list[Case] = [
     Case("model/bad-camera-table/render",
          lambda e, t: render(e, t, model=model_variant(e, t, lambda ts, m: ts.update({"views.test.focal": -ts["views.test.focal"]}))),
          ("variant.safetensors", "bad camera table for split 'test'")),
+    Case("model/bad-view-sizes/render",
+         lambda e, t: render(e, t, model=model_variant(e, t, lambda ts, m: ts.update(
+             {"views.test.size": torch.zeros(len(ts["views.test.focal"]), 2, dtype=torch.int64)}))),
+         ("variant.safetensors", "bad camera table for split 'test'")),
     Case("model/foreign-tensor/info",
          lambda e, t: (["info", model_variant(e, t, lambda ts, m: ts.update({"payload.exec": torch.zeros(3)}))], []),
          ("variant.safetensors", "unexpected tensor 'payload.exec'")),

@@ -171,11 +171,6 @@ def run_training(
     else:
         asked = cfg.part_dim
         cfg = part_config(category, cfg)  # what train() will store, for the records
-        sizes = {(v.camera.width, v.camera.height) for inst in category.instances for views in inst.splits.values() for v in views}
-        if len(sizes) > 1 and ranks.main:  # training reads each view at its size; the model file keeps one per split
-            typer.echo(f"note: the views come in {len(sizes)} sizes ({', '.join(f'{w}x{h}' for w, h in sorted(sizes))}): the model "
-                       "stores each split's cameras at its first view's size, so `train:5` of a chair of another size renders "
-                       "(and takes scribbles) at that size, its field of view kept; --res R trains every view at width R", err=True)
         if asked and not cfg.part_dim and ranks.main and has_labels(category, range(len(category.instances))):
             typer.echo(f"note: no part head: every instance with part maps is left out by part_labels={cfg.part_labels} "
                        "(the twins' sources, so that an edit benchmark scores parts the model was never told about); "
@@ -439,7 +434,8 @@ def info_cmd(
     rows += [
         ("occupancy", occupancy),
         ("scene box", "[" + ", ".join(f"{x:.3f}" for x in lo) + "] .. [" + ", ".join(f"{x:.3f}" for x in hi) + "]"),
-        ("views", ", ".join(f"{s} {v['count']} at {v['size'][0]}x{v['size'][1]}" for s, v in meta["views"].items()) or "none stored"),
+        ("views", ", ".join(f"{s} {v['count']} at {' / '.join(f'{w}x{h}' for w, h in v.get('sizes', [v['size']]))}"
+                   for s, v in meta["views"].items()) or "none stored"),
         ("step", step),
         ("baked edits", _baked(meta)),
         ("dataset", meta["dataset_fingerprint"] or "unknown"),
