@@ -224,9 +224,16 @@ function orbitFromSliders() {
 
 // ------------------------------------------------------------------------------------ canvas
 
+// The shown view's size in pixels: the rendered PNG's own (views of a model may come in several
+// sizes), else the model's first view's until the first image has loaded.
+function viewSize() {
+  const img = $("view");
+  return img.naturalWidth ? [img.naturalWidth, img.naturalHeight] : [S.info.width, S.info.height];
+}
+
 function canvasScale() {
   const c = $("strokes");
-  return c.width / S.info.width;
+  return c.width / viewSize()[0];
 }
 
 function redraw() {
@@ -256,7 +263,8 @@ function redraw() {
 
 function pixelAt(event) {
   const r = $("strokes").getBoundingClientRect();
-  return [(event.clientX - r.left) / r.width * S.info.width - 0.5, (event.clientY - r.top) / r.height * S.info.height - 0.5];
+  const [w, h] = viewSize();
+  return [(event.clientX - r.left) / r.width * w - 0.5, (event.clientY - r.top) / r.height * h - 0.5];
 }
 
 function activeList(kind) {
