@@ -954,6 +954,61 @@ def test_selection_recolour_moves_the_part_not_the_rest(trained):
     assert moved > 0.1 and kept < 0.35 * moved, (moved, kept)
 
 
+@pytest.mark.parametrize("limit", [-1.0, 1.0])
+def test_a_recolour_that_bleeds_also_trains_the_bottleneck(trained, monkeypatch, limit):
+    """When more than BLEED_LIMIT of the held points moved, the recolour is fitted again training
+    the bottleneck layer too (the cached radiance stage, no density change) and kept if it bleeds
+    less; below the limit the delta holds the paper's modules only.  The limit is forced here:
+    -1 widens every recolour, 1 none."""
+    import crfedit.edit.supervised as supervised
+    from crfedit.cameras import rays_from_camera
+
+    monkeypatch.setattr(supervised, "BLEED_LIMIT", limit)
+    _, model, category = trained
+    k = 2
+    view, fg, keep, _ = part_view(category, k, "seat")
+    result = edit_color(model, k, view.camera, fg, (0.9, 0.1, 0.1), keep, options=EditOptions(steps=40))
+    hyper = json.loads(result.meta["hyperparameters"])
+    assert 0 <= hyper["bleed"] <= 1 and hyper["stage"] == "radiance"
+    names = set(result.tensors)
+    if limit < 0:
+        widened = hyper["widened"]
+        assert widened["modules"] == ["bottleneck"] and 0 <= widened["bleed"] <= 1
+        assert widened["kept"] == (widened["bleed"] < hyper["bleed"])
+        assert ("bottleneck.weight" in names) == widened["kept"]
+    else:
+        assert "widened" not in hyper and "bottleneck.weight" not in names
+    assert any(n.startswith("F_rad.") for n in names)
+    # density is untouched either way: the same σ along a view's rays, bit for bit
+    rays = rays_from_camera(view.camera)
+    xn = (rays.origins + 2.5 * rays.directions)[::7]
+    f0, f1 = model.field_for(k), result.model.field_for(k)
+    with torch.no_grad():
+        assert torch.equal(f0.density(f0.normalize(xn), k), f1.density(f1.normalize(xn), k))
+
+
+def test_the_radiance_stage_runs_a_trained_bottleneck_on_cached_fuse_outputs(trained):
+    """With the bottleneck trained the radiance stage caches F_fuse's output: at the starting
+    weights its colours are the plain stage's, and gradients reach the bottleneck."""
+    from crfedit.edit.cache import cache_stage, edit_passes
+    from crfedit.cameras import rays_from_camera
+
+    _, model, category = trained
+    k = 1
+    edit = InstanceEdit(model, k, "color", "hybrid", extra=("bottleneck.",))
+    assert "bottleneck.weight" in edit.params and cache_stage(list(edit.params), density_changes=False) == "radiance"
+    assert cache_stage(list(edit.params), density_changes=True) == "fuse"
+    rays = rays_from_camera(category.instances[k].splits["test"][0].camera)
+    (wide,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False)
+    (plain,) = edit_passes(edit.field, rays, k, ["F_rad.out.weight"], density_changes=False)
+    assert wide.fused is not None and plain.fused is None
+    _, code = edit.field.codes(k)
+    rgb = wide.sample_rgb(wide.net, code)
+    assert torch.allclose(rgb, plain.sample_rgb(plain.net, code), atol=1e-6)
+    rgb.sum().backward()
+    assert float(edit.field.bottleneck.weight.grad.abs().sum()) > 0
+
+
 def test_quantized_values_keep_each_cell_on_its_side_of_the_cuts():
     v = torch.tensor([0.3, 0.2999, 0.5, 0.4999, 0.301, 1.2, -0.1])
     q = quantized(v, (0.3, 0.5))

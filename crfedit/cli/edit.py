@@ -280,6 +280,12 @@ def edit_color_cmd(
     p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "color", preview, views,
                    join)
     result = edit_color(p.model, p.instance, p.camera, p.scribble, rgb, p.keep, options, method.value, p.selection, p.mirror)
+    hyper = json.loads(result.meta.get("hyperparameters", "{}"))
+    widened = hyper.get("widened")
+    if widened:  # the held points that F_rad alone could not tell from the part
+        how = "kept that fit" if widened["kept"] else "kept the first fit"
+        typer.echo(f"colour hold: with F_rad alone {100 * hyper['bleed']:.1f} % of the points outside the selection took the new colour "
+                   f"(they look like the part to it); fitted again training the bottleneck layer too: {100 * widened['bleed']:.1f} %, {how}")
     _write(result, out, p.label)
     _preview(result.model, p.instance, preview, p.shown, views)
 

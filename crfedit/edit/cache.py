@@ -8,8 +8,9 @@ starting weights).  What is cached depends on what is trained (:func:`cache_stag
 ========== ===================================  ================================================
 stage      trained                              cached once            each step runs
 ========== ===================================  ================================================
-radiance   F_rad, colour code                   bottleneck features,   F_rad; Σ wᵢcᵢ + (1−Σw)·bg
-                                                compositing weights
+radiance   F_rad, colour code (and the          bottleneck features    F_rad; Σ wᵢcᵢ + (1−Σw)·bg
+           bottleneck: :data:`FEATURES`)        (F_fuse's output if
+                                                it trains), weights
 fuse       F_fuse, F_dens (and F_rad, codes…)   :class:`FuseInputs`    F_fuse → σ, features → F_rad,
                                                                        compositing
 points     anything upstream (F_share, codes)   normalized points      the whole field
@@ -53,13 +54,19 @@ _DOWNSTREAM_OF_FUSE = tuple(m + "." for m in MODULES[MODULES.index("F_fuse") :])
 """What runs on the cached :class:`FuseInputs`: F_fuse and every module after it."""
 
 
+FEATURES = "bottleneck."
+"""The bottleneck layer (F_fuse's output → F_rad's 8 features): a colour edit may train it
+without moving density (a recolour that bled, :data:`~.supervised.WIDENED`); the radiance stage
+then caches F_fuse's output and runs the layer at every step."""
+
+
 def cache_stage(trained: Sequence[str], density_changes: bool) -> str:
     """The deepest stage whose inputs ``trained`` (parameter names) cannot change.
 
-    ``density_changes`` is False for colour edits: with F_rad and the colour code trained the
-    compositing weights are constants.
+    ``density_changes`` is False for colour edits: with F_rad, the colour code and at most the
+    bottleneck trained, the compositing weights are constants.
     """
-    if not density_changes and all(n.startswith(TRAINED["color"]) for n in trained):
+    if not density_changes and all(n.startswith((*TRAINED["color"], FEATURES)) for n in trained):
         return "radiance"
     fuse = (*_DOWNSTREAM_OF_FUSE, *("coarse." + p for p in _DOWNSTREAM_OF_FUSE), COLOR_CODES)
     if all(n.startswith(fuse) for n in trained):
@@ -117,6 +124,7 @@ class EditPass:
         stage: str,
         background: float = 1.0,
         prune: float = PRUNE_WEIGHT,
+        features_train: bool = False,
     ):
         if stage not in STAGES:
             raise ValueError(f"stage {stage!r}: expected one of {STAGES}")
@@ -134,8 +142,10 @@ class EditPass:
                 self.inputs = None
             else:
                 self.inputs = FuseInputs(*(t.detach() if t is not None else None for t in self.net.fuse_inputs(self.xn, shape_code)))
+            self.fused = None  # radiance stage, bottleneck trained: F_fuse's output of the kept samples
             if stage == "radiance":
-                raw, feat = self.net.density_from_fuse_inputs(self.inputs)
+                h = self.net.fuse_activations(self.inputs)
+                raw, feat = self.net.raw_density(h), self.net.bottleneck(h)
                 weights, _, _ = render_weight_from_density(self.t_starts, self.t_ends, self.dense(self.net.sigma(raw)))
                 w = weights[samples.ray, samples.step]
                 keep = w > prune
@@ -148,12 +158,21 @@ class EditPass:
                 self.constant += (1.0 - self.opacity)[:, None] * background
                 self.w, self.ray, self.per_point = w[keep], samples.ray[keep], per_point[keep]
                 self.xn_kept = self.xn[keep]  # [m, 3] where each kept sample lies (a selection's lookup)
+                if features_train:
+                    self.fused, self.dirs_kept = h[keep], self.encoded_dirs[keep]
                 self.inputs = self.encoded_dirs = None
             self.n_cached = int(self.ray.numel()) if stage == "radiance" else int(samples.ray.numel())
 
+    def rad_inputs(self, net: FieldNet) -> Tensor:
+        """Radiance stage: F_rad's inputs [m, 8 + D] of the kept samples, through ``net``'s
+        bottleneck now where it trains, else the cached ones."""
+        if self.fused is None:
+            return self.per_point
+        return torch.cat([net.bottleneck(self.fused), self.dirs_kept], dim=-1)
+
     def sample_rgb(self, net: FieldNet, color_code: Tensor | None) -> Tensor:
         """Radiance stage: ``net``'s F_rad colour [m, 3] of each kept sample."""
-        return net.F_rad(self.per_point, color_code)
+        return net.F_rad(self.rad_inputs(net), color_code)
 
     def radiance_rgb(self, net: FieldNet, color_code: Tensor | None) -> Tensor:
         """Radiance stage: each ray's colour [N, 3] with ``net``'s F_rad on the cached samples."""
@@ -193,7 +212,8 @@ def edit_passes(
     passes = edit_samples(field, rays, instance)
     if not density_changes:
         passes = passes[-1:]
-    return [EditPass(field, name, rays, samples, instance, stage) for name, samples in passes]
+    features = any(n.startswith(FEATURES) for n in trained)
+    return [EditPass(field, name, rays, samples, instance, stage, features_train=features) for name, samples in passes]
 
 
 class ViewCache:

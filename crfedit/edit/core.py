@@ -121,11 +121,13 @@ class InstanceEdit:
     Only the parameters under the strategy's prefixes require gradients.
     """
 
-    def __init__(self, model: CategoryModel, instance: int, group: str, strategy: str, penalty: str = "element"):
+    def __init__(self, model: CategoryModel, instance: int, group: str, strategy: str, penalty: str = "element",
+                 extra: tuple[str, ...] = ()):
         self.before, self.instance = model, instance
         field = model.field_for(instance)
         self.field = copy.deepcopy(field) if field is model.field else field
         self.prefixes = trained_prefixes(self.field, group, strategy)
+        self.prefixes += tuple(x for x in extra if x not in self.prefixes)  # a recolour that bled (supervised.WIDENED)
         names = set(trained_names(self.field, self.prefixes))
         self.params: dict[str, Tensor] = {}
         for name, p in self.field.named_parameters():

@@ -42,7 +42,7 @@ from ..errors import CrfError
 from ..model import CategoryModel
 from ..names import RECOLOR_RULES
 from ..rendering import composite_dense
-from .cache import cache_stage, edit_passes
+from .cache import FEATURES, cache_stage, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize
 from .losses import mse
 from .selection import GROW_LOW, Selection
@@ -97,6 +97,18 @@ the real gain; applied to every sample (S's interior too) the test cost the proc
 recolours 0.016 (shaded faces of the part itself fall outside)."""
 UNLIKE_FLOOR = 0.02
 """See :data:`UNLIKE_FACTOR`."""
+BLEED_CHANGE = 0.1
+"""Recolour: a held point (outside S, more than a cell from it) whose colour moved more than this
+(largest channel, 0–1) has taken some of the new colour: :meth:`PointTargets.bleed`."""
+BLEED_LIMIT = 0.01
+"""Recolour with the paper's modules: when more than this share of the held points (weighted by
+opacity) bled, F_rad could not tell them from the part (a back rail of the seat's brown reads
+the same 8 bottleneck features), and the edit is fitted again training the bottleneck layer
+too (:data:`WIDENED`), kept if it bleeds less.  On the quickstart's model (sixty-third session,
+docs/benchmarks.md) recolours of parts unlike their neighbours bled 0.000–0.002; a seat whose
+back rail has its brown 0.052 (0.021 widened), yellow legs beside teal rails 0.034 (0.021)."""
+WIDENED = (FEATURES,)
+"""What a recolour that bled trains besides F_rad and the colour code (:data:`BLEED_LIMIT`)."""
 POINTS_PER_RAY = 0.5
 """Recolour: 3-D target points in S per supervision ray (twice as many outside S).  At 0.25
 (before 2026-11-26) the recolours closed 0.900 / 0.900 / 0.867 / 0.834 of the gap on the four
@@ -328,16 +340,29 @@ class PointTargets:
         d = torch.randn(self.pts.shape[0], 3, generator=generator).to(self.pts.device)
         self.dirs = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         self.edit = edit
-        self.upstream = any(not (name.startswith("F_rad.") or name == "color_codes") for name in edit.params)
+        self.upstream = any(not (name.startswith(("F_rad.", FEATURES)) or name == "color_codes") for name in edit.params)
+        features_train = any(name.startswith(FEATURES) for name in edit.params)
         cell = occupancy.step_size(field.aabb, grid.shape[-1], 1.0)
         with torch.no_grad():
             shape_code, _, idx = field.select(k)
-            raw, feat = field.density_and_features(self.pts, shape_code, idx)  # one pass for both
+            fused = field.fuse_activations(field.fuse_inputs(self.pts, shape_code, idx))  # one pass for both
+            raw, feat = field.raw_density(fused), field.bottleneck(fused)
             self.inputs = field.F_rad.inputs(feat, self.dirs)  # constant unless upstream modules train
+            self.fused = fused if features_train else None  # the trained bottleneck runs on it
             rgb0 = self.rgb()
             alpha = 1.0 - torch.exp(-field.sigma(raw) * cell)
             self.target = recolor.toward(rgb0, selection_share(sel, grid, self.pts, inside), mixed_at(sel, grid, self.pts))
             self.w = (alpha / alpha.sum().clamp_min(1e-12))[:, None]
+            self.start = rgb0
+            index = torch.zeros(self.pts.shape[0], dtype=torch.long, device=self.pts.device)
+            self.held = ~occupancy.lookup(occupancy.dilate(sel, 1)[None], index, self.pts)
+
+    def rad_inputs(self) -> Tensor:
+        """F_rad's inputs [n, 8 + D] at the points now (no module upstream of the bottleneck trains)."""
+        if self.fused is None:
+            return self.inputs
+        field = self.edit.field
+        return torch.cat([field.bottleneck(self.fused), self.inputs[:, field.cfg.bottleneck:]], dim=-1)
 
     def rgb(self) -> Tensor:
         """The edited field's colour [n, 3] at the points, from their directions."""
@@ -345,10 +370,21 @@ class PointTargets:
         if self.upstream:
             return field.radiance(field.features(self.pts, k), self.dirs, k)
         _, code, idx = field.select(k)
-        return field.F_rad(self.inputs, code, idx)
+        return field.F_rad(self.rad_inputs(), code, idx)
 
     def loss(self) -> Tensor:
         return (self.w * (self.rgb() - self.target) ** 2).sum()
+
+    @torch.no_grad()
+    def bleed(self) -> float:
+        """The opacity-weighted share of the held points (outside S, more than a cell from it)
+        whose colour now differs from the teacher's by more than :data:`BLEED_CHANGE`."""
+        held = self.held
+        if not bool(held.any()):
+            return 0.0
+        moved = (self.rgb()[held] - self.start[held]).abs().amax(dim=-1) > BLEED_CHANGE
+        w = self.w[held, 0]
+        return float((w * moved).sum() / w.sum().clamp_min(1e-12))
 
 
 class RecolorTarget:
@@ -407,11 +443,29 @@ def recolor_selected(
     scribbled pixels (rendered colours ``scribbled_rgb`` [n, 3]) were."""
     started = time.perf_counter()
     selection.check_for(model, k)
+    recolor = RecolorTarget(appear, scribbled_rgb.to(model.device), options.recolor)
+    edit, final, hyper, bleed = _fit_recolor(model, k, selection, cameras, recolor, options)
+    widened = None
+    if options.strategy == "hybrid" and bleed > BLEED_LIMIT:
+        wide = _fit_recolor(model, k, selection, cameras, recolor, options, WIDENED)
+        widened = {"modules": [m.rstrip(".") for m in WIDENED], "bleed": round(wide[3], 4), "kept": wide[3] < bleed}
+        if widened["kept"]:
+            edit, final, hyper, _ = wide
+    hyper.update(appear=[float(c) for c in appear], bleed=round(bleed, 4), **({"widened": widened} if widened else {}))
+    return finish(edit, "color", options, hyper, final, started)
+
+
+def _fit_recolor(
+    model: CategoryModel, k: int, selection: Selection, cameras: Sequence[Camera], recolor: RecolorTarget,
+    options: EditOptions, extra: tuple[str, ...] = (),
+) -> tuple[InstanceEdit, float, dict, float]:
+    """One fit of :func:`recolor_selected` training the strategy's modules and ``extra``:
+    (the edit, its final loss, its hyper-parameters, :meth:`PointTargets.bleed` after it).
+    Every fit draws the same rays and points (the generator is seeded afresh)."""
     generator = torch.Generator().manual_seed(options.seed)
-    edit = InstanceEdit(model, k, "color", options.strategy, options.penalty)
+    edit = InstanceEdit(model, k, "color", options.strategy, options.penalty, extra)
     device = model.device
     sel = selection.mask.to(device)
-    recolor = RecolorTarget(appear, scribbled_rgb.to(device), options.recolor)
     rays = supervision_rays(cameras, max(8, options.rays // (len(TURNS) * len(cameras))), generator, device)
     (p,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=options.cache)
     radiance = p.stage == "radiance"
@@ -440,12 +494,14 @@ def recolor_selected(
         # One F_rad pass for the views' kept samples and the 3-D points, and the pixel error as
         # the weighted sum of its samples' errors (pixel − target_px = Σ w₀ (c − target), the
         # constant part cancels): the same loss as below in a third of the small CPU ops.
-        inputs, m = torch.cat([p.per_point, points.inputs]), p.per_point.shape[0]
+        m = p.per_point.shape[0]
         target_all, w_all = torch.cat([target_s, points.target]), torch.cat([w, points.w])
         w_px = p.w[:, None]
+        fixed = torch.cat([p.per_point, points.inputs]) if p.fused is None else None
 
         def loss_fn():
             _, code = edit.field.codes(k)
+            inputs = fixed if fixed is not None else torch.cat([p.rad_inputs(p.net), points.rad_inputs()])
             err = p.net.F_rad(inputs, code) - target_all
             pixel_err = torch.zeros_like(pixel0).index_add(0, p.ray, w_px * err[:m])
             return (w_all * err**2).sum() + (pixel_err**2).mean()
@@ -458,11 +514,11 @@ def recolor_selected(
 
     final = optimize(edit, loss_fn, options, "colour edit")
     hyper = {
-        "method": "selection", "rays": int(rays.origins.shape[0]), "appear": [float(c) for c in appear],
+        "method": "selection", "rays": int(rays.origins.shape[0]),
         "recolor_rule": recolor.rule, "unlike": recolor.unlike, "ratio": [round(float(r), 4) for r in recolor.appear / recolor.mean],
         "selected_samples": round(float(share.sum()), 1), "cached_samples": p.n_cached, "stage": p.stage, "cameras": [camera_meta(c) for c in cameras],
     }
-    return finish(edit, "color", options, hyper, final, started)
+    return edit, final, hyper, points.bleed()
 
 
 def paste_translation(field, selection_mask: Tensor, camera: Camera, offset: tuple[int, int]) -> Tensor:
