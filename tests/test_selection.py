@@ -1105,8 +1105,14 @@ def test_scribble_on_the_background_only_is_refused(trained):
     _, model, category = trained
     view, fg, keep, _ = part_view(category, 1, "back")
     background = view.alpha < 0.01
+    scribble = background & erode(background, 2)
     with pytest.raises(CrfError, match="background only"):
-        select(model, 1, [ScribbleView(view.camera, background & erode(background, 2), None)])
+        select(model, 1, [ScribbleView(view.camera, scribble, None)])
+    for method in ("selection", "paper"):  # the paper's losses would fit the background and change nothing
+        with pytest.raises(CrfError, match="background only"):
+            edit_color(model, 1, view.camera, scribble, (0.9, 0.1, 0.1), None, EditOptions(steps=2), method=method)
+        with pytest.raises(CrfError, match="background only"):
+            remove(model, 1, view.camera, scribble, None, options=EditOptions(steps=2), method=method)
 
 
 def test_select_command_and_its_errors(trained, tmp_path):

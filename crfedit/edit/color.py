@@ -27,7 +27,7 @@ from ..renderer import render_rays
 from .cache import edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays, since
 from .losses import mse
-from .scribble import as_rgb, check_masks, pick_pixels
+from .scribble import as_rgb, check_masks, pick_pixels, require_on_object
 from .selection import MIN_OPACITY, Selection, select_for
 from .supervised import recolor_selected
 
@@ -67,7 +67,9 @@ def edit_color(
     rays = select_rays(camera, torch.cat([fg, bg]), model.device)
     (render,) = edit_passes(edit.field, rays, k, list(edit.params), density_changes=False, cache=options.cache)
     with torch.no_grad():
-        target = render.forward().rgb.clone()
+        out = render.forward()
+        require_on_object(int((out.opacity[: fg.numel()] >= MIN_OPACITY).sum()))
+        target = out.rgb.clone()
     target[: fg.numel()] = torch.tensor(rgb, dtype=target.dtype, device=target.device)
 
     def loss_fn():
@@ -102,6 +104,5 @@ def scribbled_colours(field, k: int, camera: Camera, scribble: np.ndarray) -> to
     pixels = torch.from_numpy(np.flatnonzero(scribble))
     out = render_rays(field, select_rays(camera, pixels, field.aabb.device), k, background=0.0, early_stop=field.cfg.early_stop)
     on = out.opacity >= MIN_OPACITY
-    if not bool(on.any()):
-        raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
+    require_on_object(int(on.sum()))
     return (out.rgb[on] / out.opacity[on, None]).clamp(0.0, 1.0).cpu()

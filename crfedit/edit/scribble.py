@@ -18,6 +18,13 @@ from ..errors import CrfError
 from ..io import read_image, read_json
 from ..masks import as_mask, strokes_mask
 
+
+def require_on_object(covered: int) -> None:
+    """One-line error when no scribbled pixel covers the object (``covered``: how many do, their
+    rendered opacity at least the selection's MIN_OPACITY), whichever method edits."""
+    if covered == 0:
+        raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
+
 def _css_colors() -> dict[str, str]:
     """The CSS named colours (all 148, as Pillow's ``ImageColor`` holds them) → ``#rrggbb``."""
     from PIL import ImageColor

@@ -57,8 +57,8 @@ from .cache import EditPass, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize, select_rays, since
 from .losses import density_cross_entropy, density_entropy, log_density_drift, mse, visible_log_density
 from .params import used_code_tables
-from .scribble import check_masks, pick_pixels
-from .selection import Selection, select_for
+from .scribble import check_masks, pick_pixels, require_on_object
+from .selection import MIN_OPACITY, Selection, select_for
 from .supervised import add_selected, remove_selected
 from .transfer import swap_codes
 
@@ -131,6 +131,7 @@ def remove(
     with torch.no_grad():
         for p in passes:
             out = p.forward()
+            require_on_object(int((out.opacity[:n_fg] >= MIN_OPACITY).sum()))
             rgb, alpha, seen = out.rgb.clone(), out.opacity.clone(), out.weights.clone()
             push = out.sigmas[:n_fg] > 0
             if occluded:

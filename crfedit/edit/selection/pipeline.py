@@ -15,6 +15,7 @@ from ... import occupancy
 from ...errors import CrfError
 from ...model import CategoryModel
 from ...names import MIRROR_MODES
+from ..scribble import require_on_object
 from ...parts import labelled_names
 from ...masks import dilate, erode
 from ...renderer import RenderOutput, render_camera
@@ -272,8 +273,7 @@ def select(
         views, dropped, dropped_keep = _stroke_centres(views, on_object)
         centre_meta = {"edge_points": dropped, "keep_edge_points": dropped_keep}
     pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
-    if pos_pts.shape[0] == 0:
-        raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
+    require_on_object(pos_pts.shape[0])
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
     if points is None or not points.fits(cells, options.cell_ascent):
         points = cell_points(field, k, options.cell_ascent)
