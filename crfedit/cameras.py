@@ -90,8 +90,12 @@ def c2w_problem(value) -> tuple[np.ndarray | None, str | None]:
 
 
 def focal_from_angle(camera_angle_x: float, width: int) -> float:
-    """``f = 0.5 W / tan(0.5 camera_angle_x)``."""
-    return 0.5 * width / math.tan(0.5 * camera_angle_x)
+    """``f = 0.5 W / tan(0.5 camera_angle_x)``; an angle so small that f overflows (5e-324) is
+    a one-line error."""
+    tangent = math.tan(0.5 * camera_angle_x)
+    if not tangent > 0 or not math.isfinite(0.5 * width / tangent):
+        raise CrfError(f"camera_angle_x {camera_angle_x!r}: no finite focal length (a field of view of 0)")
+    return 0.5 * width / tangent
 
 
 class Rays(NamedTuple):

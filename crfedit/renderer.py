@@ -312,6 +312,23 @@ def _render_hierarchical(field, rays, instance, generator, background, density_n
     return RenderOutput(fine.rgb, fine.depth, fine.opacity, m_c + m_f, coarse.rgb)
 
 
+MAX_CAMERA_REACH = 1e4
+"""A camera farther than this many scene-box diagonals from the box's centre is refused: float32
+distances along its rays are spaced more coarsely than a fraction of a sample step there (at
+10⁶ diagonals every sample collapses onto the last and the view renders blank)."""
+
+
+def camera_far_problem(camera: Camera, aabb: Tensor) -> str | None:
+    """What is wrong with ``camera``'s distance from the scene box ``aabb`` [6] (None if nothing)."""
+    lo, hi = (aabb.detach().cpu().tolist()[i : i + 3] for i in (0, 3))
+    diagonal = math.dist(lo, hi)
+    distance = math.dist([float(x) for x in camera.center], [0.5 * (a + b) for a, b in zip(lo, hi)])
+    if distance > MAX_CAMERA_REACH * diagonal:
+        return (f"it lies {distance / diagonal:.3g} scene-box diagonals from the scene (at most {MAX_CAMERA_REACH:g}: "
+                "float32 samples cannot resolve the scene from there); move it closer, a longer focal keeps the framing")
+    return None
+
+
 @torch.no_grad()
 def render_camera(
     field: ConditionalRadianceField, camera: Camera, instance: int, chunk: int = 16384, background: float = 1.0,
@@ -332,6 +349,9 @@ def render_camera(
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise CrfError(f"render: chunk {chunk!r} must be a whole number of rays, at least 1")
     device = field.aabb.device
+    far = camera_far_problem(camera, field.aabb)
+    if far:
+        raise CrfError(f"camera: {far}")
     rays = rays_from_camera(camera, device)
     outs = [
         render_rays(

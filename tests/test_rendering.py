@@ -14,6 +14,7 @@ import torch
 
 from crfedit.cameras import Camera, Rays, look_at, rays_from_camera
 from crfedit.config import PRESETS, Config
+from crfedit.errors import CrfError
 from crfedit.field import ConditionalRadianceField
 from crfedit.renderer import render_camera, render_rays
 from crfedit.rendering import (
@@ -211,6 +212,14 @@ def test_ray_aabb_grazing_counts_as_miss():
     # along a face (x = 1) and through an edge point only: zero-length overlap is a miss, without NaN
     assert intersect((1.0, 0.0, -3.0), (0.0, 0.0, 1.0)) == (0.0, 0.0, False)
     assert intersect((-2.0, 0.0, 0.0), (1.0, 1.0, 0.0)) == (0.0, 0.0, False)  # touches the edge x=-1, y=1
+
+
+def test_ray_aabb_a_ray_without_a_direction_misses():
+    """A zero (or NaN) direction inside the box reached 1e12 and was marched for ever."""
+    o = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, -3.0]])
+    d = torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0], [0.0, 0.0, 1.0]])
+    near, far, hit = ray_aabb_intersect(o, d, BOX)
+    assert hit.tolist() == [False, False, True] and near.tolist() == [0.0, 0.0, 2.0] and far.tolist() == [0.0, 0.0, 4.0]
 
 
 def test_ray_aabb_entry_and_exit_points_lie_on_the_box():
@@ -570,6 +579,25 @@ def test_render_without_colour_has_the_same_depth_and_opacity_bits():
     assert torch.equal(bare.depth, full.depth) and torch.equal(bare.opacity, full.opacity)
     assert torch.equal(bare.rgb, (1.0 - bare.opacity)[..., None].expand(-1, -1, 3) * 0.25)  # the background alone
     assert not torch.equal(bare.rgb, full.rgb)
+
+
+def test_a_camera_too_far_for_float32_samples_is_refused():
+    """At 10⁶ box diagonals every float32 sample distance collapsed onto one and the view came
+    out blank; up to MAX_CAMERA_REACH diagonals (a longer focal keeping the framing) it renders."""
+    from crfedit.cameras import focal_from_angle
+    from crfedit.renderer import MAX_CAMERA_REACH
+
+    field = small_field()
+    diagonal = float((field.aabb[3:] - field.aabb[:3]).norm())
+    for reach, ok in ((0.5 * MAX_CAMERA_REACH, True), (2 * MAX_CAMERA_REACH, False)):
+        cam = Camera(look_at((0.0, -reach * diagonal, 0.0)), CAM.focal * reach, CAM.width, CAM.height)
+        if ok:
+            assert render_camera(field, cam, 0).rgb.isfinite().all()
+        else:
+            with pytest.raises(CrfError, match="scene-box diagonals from the scene"):
+                render_camera(field, cam, 0)
+    with pytest.raises(CrfError, match="camera_angle_x 5e-324: no finite focal length"):
+        focal_from_angle(5e-324, 64)
 
 
 def test_render_camera_shapes():
