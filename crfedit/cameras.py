@@ -42,7 +42,7 @@ class Camera:
         for name, side in (("width", width), ("height", height), ("this camera's width", self.width)):
             if side is not None and (isinstance(side, bool) or not isinstance(side, (int, np.integer)) or side < 1):
                 raise CrfError(f"camera: {name} {side!r} must be a whole number of pixels, at least 1")
-        height = height if height is not None else round(self.height * width / self.width)
+        height = height if height is not None else max(1, round(self.height * width / self.width))
         return replace(self, focal=self.focal * width / self.width, width=width, height=height)
 
 

@@ -121,6 +121,7 @@ def test_camera_resized_scales_focal_and_keeps_the_field_of_view():
     np.testing.assert_array_equal(half.c2w, cam.c2w)
     other = cam.resized(64, 32)
     assert (other.focal, other.width, other.height) == (32.0, 64, 32)
+    assert Camera(cam.c2w, 50.0, 96, 48).resized(1).height == 1  # --res 1 of a wide view: one pixel, not 0
 
 
 def test_focal_from_angle_round_trips_camera_angle_x():

@@ -316,6 +316,10 @@ def test_render_with_swapped_codes_differs(model_path, tmp_path):
     assert result.exit_code == 0, result.output
     assert (plain / "0000.png").read_bytes() != (swapped / "0000.png").read_bytes()
     assert_user_error(invoke("render", model_path, "--instance", 0, "--views", "test", "--out", swapped, "--shape-from", "nope"), "nope")
+    own = tmp_path / "own"  # the instance's own codes: the plain render, not a transfer's error
+    result = invoke("render", model_path, "--instance", 0, "--views", "test", "--out", own, "--shape-from", 0, "--color-from", "chair_000")
+    assert result.exit_code == 0, result.output
+    assert (own / "0000.png").read_bytes() == (plain / "0000.png").read_bytes()
 
 
 def test_render_with_missing_edit_file(model_path, tmp_path):

@@ -50,14 +50,12 @@ def render_cmd(
         deltas = [read_delta(p) for p in edit]
         m = apply_deltas(m, deltas)
     k = m.instance_index(instance)
+    # an instance's own code is what it renders with already: nothing to swap in
+    shape_from, color_from = (None if j is None or m.instance_index(j) == k else m.instance_index(j) for j in (shape_from, color_from))
     if shape_from is not None or color_from is not None:
         from ..edit.transfer import swap_codes
 
-        m = swap_codes(
-            m, k,
-            shape_from=None if shape_from is None else m.instance_index(shape_from),
-            color_from=None if color_from is None else m.instance_index(color_from),
-        )
+        m = swap_codes(m, k, shape_from=shape_from, color_from=color_from)
     with process_group(ranks, dev):
         result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks)
     if not ranks.main:
