@@ -107,6 +107,44 @@ def vertex_colors(field, instance: int, points: torch.Tensor, normals: torch.Ten
     return torch.cat(out) if out else torch.zeros(0, 3)
 
 
+MIN_PIECE = 0.005
+"""``export mesh --min-piece``: pieces (connected components) with fewer faces than this share of
+the largest piece's are dropped.  A tester's quickstart chair at --res 128: the chair 98 472
+faces and 55 floaters of 8–172 (≤ 0.17 %), which also widened the reported extent."""
+
+
+def face_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """[F] the connected component of each face (faces sharing a vertex are connected), labelled
+    by the smallest vertex index in it: label propagation with pointer jumping."""
+    label = np.arange(n_vertices)
+    while True:
+        low = label[faces].min(axis=1)  # [F] the smallest label a face's vertices carry
+        new = label.copy()
+        for corner in range(3):
+            np.minimum.at(new, faces[:, corner], low)
+        new = new[new]  # pointer jumping: follow labels to their labels' labels
+        if np.array_equal(new, label):
+            return label[faces[:, 0]]
+        label = new
+
+
+def drop_small_pieces(mesh: Mesh, share: float) -> tuple[Mesh, int]:
+    """(``mesh`` without the pieces of fewer faces than ``share`` × the largest piece's, the
+    number of pieces dropped); vertices no face uses go too."""
+    if share <= 0 or len(mesh.faces) == 0:
+        return mesh, 0
+    piece = face_components(mesh.faces, len(mesh.vertices))
+    names, sizes = np.unique(piece, return_counts=True)
+    small = names[sizes < share * sizes.max()]
+    if small.size == 0:
+        return mesh, 0
+    faces = mesh.faces[~np.isin(piece, small)]
+    used = np.unique(faces)
+    index = np.full(len(mesh.vertices), -1, dtype=np.int64)
+    index[used] = np.arange(used.size)
+    return Mesh(mesh.vertices[used], index[faces], mesh.colors[used], mesh.level), int(small.size)
+
+
 def extract_mesh(model: CategoryModel, instance: int, res: int = 256, level: float | None = None) -> Mesh:
     """The ``level`` set of σ of ``instance`` (edits included) on a ``res``³ lattice, coloured."""
     if not 8 <= res <= 1024:

@@ -104,3 +104,26 @@ def test_glb_is_y_up_and_the_other_formats_keep_z_up(model_path, tmp_path):
     turned = np.stack([ply.vertices[:, 0], ply.vertices[:, 2], -ply.vertices[:, 1]], axis=1)
     assert np.allclose(glb.vertices, turned, atol=1e-6) and np.array_equal(glb.faces, ply.faces)
     assert np.allclose(glb.volume, ply.volume, rtol=1e-5) and glb.volume > 0  # a rotation: the winding still faces out
+
+
+def test_floaters_are_dropped_by_their_share_of_the_largest_piece():
+    """Two pieces joined through a shared vertex count as one; a lone triangle far from them is a
+    floater below a share of 0.5 of the largest piece's faces and stays at 0."""
+    from crfedit.export import Mesh, drop_small_pieces, face_components
+
+    tet = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
+    faces = np.concatenate([tet, tet + 3, [[7, 8, 9]]])  # the second tetrahedron shares vertex 3
+    vertices = np.random.default_rng(0).random((10, 3)).astype(np.float32)
+    assert face_components(faces, 10).tolist() == [0] * 8 + [7]
+    mesh = Mesh(vertices, faces, vertices.copy(), 1.0)
+    kept, dropped = drop_small_pieces(mesh, 0.5)
+    assert dropped == 1 and kept.faces.tolist() == (np.concatenate([tet, tet + 3])).tolist()
+    np.testing.assert_array_equal(kept.vertices, vertices[:7])
+    assert drop_small_pieces(mesh, 0.0) == (mesh, 0) and drop_small_pieces(mesh, 0.1)[1] == 0
+    long_chain = np.array([[i, i + 1, i + 2] for i in range(300)])  # labels reach along a long strip
+    assert set(face_components(long_chain[::-1], 302).tolist()) == {0}
+
+
+def test_export_mesh_min_piece_is_checked(model_path, tmp_path):
+    assert_user_error(invoke("export", "mesh", model_path, "--instance", 0, "--out", tmp_path / "m.ply", "--min-piece", 1.5), "--min-piece 1.5")
+    assert not (tmp_path / "m.ply").exists()

@@ -7,6 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from ..errors import CrfError
 from ..io import check_replaceable
 from .common import DeviceChoice, DeviceOpt, app, user_errors
 
@@ -23,15 +24,18 @@ def mesh_cmd(
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", metavar="EDIT", help="Apply this edit file first (repeatable, in order).")] = None,
     res: Annotated[int, typer.Option("--res", help="Marching-cubes lattice points per side of the scene box.")] = 256,
     level: Annotated[Optional[float], typer.Option("--level", help="Density σ of the surface (default: ln 2 / render step, where one step is half opaque).")] = None,
+    min_piece: Annotated[float, typer.Option("--min-piece", metavar="SHARE", help="Drop pieces (connected components) with fewer faces than this share of the largest piece's: floaters (0 keeps every piece).")] = 0.005,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Extract the density level set by marching cubes over the occupied cells, with vertex
     colours from the radiance seen along each vertex normal (like nerfstudio's ns-export)."""
-    from ..export import MESH_SUFFIXES, extract_mesh, write_mesh
+    from ..export import MESH_SUFFIXES, drop_small_pieces, extract_mesh, write_mesh
     from ..model import load_model
     from ..runtime import resolve_device
 
     check_replaceable(out, "--out", MESH_SUFFIXES)
+    if not 0 <= min_piece < 1:
+        raise CrfError(f"--min-piece {min_piece:g}: expected a share of the largest piece's faces from 0 (keep every piece) to below 1")
     m, _ = load_model(model, resolve_device(device))
     if edit:
         from ..delta import apply_edit_files
@@ -40,10 +44,12 @@ def mesh_cmd(
     k = m.instance_index(instance)
     if edit and k not in m.overrides:  # as render says it: likely a slip
         typer.echo(f"note: the --edit files edit other instances than {m.names[k]}: they leave this mesh unchanged", err=True)
-    mesh = extract_mesh(m, k, res, level)
+    mesh, dropped = drop_small_pieces(extract_mesh(m, k, res, level), min_piece)
     write_mesh(mesh, out)
     lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
     typer.echo(
         f"wrote {out}: {m.names[k]}, {len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces at σ = {mesh.level:.4g}, "
         f"extent [{', '.join(f'{x:.3f}' for x in lo)}] .. [{', '.join(f'{x:.3f}' for x in hi)}]"
+        + (f"; dropped {dropped} floater{'s' if dropped != 1 else ''} (pieces under {min_piece:g} of the largest's faces; --min-piece 0 keeps them)"
+           if dropped else "")
     )
