@@ -350,8 +350,12 @@ def train_cmd(
             model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value, given)
     if not ranks.main:
         return
-    score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
-    typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
+    split = held_out_split(category, "val")
+    if any(inst.splits.get(split) for inst in category.instances):
+        score = score_model(model, category, split, max_views=model.cfg.eval_views)
+        typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
+    else:
+        typer.echo(f"note: no held-out score: {data} has no val or test views", err=True)
     rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)
     psnr = f"train PSNR {result.train_psnr:.2f} dB" if math.isfinite(result.train_psnr) else "no step run in this call"
     typer.echo(
