@@ -123,6 +123,19 @@ def visual_hulls(category: Category, aabb: torch.Tensor, res: int, margin: int =
     ])
 
 
+def check_hulls(category: Category, hulls: torch.Tensor) -> None:
+    """A one-line error naming the first instance whose training silhouettes carve nothing
+    (``hulls`` [K, R, R, R]): a model of it would train blank."""
+    for inst, hull in zip(category.instances, hulls):
+        if hull.any():
+            continue
+        if not any(v.alpha.any() for v in inst.splits["train"]):
+            raise CrfError(f"{inst.path}: instance {inst.name}: every training view's alpha (or mask) is 0, so there is no object to train")
+        raise CrfError(f"{inst.path}: instance {inst.name}: its training silhouettes carve an empty visual hull (no point projects onto the "
+                       "object in every view); poses must use OpenGL/NeRF camera axes (the camera looks down -Z, +Y up): "
+                       "flip the Y and Z axes of OpenCV/COLMAP poses")
+
+
 def learning_rate(cfg: Config, base: float, step: int, progress: float | None = None) -> float:
     """Cosine decay from ``base`` to ``base·lr_final``; ``progress`` in [0, 1] overrides step/steps."""
     p = min(1.0, step / cfg.steps) if progress is None else min(1.0, progress)
@@ -367,10 +380,12 @@ def train(
     else:
         cfg = part_config(category, cfg)
         aabb = scene_box(category)
+        carved = visual_hulls(category, aabb, cfg.occ_res, max(cfg.hull_margin, 0))  # whatever the sampler: an empty hull stops here
+        check_hulls(category, carved)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)  # the initial weights depend on the seed alone
             field = ConditionalRadianceField(cfg, len(category.instances), aabb).to(device)
-        hulls = visual_hulls(category, aabb, cfg.occ_res, cfg.hull_margin).to(device) if cfg.sampler == "grid" else None
+        hulls = (carved if cfg.hull_margin >= 0 else visual_hulls(category, aabb, cfg.occ_res, -1)).to(device) if cfg.sampler == "grid" else None
         if hulls is not None:
             field.occupancy.copy_(hulls)
         ema = torch.zeros(len(category.instances), cfg.occ_res**3, device=device)

@@ -14,7 +14,7 @@ from PIL import Image
 from crfedit.data import load_category
 from crfedit.errors import DataError
 
-from cli_helpers import invoke
+from cli_helpers import assert_user_error, invoke
 
 
 def to_nerfstudio(instance_dir, out, with_mask: bool = False, listed: bool = False):
@@ -82,3 +82,21 @@ def test_unsupported_cameras_are_refused(tiny_chairs, tmp_path):
         (tmp_path / "s" / "transforms.json").write_text(json.dumps({**doc, **change}))
         with pytest.raises(DataError, match=fragment):
             load_category(tmp_path / "s")
+
+
+def test_an_empty_visual_hull_is_refused_before_training(tiny_chairs, tmp_path):
+    to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "opencv")
+    doc = json.loads((tmp_path / "opencv" / "transforms.json").read_text())
+    for f in doc["frames"]:  # OpenCV/COLMAP axes: Y down, Z forward
+        f["transform_matrix"] = (np.array(f["transform_matrix"]) * [1, -1, -1, 1]).tolist()
+    (tmp_path / "opencv" / "transforms.json").write_text(json.dumps(doc))
+    to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "clear")
+    for png in (tmp_path / "clear" / "images").iterdir():
+        rgba = np.asarray(Image.open(png)).copy()
+        rgba[..., 3] = 0
+        Image.fromarray(rgba).save(png)
+    for scene, fragment in (("opencv", "flip the Y and Z axes"), ("clear", "alpha (or mask) is 0")):
+        out = tmp_path / f"{scene}.safetensors"
+        r = invoke("train", tmp_path / scene, "--out", out, "--steps", 2, "--set", "rays=64", "--device", "cpu")
+        assert_user_error(r, f"instance {scene}:", fragment)
+        assert not out.exists()
