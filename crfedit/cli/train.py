@@ -199,6 +199,7 @@ def run_training(
             result = train(
                 category, cfg, out, device, seed=seed, minutes=minutes, resume=resume,
                 on_step=on_step, extra_meta={"command": command_line()}, ranks=ranks, **options,
+                on_note=lambda text: progress.bar.console.print(f"warning: {text}", highlight=False, soft_wrap=True, markup=False),
             )
             finished = True
             log.end()
