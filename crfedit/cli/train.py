@@ -15,7 +15,7 @@ from ..io import check_folder_target, writer_lock
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from ..names import MODEL_FORMAT
-from .common import printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, user_errors
+from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, user_errors
 
 
 PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
@@ -336,6 +336,8 @@ def train_cmd(
         # the data and the run checked before the ranks join: a problem every rank finds is rank 0's one line
         labels = (stored.cfg if resume else cfg).part_dim > 0  # F_part trains from part maps and depth
         category = load_category(data, res=res, with_depth=labels, with_parts=labels)
+        if ranks.main:
+            echo_notes(category)
         if resume and stored.dataset != category.fingerprint:  # before any record, bar or set-up
             raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {stored.dataset})")
         if resume and finished:  # rewriting it would only replace its records
