@@ -178,6 +178,9 @@ def score_model(
         raise CrfError(f"--max-views {max_views}: must be at least 1")
     if instances is None:
         indices = [k for k, name in enumerate(model.names) if name in category.names]
+        if not indices:
+            shown = ", ".join(model.names[:4]) + (", …" if len(model.names) > 4 else "")
+            raise CrfError(f"none of the model's instances ({shown}) is in {category.root}")
     else:
         indices = list(instances)
         missing = [model.names[k] for k in indices if model.names[k] not in category.names]
@@ -203,7 +206,9 @@ def score_model(
         per_instance = {name: scored[name] for name in model.names if name in scored}
         note = next((n for part, n in parts if part), note)
     if not per_instance:
-        raise CrfError(f"{category.root}: none of the model's instances has {split} views in this dataset")
+        has = sorted({s for k in indices for s, views in category.instance(model.names[k]).splits.items() if views})
+        raise CrfError(f"{category.root}: none of the model's instances has {split} views in this dataset"
+                       + (f" (only {', '.join(has)})" if has else ""))
     rows = list(per_instance.values())
     n = np.array([r["n"] for r in rows], dtype=np.float64)
 

@@ -85,17 +85,57 @@ def check_trainable(category: Category, world: int, rays: int) -> None:
                        f"rays={rays}); launch at most {min(rays, instances)}")
 
 
-def scene_box(category: Category, res: int = 48, views_per_instance: int = 40) -> torch.Tensor:
+def scene_box(category: Category, res: int = 48, views_per_instance: int = 40,
+              on_note: Callable[[str], None] | None = None) -> torch.Tensor:
     """The world box [6] around every instance's visual hull, carved inside a cube of half the
-    nearest camera distance (which contains the object in object-centric captures)."""
+    nearest camera distance (which contains the object in object-centric captures).  A hull that
+    reaches the cube's faces (or is empty) may be cut off: the cube is carved again around the
+    point the cameras look at (their axes' least-squares meeting point) when that lies off the
+    origin, and kept if its hull stays inside; otherwise ``on_note`` gets a warning."""
     views = [v for inst in category.instances for v in inst.splits["train"][:views_per_instance]]
+    centers = np.stack([v.camera.center for v in views]).astype(np.float64)
     radius = min(float((v.camera.center**2).sum() ** 0.5) for v in views)
     cube = torch.tensor([-0.5, -0.5, -0.5, 0.5, 0.5, 0.5]) * radius
+    union = _hull_union(category, cube, res, views_per_instance)
+    if union.any() and not _touches_faces(union):
+        return occupancy.occupied_box(union, cube, margin_cells=2)
+    target = look_at_point(views)
+    if target is not None and np.linalg.norm(target) > 0.1 * radius:
+        half = 0.5 * float(np.linalg.norm(centers - target, axis=1).min())
+        moved = torch.tensor(np.concatenate([target - half, target + half]), dtype=torch.float32)
+        moved_union = _hull_union(category, moved, res, views_per_instance)
+        if moved_union.any() and not _touches_faces(moved_union):
+            return occupancy.occupied_box(moved_union, moved, margin_cells=2)
+    if on_note is not None and union.any():  # an empty one is check_hulls' error
+        on_note(f"{category.root}: the silhouettes' visual hull reaches the faces of the scene box (a cube around the origin, "
+                "half the nearest camera's distance across): the object may extend beyond it and be cut off; "
+                "centre the poses on the object (or give more views, which carve the hull tighter)")
+    return occupancy.occupied_box(union, cube, margin_cells=2)
+
+
+def _hull_union(category: Category, cube: torch.Tensor, res: int, views_per_instance: int) -> torch.Tensor:
     union = torch.zeros((res,) * 3, dtype=torch.bool)
     for inst in category.instances:
         vs = inst.splits["train"][:views_per_instance]
         union |= occupancy.carve_visual_hull([v.camera for v in vs], [v.alpha > 0 for v in vs], cube, res, margin=0)
-    return occupancy.occupied_box(union, cube, margin_cells=2)
+    return union
+
+
+def _touches_faces(grid: torch.Tensor) -> bool:
+    return any(bool(grid.select(axis, i).any()) for axis in range(3) for i in (0, -1))
+
+
+def look_at_point(views) -> np.ndarray | None:
+    """The point nearest every camera's optical axis (least squares); None when the axes are
+    (nearly) parallel."""
+    a, b = np.zeros((3, 3)), np.zeros(3)
+    for v in views:
+        d = -np.asarray(v.camera.c2w, np.float64)[:3, 2]
+        d /= np.linalg.norm(d)
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ np.asarray(v.camera.center, np.float64)
+    return np.linalg.solve(a, b) if np.linalg.cond(a) < 1e6 else None
 
 
 def silhouette(alpha: np.ndarray, grow: int = 1) -> np.ndarray:
@@ -121,6 +161,19 @@ def visual_hulls(category: Category, aabb: torch.Tensor, res: int, margin: int =
         )
         for inst in category.instances
     ])
+
+
+def check_hulls(category: Category, hulls: torch.Tensor) -> None:
+    """A one-line error naming the first instance whose training silhouettes carve nothing
+    (``hulls`` [K, R, R, R]): a model of it would train blank."""
+    for inst, hull in zip(category.instances, hulls):
+        if hull.any():
+            continue
+        if not any(v.alpha.any() for v in inst.splits["train"]):
+            raise CrfError(f"{inst.path}: instance {inst.name}: every training view's alpha (or mask) is 0, so there is no object to train")
+        raise CrfError(f"{inst.path}: instance {inst.name}: its training silhouettes carve an empty visual hull (no point projects onto the "
+                       "object in every view); poses must use OpenGL/NeRF camera axes (the camera looks down -Z, +Y up): "
+                       "flip the Y and Z axes of OpenCV/COLMAP poses")
 
 
 def learning_rate(cfg: Config, base: float, step: int, progress: float | None = None) -> float:
@@ -319,6 +372,7 @@ def train(
     read_every: int = READ_EVERY,
     compile: bool = False,
     fixed_shapes: bool | None = None,
+    on_note: Callable[[str], None] | None = None,
 ) -> tuple[CategoryModel, TrainResult]:
     """Train (or, with ``resume``, continue training) a model of ``category`` and write it to ``out``.
 
@@ -331,7 +385,8 @@ def train(
 
     ``fixed_shapes`` marches with fixed-capacity buffers (:class:`~crfedit.renderer.FixedMarch`:
     no host read inside a step); None chooses them everywhere but on a CPU.  ``compile`` runs
-    the fixed-shape march's networks through ``torch.compile``.
+    the fixed-shape march's networks through ``torch.compile``.  ``on_note`` gets the scene box's
+    warning (:func:`scene_box`), if any.
 
     ``ranks`` places this process in a torchrun job: ``cfg.rays`` is then the rays of a step over
     all ranks, each rank drawing its share from the instances :meth:`Ranks.shard` gives it.
@@ -366,11 +421,13 @@ def train(
         restore_generator(generator, state["rng"], seed, 0, step)
     else:
         cfg = part_config(category, cfg)
-        aabb = scene_box(category)
+        aabb = scene_box(category, on_note=on_note)
+        carved = visual_hulls(category, aabb, cfg.occ_res, max(cfg.hull_margin, 0))  # whatever the sampler: an empty hull stops here
+        check_hulls(category, carved)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)  # the initial weights depend on the seed alone
             field = ConditionalRadianceField(cfg, len(category.instances), aabb).to(device)
-        hulls = visual_hulls(category, aabb, cfg.occ_res, cfg.hull_margin).to(device) if cfg.sampler == "grid" else None
+        hulls = (carved if cfg.hull_margin >= 0 else visual_hulls(category, aabb, cfg.occ_res, -1)).to(device) if cfg.sampler == "grid" else None
         if hulls is not None:
             field.occupancy.copy_(hulls)
         ema = torch.zeros(len(category.instances), cfg.occ_res**3, device=device)

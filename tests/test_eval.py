@@ -156,6 +156,19 @@ def test_recon_user_errors(model_path, data, tmp_path):
     assert_user_error(invoke("eval", "recon", tmp_path / "missing.safetensors", data), "missing.safetensors")
 
 
+def test_a_dataset_of_training_views_only_trains_without_a_held_out_score(model_path, data, tmp_path):
+    scene = tmp_path / "chair"  # a NeRF-synthetic scene without val or test views, named like no model instance
+    shutil.copytree(data / "chair_000", scene)
+    for split in ("val", "test"):
+        (scene / f"transforms_{split}.json").unlink(missing_ok=True)
+    r = invoke("train", scene, "--out", tmp_path / "m.safetensors", "--steps", 2, "--set", "rays=64", "--device", "cpu")
+    assert r.exit_code == 0 and "-> " in r.stdout.splitlines()[-1], r.output
+    assert "note: no held-out score" in r.stderr and "error" not in r.stderr
+    assert_user_error(invoke("eval", "recon", tmp_path / "m.safetensors", scene, "--device", "cpu"), "has test views in this dataset (only train)")
+    r = invoke("eval", "recon", model_path, scene, "--device", "cpu")  # after the other-dataset warning
+    assert r.exit_code == 2 and r.stderr.splitlines()[-1].startswith("error: none of the model's instances (chair_000, chair_001) is in"), r.output
+
+
 # ----------------------------------------------------------------------------- eval edits
 
 

@@ -14,7 +14,7 @@ from PIL import Image
 from crfedit.data import load_category
 from crfedit.errors import DataError
 
-from cli_helpers import invoke
+from cli_helpers import assert_user_error, invoke
 
 
 def to_nerfstudio(instance_dir, out, with_mask: bool = False, listed: bool = False):
@@ -82,3 +82,61 @@ def test_unsupported_cameras_are_refused(tiny_chairs, tmp_path):
         (tmp_path / "s" / "transforms.json").write_text(json.dumps({**doc, **change}))
         with pytest.raises(DataError, match=fragment):
             load_category(tmp_path / "s")
+
+
+def test_an_empty_visual_hull_is_refused_before_training(tiny_chairs, tmp_path):
+    to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "opencv")
+    doc = json.loads((tmp_path / "opencv" / "transforms.json").read_text())
+    for f in doc["frames"]:  # OpenCV/COLMAP axes: Y down, Z forward
+        f["transform_matrix"] = (np.array(f["transform_matrix"]) * [1, -1, -1, 1]).tolist()
+    (tmp_path / "opencv" / "transforms.json").write_text(json.dumps(doc))
+    to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "clear")
+    for png in (tmp_path / "clear" / "images").iterdir():
+        rgba = np.asarray(Image.open(png)).copy()
+        rgba[..., 3] = 0
+        Image.fromarray(rgba).save(png)
+    for scene, fragment in (("opencv", "flip the Y and Z axes"), ("clear", "alpha (or mask) is 0")):
+        out = tmp_path / f"{scene}.safetensors"
+        r = invoke("train", tmp_path / scene, "--out", out, "--steps", 2, "--set", "rays=64", "--device", "cpu")
+        assert_user_error(r, f"instance {scene}:", fragment)
+        assert not out.exists()
+
+
+def test_split_lists_match_as_nerfstudio_does(tiny_chairs, tmp_path):
+    to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "s", listed=True)
+    path = tmp_path / "s" / "transforms.json"
+    doc = json.loads(path.read_text())
+    n_train, n_test = len(doc["train_filenames"]), len(doc["test_filenames"])
+    path.write_text(json.dumps({**doc, "test_filenames": ["./" + f for f in doc["test_filenames"]]}))
+    cat = load_category(tmp_path / "s")
+    assert [len(cat.instances[0].splits[s]) for s in ("train", "test")] == [n_train, n_test] and cat.notes == ()
+    path.write_text(json.dumps({**doc, "test_filenames": ["images/nope.png"]}))
+    with pytest.raises(DataError, match="test_filenames lists 'images/nope.png', which is no frame's file_path"):
+        load_category(tmp_path / "s")
+    path.write_text(json.dumps({**doc, "train_filenames": doc["train_filenames"][:2], "test_filenames": []}))
+    cat = load_category(tmp_path / "s")  # frames in no list are left out, not trained on
+    assert set(cat.instances[0].splits) == {"train"} and len(cat.instances[0].splits["train"]) == 2
+    assert len(cat.notes) == 1 and f"{n_train + n_test - 2} frames in none of train_filenames, test_filenames left out" in cat.notes[0]
+    r = invoke("dataset", "info", tmp_path / "s")
+    assert r.exit_code == 0 and r.stderr.startswith("note: ") and "left out" in r.stderr, r.output
+
+
+def test_camera_angle_x_stands_for_the_intrinsics_and_strings_are_refused(tiny_chairs, tmp_path):
+    to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "s")
+    path = tmp_path / "s" / "transforms.json"
+    doc = json.loads(path.read_text())
+    ref = load_category(tmp_path / "s").instances[0].splits["train"][0].camera
+    angle = 2 * math.atan(0.5 * doc["w"] / doc["fl_x"])
+    path.write_text(json.dumps({**{k: v for k, v in doc.items() if k not in ("fl_x", "fl_y", "cx", "cy", "w", "h")}, "camera_angle_x": angle}))
+    assert load_category(tmp_path / "s").instances[0].splits["train"][0].camera.focal == pytest.approx(ref.focal, rel=1e-9)
+    path.write_text(json.dumps({**doc, "fl_x": str(doc["fl_x"])}))
+    with pytest.raises(DataError, match="fl_x '.*' must be a number"):
+        load_category(tmp_path / "s")
+
+
+def test_sub_folders_that_are_no_scenes_are_named_in_a_note(tiny_chairs, tmp_path):
+    to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "cat" / "a")
+    shutil.copytree(tiny_chairs / "chair_001", tmp_path / "cat" / "b_blender")
+    (tmp_path / "cat" / ".cache").mkdir()
+    cat = load_category(tmp_path / "cat")
+    assert cat.names == ["a"] and cat.notes == (f"{tmp_path / 'cat'}: sub-folder without transforms.json skipped: b_blender",)

@@ -189,3 +189,27 @@ def test_update_from_density_prunes_thin_cells_and_keeps_dense_ones():
     for _ in range(int(math.log(1.005 / 1e3) / math.log(0.95)) + 1):
         grid = update_from_density(ema, candidates, lambda xn: torch.zeros(len(xn)), step, threshold)
     assert not grid[x_neg & candidates].any()
+
+
+def test_the_scene_box_follows_an_object_off_the_origin_and_warns_when_the_hull_is_cut(tiny_chairs, tmp_path):
+    import json
+
+    from crfedit.data.loading import load_category
+    from crfedit.data.synth import SynthConfig, write_synth_category
+    from crfedit.train import scene_box
+
+    root = tmp_path / "c"
+    write_synth_category(root, SynthConfig(instances=1, views=16, res=16, seed=0, twins=False))
+    notes = []
+    box = scene_box(load_category(root), on_note=notes.append)
+    shift = torch.tensor([1.5, 0.0, 0.5])
+    for f in (root / "chair_000").glob("transforms_*.json"):
+        doc = json.loads(f.read_text())
+        for frame in doc["frames"]:
+            frame["transform_matrix"] = (np.array(frame["transform_matrix"]) + np.pad(shift.numpy()[:, None], ((0, 1), (3, 0)))).tolist()
+        f.write_text(json.dumps(doc))
+    moved = scene_box(load_category(root), on_note=notes.append)  # the origin's cube holds none of it
+    torch.testing.assert_close(moved, box + shift.repeat(2), atol=1e-4, rtol=0)
+    assert notes == []
+    scene_box(load_category(tiny_chairs), on_note=notes.append)  # 6 views carve a hull that reaches the cube's faces
+    assert len(notes) == 1 and "may extend beyond it" in notes[0]

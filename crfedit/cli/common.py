@@ -287,3 +287,9 @@ def command_line() -> str:
     import shlex
 
     return shlex.join(["crfedit", *sys.argv[1:]])
+
+
+def echo_notes(category) -> None:
+    """What loading ``category`` left out (:attr:`~crfedit.data.loading.Category.notes`), a note line each on stderr."""
+    for note in category.notes:
+        typer.echo(printable(f"note: {note}"), err=True)

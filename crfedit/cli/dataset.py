@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, stderr_progress, user_errors
+from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, echo_notes, stderr_progress, user_errors
 
 
 def _rate_column():
@@ -68,7 +68,9 @@ def info(
     """Summarize a dataset: instances, views, size, bbox, fingerprint."""
     from ..data.loading import dataset_info, load_category
 
-    meta = dataset_info(load_category(data, with_depth=True))
+    category = load_category(data, with_depth=True)
+    echo_notes(category)
+    meta = dataset_info(category)
     if as_json:
         typer.echo(json.dumps(meta, indent=2))
         return

@@ -18,7 +18,7 @@ import typer
 from ..errors import CrfError
 from ..io import check_folder_target, check_replaceable
 from ..names import is_digits
-from .common import DeviceChoice, DeviceOpt, SeedOpt, app, eval_app, user_errors
+from .common import DeviceChoice, DeviceOpt, SeedOpt, app, echo_notes, eval_app, user_errors
 from .train import PresetChoice
 
 
@@ -100,6 +100,7 @@ def _load(model: Path, data: Path, device: DeviceChoice, strict: bool, split: st
 
     m, _ = load_model(model, resolve_device(device))
     category = load_category_for(m, data, split)
+    echo_notes(category)
     warning = fingerprint_warning(m, category)
     if warning is not None:
         if strict:

@@ -15,7 +15,7 @@ from ..io import check_folder_target, writer_lock
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from ..names import MODEL_FORMAT
-from .common import printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, user_errors
+from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, user_errors
 
 
 PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
@@ -199,6 +199,7 @@ def run_training(
             result = train(
                 category, cfg, out, device, seed=seed, minutes=minutes, resume=resume,
                 on_step=on_step, extra_meta={"command": command_line()}, ranks=ranks, **options,
+                on_note=lambda text: progress.bar.console.print(f"warning: {text}", highlight=False, soft_wrap=True, markup=False),
             )
             finished = True
             log.end()
@@ -335,6 +336,8 @@ def train_cmd(
         # the data and the run checked before the ranks join: a problem every rank finds is rank 0's one line
         labels = (stored.cfg if resume else cfg).part_dim > 0  # F_part trains from part maps and depth
         category = load_category(data, res=res, with_depth=labels, with_parts=labels)
+        if ranks.main:
+            echo_notes(category)
         if resume and stored.dataset != category.fingerprint:  # before any record, bar or set-up
             raise CrfError(f"--resume: {out} was trained on another dataset (fingerprint {stored.dataset})")
         if resume and finished:  # rewriting it would only replace its records
@@ -350,8 +353,12 @@ def train_cmd(
             model, result = run_training(category, out, cfg, dev, seed, minutes, resume, log_every, ranks, compile, march.value, given)
     if not ranks.main:
         return
-    score = score_model(model, category, held_out_split(category, "val"), max_views=model.cfg.eval_views)
-    typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
+    split = held_out_split(category, "val")
+    if any(inst.splits.get(split) for inst in category.instances):
+        score = score_model(model, category, split, max_views=model.cfg.eval_views)
+        typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
+    else:
+        typer.echo(f"note: no held-out score: {data} has no val or test views", err=True)
     rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)
     psnr = f"train PSNR {result.train_psnr:.2f} dB" if math.isfinite(result.train_psnr) else "no step run in this call"
     typer.echo(

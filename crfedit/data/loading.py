@@ -74,6 +74,7 @@ class Category:
     root: Path
     instances: list[InstanceData]
     fingerprint: str  # first 16 hex chars of sha256 over instances.txt and every transforms json
+    notes: tuple[str, ...] = ()  # what loading left out, a line each (nerfstudio: unlisted frames, sub-folders that are no scenes)
 
     @property
     def names(self) -> list[str]:

@@ -5,14 +5,15 @@ frame), and ``frames[]`` with ``file_path`` (relative, extension included), a 4Ã
 ``transform_matrix`` (OpenGL axes, as NeRF-synthetic) and an optional ``mask_path`` (0 =
 background).  One scene is a one-instance category; a folder whose sub-folders are scenes is a
 category of them, named by folder.  Splits: ``train_filenames`` / ``val_filenames`` /
-``test_filenames`` when the file lists them, else every 10th frame (at least one) is a test view.
+``test_filenames`` when the file lists them (frames in none are left out), else every 10th frame
+(at least one) is a test view.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -37,13 +38,30 @@ def scene_folders(root: Path) -> list[Path]:
     return sorted(p for p in root.iterdir() if p.is_dir() and is_scene(p)) if root.is_dir() else []
 
 
-def _intrinsics(path: Path, meta: dict, frame: dict, k: int) -> dict[str, float]:
-    values = {}
-    for key in INTRINSICS:
+def _intrinsics(path: Path, meta: dict, frame: dict, k: int, size: tuple[int, int]) -> dict[str, float]:
+    """``fl_x fl_y cx cy w h`` of frame ``k`` (its own, else the file's); without ``fl_x`` /
+    ``fl_y``, from ``camera_angle_x`` / ``camera_angle_y`` (instant-ngp, Blender), and then
+    ``w h`` default to the image's ``size`` and ``cx cy`` to its center."""
+    def number(key: str) -> float | None:
         v = frame.get(key, meta.get(key))
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-            raise DataError(f"{path}: frames[{k}] has no valid {key} (nor the file)")
-        values[key] = float(v)
+        if v is None:
+            return None
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise DataError(f"{path}: frames[{k}]: {key} {v!r} must be a number")
+        if not (math.isfinite(v) and v > 0 and (not key.startswith("camera_angle") or v < math.pi)):
+            raise DataError(f"{path}: frames[{k}]: {key} {v!r} must be " + ("a field of view in radians, between 0 and Ï€" if key.startswith("camera_angle") else "a positive number"))
+        return float(v)
+
+    values = {key: number(key) for key in INTRINSICS}
+    angle_x, angle_y = number("camera_angle_x"), number("camera_angle_y")
+    if values["fl_x"] is None and angle_x is not None:
+        w, h = (values["w"] or size[0]), (values["h"] or size[1])
+        fl_x = 0.5 * w / math.tan(0.5 * angle_x)
+        fl_y = values["fl_y"] or (0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fl_x)
+        values = {"fl_x": fl_x, "fl_y": fl_y, "cx": values["cx"] or w / 2, "cy": values["cy"] or h / 2, "w": w, "h": h}
+    missing = [key for key in INTRINSICS if values[key] is None]
+    if missing:
+        raise DataError(f"{path}: frames[{k}] has no {missing[0]} (nor the file, nor camera_angle_x)")
     if any(abs(float(frame.get(d, meta.get(d, 0.0)) or 0.0)) > 1e-6 for d in DISTORTION):
         raise DataError(f"{path}: lens distortion (k1..p2) is not supported; undistort the images first (ns-process-data does)")
     w, h = values["w"], values["h"]
@@ -54,12 +72,31 @@ def _intrinsics(path: Path, meta: dict, frame: dict, k: int) -> dict[str, float]
     return values
 
 
-def _split_of(meta: dict, names: list[str]) -> list[str]:
-    """The split of each frame, from ``*_filenames`` lists, else every 10th frame (at least the
-    last one) for test."""
-    listed = {split: {posix_path(f) for f in meta.get(f"{split}_filenames") or [] if isinstance(f, str)} for split in ("train", "val", "test")}
-    if any(listed.values()):
-        return [next((s for s, files in listed.items() if isinstance(n, str) and posix_path(n) in files), "train") for n in names]
+def _normal(name: str) -> str:
+    """A file name as nerfstudio compares them (as a path): ``./images/a.png`` is ``images/a.png``."""
+    return PurePosixPath(posix_path(name)).as_posix()
+
+
+def _split_of(path: Path, meta: dict, names: list, notes: list[str]) -> list[str | None]:
+    """The split of each frame, from the ``*_filenames`` lists (a frame in none is left out, with
+    a note, and a listed name that is no frame's ``file_path`` is an error, as in nerfstudio),
+    else every 10th frame (at least the last one) for test."""
+    given = {split: meta[f"{split}_filenames"] for split in ("train", "val", "test") if isinstance(meta.get(f"{split}_filenames"), list)}
+    if given:
+        known = {_normal(n) for n in names if isinstance(n, str)}
+        listed = {}
+        for split, files in given.items():
+            unknown = [f for f in files if not isinstance(f, str) or _normal(f) not in known]
+            if unknown:
+                raise DataError(f"{path}: {split}_filenames lists {unknown[0]!r}, which is no frame's file_path"
+                                + (f" (nor are {len(unknown) - 1} more)" if len(unknown) > 1 else ""))
+            listed[split] = {_normal(f) for f in files}
+        split = [next((s for s, files in listed.items() if isinstance(n, str) and _normal(n) in files), None) for n in names]
+        left = split.count(None)
+        if left:
+            notes.append(f"{path}: {left} frame{'s' * (left != 1)} in none of {', '.join(f'{s}_filenames' for s in given)} "
+                         "left out (as nerfstudio does)")
+        return split
     split = ["test" if i % 10 == 9 else "train" for i in range(len(names))]
     if "test" not in split and len(split) > 1:
         split[-1] = "test"
@@ -71,7 +108,7 @@ def _view(folder: Path, path: Path, meta: dict, frame, k: int, res: int | None) 
         raise DataError(f"{path}: frames[{k}] has no file_path")
     image = _read_rgba(folder / posix_path(frame["file_path"]))
     h, w = image.shape[:2]
-    intr = _intrinsics(path, meta, frame, k)
+    intr = _intrinsics(path, meta, frame, k, (w, h))
     if (intr["w"], intr["h"]) != (w, h):
         raise DataError(f"{folder / frame['file_path']}: image is {w}x{h} but transforms.json says {intr['w']:g}x{intr['h']:g}")
     alpha = image[..., 3] if image.shape[2] == 4 else np.ones((h, w), np.float32)
@@ -89,8 +126,10 @@ def _view(folder: Path, path: Path, meta: dict, frame, k: int, res: int | None) 
     return View(camera, np.ascontiguousarray(rgb, np.float32), np.ascontiguousarray(alpha, np.float32), None, None, frame["file_path"])
 
 
-def load_scene(folder: Path, name: str, res: int | None = None, splits: tuple[str, ...] = ("train", "val", "test")) -> InstanceData:
-    """One nerfstudio scene as an instance; splits as the module docstring says."""
+def load_scene(folder: Path, name: str, res: int | None = None, splits: tuple[str, ...] = ("train", "val", "test"),
+               notes: list[str] | None = None) -> InstanceData:
+    """One nerfstudio scene as an instance; splits as the module docstring says.  ``notes``
+    gets a line on what is left out."""
     path = Path(folder) / TRANSFORMS
     meta = _read_json(path)
     frames = meta.get("frames") if isinstance(meta, dict) else None
@@ -98,7 +137,7 @@ def load_scene(folder: Path, name: str, res: int | None = None, splits: tuple[st
         raise DataError(f"{path}: missing or empty frames list")
     names = [f.get("file_path") if isinstance(f, dict) else None for f in frames]
     loaded: dict[str, list[View]] = {}
-    for k, (frame, split) in enumerate(zip(frames, _split_of(meta, names))):
+    for k, (frame, split) in enumerate(zip(frames, _split_of(path, meta, names, [] if notes is None else notes))):
         if split in splits:
             loaded.setdefault(split, []).append(_view(Path(folder), path, meta, frame, k, res))
     if "train" in splits and "train" not in loaded:
@@ -116,4 +155,10 @@ def load_nerfstudio_category(root: Path, res: int | None = None, splits: tuple[s
     for name, folder in zip(names, folders):
         h.update(f"{name}/{TRANSFORMS}\n".encode())
         h.update((folder / TRANSFORMS).read_bytes())
-    return Category(Path(root), [load_scene(f, n, res, splits) for f, n in zip(folders, names)], h.hexdigest()[:16])
+    notes = []
+    skipped = [] if is_scene(root) else sorted(p.name for p in Path(root).iterdir() if p.is_dir() and not p.name.startswith(".") and p not in folders)
+    if skipped:
+        notes.append(f"{root}: sub-folder{'s' * (len(skipped) != 1)} without {TRANSFORMS} skipped: {', '.join(skipped[:6])}"
+                     + (f" and {len(skipped) - 6} more" if len(skipped) > 6 else ""))
+    instances = [load_scene(f, n, res, splits, notes) for f, n in zip(folders, names)]
+    return Category(Path(root), instances, h.hexdigest()[:16], tuple(notes))
