@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from . import occupancy
-from .cameras import Rays
+from .cameras import Rays, rays_from_camera
 from .config import Config
 from .data.loading import Category, TrainingRays, training_rays
 from .distributed import SINGLE, Ranks, rank_seed
@@ -54,6 +54,7 @@ from .parts import labelled_instances, labelled_points, part_config, part_contra
 from .model import CategoryModel, ViewTable, load_model, save_model
 from .names import is_digits
 from .renderer import FixedMarch, render_rays
+from .sampling import ray_aabb_intersect
 
 FG_FRACTION = 0.75
 READ_EVERY = 16
@@ -85,32 +86,54 @@ def check_trainable(category: Category, world: int, rays: int) -> None:
                        f"rays={rays}); launch at most {min(rays, instances)}")
 
 
+LEAVE_SHARE = 1e-3
+""":func:`scene_box`: the silhouettes show the object beyond a box when more than this share of
+their pixels look along rays that miss it."""
+
+
 def scene_box(category: Category, res: int = 48, views_per_instance: int = 40,
               on_note: Callable[[str], None] | None = None) -> torch.Tensor:
     """The world box [6] around every instance's visual hull, carved inside a cube of half the
-    nearest camera distance (which contains the object in object-centric captures).  A hull that
-    reaches the cube's faces (or is empty) may be cut off: the cube is carved again around the
-    point the cameras look at (their axes' least-squares meeting point) when that lies off the
-    origin, and kept if its hull stays inside; otherwise ``on_note`` gets a warning."""
+    nearest camera distance (which contains the object in object-centric captures).  When the
+    silhouettes show the object beyond that cube (:func:`silhouettes_leave`), the cube is
+    carved again around the point the cameras look at (their axes' least-squares meeting point)
+    if that lies off the origin, and kept if the silhouettes stay inside it; otherwise
+    ``on_note`` gets a warning.  (A hull that merely reaches the cube's faces is not cut off:
+    views all from above leave the cone under a seat uncarved down to the floor.)"""
     views = [v for inst in category.instances for v in inst.splits["train"][:views_per_instance]]
     centers = np.stack([v.camera.center for v in views]).astype(np.float64)
     radius = min(float((v.camera.center**2).sum() ** 0.5) for v in views)
     cube = torch.tensor([-0.5, -0.5, -0.5, 0.5, 0.5, 0.5]) * radius
     union = _hull_union(category, cube, res, views_per_instance)
-    if union.any() and not _touches_faces(union):
+    leaving = silhouettes_leave(category, cube, views_per_instance)
+    if union.any() and not leaving:
         return occupancy.occupied_box(union, cube, margin_cells=2)
     target = look_at_point(views)
     if target is not None and np.linalg.norm(target) > 0.1 * radius:
         half = 0.5 * float(np.linalg.norm(centers - target, axis=1).min())
         moved = torch.tensor(np.concatenate([target - half, target + half]), dtype=torch.float32)
         moved_union = _hull_union(category, moved, res, views_per_instance)
-        if moved_union.any() and not _touches_faces(moved_union):
+        if moved_union.any() and not silhouettes_leave(category, moved, views_per_instance):
             return occupancy.occupied_box(moved_union, moved, margin_cells=2)
     if on_note is not None and union.any():  # an empty one is check_hulls' error
-        on_note(f"{category.root}: the silhouettes' visual hull reaches the faces of the scene box (a cube around the origin, "
-                "half the nearest camera's distance across): the object may extend beyond it and be cut off; "
-                "centre the poses on the object (or give more views, which carve the hull tighter)")
+        on_note(f"{category.root}: the silhouettes show the object beyond the scene box (a cube around the origin, "
+                f"half the nearest camera's distance across; {100 * leaving:.1f} % of their pixels look past it): "
+                "it will be cut off; centre the poses on the object")
     return occupancy.occupied_box(union, cube, margin_cells=2)
+
+
+def silhouettes_leave(category: Category, box: torch.Tensor, views_per_instance: int = 40) -> float:
+    """The share of the training silhouettes' pixels (of the views the hull is carved from)
+    whose rays miss ``box`` [6], if above :data:`LEAVE_SHARE`, else 0: matter the box cannot hold."""
+    missed = total = 0
+    for inst in category.instances:
+        for v in inst.splits["train"][:views_per_instance]:
+            on = torch.from_numpy(np.ascontiguousarray(v.alpha > 0).reshape(-1))
+            rays = rays_from_camera(v.camera)
+            _, _, hit = ray_aabb_intersect(rays.origins[on], rays.directions[on], box)
+            missed, total = missed + int((~hit).sum()), total + int(on.sum())
+    share = missed / max(total, 1)
+    return share if share > LEAVE_SHARE else 0.0
 
 
 def _hull_union(category: Category, cube: torch.Tensor, res: int, views_per_instance: int) -> torch.Tensor:
@@ -119,10 +142,6 @@ def _hull_union(category: Category, cube: torch.Tensor, res: int, views_per_inst
         vs = inst.splits["train"][:views_per_instance]
         union |= occupancy.carve_visual_hull([v.camera for v in vs], [v.alpha > 0 for v in vs], cube, res, margin=0)
     return union
-
-
-def _touches_faces(grid: torch.Tensor) -> bool:
-    return any(bool(grid.select(axis, i).any()) for axis in range(3) for i in (0, -1))
 
 
 def look_at_point(views) -> np.ndarray | None:

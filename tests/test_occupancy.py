@@ -211,5 +211,15 @@ def test_the_scene_box_follows_an_object_off_the_origin_and_warns_when_the_hull_
     moved = scene_box(load_category(root), on_note=notes.append)  # the origin's cube holds none of it
     torch.testing.assert_close(moved, box + shift.repeat(2), atol=1e-4, rtol=0)
     assert notes == []
-    scene_box(load_category(tiny_chairs), on_note=notes.append)  # 6 views carve a hull that reaches the cube's faces
-    assert len(notes) == 1 and "may extend beyond it" in notes[0]
+    scene_box(load_category(tiny_chairs), on_note=notes.append)  # 6 views: a loose hull, but inside the cube
+    assert notes == []
+    for f in (root / "chair_000").glob("transforms_*.json"):  # back at the origin, with 3x the field of view:
+        doc = json.loads(f.read_text())  # the same silhouettes now span a chair too large for the cube
+        for frame in doc["frames"]:
+            m = np.array(frame["transform_matrix"])
+            m[:3, 3] -= shift.numpy()
+            frame["transform_matrix"] = m.tolist()
+        doc["camera_angle_x"] = min(3 * doc["camera_angle_x"], 3.0)
+        f.write_text(json.dumps(doc))
+    scene_box(load_category(root), on_note=notes.append)
+    assert len(notes) == 1 and "beyond the scene box" in notes[0] and "will be cut off" in notes[0]
