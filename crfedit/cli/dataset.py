@@ -86,7 +86,8 @@ def info(
         ("instances", f"{meta['instances']}: {shown}"),
         ("views", views),
         ("resolution", ", ".join(meta["resolutions"])),
-        ("bbox", f"{_vec(box['min'])} .. {_vec(box['max'])} (from {box['source']})"),
+        ("bbox", f"{_vec(box['min'])} .. {_vec(box['max'])} "
+                 + ("(from depth)" if box["source"] == "depth" else "(of the camera positions: no depth maps place the object)")),
         ("twins", str(meta["twins"])),
         ("fingerprint", meta["fingerprint"]),
     ]
