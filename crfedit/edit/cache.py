@@ -219,13 +219,14 @@ def edit_passes(
 class ViewCache:
     """One view of one instance rendered once, with everything upstream of F_rad kept.
 
-    A colour edit changes only F_rad and the colour code, so the compositing weights and the
-    bottleneck features of every sample stay valid: :meth:`render` re-renders the view after
-    such an edit by running F_rad alone on the cached samples (an interactive recolouring
+    A colour edit changes only F_rad, the colour code and at most the bottleneck layer (a
+    recolour that bled, :data:`FEATURES`), so the compositing weights and F_fuse's output of
+    every sample stay valid: :meth:`render` re-renders the view after such an edit by running
+    F_rad (and a changed bottleneck) alone on the cached samples (an interactive recolouring
     preview).  Samples whose weight is at most ``prune`` keep their starting colour (a
     constant); the error this leaves is at most a ray's summed pruned weight times the colour
     change (measured: ≤ 1.6e-3 at the default, under one 8-bit level; docs/benchmarks.md).
-    Memory: ~25 floats per kept sample (a 128² view keeps ~5·10⁴).
+    Memory: ~25 floats per kept sample and F_fuse's width more (a 128² view keeps ~5·10⁴).
     """
 
     @torch.no_grad()
@@ -233,8 +234,9 @@ class ViewCache:
         rays = rays_from_camera(camera, field.aabb.device)
         name, samples = edit_samples(field, rays, instance)[-1]
         self.instance, self.net_name, self.shape = instance, name, (camera.height, camera.width)
-        self.cached = EditPass(field, name, rays, samples, instance, "radiance", prune=prune)
+        self.cached = EditPass(field, name, rays, samples, instance, "radiance", prune=prune, features_train=True)
         self.n_cached = self.cached.n_cached
+        self.bottleneck = [t.detach().clone() for t in self.cached.net.bottleneck.parameters()]
 
     @torch.no_grad()
     def render(self, field: ConditionalRadianceField) -> Tensor:
@@ -242,4 +244,7 @@ class ViewCache:
         one the cache was built with: a colour edit's, not a shape edit's)."""
         net = field if self.net_name == "fine" else field.coarse
         _, color_code = field.codes(self.instance)
-        return self.cached.radiance_rgb(net, color_code).view(*self.shape, 3)
+        c = self.cached
+        same = all(torch.equal(a, b) for a, b in zip(net.bottleneck.parameters(), self.bottleneck))
+        rgb = net.F_rad(c.per_point if same else c.rad_inputs(net), color_code)
+        return c.constant.index_add(0, c.ray, c.w[:, None] * rgb).view(*self.shape, 3)
