@@ -210,7 +210,7 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
         np.testing.assert_array_equal(np.round(preview * 255), np.round(depth_preview(z, a) * 255))
         assert (preview[a < 0.5] == 1.0).all() and (preview[a >= 0.5] < 1.0).any(axis=-1).all()
     listed = json.loads((out / "views.json").read_text())
-    assert [v["view"] for v in listed["views"]] == ["orbit:0", "orbit:1", "orbit:2"] and listed["instance"] == "chair_001"
+    assert [v["view"] for v in listed["views"]] == ["orbit:3@30:0", "orbit:3@30:1", "orbit:3@30:2"] and listed["instance"] == "chair_001"
 
     again = tmp_path / "again"
     # the same device as the first run: on a machine with a GPU, auto would render on it
