@@ -449,8 +449,13 @@ def test_edits_show_check_bake_cli(tmp_path, model):
     assert shown.exit_code == 0, shown.output
     info = json.loads(shown.output)
     assert info["metadata"]["kind"] == "color" and info["tensors"]["F_rad.out.bias"] == {"shape": [3], "dtype": "float32"}
+    from crfedit.cli.edit import _parsed
+
+    assert (_parsed("final_loss", "0.5"), _parsed("final_loss", "nan"), _parsed("hyperparameters", '{"lr": 0.01}')) == (0.5, "nan", {"lr": 0.01})
+    assert _parsed("instance", "123") == "123" and _parsed("modules", "not json") == "not json"
+    assert info["metadata"]["modules"] == ["F_rad."] and json.loads(runner.invoke(app, ["info", str(a), "--json"]).output) == info
     table = runner.invoke(app, ["edits", "show", str(a)])
-    assert table.exit_code == 0 and "parent        (none)" in table.output and "tensor        F_rad.out.bias [3] float32" in table.output
+    assert table.exit_code == 0 and "parent        (none)" in table.output and 'modules       ["F_rad."]' in table.output and "tensor        F_rad.out.bias [3] float32" in table.output
     ok = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(a), "--edit", str(b)])
     assert ok.exit_code == 0 and "ok: 2 edit(s)" in ok.output
     bad = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(a)])

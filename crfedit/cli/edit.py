@@ -438,6 +438,24 @@ def _short(value) -> str:
     return str(value)
 
 
+JSON_META = ("modules", "hyperparameters", "final_loss", "seconds")
+"""An edit's metadata values that hold JSON (a list, a table, a number): ``--json`` shows them parsed."""
+
+
+def _parsed(key: str, value: str):
+    """``value`` parsed where ``key`` is one of :data:`JSON_META` (as it was, if it is not JSON
+    or is NaN or infinite, which JSON cannot print)."""
+    if key not in JSON_META:
+        return value
+    def refuse(constant: str):
+        raise ValueError(constant)
+
+    try:
+        return json.loads(value, parse_constant=refuse)
+    except ValueError:
+        return value
+
+
 def _show_rows(delta, size: int) -> list[tuple[str, str]]:
     meta = delta.meta
     rows = [(key, meta.get(key, "")) for key in ("kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint")]
@@ -493,7 +511,7 @@ def print_edit(edit: Path, as_json: bool) -> None:
         stored = _packed_bytes(delta)
         if stored is not None:
             tensors["occupancy"]["stored_bytes"] = stored  # bit-packed on disk
-        typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": delta.meta, "tensors": tensors}, indent=2))
+        typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": {k: _parsed(k, v) for k, v in delta.meta.items()}, "tensors": tensors}, indent=2))
         return
     for key, value in _show_rows(delta, size):
         typer.echo(printable(f"{key:<13} {value}"))
