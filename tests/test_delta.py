@@ -323,7 +323,7 @@ def test_bake_renders_bit_identical_to_the_stack(tmp_path, model):
     for k in range(3):
         assert torch.equal(render(loaded, k), render(stacked, k))
     assert json.loads(loaded.meta["baked_edits"]) == [read_delta(a).fingerprint, read_delta(b).fingerprint]
-    with pytest.raises(ModelFileError, match="made for model"):  # the baked model is a new base
+    with pytest.raises(ModelFileError, match="a.safetensors: is already baked into this model"):  # a new base, which says so
         apply_edit_files(loaded, [a])
     c = delta_file(tmp_path, "c.safetensors", loaded, 1, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
     assert read_delta(c).meta["base"] == loaded.fingerprint() and read_delta(c).meta["parent"] == ""
@@ -468,6 +468,8 @@ def test_edits_show_check_bake_cli(tmp_path, model):
     assert f"baked edits    {names} (2 edits onto {loaded.fingerprint()})" in info.output, info.output
     plain = runner.invoke(app, ["info", str(tmp_path / "m.safetensors")])
     assert "baked edits    none" in plain.output
+    again = runner.invoke(app, ["edits", "check", str(tmp_path / "baked.safetensors"), "--edit", str(b)])
+    assert_user_error(again, f"{b}: is already baked into this model")
     stacked = apply_edit_files(loaded, [a, b])
     for k in range(3):
         assert torch.equal(render(m2, k), render(stacked, k))
