@@ -165,3 +165,12 @@ def test_a_dash_for_an_output_is_refused_not_made_a_file_named_dash(tmp_path, mo
         for param in command.params:
             writes = any(o.startswith(("--out", "--preview", "--video", "--csv", "--md", "--work")) for o in getattr(param, "opts", []))
             assert not writes or param.name in OUTPUTS, (command.name, param.name)
+
+
+def test_a_bad_choice_reads_without_the_validators_wording(monkeypatch, capsys, tmp_path):
+    """`--device gpu`: one line naming the choices, without pydantic's "Value error," that
+    Typer 0.29's choice check leaves in it."""
+    code, _, err = run_main(monkeypatch, capsys, "render", str(tmp_path / "m.safetensors"), "--instance", "0", "--views", "test",
+                            "--out", str(tmp_path / "r"), "--device", "gpu")
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("error: Invalid value for '--device': 'gpu' is not one of 'auto', 'cpu', 'cuda'. (see "), err
