@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import CrfError
-from .io import atomic_folder, check_replaceable, write_exr, write_json, write_png
+from .io import atomic_folder, check_folder_target, check_replaceable, write_exr, write_json, write_png
 from .preview import depth_preview
 from .renderer import ray_distance, render_camera
 from .video import check_fps, video_path, write_video
@@ -33,8 +33,7 @@ def check_out_folder(out: Path) -> list[Path]:
     ``views.json`` and the frames that lists), carried into the new folder that replaces ``out``
     whole.  ``out``'s parent is created; an existing file at ``out``, a folder in it (a render
     carries files, not folders) or the current folder (or one that holds it) is a user error."""
-    if out.exists() and not out.is_dir():
-        raise CrfError(f"--out {out}: exists and is not a folder")
+    check_folder_target(out, "--out")  # not a file, nor under one
     if out.is_dir() and out.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
         raise CrfError(f"--out {out}: is the current folder or holds it, which a render replaces whole; name a folder for the frames")
     try:
