@@ -361,7 +361,15 @@ def _allowed(field: ConditionalRadianceField, kind: str, version: str) -> dict[s
     return out
 
 
-def _base_error(delta: Delta, base: str) -> ModelFileError:
+def _base_error(delta: Delta, model: CategoryModel, base: str) -> ModelFileError:
+    """Why ``delta`` does not apply to ``model`` (of base ``base``): made for another model, or
+    already baked into this one (its ``baked_edits`` list it)."""
+    try:
+        baked = json.loads(model.meta.get("baked_edits", "[]"))
+    except json.JSONDecodeError:
+        baked = []
+    if isinstance(baked, list) and delta.fingerprint in baked:
+        return ModelFileError(f"{delta.path}: is already baked into this model; leave it out (crfedit info lists the baked edits)")
     return ModelFileError(f"{delta.path}: made for model {delta.meta['base']}, not this model ({base}); edits apply only to the model they were made on")
 
 
@@ -400,7 +408,7 @@ def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str,
     names = list(model.names)
     for i, d in enumerate(deltas):
         if d.meta["base"] != base:
-            raise _base_error(d, base)
+            raise _base_error(d, model, base)
         if d.meta["parent"] != chain_fingerprint(base, fps):
             raise _order_error(d, i, deltas, base, applied)
         if d.kind == "fit-real":
@@ -449,7 +457,7 @@ def restack(model: CategoryModel, deltas: Sequence[Delta]) -> tuple[CategoryMode
     current, out = model, []
     for d in deltas:
         if d.meta["base"] != base:
-            raise _base_error(d, base)
+            raise _base_error(d, model, base)
         pinned = rebase(d, current)
         current = apply_deltas(current, [pinned])
         out.append(pinned)

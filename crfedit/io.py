@@ -146,8 +146,10 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a new hidden folder beside ``path`` to build in; on success it replaces ``path``.
 
     An existing ``path`` is moved aside first and deleted once the new folder is in place, so
-    an interrupted build (Ctrl-C, a full disk) leaves ``path`` as it was and no partial folder.
+    an interrupted build (Ctrl-C, a full disk) leaves ``path`` as it was and no partial folder;
+    two processes building the same ``path`` at once leave one whole folder (the later's).
     """
+    import errno
     import shutil
 
     path = Path(path)
@@ -160,18 +162,30 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp creates 0700; give the folder the usual mode
+    old = None
     try:
         yield tmp
-        old = None
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{hidden_stem(path)}.", suffix=".old", dir=parent))
-            os.replace(path, old / path.name)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        old = Path(tempfile.mkdtemp(prefix=f".{hidden_stem(path)}.", suffix=".old", dir=parent))
+        for turn in range(100):  # another process may put its folder in between: move that aside too
+            aside = old / str(turn)
+            try:
+                with contextlib.suppress(FileNotFoundError):
+                    os.replace(path, aside)
+                os.replace(tmp, path)
+                break
+            except BaseException as e:
+                if os.path.lexists(aside) and not os.path.lexists(path):  # interrupted between the renames
+                    os.replace(aside, path)
+                if not (isinstance(e, OSError) and e.errno in (errno.ENOTEMPTY, errno.EEXIST)):
+                    raise
+        else:
+            raise OSError(errno.EBUSY, "other processes keep replacing it", str(path))
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
 
 
 SIGNATURES = {

@@ -3,14 +3,16 @@ video; what ``crfedit render`` and ``crfedit quickstart`` write."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import CrfError
-from .io import check_replaceable, write_exr, write_json, write_png
+from .io import atomic_folder, check_folder_target, check_replaceable, write_exr, write_json, write_png
 from .preview import depth_preview
 from .renderer import ray_distance, render_camera
 from .video import check_fps, video_path, write_video
@@ -26,14 +28,45 @@ class RenderResult:
     video: Path | None
 
 
-def prepare_folder(out: Path) -> None:
-    """``mkdir -p out``; an existing file there is a user error."""
-    if out.exists() and not out.is_dir():
-        raise CrfError(f"--out {out}: exists and is not a folder")
+def check_out_folder(out: Path) -> list[Path]:
+    """The files of ``out`` a render into it keeps: all but an earlier render's (its
+    ``views.json`` and the frames that lists), carried into the new folder that replaces ``out``
+    whole.  ``out``'s parent is created; an existing file at ``out``, a folder in it (a render
+    carries files, not folders) or the current folder (or one that holds it) is a user error."""
+    check_folder_target(out, "--out")  # not a file, nor under one
+    if out.is_dir() and out.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
+        raise CrfError(f"--out {out}: is the current folder or holds it, which a render replaces whole; name a folder for the frames")
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        out.absolute().parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise CrfError(f"--out {out}: cannot create the folder ({e.strerror or e.__class__.__name__})") from None
+    if not out.is_dir():
+        return []
+    earlier = _earlier_frames(out) | {"views.json"}
+    keep = [p for p in out.iterdir() if p.name not in earlier]
+    if folders := [p.name for p in keep if p.is_dir() and not p.is_symlink()]:
+        raise CrfError(f"--out {out}: holds a folder ({folders[0]}), which a render would lose as it replaces the folder whole; "
+                       "pick a new folder or move it out")
+    return keep
+
+
+def _carry(files: list[Path], into: Path) -> None:
+    """Link (or copy, where the file system has no links) ``files`` into ``into``, but for names
+    the new render wrote there."""
+    import shutil
+
+    for f in files:
+        if os.path.lexists(into / f.name):
+            continue
+        if f.is_symlink():
+            os.symlink(os.readlink(f), into / f.name)
+            continue
+        try:
+            os.link(f, into / f.name)
+        except FileNotFoundError:  # gone since the check (another render)
+            pass
+        except OSError:
+            shutil.copy2(f, into / f.name)
 
 
 def _frame_files(i: int, depth: bool) -> list[str]:
@@ -43,8 +76,7 @@ def _frame_files(i: int, depth: bool) -> list[str]:
 
 def _earlier_frames(out: Path) -> set[str]:
     """The frame files an earlier render wrote to ``out``, as its ``views.json`` lists them
-    (with their depth files), that are there: a new render removes those it does not write
-    again, so the folder holds one set of frames; files it did not write stay."""
+    (with their depth files), that are there: a new render replaces them with its own set."""
     try:
         listed = json.loads((out / "views.json").read_text())["views"]
         names = {r["file"] for r in listed if isinstance(r, dict) and isinstance(r.get("file"), str)}
@@ -66,8 +98,9 @@ def render_to_folder(
     Under torchrun (``ranks``) each rank renders and writes every ``world``-th view; rank 0
     gathers the camera records (and frames) and writes ``views.json`` and the video, so the
     folder is the same as a single process writes.  ``seconds`` is then the slowest rank's.
-    A run that fails part way (a full disk, Ctrl-C) removes the files it wrote, so no partial
-    set of frames is left to pass for a render."""
+    The set is written to a hidden folder beside ``out`` that replaces ``out`` whole at the end
+    (keeping the files of ``out`` that are not an earlier render's), so a run that fails part way
+    (a full disk, Ctrl-C) leaves ``out`` as it was, and of two runs at once the later's set."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -90,17 +123,14 @@ def render_to_folder(
         made = [out.absolute(), *out.absolute().parents]  # the folders --out's creation makes or finds
         if video.is_dir() or not (video.parent.is_dir() or video.parent.absolute() in made):
             raise CrfError(f"--video {video}: needs a file name in an existing folder (or in --out's)")
-    earlier: set[str] = set()
-    if ranks.main:
-        prepare_folder(out)
-        earlier = _earlier_frames(out)
-    ranks.barrier("waiting for rank 0 to create the output folder")
+    keep = check_out_folder(out) if ranks.main else []
     field = model.field_for(instance)
     frames, records, seconds = {}, {}, 0.0
     columns = (TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     console = Console(stderr=True)
-    written: list[Path] = []  # this run's files: a run that fails (a full disk, Ctrl-C) removes them again
-    try:
+    # the set is written to a hidden folder beside out and swapped in whole at the end (atomic_folder)
+    with atomic_folder(out) if ranks.main else contextlib.nullcontext() as tmp:
+        tmp = Path(ranks.gather(str(tmp), "sharing the output folder")[0])
         with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
             task = bar.add_task("rendering", total=len(views))
             for i, (label, camera) in ranks.shard(list(enumerate(views))):
@@ -108,12 +138,10 @@ def render_to_folder(
                 output = render_camera(field, camera, instance, chunk=chunk)
                 seconds += time.perf_counter() - t0
                 rgb = output.rgb.clamp(0.0, 1.0).cpu().numpy()
-                files = [out / name for name in _frame_files(i, depth)]
-                written.append(files[0])
+                files = [tmp / name for name in _frame_files(i, depth)]
                 write_png(files[0], rgb)
                 if depth:
                     z = ray_distance(output).cpu().numpy()
-                    written += files[1:]
                     write_exr(files[1], {"Z": z, "A": output.opacity.cpu().numpy()})
                     write_png(files[2], depth_preview(z, output.opacity.cpu().numpy()))
                 if video is not None:
@@ -130,14 +158,11 @@ def render_to_folder(
             seconds = max(part[2] for part in parts)
         video_written = None
         if ranks.main:
-            write_json(out / "views.json", {"instance": model.names[instance], "spec": spec, "views": [records[i] for i in sorted(records)]})
-            video_written = write_video(video, [frames[i] for i in sorted(frames)], fps) if video is not None else None
-            now = {n for i in range(len(views)) for n in _frame_files(i, depth)}
-            for name in sorted(earlier - now):  # an earlier render's frames this one did not write: not this set's
-                (out / name).unlink(missing_ok=True)
-    except BaseException:
-        for path in written:
-            path.unlink(missing_ok=True)
-        raise
+            write_json(tmp / "views.json", {"instance": model.names[instance], "spec": spec, "views": [records[i] for i in sorted(records)]})
+            if video is not None:  # one in --out goes into the new folder with the frames
+                inside = video.absolute().parent == out.absolute()
+                video_written = write_video(tmp / video.name if inside else video, [frames[i] for i in sorted(frames)], fps)
+                video_written = out / video_written.name if inside else video_written
+            _carry(keep, tmp)
     first = views[0][1]
     return RenderResult(len(views), first.width, first.height, seconds, video_written)

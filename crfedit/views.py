@@ -44,8 +44,7 @@ _ORBIT = re.compile(r"^orbit:(\d+)(?:@([+-]?(?:\d+\.?\d*|\.\d+)))?(?::(.*))?$")
 
 def one_view_label(spec: str, label: str) -> str:
     """What an edit records as the view it was drawn on: ``label``, except for an orbit view,
-    whose label (``orbit:5``) drops the orbit's size and elevation and would name another
-    camera as a spec; the spec itself (``orbit:36@30:5``) names it again."""
+    recorded as its spec was typed (``orbit:36:5``, whose label reads ``orbit:36@30:5``)."""
     return str(spec).strip() if label.startswith("orbit:") else label
 
 
@@ -74,7 +73,7 @@ def parse_resolution(value: str | int | None, option: str = "--res") -> int | No
 
 
 def resolve_views(spec: str, model, instance: int, res: int | None = None) -> list[tuple[str, Camera]]:
-    """(label, camera) for each view ``spec`` names, in order; labels read ``test:3``, ``orbit:5``,
+    """(label, camera) for each view ``spec`` names, in order; labels read ``test:3``, ``orbit:36@30:5``,
     ``camera_path.json:12``.  ``model`` is a :class:`~crfedit.model.CategoryModel`."""
     spec = str(spec).strip()
     if not spec:
@@ -187,7 +186,8 @@ def _orbit_views(spec: str, model, instance: int) -> list[tuple[str, Camera]]:
     focal = float(np.median([c.focal if c.width == width else c.focal * width / c.width for c in stored]))  # at the first size
     cams = orbit_cameras(n, elevation, radius, focal, width, height)
     indices = range(n) if m.group(3) is None else parse_indices(spec, m.group(3), n)
-    return [(f"orbit:{k}", cams[k]) for k in indices]
+    whole = f"orbit:{m.group(1)}@{m.group(2) or f'{DEFAULT_ELEVATION:g}'}"  # each label a spec of its one view
+    return [(f"{whole}:{k}", cams[k]) for k in indices]
 
 
 # ----------------------------------------------------------------------------- camera files

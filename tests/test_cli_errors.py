@@ -134,3 +134,43 @@ def test_synth_over_an_earlier_synth_output_says_it_replaced_it(tmp_path):
     again = invoke(*SYNTH[:2], out, "--instances", "2", *SYNTH[4:])
     assert again.exit_code == 0 and "(it replaced the dataset that was there)" in again.stdout, again.output
     assert (out / "instances.txt").read_text().split() == ["chair_000", "chair_001"]
+
+
+def test_a_dash_for_an_output_is_refused_not_made_a_file_named_dash(tmp_path, monkeypatch):
+    """`-` does not mean standard output to crfedit: every option that names a file or folder to
+    write refuses it in one line (before opening anything), instead of writing `./-`; and every
+    output option of every command is one the check knows."""
+    import typer.main
+
+    from cli_helpers import assert_user_error
+
+    from crfedit.cli.common import OUTPUTS, app
+
+    monkeypatch.chdir(tmp_path)
+    for args, option in (
+        (["render", "m.safetensors", "--instance", "0", "--views", "orbit:2", "--out", "-"], "--out -"),
+        (["render", "m.safetensors", "--instance", "0", "--views", "orbit:2", "--out", "r", "--video", "-"], "--video -"),
+        (["dataset", "synth", "-"], "OUT -"), (["export", "mesh", "m.safetensors", "--instance", "0", "--out", "-"], "--out -"),
+        (["edits", "rebase", "m.safetensors", "--edit", "e", "--out-dir", "-"], "--out-dir -"),
+        (["bench", "--csv", "-"], "--csv -"), (["ui", "m.safetensors", "--workdir", "-"], "--workdir -"),
+    ):
+        assert_user_error(invoke(*args), option, "crfedit writes files, not standard output")
+    assert list(tmp_path.iterdir()) == []
+
+    def leaves(command):
+        subs = getattr(command, "commands", None)
+        return [leaf for sub in subs.values() for leaf in leaves(sub)] if subs else [command]
+
+    for command in leaves(typer.main.get_command(app)):
+        for param in command.params:
+            writes = any(o.startswith(("--out", "--preview", "--video", "--csv", "--md", "--work")) for o in getattr(param, "opts", []))
+            assert not writes or param.name in OUTPUTS, (command.name, param.name)
+
+
+def test_a_bad_choice_reads_without_the_validators_wording(monkeypatch, capsys, tmp_path):
+    """`--device gpu`: one line naming the choices, without pydantic's "Value error," that
+    Typer 0.29's choice check leaves in it."""
+    code, _, err = run_main(monkeypatch, capsys, "render", str(tmp_path / "m.safetensors"), "--instance", "0", "--views", "test",
+                            "--out", str(tmp_path / "r"), "--device", "gpu")
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("error: Invalid value for '--device': 'gpu' is not one of 'auto', 'cpu', 'cuda'. (see "), err

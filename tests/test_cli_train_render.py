@@ -210,7 +210,7 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
         np.testing.assert_array_equal(np.round(preview * 255), np.round(depth_preview(z, a) * 255))
         assert (preview[a < 0.5] == 1.0).all() and (preview[a >= 0.5] < 1.0).any(axis=-1).all()
     listed = json.loads((out / "views.json").read_text())
-    assert [v["view"] for v in listed["views"]] == ["orbit:0", "orbit:1", "orbit:2"] and listed["instance"] == "chair_001"
+    assert [v["view"] for v in listed["views"]] == ["orbit:3@30:0", "orbit:3@30:1", "orbit:3@30:2"] and listed["instance"] == "chair_001"
 
     again = tmp_path / "again"
     # the same device as the first run: on a machine with a GPU, auto would render on it
@@ -461,6 +461,51 @@ def test_a_render_into_a_used_folder_leaves_one_set_of_frames(model_path, tmp_pa
     assert again.exit_code == 0, again.output
     assert sorted(p.name for p in out.iterdir()) == ["0000.png", "0001.png", "0009.png", "notes.txt", "views.json"]
     assert len(json.loads((out / "views.json").read_text())["views"]) == 2
+
+
+def test_an_interrupted_or_overtaken_render_leaves_one_whole_set(model_path, tmp_path, monkeypatch):
+    """Ctrl-C at the third frame of a render into an earlier render's folder leaves that render
+    as it was; a render that another finishes into the same --out while it runs ends with its own
+    set whole (the last wins), the other's files and the hidden folders gone.  A folder in --out
+    (which the swap would lose) and the current folder are refused before any work."""
+    import crfedit.render_files as render_files
+
+    model, _ = load_model(model_path)
+    out = tmp_path / "r"
+    render_to_folder(model, 0, "orbit:4", out, res=8)
+    (out / "notes.txt").write_text("mine")
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    real, calls = render_files.write_png, []
+
+    def interrupted(path, image):
+        calls.append(path)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        real(path, image)
+
+    monkeypatch.setattr(render_files, "write_png", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        render_to_folder(model, 1, "orbit:3", out, res=12)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before and [p.name for p in tmp_path.iterdir()] == ["r"]
+
+    def overtaken(path, image):  # another render finishes into --out while this one writes its first frame
+        if not calls:
+            calls.append(path)
+            monkeypatch.setattr(render_files, "write_png", real)
+            render_to_folder(model, 1, "orbit:2", out, res=12)
+        real(path, image)
+
+    calls.clear()
+    monkeypatch.setattr(render_files, "write_png", overtaken)
+    render_to_folder(model, 0, "orbit:3", out, res=8)
+    listed = json.loads((out / "views.json").read_text())
+    assert (listed["instance"], len(listed["views"])) == (model.names[0], 3) and [p.name for p in tmp_path.iterdir()] == ["r"]
+    assert sorted(p.name for p in out.iterdir()) == ["0000.png", "0001.png", "0002.png", "notes.txt", "views.json"]
+    assert read_image(out / "0001.png").shape == (8, 8, 3) and (out / "notes.txt").read_text() == "mine"
+    (out / "sub").mkdir()
+    assert_user_error(invoke("render", model_path, "--instance", 0, "--views", "orbit:2", "--out", out), "holds a folder (sub)")
+    monkeypatch.chdir(out / "sub")
+    assert_user_error(invoke("render", model_path, "--instance", 0, "--views", "orbit:2", "--out", ".."), "is the current folder or holds it")
 
 
 def test_views_of_several_sizes_keep_their_own_size(tiny_chairs, model_path, tmp_path):

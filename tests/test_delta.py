@@ -323,7 +323,7 @@ def test_bake_renders_bit_identical_to_the_stack(tmp_path, model):
     for k in range(3):
         assert torch.equal(render(loaded, k), render(stacked, k))
     assert json.loads(loaded.meta["baked_edits"]) == [read_delta(a).fingerprint, read_delta(b).fingerprint]
-    with pytest.raises(ModelFileError, match="made for model"):  # the baked model is a new base
+    with pytest.raises(ModelFileError, match="a.safetensors: is already baked into this model"):  # a new base, which says so
         apply_edit_files(loaded, [a])
     c = delta_file(tmp_path, "c.safetensors", loaded, 1, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
     assert read_delta(c).meta["base"] == loaded.fingerprint() and read_delta(c).meta["parent"] == ""
@@ -449,8 +449,13 @@ def test_edits_show_check_bake_cli(tmp_path, model):
     assert shown.exit_code == 0, shown.output
     info = json.loads(shown.output)
     assert info["metadata"]["kind"] == "color" and info["tensors"]["F_rad.out.bias"] == {"shape": [3], "dtype": "float32"}
+    from crfedit.cli.edit import _parsed
+
+    assert (_parsed("final_loss", "0.5"), _parsed("final_loss", "nan"), _parsed("hyperparameters", '{"lr": 0.01}')) == (0.5, "nan", {"lr": 0.01})
+    assert _parsed("instance", "123") == "123" and _parsed("modules", "not json") == "not json"
+    assert info["metadata"]["modules"] == ["F_rad."] and json.loads(runner.invoke(app, ["info", str(a), "--json"]).output) == info
     table = runner.invoke(app, ["edits", "show", str(a)])
-    assert table.exit_code == 0 and "parent        (none)" in table.output and "tensor        F_rad.out.bias [3] float32" in table.output
+    assert table.exit_code == 0 and "parent        (none)" in table.output and 'modules       ["F_rad."]' in table.output and "tensor        F_rad.out.bias [3] float32" in table.output
     ok = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(a), "--edit", str(b)])
     assert ok.exit_code == 0 and "ok: 2 edit(s)" in ok.output
     bad = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(a)])
@@ -463,6 +468,8 @@ def test_edits_show_check_bake_cli(tmp_path, model):
     assert f"baked edits    {names} (2 edits onto {loaded.fingerprint()})" in info.output, info.output
     plain = runner.invoke(app, ["info", str(tmp_path / "m.safetensors")])
     assert "baked edits    none" in plain.output
+    again = runner.invoke(app, ["edits", "check", str(tmp_path / "baked.safetensors"), "--edit", str(b)])
+    assert_user_error(again, f"{b}: is already baked into this model")
     stacked = apply_edit_files(loaded, [a, b])
     for k in range(3):
         assert torch.equal(render(m2, k), render(stacked, k))

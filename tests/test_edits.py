@@ -592,6 +592,21 @@ def test_transfer_renders_equal_render_with_swapped_codes(trained, tmp_path):
     assert torch.equal(render(result.model, 0, cam).rgb, render(swap_codes(model, 0, shape_from=2), 0, cam).rgb)
 
 
+def test_ctrl_c_in_the_previews_says_the_edit_was_written(trained, tmp_path, monkeypatch):
+    """Ctrl-C while an edit command writes its --preview: exit 130 with one line that says the
+    edit file was written and the previews are incomplete."""
+    import crfedit.io
+
+    def interrupted(path, image):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(crfedit.io, "write_png", interrupted)
+    edit, prev = tmp_path / "t.safetensors", tmp_path / "prev"
+    r = invoke("transfer", trained[0], "--instance", 0, "--color-from", 1, "--out", edit, "--device", "cpu", "--preview", prev, "--views", "test:0")
+    assert r.exit_code == 130 and r.stderr.splitlines() == [f"interrupted: {edit} was written; the previews in {prev}/ are incomplete"], r.stderr
+    assert read_delta(edit).kind == "transfer"
+
+
 def test_edit_command_errors_write_nothing(trained, tmp_path):
     path, model, category = trained
     i, view, fg, keep, _ = scribbles(category, 0, "seat")

@@ -351,6 +351,40 @@ def test_read_image_16_bit_color(tmp_path, color_type, channels, out_channels):
 
 
 
+def test_a_folder_another_process_swaps_in_meanwhile_is_moved_aside_too(tmp_path, monkeypatch):
+    """atomic_folder: another process's folder that lands at the path between this one's two
+    renames is moved aside as well, so this one's folder ends up whole in its place; Ctrl-C
+    between the renames puts the old folder back."""
+    import crfedit.io as io
+
+    out = tmp_path / "f"
+    out.mkdir()
+    (out / "old").write_text("old")
+    real, moves = os.replace, []
+
+    def replace(src, dst):
+        real(src, dst)
+        moves.append(dst)
+        if len(moves) == 1:  # the old folder is aside: the other process's folder arrives
+            out.mkdir()
+            (out / "theirs").write_text("theirs")
+
+    monkeypatch.setattr(io.os, "replace", replace)
+    with io.atomic_folder(out) as tmp:
+        (tmp / "mine").write_text("mine")
+    assert listing(out) == ["mine"] and listing(tmp_path) == ["f"] and len(moves) == 3
+
+    def interrupted(src, dst):
+        if Path(src).name.endswith(".partial"):
+            raise KeyboardInterrupt
+        real(src, dst)
+
+    monkeypatch.setattr(io.os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt), io.atomic_folder(out) as tmp:
+        (tmp / "other").write_text("other")
+    assert listing(out) == ["mine"] and listing(tmp_path) == ["f"]
+
+
 def test_a_long_legal_name_is_written_through_short_hidden_files(tmp_path):
     """A 250-byte file name is legal; the temporary beside it must not overflow 255 bytes."""
     from crfedit.io import atomic_path, hidden_stem, writer_lock

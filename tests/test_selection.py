@@ -1188,6 +1188,17 @@ def test_select_command_and_its_errors(trained, tmp_path):
                             "--out", str(tmp_path / "e2.safetensors")])
     assert r.exit_code == 0 and "made with crfedit select --for add" in r.output, r.output
 
+    def interrupted(*args):
+        raise KeyboardInterrupt
+
+    with pytest.MonkeyPatch.context() as mp:  # Ctrl-C in the previews: the line says the selection was written
+        import crfedit.io
+
+        mp.setattr(crfedit.io, "write_png", interrupted)
+        r = runner.invoke(app, [*args, "--out", str(tmp_path / "i.safetensors"), "--preview", str(tmp_path / "p2"), "--views", "orbit:2"])
+    said = f"interrupted: {tmp_path / 'i.safetensors'} was written; the previews in {tmp_path / 'p2'}/ are incomplete"
+    assert r.exit_code == 130 and r.stderr.splitlines() == [said] and load_selection(tmp_path / "i.safetensors"), r.stderr
+
 
 def test_twin_score_closed_forms():
     from crfedit.twin_scores import gap_closed, masked_psnr

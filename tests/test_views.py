@@ -105,7 +105,7 @@ def test_bad_specs_are_one_line_errors_naming_the_spec(model, spec, message):
 
 def test_orbit_radius_focal_elevation(model):
     views = resolve_views("orbit:4", model, 0)
-    assert labels(views) == ["orbit:0", "orbit:1", "orbit:2", "orbit:3"]
+    assert labels(views) == ["orbit:4@30:0", "orbit:4@30:1", "orbit:4@30:2", "orbit:4@30:3"]
     for k, (_, cam) in enumerate(views):
         center = cam.center
         assert math.isclose(np.linalg.norm(center), 3.0)  # median of train radii 2, 3, 4, 2, 3, 4
@@ -121,8 +121,10 @@ def test_orbit_radius_focal_elevation(model):
     # some of an orbit's views by index: the same cameras and labels as in the whole orbit
     whole = resolve_views("orbit:36@20", model, 0)
     some = resolve_views("orbit:36@20:5,30-31", model, 0)
-    assert labels(some) == ["orbit:5", "orbit:30", "orbit:31"]
-    assert all(np.array_equal(cam.c2w, whole[int(label[6:])][1].c2w) for label, cam in some)
+    assert labels(some) == ["orbit:36@20:5", "orbit:36@20:30", "orbit:36@20:31"]
+    # each label is a spec of its own view (not orbit:5, which would be an orbit of 5 views)
+    assert all(np.array_equal(cam.c2w, resolve_views(label, model, 0)[0][1].c2w) for label, cam in whole[::7] + some)
+    assert all(np.array_equal(cam.c2w, whole[int(label.rsplit(":", 1)[1])][1].c2w) for label, cam in some)
 
 
 def test_res_resizes_width_and_focal_keeps_aspect(model):

@@ -97,7 +97,8 @@ def _main() -> None:
         raise SystemExit(2) from None
     except click_errors.UsageError as e:
         hint = f" (see '{e.ctx.command_path} --help')" if e.ctx is not None else ""
-        say(f"error: {' '.join(e.format_message().split())}{hint}")
+        # Typer 0.29 checks choices with pydantic, whose line reads "Value error, 'gpu' is not one of ..."
+        say(f"error: {' '.join(e.format_message().split()).replace(': Value error, ', ': ')}{hint}")
         raise SystemExit(2) from None
     except click_errors.ClickException as e:
         say(f"error: {' '.join(e.format_message().split())}")

@@ -216,6 +216,24 @@ def _says_it(error: BaseException) -> bool:
     return not isinstance(error, CrfError) or isinstance(error, DistributedError) or joined
 
 
+OUTPUTS = ("out", "out_dir", "preview", "video", "csv_path", "md_path", "models", "work", "workdir")
+"""The parameters (by name) through which commands take a file or folder to write."""
+
+
+def check_not_stdout(fn, kwargs: dict) -> None:
+    """``-`` given to command ``fn`` for an output (:data:`OUTPUTS`) is a user error: crfedit
+    writes files, and a ``-`` taken as a name makes a file or folder called ``-``."""
+    for name in OUTPUTS:
+        if str(kwargs.get(name)) == "-":
+            import typing
+
+            hint = typing.get_type_hints(fn, include_extras=True).get(name)
+            decls = [d for m in getattr(hint, "__metadata__", ()) for d in (getattr(m, "default", None), *(getattr(m, "param_decls", None) or ()))
+                     if isinstance(d, str) and d.startswith("--")]  # typer.Option("--out") keeps the name as its default
+            raise CrfError(f"{decls[0] if decls else name.upper()} -: crfedit writes files, not standard output; "
+                           "give a file or folder name (./- for one named -)")
+
+
 def user_errors(fn=None, *, ranked: bool = False):
     """Decorator for commands: a CrfError, an OS error (permission, disk full, read-only file
     system), a broken pipe or Ctrl-C exits cleanly with one line, no traceback.  Sets torch's
@@ -244,6 +262,7 @@ def user_errors(fn=None, *, ranked: bool = False):
                 from ..runtime import configure_threads
 
                 configure_threads(Session.threads)
+            check_not_stdout(fn, kwargs)
             return fn(*args, **kwargs)
         except CrfError as e:
             raise stop(str(e), e) from None

@@ -6,10 +6,11 @@ instance as seen from one ``--view`` and writes the edit file ``--out`` (docs/ed
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import json
 from pathlib import Path
-from typing import Annotated, NamedTuple, Optional
+from typing import Annotated, Iterator, NamedTuple, Optional
 
 import typer
 
@@ -150,15 +151,27 @@ def _preview_views(model, instance: int, folder: Path | None, spec: str):
     return resolve_views(spec, model, instance)
 
 
-def _preview(model, instance: int, folder: Path | None, views, spec: str) -> None:
-    """Render the edited instance from ``views`` (:func:`_preview_views`) into ``folder``."""
+@contextlib.contextmanager
+def previews_of(out: Path, folder: Path) -> Iterator[None]:
+    """Ctrl-C while the previews of ``out`` (written already) go to ``folder`` says so: the line
+    names the file written and the previews left incomplete (exit 130)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"{out} was written; the previews in {folder}/ are incomplete") from None
+
+
+def _preview(model, instance: int, folder: Path | None, views, spec: str, out: Path) -> None:
+    """Render the edited instance from ``views`` (:func:`_preview_views`) into ``folder``,
+    after its edit file ``out`` was written."""
     if folder is None:
         return
     from ..io import write_png
 
     folder.mkdir(parents=True, exist_ok=True)
-    for i, (_, camera) in enumerate(views):
-        write_png(folder / f"{i:04d}.png", _view_render(model, instance, camera)())
+    with previews_of(out, folder):
+        for i, (_, camera) in enumerate(views):
+            write_png(folder / f"{i:04d}.png", _view_render(model, instance, camera)())
     typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
 
 
@@ -287,7 +300,7 @@ def edit_color_cmd(
         typer.echo(f"colour hold: with F_rad alone {100 * hyper['bleed']:.1f} % of the points outside the selection took the new colour "
                    f"(they look like the part to it); fitted again training the bottleneck layer too: {100 * widened['bleed']:.1f} %, {how}")
     _write(result, out, p.label)
-    _preview(result.model, p.instance, preview, p.shown, views)
+    _preview(result.model, p.instance, preview, p.shown, views, out)
 
 
 @app.command("remove")
@@ -333,7 +346,7 @@ def remove_cmd(
         typer.echo(f"removal: {taken} cells, the selection with the skin around it; {junction} of them touch a kept part and "
                    f"lose only their side toward the selection, so {taken - junction} leave the occupancy grid")
     _write(result, out, p.label)
-    _preview(result.model, p.instance, preview, p.shown, views)
+    _preview(result.model, p.instance, preview, p.shown, views, out)
 
 
 @app.command("add")
@@ -389,7 +402,7 @@ def add_cmd(
     result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel,
                  on_selection=lambda made: _echo_selection(made, "donor ", takes_keep=False))
     _write(result, out, label)
-    _preview(result.model, k, preview, shown, views)
+    _preview(result.model, k, preview, shown, views, out)
 
 
 @app.command("transfer")
@@ -420,7 +433,7 @@ def transfer_cmd(
         color_from=None if color_from is None else m.instance_index(color_from),
     )
     _write(result, out, "")
-    _preview(result.model, k, preview, shown, views)
+    _preview(result.model, k, preview, shown, views, out)
 
 
 # ----------------------------------------------------------------------------- edits …
@@ -436,6 +449,24 @@ def _short(value) -> str:
     if isinstance(value, list):
         return "[" + ", ".join(_short(v) for v in value) + "]"
     return str(value)
+
+
+JSON_META = ("modules", "hyperparameters", "final_loss", "seconds")
+"""An edit's metadata values that hold JSON (a list, a table, a number): ``--json`` shows them parsed."""
+
+
+def _parsed(key: str, value: str):
+    """``value`` parsed where ``key`` is one of :data:`JSON_META` (as it was, if it is not JSON
+    or is NaN or infinite, which JSON cannot print)."""
+    if key not in JSON_META:
+        return value
+    def refuse(constant: str):
+        raise ValueError(constant)
+
+    try:
+        return json.loads(value, parse_constant=refuse)
+    except ValueError:
+        return value
 
 
 def _show_rows(delta, size: int) -> list[tuple[str, str]]:
@@ -493,7 +524,7 @@ def print_edit(edit: Path, as_json: bool) -> None:
         stored = _packed_bytes(delta)
         if stored is not None:
             tensors["occupancy"]["stored_bytes"] = stored  # bit-packed on disk
-        typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": delta.meta, "tensors": tensors}, indent=2))
+        typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": {k: _parsed(k, v) for k, v in delta.meta.items()}, "tensors": tensors}, indent=2))
         return
     for key, value in _show_rows(delta, size):
         typer.echo(printable(f"{key:<13} {value}"))

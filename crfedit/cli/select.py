@@ -10,7 +10,7 @@ import typer
 from ..errors import CrfError
 from ..names import SELECTION_FORMAT
 from .common import DeviceChoice, DeviceOpt, app, check_out_file, printable, user_errors
-from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _load, _one_view, _preview_views, _view_render
+from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _load, _one_view, _preview_views, _view_render, previews_of
 
 
 def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
@@ -87,8 +87,9 @@ def select_cmd(
     echo_summaries(info)
     if preview is not None:
         preview.mkdir(parents=True, exist_ok=True)
-        for i, (label, camera) in enumerate(shown):
-            write_png(preview / f"{i:04d}.png", tinted(m, sel, camera))
+        with previews_of(out, preview):
+            for i, (label, camera) in enumerate(shown):
+                write_png(preview / f"{i:04d}.png", tinted(m, sel, camera))
         typer.echo(f"wrote previews of {views} to {preview}/")
 
 
