@@ -26,6 +26,12 @@ class RenderResult:
     height: int
     seconds: float  # rendering only, file writes excluded
     video: Path | None
+    sizes: tuple[tuple[int, int], ...] = ()  # every (width, height) the views come in, in order
+
+    @property
+    def size_text(self) -> str:
+        """``64x64``, or ``64x64 / 48x48`` for views of several sizes."""
+        return " / ".join(f"{w}x{h}" for w, h in (self.sizes or ((self.width, self.height),)))
 
 
 def check_out_folder(out: Path) -> list[Path]:
@@ -142,7 +148,7 @@ def render_to_folder(
                 write_png(files[0], rgb)
                 if depth:
                     z = ray_distance(output).cpu().numpy()
-                    write_exr(files[1], {"Z": z, "A": output.opacity.cpu().numpy()})
+                    write_exr(files[1], {"Z": z, "A": output.opacity.clamp(0.0, 1.0).cpu().numpy()})  # Σw can round past 1
                     write_png(files[2], depth_preview(z, output.opacity.cpu().numpy()))
                 if video is not None:
                     frames[i] = to_uint8(rgb)
@@ -165,4 +171,5 @@ def render_to_folder(
                 video_written = out / video_written.name if inside else video_written
             _carry(keep, tmp)
     first = views[0][1]
-    return RenderResult(len(views), first.width, first.height, seconds, video_written)
+    sizes = tuple(dict.fromkeys((c.width, c.height) for _, c in views))
+    return RenderResult(len(views), first.width, first.height, seconds, video_written, sizes)

@@ -62,7 +62,7 @@ def render_cmd(
         return
     per_view = result.seconds / max(result.count, 1)
     typer.echo(
-        f"rendered {result.count} view{'s' if result.count != 1 else ''} of {m.names[k]} at {result.width}x{result.height} "
+        f"rendered {result.count} view{'s' if result.count != 1 else ''} of {m.names[k]} at {result.size_text} "
         f"in {result.seconds:.2f} s ({per_view:.3f} s per view) -> {out}"
     )
     if result.video is not None:
