@@ -1115,6 +1115,29 @@ def test_scribble_on_the_background_only_is_refused(trained):
             remove(model, 1, view.camera, scribble, None, options=EditOptions(steps=2), method=method)
 
 
+def test_edit_and_select_commands_print_one_json_record_with_json(trained, tmp_path):
+    """--json: stdout is one JSON object, the written file's `info --json` record (hyper-parameters
+    parsed); every other line goes to stderr."""
+    path, model, category = trained
+    view, fg, keep, _ = part_view(category, 1, "back")
+    from PIL import Image
+
+    Image.fromarray((fg * 255).astype(np.uint8)).save(tmp_path / "fg.png")
+    index = category.instances[1].splits["train"].index(view)
+    base = ["--instance", model.names[1], "--view", f"train:{index}", "--scribble", str(tmp_path / "fg.png")]
+    runner = CliRunner()
+    for cmd, extra, out in (("edit-color", ["--color", "red", "--steps", "5"], tmp_path / "e.safetensors"),
+                            ("select", [], tmp_path / "s.safetensors")):
+        r = runner.invoke(app, [cmd, str(path), *base, *extra, "--out", str(out), "--json"])
+        assert r.exit_code == 0, r.output
+        record = json.loads(r.stdout)  # the whole of stdout: one object
+        assert record == json.loads(runner.invoke(app, ["info", str(out), "--json"]).stdout)
+        assert f"wrote {out}" in r.stderr and "wrote" not in r.stdout
+    assert record["instance"] == model.names[1]
+    edit = json.loads(runner.invoke(app, ["edits", "show", str(tmp_path / "e.safetensors"), "--json"]).stdout)
+    assert edit["metadata"]["kind"] == "color" and isinstance(edit["metadata"]["hyperparameters"], dict)
+
+
 def test_select_command_and_its_errors(trained, tmp_path):
     path, model, category = trained
     view, fg, keep, _ = part_view(category, 1, "back")

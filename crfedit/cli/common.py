@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import errno
 import functools
@@ -232,6 +233,37 @@ def check_not_stdout(fn, kwargs: dict) -> None:
                      if isinstance(d, str) and d.startswith("--")]  # typer.Option("--out") keeps the name as its default
             raise CrfError(f"{decls[0] if decls else name.upper()} -: crfedit writes files, not standard output; "
                            "give a file or folder name (./- for one named -)")
+
+
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print the written file's record as JSON on stdout (what `crfedit info FILE --json` prints); the other lines go to stderr.")]
+
+
+def json_record(fn):
+    """For a command that writes one crfedit file (``out``) and takes ``--json``: its lines go to
+    stderr and stdout gets one JSON object, the written file's ``info --json`` record (an edit's
+    :func:`~.edit.print_edit`, a selection's :func:`~.select.print_selection`), so a script
+    reads one place."""
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        if not kwargs.get("as_json"):
+            return fn(*args, **kwargs)
+        with contextlib.redirect_stdout(sys.stderr):
+            fn(*args, **kwargs)
+        from ..safefile import read_header
+
+        out = kwargs["out"]
+        _, meta = read_header(out)
+        if meta.get("format") == SELECTION_FORMAT:
+            from .select import print_selection
+
+            print_selection(out, True, meta.get("version"))
+        else:
+            from .edit import print_edit
+
+            print_edit(out, True)
+
+    return run
 
 
 def user_errors(fn=None, *, ranked: bool = False):

@@ -16,7 +16,7 @@ import typer
 
 from ..errors import CrfError
 from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, MODEL_FORMAT, PENALTIES, RECOLOR_RULES, STRATEGIES
-from .common import printable, DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, edits_app, user_errors
+from .common import printable, DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, edits_app, json_record, user_errors
 
 
 Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
@@ -255,6 +255,7 @@ def _write(result, out: Path, label: str) -> None:
 
 @app.command("edit-color")
 @user_errors
+@json_record
 def edit_color_cmd(
     model: ModelArg,
     instance: InstanceOpt,
@@ -279,6 +280,7 @@ def edit_color_cmd(
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
+    as_json: JsonOpt = False,
     device: DeviceOpt = DeviceChoice.auto,
     seed: SeedOpt = 0,
 ) -> None:
@@ -305,6 +307,7 @@ def edit_color_cmd(
 
 @app.command("remove")
 @user_errors
+@json_record
 def remove_cmd(
     model: ModelArg,
     instance: InstanceOpt,
@@ -328,6 +331,7 @@ def remove_cmd(
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
+    as_json: JsonOpt = False,
     device: DeviceOpt = DeviceChoice.auto,
     seed: SeedOpt = 0,
 ) -> None:
@@ -351,6 +355,7 @@ def remove_cmd(
 
 @app.command("add")
 @user_errors
+@json_record
 def add_cmd(
     model: ModelArg,
     instance: InstanceOpt,
@@ -372,6 +377,7 @@ def add_cmd(
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
+    as_json: JsonOpt = False,
     device: DeviceOpt = DeviceChoice.auto,
     seed: SeedOpt = 0,
 ) -> None:
@@ -407,6 +413,7 @@ def add_cmd(
 
 @app.command("transfer")
 @user_errors
+@json_record
 def transfer_cmd(
     model: ModelArg,
     instance: InstanceOpt,
@@ -416,6 +423,7 @@ def transfer_cmd(
     preview: PreviewOpt = None,
     views: PreviewViewsOpt = "orbit:8",
     edit: PriorOpt = None,
+    as_json: JsonOpt = False,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Give one instance another instance's shape or colour code (no optimization)."""

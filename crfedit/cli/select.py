@@ -9,7 +9,7 @@ import typer
 
 from ..errors import CrfError
 from ..names import SELECTION_FORMAT
-from .common import DeviceChoice, DeviceOpt, app, check_out_file, printable, user_errors
+from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, user_errors
 from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _load, _one_view, _preview_views, _view_render, previews_of
 
 
@@ -36,6 +36,7 @@ def _mask(path: Path, model, instance: int, camera, what: str):
 
 @app.command("select")
 @user_errors
+@json_record
 def select_cmd(
     model: ModelArg,
     instance: InstanceOpt,
@@ -49,6 +50,7 @@ def select_cmd(
     kind: Annotated[str, typer.Option("--for", help="The edit the selection is for: color (also takes the cells of the scribble's chromaticity), remove or add.")] = "color",
     mirror: MirrorOpt = None,
     join: JoinOpt = None,
+    as_json: JsonOpt = False,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
