@@ -199,9 +199,10 @@ def test_a_second_training_of_the_same_out_is_refused_while_one_runs(tiny_chairs
     assert invoke("train", tiny_chairs, "--out", out, *TINY).exit_code == 0 and not (tmp_path / ".m.safetensors.lock").exists()
 
 
-def test_views_of_several_sizes_train_with_a_note(tiny_chairs, tmp_path):
-    """One chair's images at another size: training reads each view at its own size, and a note
-    says the model file keeps one size per split (its first view's)."""
+def test_views_of_several_sizes_train_at_their_sizes(tiny_chairs, tmp_path):
+    """One chair's images at 1.5x the size: training reads each view at its own size and the
+    model keeps each view's (tests/test_cli_train_render.py renders them); --res R gives every
+    view width R, so the table holds one size."""
     import shutil
 
     from PIL import Image
@@ -218,6 +219,10 @@ def test_views_of_several_sizes_train_with_a_note(tiny_chairs, tmp_path):
         exr.unlink()
     r = invoke("train", data, "--out", tmp_path / "m.safetensors", "--steps", 1, "--set", "rays=64", "--device", "cpu")
     assert r.exit_code == 0, r.output
-    assert "note: the views come in 2 sizes" in r.stderr and "--res R trains every view at width R" in r.stderr, r.stderr
+    from crfedit.model import load_model
+
+    assert "sizes" not in r.stderr, r.stderr
+    assert load_model(tmp_path / "m.safetensors")[0].views["train"].sizes is not None
     r = invoke("train", data, "--out", tmp_path / "r.safetensors", "--steps", 1, "--res", 16, "--set", "rays=64", "--device", "cpu")
     assert r.exit_code == 0 and "sizes" not in r.stderr, r.output
+    assert load_model(tmp_path / "r.safetensors")[0].views["train"].sizes is None
