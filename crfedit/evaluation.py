@@ -198,7 +198,7 @@ def score_model(
             note = score["lpips_note"]
             per_instance[name] = {key: score[key] for key in ("n", "psnr", "ssim", "lpips")}
             elapsed = time.perf_counter() - started
-            say(f"{name} ({i + 1}/{len(mine)}{'' if ranks.world == 1 else ' on rank 0'}): {len(views)} views, "
+            say(f"{name} ({i + 1}/{len(mine)}{'' if ranks.world == 1 else ' on rank 0'}): {len(views)} view{'s' * (len(views) != 1)}, "
                 f"PSNR {score['psnr']:.2f} dB, {elapsed / (i + 1):.2f} s per instance, ~{elapsed / (i + 1) * (len(mine) - i - 1):.0f} s left")
     if ranks.world > 1:
         parts = ranks.gather((per_instance, note), "gathering the scores")

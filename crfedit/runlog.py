@@ -19,7 +19,7 @@ import textwrap
 from pathlib import Path
 
 from .config import Config
-from .io import atomic_write_bytes, write_json
+from .io import atomic_write_bytes, atomic_write_text, write_json
 
 COLUMNS = ("step", "loss", "psnr", "rays_per_s", "lr", "seconds")
 
@@ -63,6 +63,17 @@ def run_record(path: Path, run: dict, cfg: Config, resume: bool) -> dict:
     return {**first, "resumes": [*resumes, {k: run.get(k) for k in keys}]}
 
 
+def _drop_rows_after(path: Path, step: int) -> None:
+    """Rewrite the log ``path`` without its rows past ``step``: a run interrupted (or killed)
+    after its last checkpoint logged steps that ``--resume`` trains again, and their rows would
+    appear twice.  Rows whose step does not read as a number stay."""
+    lines = path.read_text().splitlines(keepends=True)
+    kept = [line for i, line in enumerate(lines) if i == 0 or not line.split(",", 1)[0].strip().isdigit()
+            or int(line.split(",", 1)[0]) <= step]
+    if len(kept) != len(lines):
+        atomic_write_text(path, "".join(kept))
+
+
 class RunLog:
     """Writes the run records; ``on_step`` has :func:`crfedit.train.train`'s callback signature."""
 
@@ -78,6 +89,8 @@ class RunLog:
         self._tb_before = set(tb.rglob("*")) if tb.is_dir() else None
         write_json(self.paths["run"], run_record(self.paths["run"], run, cfg, resume))
         fresh = not (resume and self.paths["log"].is_file())
+        if not fresh and isinstance(run.get("resumed_at"), int):
+            _drop_rows_after(self.paths["log"], run["resumed_at"])  # steps past the checkpoint are trained again
         self.file = open(self.paths["log"], "w" if fresh else "a", newline="")
         self.csv = csv.writer(self.file)
         if fresh:

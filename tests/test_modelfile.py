@@ -37,6 +37,9 @@ def test_strip_keeps_renders_and_drops_resume(tiny_model, tiny_chairs, tmp_path)
     small = tmp_path / "small.safetensors"
     r = invoke("model", "strip", tiny_model, "--out", small)
     assert r.exit_code == 0 and "training state dropped" in r.stdout, r.output
+    again = invoke("model", "strip", small, "--out", tmp_path / "again.safetensors")  # nothing left to drop: said so
+    (tmp_path / "again.safetensors").unlink()
+    assert again.exit_code == 0 and "it held no training state (a copy)" in again.stdout, again.output
     sizes = size_breakdown(small)
     assert sizes["training state"] == 0 and small.stat().st_size < tiny_model.stat().st_size - size_breakdown(tiny_model)["training state"] + 16384
     (a, _), (b, state) = load_model(tiny_model), load_model(small)

@@ -226,3 +226,20 @@ def test_views_of_several_sizes_train_at_their_sizes(tiny_chairs, tmp_path):
     r = invoke("train", data, "--out", tmp_path / "r.safetensors", "--steps", 1, "--res", 16, "--set", "rays=64", "--device", "cpu")
     assert r.exit_code == 0 and "sizes" not in r.stderr, r.output
     assert load_model(tmp_path / "r.safetensors")[0].views["train"].sizes is None
+
+
+def test_a_resume_drops_the_log_rows_past_its_checkpoint(tmp_path):
+    """Killed at step 44 with its checkpoint at 40: --resume trains 41-44 again, so their rows
+    leave the log first (they appeared twice, a zig-zag in every loss plot)."""
+    from crfedit.config import make_config
+    from crfedit.runlog import COLUMNS, RunLog, record_paths
+
+    model = tmp_path / "m.safetensors"
+    log = record_paths(model)["log"]
+    rows = [",".join(COLUMNS)] + [f"{s},0.1,20.0,1000.0,0.01,{s / 10:.2f}" for s in range(10, 50, 10)]
+    log.write_text("\n".join(rows) + "\n")
+    run = RunLog(model, make_config("fast"), 10, None, True, {"resumed_at": 20, "command": "crfedit train"})
+    run.on_step(30, 0.05, 22.0, 1000.0)
+    run.file.close()
+    steps = [line.split(",")[0] for line in log.read_text().splitlines()[1:]]
+    assert steps == ["10", "20", "30"]

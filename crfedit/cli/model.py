@@ -35,5 +35,6 @@ def strip_cmd(
     before = model.stat().st_size if model.is_file() else 0
     sizes = strip_model(model, out)
     after = out.stat().st_size
-    typer.echo(f"wrote {out} ({_kb(after)}) from {model} ({_kb(before)}): training state dropped, "
+    dropped = "training state dropped" if after < before else "it held no training state (a copy)"
+    typer.echo(f"wrote {out} ({_kb(after)}) from {model} ({_kb(before)}): {dropped}, "
                f"weights {_kb(sizes['weights'])}, codes {_kb(sizes['codes'])}, occupancy {_kb(sizes['occupancy'])}")

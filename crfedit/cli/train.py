@@ -356,7 +356,7 @@ def train_cmd(
     split = held_out_split(category, "val")
     if any(inst.splits.get(split) for inst in category.instances):
         score = score_model(model, category, split, max_views=model.cfg.eval_views)
-        typer.echo(f"held-out {score['split']} ({score['n']} views): {format_score(score)}")
+        typer.echo(f"held-out {score['split']} ({score['n']} view{'s' * (score['n'] != 1)}): {format_score(score)}")
     else:
         typer.echo(f"note: no held-out score: {data} has no val or test views", err=True)
     rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)
@@ -518,7 +518,7 @@ def quickstart_cmd(
 
     typer.echo(f"4/{steps} scoring every held-out test view")
     score = score_model(model, category, "test")
-    typer.echo(f"held-out test ({score['n']} views): {format_score(score)}")  # under its own step, not the next one's
+    typer.echo(f"held-out test ({score['n']} view{'s' * (score['n'] != 1)}): {format_score(score)}")  # under its own step, not the next one's
     demo, skipped = None, None
     if edits:
         typer.echo(f"5/{steps} editing chair 0 from the dataset's scribbles: a recolour and a removal")
