@@ -497,8 +497,10 @@ def train(
         if resize and march is not None:
             dropped += march.resize()
 
+    saved = None  # the step of the last checkpoint this run wrote
+
     def checkpoint() -> None:
-        nonlocal consequence
+        nonlocal consequence, saved
         read_out(False)
         check_finite(params, "training", consequence)
         rank_states = ranks.gather(rank_generator.get_state().tolist(), "gathering generator states") if ranks.world > 1 else []
@@ -521,6 +523,7 @@ def train(
             timing = {"elapsed": f"{elapsed:.3f}", **({"minutes": repr(float(minutes))} if minutes is not None else {})}
             save_model(out, model, train_state, {**meta, "step": str(step), **timing})
         consequence = f"{out} keeps its last checkpoint"
+        saved = step
         ranks.barrier("waiting for rank 0 to write the checkpoint")
 
     budget = None if minutes is None else 60.0 * minutes
@@ -579,7 +582,10 @@ def train(
                     checkpoint()
     except KeyboardInterrupt:
         if ranks.world > 1:  # the ranks may be interrupted inside different collectives: no joint write
-            raise KeyboardInterrupt(f"{out} keeps its last checkpoint; continue with --resume") from None
+            if saved is None and not resume:
+                raise KeyboardInterrupt(f"interrupted at step {step}, before this run's first checkpoint: nothing to resume") from None
+            kept = f"its checkpoint at step {saved}" if saved is not None else "the checkpoint it was resumed from"
+            raise KeyboardInterrupt(f"{out} keeps {kept} (interrupted at step {step}); continue with --resume") from None
         checkpoint()
         raise KeyboardInterrupt(f"checkpoint at step {step} written to {out}; continue with --resume") from None
     checkpoint()
