@@ -136,6 +136,23 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     p.wait(f"return performance.getEntriesByName('crfedit:view').length > {n} && !S.viewBusy", 60)
     drive.pick_view(p, "train:0")
 
+    # Ctrl+Z in a number field undoes the typing, not a stroke
+    strokes = p.js("return marks().fg.length")
+    p.js("const f = document.getElementById('steps'); f.focus(); f.dispatchEvent(new KeyboardEvent('keydown', {key: 'z', ctrlKey: true, bubbles: true}))")
+    assert p.js("return marks().fg.length") == strokes
+    # an edit that fails at once can report before the server's reply names it (the reply held
+    # back 1.5 s here): the page shows the error and is ready again, not stuck on "starting…"
+    p.js("""const f = window.fetch; window.fetch = async (u, o) => { const r = await f(u, o);
+            if (String(u).includes('/api/edit')) await new Promise((res) => setTimeout(res, 1500)); return r; }""")
+    p.js("window.kept = marks().fg.splice(0); marks().fg.push({points: [[0, 0], [3, 0]], radius: 1}); redraw()")  # the corner alone
+    p.set_input("#edit-kind", "remove")
+    p.click("#apply")
+    p.wait("return !document.getElementById('error').hidden", 60)
+    assert "background only" in p.error(), p.error()
+    p.wait("return S.job === null && !document.getElementById('apply').disabled", 10)
+    assert len(p.driver.find_elements("css selector", "#stack li")) == 1  # nothing was added
+    p.js("marks().fg.splice(0, marks().fg.length, ...window.kept); redraw(); clearError()")
+
     # a reload of the tab keeps the strokes, the instance and the view (sessionStorage)
     p.driver.refresh()
     p.wait("return typeof S !== 'undefined' && S.info !== null && !S.viewBusy && performance.getEntriesByName('crfedit:view').length > 0", 60)

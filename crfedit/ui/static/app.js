@@ -493,7 +493,10 @@ function wire() {
   $("radius").addEventListener("input", () => { S.radius = Number($("radius").value); $("radius-out").textContent = `${S.radius.toFixed(2)} px`; });
   $("undo").addEventListener("click", undo);
   $("clear").addEventListener("click", clearStrokes);
-  document.addEventListener("keydown", (e) => { if ((e.ctrlKey || e.metaKey) && e.key === "z") { e.preventDefault(); undo(); } });
+  document.addEventListener("keydown", (e) => {  // a text field keeps its own Ctrl+Z (undo of the typing)
+    const typing = e.target instanceof HTMLElement && e.target.matches("input[type=text], input[type=number], input:not([type]), textarea");
+    if ((e.ctrlKey || e.metaKey) && e.key === "z" && !typing) { e.preventDefault(); undo(); }
+  });
   const c = $("strokes");
   c.addEventListener("pointerdown", onDown);
   c.addEventListener("pointermove", onMove);

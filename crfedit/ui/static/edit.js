@@ -93,10 +93,22 @@ async function doApply() {
   const body = editBody();
   const start = performance.now();
   clearError();  // an earlier edit's error (a Cancel) is not this one's
-  const reply = await postJson("/api/edit", body);
+  // A job that fails (or finishes) at once can report on the socket before this reply names it:
+  // its messages wait in S.early and are read once S.job is set (else the page stayed busy).
+  S.early = [];
+  let reply;
+  try {
+    reply = await postJson("/api/edit", body);
+  } catch (e) {
+    S.early = null;
+    throw e;
+  }
+  const early = S.early;
+  S.early = null;
   S.job = { id: reply.job, kind: body.kind, start, steps: reply.steps, instance: body.instance, view: viewKey(body.view) };
   busy(true);
   status(`${body.kind}: starting…`);
+  for (const msg of early) await onJobMessage(msg);
 }
 
 function busy(on) {
@@ -119,6 +131,10 @@ async function followStack(msg) {
 
 async function onJobMessage(msg) {
   if (msg.type === "stack") return followStack(msg);
+  if (S.early && !S.job) {  // an Apply is waiting for its reply: this may be its job's message
+    S.early.push(msg);
+    return;
+  }
   if (!S.job || msg.job !== S.job.id) {
     if (msg.type === "done" && msg.stack) await followStack(msg);  // another tab's edit
     return;
