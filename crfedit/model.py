@@ -163,6 +163,9 @@ def save_model(
         fingerprint=model.fingerprint(),
         view_sizes=json.dumps({split: [t.width, t.height] for split, t in model.views.items()}),
     )
+    widths = {split: sorted(set(t.sizes[:, 0].tolist())) for split, t in model.views.items() if t.sizes is not None}
+    if any(len(w) > 1 for w in widths.values()):  # views of several widths: --resume loads each at its own
+        meta["view_widths"] = json.dumps(widths)
     write_safetensors(path, tensors, meta)
 
 

@@ -85,6 +85,7 @@ class StoredRun(NamedTuple):
     dataset: str  # fingerprint of the dataset it was trained on
     resumable: bool  # it holds training state (not baked or stripped)
     seed: int | None = None  # the run's --seed; None: written before the key
+    widths: dict | None = None  # split -> the widths of its views, where they come in several
 
 
 def stored_training(path: str | os.PathLike) -> StoredRun:
@@ -94,8 +95,9 @@ def stored_training(path: str | os.PathLike) -> StoredRun:
     step = int(meta["step"]) if is_digits(meta.get("step", "")) else 0
     try:
         sizes = json.loads(meta.get("view_sizes", "{}"))
+        widths = json.loads(meta.get("view_widths", "{}"))
     except json.JSONDecodeError:
-        sizes = {}
+        sizes, widths = {}, {}
 
     def number(key: str) -> float | None:
         try:
@@ -106,7 +108,8 @@ def stored_training(path: str | os.PathLike) -> StoredRun:
 
     return StoredRun(cfg, step, sizes if isinstance(sizes, dict) else {}, number("elapsed"), number("minutes"),
                      meta.get("dataset_fingerprint", ""), any(tensor_kind(n) == "training state" for n in header),
-                     int(meta["seed"]) if is_digits(meta.get("seed", "")) else None)
+                     int(meta["seed"]) if is_digits(meta.get("seed", "")) else None,
+                     widths if isinstance(widths, dict) else None)
 
 
 MODULE_ORDER = (*MODULES, *CODE_TABLES)

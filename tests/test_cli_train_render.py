@@ -544,3 +544,10 @@ def test_views_of_several_sizes_keep_their_own_size(tiny_chairs, model_path, tmp
     assert RenderResult(2, 16, 16, 0.1, None, ((16, 16), (24, 24))).size_text == "16x16 / 24x24"
     tensors, _ = read_safetensors(out)
     assert "views.train.size" in tensors and "views.train.size" not in read_safetensors(model_path)[0]
+    # --resume loads each view at its own width again (not every view at the first's)
+    assert stored_training(out).widths["train"] == [16, 24] and stored_training(model_path).widths == {}
+    from crfedit.cli.train import _resumed
+    from crfedit.distributed import SINGLE
+
+    assert _resumed(out, None, None, SINGLE)[1] is None
+    assert_user_error(invoke("train", data, "--out", out, "--resume", "--res", 16, *TINY), "each view at its own width (16, 24)")

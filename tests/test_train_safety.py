@@ -92,6 +92,8 @@ def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
     assert int(load_model(out)[1]["step"]) == 3
     r = invoke("train", tiny_chairs, "--out", out, "--resume", "--steps", 5, "--set", "rays=32", "--device", "cpu")
     assert r.exit_code == 0 and "nothing to resume" in r.stdout and "ignored: rays 32 (stored 64), steps 5 (stored 3)" in r.stdout, r.output
+    r = invoke("train", tiny_chairs, "--out", out, "--resume", "--seed", 9, "--device", "cpu")  # the finished run's seed too
+    assert r.exit_code == 0 and "nothing to resume" in r.stdout and "seed 9 (stored" in r.stdout, r.output
 
 
 def test_existing_model_is_not_replaced_silently(tiny_chairs, tmp_path):

@@ -161,9 +161,7 @@ def run_training(
     if resume and out.is_file():
         stored = stored_training(out)
         stored_cfg, first_step = stored.cfg, stored.step
-        ignored = ignored_flags(part_config(category, cfg), stored_cfg, given)
-        if given is not None and "seed" in given and stored.seed is not None and seed != stored.seed:
-            ignored = f"{ignored or 'ignored:'}{',' if ignored else ''} seed {seed} (stored {stored.seed})"
+        ignored = _ignored_seed(ignored_flags(part_config(category, cfg), stored_cfg, given), given, seed, stored.seed)
         seed = seed if stored.seed is None else stored.seed  # what train() goes on with, for the run record too
         if ignored and ranks.main:
             typer.echo(f"resuming {out} with its stored config (preset {stored_cfg.preset}, {stored_cfg.steps} steps); {ignored}", err=True)
@@ -233,6 +231,13 @@ def given_settings(preset: str, overrides: dict, sets: list[str]) -> frozenset[s
     return frozenset(keys)
 
 
+def _ignored_seed(ignored: str, given, seed: int, stored_seed: int | None) -> str:
+    """``ignored`` (:func:`ignored_flags`' line) with a --seed the stored run overrides added."""
+    if given is not None and "seed" in given and stored_seed is not None and seed != stored_seed:
+        return f"{ignored or 'ignored:'}{',' if ignored else ''} seed {seed} (stored {stored_seed})"
+    return ignored
+
+
 def _resumed(out: Path, res: int | None, minutes: float | None, ranks):
     """``--resume``'s reading of the stored run, before the dataset loads or any run record is
     written: (the stored run, the resolution, the time budget, why nothing is left to train or
@@ -245,7 +250,12 @@ def _resumed(out: Path, res: int | None, minutes: float | None, ranks):
     if not stored.resumable:
         raise CrfError(f"--resume: {out} holds no training state (it was baked or stripped)")
     stored_width = (stored.sizes.get("train") or [None])[0]
-    if res is None:
+    several = (stored.widths or {}).get("train")
+    if several and len(several) > 1:  # trained with each view at its own size: resumed alike
+        if res is not None:
+            raise CrfError(f"--resume --res {res}: {out} was trained with each view at its own width "
+                           f"({', '.join(map(str, several))}); resume without --res")
+    elif res is None:
         res = stored_width
     elif stored_width is not None and res != stored_width:
         raise CrfError(f"--resume --res {res}: {out} was trained at width {stored_width}")
@@ -343,7 +353,7 @@ def train_cmd(
         if resume and finished:  # rewriting it would only replace its records
             from ..parts import part_config
 
-            ignored = ignored_flags(part_config(category, cfg), stored.cfg, given)
+            ignored = _ignored_seed(ignored_flags(part_config(category, cfg), stored.cfg, given), given, seed, stored.seed)
             if ranks.main:
                 typer.echo(f"{out} {finished}" + (f"; {ignored}" if ignored else ""))
             return
