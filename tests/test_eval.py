@@ -84,7 +84,7 @@ def test_recon_json_is_valid_json_with_the_expected_keys(model_path, data):
     result = invoke("eval", "recon", model_path, data, "--json", "--max-views", 1, "--device", "cpu")
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
-    assert result.stderr.count(" views, PSNR ") == 2  # progress on stderr, JSON alone on stdout
+    assert result.stderr.count(" view, PSNR ") == 2  # progress on stderr (one view each), JSON alone on stdout
     assert {"model", "data", "split", "n", "psnr", "ssim", "lpips", "lpips_note", "ssim_note", "dataset_match", "instances"} <= set(report)
     assert report["split"] == "test" and report["n"] == 2 and report["dataset_match"] is True
     assert report["lpips"] is None and "no weights" in report["lpips_note"]
