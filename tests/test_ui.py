@@ -537,8 +537,9 @@ def test_a_closed_tab_cancels_its_running_edit(ui, scene):
                 assert (await ws.receive_json())["type"] == "hello"
                 r = await s.post(f"{ui.base}/api/edit", json=color_body(scene, steps=5000, client="tab1"))
                 assert r.status == 202
-                while (await ws.receive_json())["type"] != "progress":
+                while (msg := await ws.receive_json())["type"] != "progress":
                     pass
+                assert msg["kind"] == "color"  # what another tab shows while it runs
             # the tab is gone
 
     asyncio.run(run())

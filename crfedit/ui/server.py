@@ -306,7 +306,7 @@ class Server:
             now = time.perf_counter()
             if now - last[0] >= PROGRESS_EVERY or step == job.steps:
                 last[0] = now
-                loop.call_soon_threadsafe(self._broadcast, {"type": "progress", "job": job.id, "step": step, "steps": job.steps})
+                loop.call_soon_threadsafe(self._broadcast, {"type": "progress", "job": job.id, "kind": job.kind, "step": step, "steps": job.steps})
 
         future = loop.run_in_executor(self.edit_pool, self.session.run_edit, req, on_step)
         future.add_done_callback(lambda f: self._finished(job, f))

@@ -135,8 +135,15 @@ async function onJobMessage(msg) {
     S.early.push(msg);
     return;
   }
-  if (!S.job || msg.job !== S.job.id) {
-    if (msg.type === "done" && msg.stack) await followStack(msg);  // another tab's edit
+  if (!S.job || msg.job !== S.job.id) {  // another tab's edit: say so while it runs (this tab's Apply would be refused)
+    if (msg.type === "progress") {
+      S.other = msg.job;
+      status(`another tab's ${msg.kind || "edit"}: step ${msg.step} of ${msg.steps}`);
+    } else if (msg.job !== undefined && msg.job === S.other) {
+      S.other = null;
+      status("ready");
+    }
+    if (msg.type === "done" && msg.stack) await followStack(msg);
     return;
   }
   if (msg.type === "progress") {
