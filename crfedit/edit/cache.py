@@ -174,9 +174,11 @@ class EditPass:
         """Radiance stage: ``net``'s F_rad colour [m, 3] of each kept sample."""
         return net.F_rad(self.rad_inputs(net), color_code)
 
-    def radiance_rgb(self, net: FieldNet, color_code: Tensor | None) -> Tensor:
-        """Radiance stage: each ray's colour [N, 3] with ``net``'s F_rad on the cached samples."""
-        return self.constant.index_add(0, self.ray, self.w[:, None] * self.sample_rgb(net, color_code))
+    def radiance_rgb(self, net: FieldNet, color_code: Tensor | None, inputs: Tensor | None = None) -> Tensor:
+        """Radiance stage: each ray's colour [N, 3] with ``net``'s F_rad on the cached samples
+        (on ``inputs`` [m, 8 + D] instead of :meth:`rad_inputs` when given)."""
+        rgb = self.sample_rgb(net, color_code) if inputs is None else net.F_rad(inputs, color_code)
+        return self.constant.index_add(0, self.ray, self.w[:, None] * rgb)
 
     def densities(self) -> tuple[Tensor, Tensor]:
         """(σ [M], bottleneck features [M, 8]) at the current parameters (not the radiance stage)."""
@@ -244,7 +246,5 @@ class ViewCache:
         one the cache was built with: a colour edit's, not a shape edit's)."""
         net = field if self.net_name == "fine" else field.coarse
         _, color_code = field.codes(self.instance)
-        c = self.cached
-        same = all(torch.equal(a, b) for a, b in zip(net.bottleneck.parameters(), self.bottleneck))
-        rgb = net.F_rad(c.per_point if same else c.rad_inputs(net), color_code)
-        return c.constant.index_add(0, c.ray, c.w[:, None] * rgb).view(*self.shape, 3)
+        same = all(torch.equal(a, b) for a, b in zip(net.bottleneck.parameters(), self.bottleneck))  # the usual recolour
+        return self.cached.radiance_rgb(net, color_code, self.cached.per_point if same else None).view(*self.shape, 3)
