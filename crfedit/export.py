@@ -107,12 +107,6 @@ def vertex_colors(field, instance: int, points: torch.Tensor, normals: torch.Ten
     return torch.cat(out) if out else torch.zeros(0, 3)
 
 
-MIN_PIECE = 0.005
-"""``export mesh --min-piece``: pieces (connected components) with fewer faces than this share of
-the largest piece's are dropped.  A tester's quickstart chair at --res 128: the chair 98 472
-faces and 55 floaters of 8–172 (≤ 0.17 %), which also widened the reported extent."""
-
-
 def face_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     """[F] the connected component of each face (faces sharing a vertex are connected), labelled
     by the smallest vertex index in it: label propagation with pointer jumping."""

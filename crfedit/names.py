@@ -80,3 +80,10 @@ def did_you_mean(key: str, names: list[str] | tuple[str, ...]) -> str:
     if not near or len(near) > 3:
         return ""
     return "; did you mean " + " or ".join(repr(n) for n in near) + "?"
+
+
+MIN_PIECE = 0.005
+"""``export mesh --min-piece``'s default: pieces (connected components) with fewer faces than
+this share of the largest piece's are dropped (:func:`~crfedit.export.drop_small_pieces`).  A
+tester's quickstart chair at --res 128: the chair 98 472 faces and 55 floaters of 8–172
+(≤ 0.17 %), which also widened the reported extent."""

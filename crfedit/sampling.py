@@ -56,13 +56,14 @@ def ray_aabb_intersect(origins: Tensor, directions: Tensor, aabb: Tensor) -> tup
     without NaN by treating 1/0 as ±1e12.  A ray without a direction (every component below
     1e-6, or NaN) misses: inside the box its 1e12 reach would be marched for ever.
     """
-    safe = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
+    size = directions.abs()
+    safe = torch.where(size < 1e-12, torch.full_like(directions, 1e-12), directions)
     inv = 1.0 / safe
     t0 = (aabb[:3] - origins) * inv
     t1 = (aabb[3:] - origins) * inv
     t_near = torch.minimum(t0, t1).amax(dim=-1).clamp_min(0.0)
     t_far = torch.maximum(t0, t1).amin(dim=-1)
-    hit = (t_far > t_near) & (directions.abs().amax(dim=-1) > 1e-6)
+    hit = (t_far > t_near) & (size.amax(dim=-1) > 1e-6)
     zero = torch.zeros_like(t_near)
     return torch.where(hit, t_near, zero), torch.where(hit, t_far, zero), hit
 

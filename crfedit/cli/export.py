@@ -9,6 +9,7 @@ import typer
 
 from ..errors import CrfError
 from ..io import check_replaceable
+from ..names import MIN_PIECE
 from .common import DeviceChoice, DeviceOpt, app, user_errors
 
 export_app = typer.Typer(help="Export an instance as a mesh.", no_args_is_help=True)
@@ -24,7 +25,7 @@ def mesh_cmd(
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", metavar="EDIT", help="Apply this edit file first (repeatable, in order).")] = None,
     res: Annotated[int, typer.Option("--res", help="Marching-cubes lattice points per side of the scene box.")] = 256,
     level: Annotated[Optional[float], typer.Option("--level", help="Density σ of the surface (default: ln 2 / render step, where one step is half opaque).")] = None,
-    min_piece: Annotated[float, typer.Option("--min-piece", metavar="SHARE", help="Drop pieces (connected components) with fewer faces than this share of the largest piece's: floaters (0 keeps every piece).")] = 0.005,
+    min_piece: Annotated[float, typer.Option("--min-piece", metavar="SHARE", help="Drop pieces (connected components) with fewer faces than this share of the largest piece's: floaters (0 keeps every piece).")] = MIN_PIECE,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Extract the density level set by marching cubes over the occupied cells, with vertex

@@ -25,6 +25,7 @@ def require_on_object(covered: int) -> None:
     if covered == 0:
         raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
 
+
 def _css_colors() -> dict[str, str]:
     """The CSS named colours (all 148, as Pillow's ``ImageColor`` holds them) → ``#rrggbb``."""
     from PIL import ImageColor

@@ -131,7 +131,8 @@ def remove(
     with torch.no_grad():
         for p in passes:
             out = p.forward()
-            require_on_object(int((out.opacity[:n_fg] >= MIN_OPACITY).sum()))
+            if p is passes[-1]:  # the network that renders: the coarse one only places samples
+                require_on_object(int((out.opacity[:n_fg] >= MIN_OPACITY).sum()))
             rgb, alpha, seen = out.rgb.clone(), out.opacity.clone(), out.weights.clone()
             push = out.sigmas[:n_fg] > 0
             if occluded:

@@ -15,10 +15,10 @@ from ... import occupancy
 from ...errors import CrfError
 from ...model import CategoryModel
 from ...names import MIRROR_MODES
-from ..scribble import require_on_object
 from ...parts import labelled_names
 from ...masks import dilate, erode
 from ...renderer import RenderOutput, render_camera
+from ..scribble import require_on_object
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
