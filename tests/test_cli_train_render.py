@@ -186,6 +186,7 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
     result = invoke("render", model_path, "--instance", "chair_001", "--views", "orbit:3", "--res", 12, "--out", out, "--depth", "--device", "cpu")
     assert result.exit_code == 0, result.output
     assert "rendered 3 views of chair_001 at 12x12" in result.stdout and "s per view" in result.stdout
+    assert "note:" not in result.stderr  # narrower than the training views: nothing to say
     names = sorted(p.name for p in out.iterdir())
     assert names == [f"{i:04d}{tail}" for i in range(3) for tail in (".png", "_depth.exr", "_depth.png")] + ["views.json"]
 
@@ -221,6 +222,12 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
                 np.testing.assert_array_equal(values, read_exr(again / name)[channel])
         else:
             assert (out / name).read_bytes() == (again / name).read_bytes(), name
+    # wider than the model was trained at: said, since the render holds no finer detail
+    wide = model.views["train"].width + 4
+    result = invoke("render", model_path, "--instance", "1", "--views", "test:0", "--res", wide, "--out", tmp_path / "wide", "--device", "cpu")
+    assert result.exit_code == 0 and result.stderr.splitlines() == [
+        f"note: --res {wide} is wider than the {wide - 4}-pixel views the model was trained on: "
+        "the rays are denser, but the field holds no finer detail than it learned"], result.stderr
 
 
 def test_render_to_folder_library(model_path, tmp_path):

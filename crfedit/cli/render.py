@@ -56,6 +56,11 @@ def render_cmd(
         from ..edit.transfer import swap_codes
 
         m = swap_codes(m, k, shape_from=shape_from, color_from=color_from)
+    trained = m.views.get("train")
+    widest = None if trained is None else (trained.width if trained.sizes is None else int(trained.sizes[:, 0].max()))
+    if ranks.main and res is not None and widest is not None and res > widest:
+        typer.echo(f"note: --res {res} is wider than the {widest}-pixel views the model was trained on: "
+                   "the rays are denser, but the field holds no finer detail than it learned", err=True)
     with process_group(ranks, dev):
         result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks)
     if not ranks.main:
