@@ -1223,6 +1223,44 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert r.exit_code == 130 and r.stderr.splitlines() == [said] and load_selection(tmp_path / "i.safetensors"), r.stderr
 
 
+def test_a_view_with_keep_strokes_alone_holds_back_what_it_marks(trained, tmp_path):
+    """A second view may hold keep strokes and no scribble (the fix for a selection that took
+    too much, drawn where the wrong part shows): what it marks leaves the selection, while a
+    view with neither, or views with no scribble at all, are one-line errors."""
+    path, model, category = trained
+    k = 2
+    view, fg, _, pid = part_view(category, k, "seat")
+    other = next(v for v in category.instances[k].splits["train"] if v is not view and erode(v.parts == pid, 1).sum() >= 20)
+    kept = erode(other.parts == pid, 1)  # the part itself, marked kept where the second view sees it
+    none = np.zeros_like(kept)
+    one = select(model, k, [ScribbleView(view.camera, fg, None)])
+    two = select(model, k, [ScribbleView(view.camera, fg, None), ScribbleView(other.camera, none, kept)])
+    field = model.field_for(k)
+    pts, on = surface_points(field, other.camera, k)
+    share = lambda sel: float(sel.at(field.normalize(pts[torch.from_numpy(kept.reshape(-1)) & on])).float().mean())
+    assert share(one) > 0.5 and share(two) < share(one) - 0.3, (share(one), share(two))
+    assert two.meta["views"] == 2 and two.meta["positives"] == one.meta["positives"]
+    with pytest.raises(CrfError, match=r"^the scribble of view 2 is empty: no pixel is set \(a view without a scribble needs keep strokes\)$"):
+        select(model, k, [ScribbleView(view.camera, fg, None), ScribbleView(other.camera, none, None)])
+    with pytest.raises(CrfError, match="^no view holds a scribble: keep strokes alone select nothing"):
+        select(model, k, [ScribbleView(view.camera, none, fg), ScribbleView(other.camera, none, kept)])
+    # the command line: --scribble none (with its --keep), --keep none for a view without keep strokes
+    from PIL import Image
+
+    inst = category.instances[k].splits["train"]
+    for name, mask in (("fg", fg), ("kept", kept)):
+        Image.fromarray((mask * 255).astype(np.uint8)).save(tmp_path / f"{name}.png")
+    args = ["select", str(path), "--instance", model.names[k], "--view", f"train:{inst.index(view)}", "--scribble", str(tmp_path / "fg.png"),
+            "--keep", "none", "--view", f"train:{inst.index(other)}", "--scribble", "none"]
+    r = CliRunner().invoke(app, [*args, "--keep", str(tmp_path / "kept.png"), "--out", str(tmp_path / "s.safetensors")])
+    assert r.exit_code == 0, r.output
+    same = select(model, k, [ScribbleView(view.camera, fg, None), ScribbleView(other.camera, none, kept)], options_for("color"))
+    np.testing.assert_array_equal(load_selection(tmp_path / "s.safetensors").values.numpy(), same.values.numpy())
+    r = CliRunner().invoke(app, [*args, "--keep", "none", "--out", str(tmp_path / "x.safetensors")])
+    assert_user_error(r, f"--view train:{inst.index(other)} --scribble none: a view without a scribble needs its --keep strokes")
+    assert not (tmp_path / "x.safetensors").exists()
+
+
 def test_twin_score_closed_forms():
     from crfedit.twin_scores import gap_closed, masked_psnr
 

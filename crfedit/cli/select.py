@@ -9,6 +9,10 @@ import typer
 
 from ..errors import CrfError
 from ..names import SELECTION_FORMAT
+
+NO_MASK = "none"
+"""``--scribble none`` / ``--keep none``: this view has no such strokes (a further view that only
+holds keep strokes, or a view without keep strokes beside one with them)."""
 from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, user_errors
 from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _load, _one_view, _preview_views, _view_render, previews_of
 
@@ -41,9 +45,9 @@ def select_cmd(
     model: ModelArg,
     instance: InstanceOpt,
     view: Annotated[list[str], typer.Option("--view", help="A view the scribbles belong to (repeatable: one --scribble per --view).")],
-    scribble: Annotated[list[Path], typer.Option("--scribble", help="The part, on that view: mask PNG (white on black) or strokes JSON (repeatable).")],
+    scribble: Annotated[list[Path], typer.Option("--scribble", help="The part, on that view: mask PNG (white on black) or strokes JSON (repeatable); none for a further view that only holds keep strokes.")],
     out: Annotated[Path, typer.Option("--out", help="Selection file to write (.safetensors).")],
-    keep: Annotated[Optional[list[Path]], typer.Option("--keep", help="What is not the part, per view (repeatable; none, or one per --view).")] = None,
+    keep: Annotated[Optional[list[Path]], typer.Option("--keep", help="What is not the part, per view (repeatable: none, or one per --view, none for a view without keep strokes).")] = None,
     edit: PriorOpt = None,
     preview: Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG previews with the selection tinted.")] = None,
     views: Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")] = "orbit:8",
@@ -54,6 +58,8 @@ def select_cmd(
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
+    import numpy as np
+
     from ..edit.scribble import keep_overlap
     from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
     from ..io import write_png
@@ -70,8 +76,13 @@ def select_cmd(
     scribbles = []
     for i, spec in enumerate(view):
         _, camera = _one_view(m, spec, k)
-        bg = _mask(keep[i], m, k, camera, "keep") if keep else None
-        fg = _mask(scribble[i], m, k, camera, "scribble")
+        bg = _mask(keep[i], m, k, camera, "keep") if keep and str(keep[i]).lower() != NO_MASK else None
+        if str(scribble[i]).lower() == NO_MASK:  # a view that only holds back what it shows
+            if bg is None:
+                raise CrfError(f"--view {spec} --scribble none: a view without a scribble needs its --keep strokes")
+            fg = np.zeros_like(bg)
+        else:
+            fg = _mask(scribble[i], m, k, camera, "scribble")
         overlap = keep_overlap(fg, bg)
         if overlap:
             typer.echo(f"warning: {spec}: {overlap}", err=True)

@@ -87,7 +87,7 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
         strokes = data.get("strokes")
         if "radius" in data:
             radius = _radius(data["radius"], width, height, where)
-    if not isinstance(strokes, list) or not strokes:
+    if not isinstance(strokes, list):
         raise CrfError(f"{where}: expected {{\"strokes\": [[[x, y], ...], ...], \"radius\": r}} or a list of strokes")
     mask = np.zeros((height, width), dtype=bool)
     points = []
@@ -108,7 +108,7 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
     if min(width, height) >= 8 and all(((p >= 0) & (p <= 1)).all() for p in points) and any((p % 1 != 0).any() for p in points):
         raise CrfError(f"{where}: every point lies between 0 and 1, as fractions of the view would; stroke points are pixels "
                        f"(x from 0 to {width - 1}, y from 0 to {height - 1})")
-    if not mask.any():
+    if points and not mask.any():  # no strokes at all is an empty mask, which its reader judges
         raise CrfError(f"{where}: every stroke lies outside the {width}x{height} view (x from 0 to {width - 1}, y from 0 to {height - 1})")
     return mask
 

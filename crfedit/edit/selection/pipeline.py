@@ -252,9 +252,12 @@ def select(
     k = model.instance_index(instance)
     if not views:
         raise CrfError("select: give at least one view with a scribble")
-    for i, v in enumerate(views):
-        if not v.scribble.any():
-            raise CrfError(f"the scribble of view {i + 1} is empty: no pixel is set")
+    for i, v in enumerate(views):  # a view with keep strokes alone holds back what it shows (a second view's fix)
+        if not v.scribble.any() and (len(views) == 1 or v.keep is None or not v.keep.any()):
+            raise CrfError(f"the scribble of view {i + 1} is empty: no pixel is set"
+                           + ("" if len(views) == 1 else " (a view without a scribble needs keep strokes)"))
+    if not any(v.scribble.any() for v in views):
+        raise CrfError("no view holds a scribble: keep strokes alone select nothing (scribble the part on at least one view)")
     if options.shape_from not in SHAPE_SOURCES:
         raise CrfError(f"selection shape_from {options.shape_from!r}: expected one of {', '.join(SHAPE_SOURCES)}")
     if options.mirror not in MIRROR_MODES:
@@ -289,7 +292,8 @@ def select(
         mirror_meta.update(positives=int(len(mirrored[0])), keep_points=int(len(mirrored[1])))
         pos_pts, neg_pts, cand_pts = (torch.cat([a, b]) for a, b in zip((pos_pts, neg_pts, cand_pts), mirrored))
     cell_pts = field.denormalize(centres)
-    eye = torch.as_tensor(np.asarray(views[0].camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
+    first = next(v for v in views if v.scribble.any())  # the features' view-dependent terms read its eye
+    eye = torch.as_tensor(np.asarray(first.camera.c2w)[:3, 3], dtype=torch.float32, device=occupied.device)
     groups, part_meta, fused_pos, coherence = options.features, None, None, 0.0
     if options.part_head and field.F_part is not None and "part" not in groups:
         fused_pos = field.fuse_features(field.normalize(pos_pts), k)  # point_features reuses it
