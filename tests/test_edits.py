@@ -592,6 +592,34 @@ def test_transfer_renders_equal_render_with_swapped_codes(trained, tmp_path):
     assert torch.equal(render(result.model, 0, cam).rgb, render(swap_codes(model, 0, shape_from=2), 0, cam).rgb)
 
 
+def test_a_transfer_says_when_weights_of_an_instance_s_own_do_not_travel(trained, tmp_path):
+    """A code transfer leaves behind the weights an instance owns (fit-real's, an edit's): the
+    command says so when the source's look, or the target's reading of the code, hangs on them."""
+    from crfedit.delta import save_delta
+    from crfedit.edit.transfer import weights_not_carried
+
+    path, model, category = trained
+    i, view, fg, keep, _ = scribbles(category, 1, "seat")
+    result = edit_color(model, 1, view.camera, fg, "red", keep, EditOptions(steps=1))  # chair 1 now owns its F_rad
+    edited = result.model
+    n = edited.names
+    assert weights_not_carried(edited, 0, shape_from=1) == []  # F_rad is colour: the shape is the shared weights'
+    assert weights_not_carried(edited, 0, color_from=1) == [
+        f"{n[1]} renders with its own F_rad (fitted or edited for it alone): the transfer carries its colour code, "
+        f"not those weights, so {n[0]} will not look like it"]
+    assert weights_not_carried(edited, 1, shape_from=2, color_from=2) == [
+        f"{n[1]} has its own F_rad (fitted or edited for it alone), which read the shape code and colour code it takes: "
+        "it can change less than an instance without weights of its own"]
+    assert weights_not_carried(model, 0, shape_from=1, color_from=2) == []  # nothing owned: nothing to say
+    save_delta(tmp_path / "c.safetensors", result.tensors, result.meta)
+    r = invoke("transfer", path, "--instance", 0, "--color-from", 1, "--edit", tmp_path / "c.safetensors",
+               "--out", tmp_path / "t.safetensors", "--device", "cpu")
+    assert r.exit_code == 0 and r.stderr.splitlines() == [f"note: {weights_not_carried(edited, 0, color_from=1)[0]}"], r.stderr
+    r = invoke("render", path, "--instance", 0, "--color-from", 1, "--edit", tmp_path / "c.safetensors", "--views", "test:0",
+               "--out", tmp_path / "r", "--device", "cpu")
+    assert r.exit_code == 0 and r.stderr.splitlines() == [f"note: {weights_not_carried(edited, 0, color_from=1)[0]}"], r.stderr
+
+
 def test_ctrl_c_in_the_previews_says_the_edit_was_written(trained, tmp_path, monkeypatch):
     """Ctrl-C while an edit command writes its --preview: exit 130 with one line that says the
     edit file was written and the previews are incomplete."""

@@ -428,6 +428,7 @@ def transfer_cmd(
 ) -> None:
     """Give one instance another instance's shape or colour code (no optimization)."""
     from ..edit import transfer
+    from ..edit.transfer import weights_not_carried
 
     if shape_from is None and color_from is None:
         raise CrfError("transfer: give --shape-from or --color-from (or both)")
@@ -435,11 +436,10 @@ def transfer_cmd(
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     shown = _preview_views(m, k, preview, views)
-    result = transfer(
-        m, k,
-        shape_from=None if shape_from is None else m.instance_index(shape_from),
-        color_from=None if color_from is None else m.instance_index(color_from),
-    )
+    sources = {key: None if name is None else m.instance_index(name) for key, name in (("shape_from", shape_from), ("color_from", color_from))}
+    result = transfer(m, k, **sources)
+    for note in weights_not_carried(m, k, **sources):
+        typer.echo(printable(f"note: {note}"), err=True)
     _write(result, out, "")
     _preview(result.model, k, preview, shown, views, out)
 

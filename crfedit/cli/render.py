@@ -53,8 +53,10 @@ def render_cmd(
     # an instance's own code is what it renders with already: nothing to swap in
     shape_from, color_from = (None if j is None or m.instance_index(j) == k else m.instance_index(j) for j in (shape_from, color_from))
     if shape_from is not None or color_from is not None:
-        from ..edit.transfer import swap_codes
+        from ..edit.transfer import swap_codes, weights_not_carried
 
+        for note in weights_not_carried(m, k, shape_from, color_from):
+            typer.echo(printable(f"note: {note}"), err=True)
         m = swap_codes(m, k, shape_from=shape_from, color_from=color_from)
     trained = m.views.get("train")
     widest = None if trained is None else (trained.width if trained.sizes is None else int(trained.sizes[:, 0].max()))

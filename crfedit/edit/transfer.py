@@ -59,6 +59,39 @@ def _swapped(
     return k, dataclasses.replace(model, overrides={**model.overrides, k: replaced}), tuple(modules), hyper
 
 
+def own_weights(model: CategoryModel, i: int, which: str) -> list[str]:
+    """The modules instance ``i`` renders with weights of its own (fit-real's, or a prior edit's)
+    that bear on its ``which`` ("shape": every module but F_rad; "color": F_rad), in model order."""
+    from ..names import MODULES
+
+    own = {name.split(".")[0] for name in model.overrides.get(i, {})}
+    return [m for m in MODULES if m in own and (m == "F_rad") == (which == "color")]
+
+
+def weights_not_carried(
+    model: CategoryModel, instance: int | str, shape_from: int | str | None = None, color_from: int | str | None = None
+) -> list[str]:
+    """Notes for a transfer whose codes do not carry a look: a source whose shape or colour comes
+    partly from weights of its own, which a code transfer leaves behind (a chair fitted to a
+    photo: its F_fuse/F_dens/F_rad), or a target whose own weights read the code it takes."""
+    k = model.instance_index(instance)
+    taken: dict[int, list[str]] = {}  # source -> what it gives ("shape", "color")
+    for which, source in (("shape", shape_from), ("color", color_from)):
+        if source is not None and (j := model.instance_index(source)) != k:
+            taken.setdefault(j, []).append(which)
+    codes = lambda whiches: " and ".join(f"{'colour' if w == 'color' else w} code" for w in whiches)
+    notes = []
+    for j, whiches in taken.items():
+        if mods := [m for w in whiches for m in own_weights(model, j, w)]:
+            notes.append(f"{model.names[j]} renders with its own {', '.join(mods)} (fitted or edited for it alone): the "
+                         f"transfer carries its {codes(whiches)}, not those weights, so {model.names[k]} will not look like it")
+    whiches = [w for ws in taken.values() for w in ws]
+    if mods := [m for w in whiches for m in own_weights(model, k, w)]:
+        notes.append(f"{model.names[k]} has its own {', '.join(mods)} (fitted or edited for it alone), which read the "
+                     f"{codes(whiches)} it takes: it can change less than an instance without weights of its own")
+    return notes
+
+
 def swap_codes(
     model: CategoryModel, instance: int | str, shape_from: int | str | None = None, color_from: int | str | None = None
 ) -> CategoryModel:
