@@ -193,18 +193,34 @@ border (the outermost pixels) is white at :data:`WHITE_LEVEL`, where the outline
 missing or partial and the background fitted as part of the object."""
 
 
+CROP_CUT = 0.02
+""":func:`photo_warnings` warns when the centre crop to the view's aspect drops more than this
+share of the object's pixels (an object off the centre of a wide photo is fitted in part)."""
+
+
 def photo_warnings(image: np.ndarray, mask: np.ndarray | None, width: int, height: int) -> list[str]:
     """What makes a fit to this photo doubtful, one line each ([] when nothing does): no object
     mask and a border that is not white (the background is fitted as part of the object), or a
     photo smaller than the view it is fitted in (it is upscaled: its PSNR flatters the fit)."""
     out = []
     h, w = image.shape[:2]
-    if mask is None and not has_transparency(image):
+    if mask is not None:
+        target = mask
+    elif has_transparency(image):
+        target = image[..., 3] > 0
+    else:
+        target = image[..., :3].min(axis=-1) < WHITE_LEVEL  # the object, where the border is white
         border = np.concatenate([image[0, :, :3], image[-1, :, :3], image[:, 0, :3], image[:, -1, :3]])
         if float((border.min(axis=-1) >= WHITE_LEVEL).mean()) < WHITE_BORDER:
+            target = None  # no outline to judge the crop by (warned below)
             out.append(f"the photo has no alpha channel and no --mask, and its border is not white (mean {float(border.mean()):.2f}; "
                        f"white is every channel at least {WHITE_LEVEL}): the background is fitted as part of the object; "
                        "give --mask, or a photo on white")
+    if target is not None and target.any():
+        cut = 1.0 - float(center_crop(target, width / height).sum()) / float(target.sum())
+        if cut > CROP_CUT:
+            out.append(f"the centre crop to the view's {width}:{height} aspect cuts off {cut:.0%} of the object's pixels: "
+                       "crop the photo around the object first")
     crop_w, crop_h = (min(w, round(h * width / height)), h) if w * height >= h * width else (w, min(h, round(w * height / width)))
     if crop_w < width or crop_h < height:
         out.append(f"the photo gives {crop_w}x{crop_h} pixels for the {width}x{height} view: it is upscaled, and its PSNR "

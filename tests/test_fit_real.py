@@ -245,6 +245,14 @@ def test_photo_warnings_name_a_background_fitted_as_the_object_and_an_upscaled_p
     [line] = photo_warnings(on_white[:8, :8], None, 64, 64)
     assert "gives 8x8 pixels for the 64x64 view: it is upscaled" in line
     assert photo_warnings(np.ones((48, 200, 3), np.float32), None, 32, 32) == []  # a wide photo crops to 48x48
+    # an object off the centre of a wide photo: the centre crop cuts it, and says by how much
+    wide = np.ones((64, 128, 3), np.float32)
+    wide[20:40, 20:52] = 0.3  # columns 20..51; the crop keeps 32..95, so 12 of 32 columns go
+    [line] = photo_warnings(wide, None, 64, 64)
+    assert line == ("the centre crop to the view's 64:64 aspect cuts off 38% of the object's pixels: "
+                    "crop the photo around the object first"), line
+    assert photo_warnings(np.roll(wide, 30, axis=1), None, 64, 64) == []  # centred: all of it stays
+    assert len(photo_warnings(np.ones_like(wide), wide[..., 0] < 0.5, 64, 64)) == 1  # the mask's outline is judged alike
 
 
 def test_a_photo_on_white_takes_its_outline_from_the_white_around_it(setup):
