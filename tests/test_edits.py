@@ -249,9 +249,13 @@ def test_first_mode_worked_example():
 def test_add_composite_grows_the_instance(trained):
     _, model, category = trained
     k, j = 0, 2
-    view = category.instances[k].splits["train"][0]
     donor_view = category.instances[j].splits["train"][0]
+    view = donor_view  # a pixel paste needs one camera for both views
     mask = donor_view.parts == part_id(category.instances[j], "back")
+    other = category.instances[k].splits["train"][0].camera  # the target's own train:0, posed elsewhere
+    for method in ("composite", "density"):
+        with pytest.raises(CrfError, match=rf"^--method {method} pastes the donor view's pixels into --view, so both need one camera"):
+            add(model, k, other, j, mask, (3, 0), donor_view.camera, method)
     result = add(model, k, view.camera, j, mask, (3, 0), donor_view.camera, "composite", options=EditOptions(steps=40))
     assert set(result.tensors) == {"F_fuse.0.weight", "F_fuse.0.bias", "F_dens.weight", "F_dens.bias", "occupancy"}
     donor = render(swap_codes(model, j, color_from=k), j, donor_view.camera)
@@ -285,8 +289,11 @@ def test_paste_translation_moves_a_pixel_per_depth_over_focal():
     # 8 px right (the camera's +X) and 4 px up (+Z), each pixel depth/focal world units at the part
     assert torch.allclose(t, torch.tensor([8 * depth / 40.0, 0.0, 4 * depth / 40.0]), atol=1e-5)
     # one cell is 2/8 normalized units: a shift of exactly one cell along x moves the block by one
-    moved = shifted_cells(mask, torch.tensor([0.25, 0.0, 0.0]))
-    assert moved[5, 3:5, 3:5].all() and moved[4, 4, 4] and not moved[7].any()
+    moved, lost = shifted_cells(mask, torch.tensor([0.25, 0.0, 0.0]))
+    assert moved[5, 3:5, 3:5].all() and moved[4, 4, 4] and not moved[7].any() and lost == 0.0
+    # three cells along x: the block (x = 3, 4) lands on 6, 7, inside; four: on 7, 8, and x = 8 is outside the box
+    assert shifted_cells(mask, torch.tensor([0.75, 0.0, 0.0]))[1] == 0.0
+    assert shifted_cells(mask, torch.tensor([1.0, 0.0, 0.0]))[1] == 0.5
 
 
 def test_add_by_selection_copies_the_part_in_3d_and_holds_the_rest(trained):
@@ -321,6 +328,21 @@ def test_add_by_selection_copies_the_part_in_3d_and_holds_the_rest(trained):
         add(model, k, donor_view.camera, j, mask, (40, 0), donor_view.camera)
     with pytest.raises(CrfError, match="is its own donor at offset 0,0: the part is already there"):
         add(model, j, donor_view.camera, j, mask, (0, 0), donor_view.camera)
+    # the addition keeps every cell the instance had (its probes would free a few)
+    assert bool(result.model.field_for(k).occupancy[k][model.field.occupancy[k]].all())
+    # pushed off the scene box: the share lost is recorded, and past half of the part refused
+    lost, refused = [], []
+    wide = dataclasses.replace(donor_view.camera, focal=donor_view.camera.focal / 4)  # a pixel moves the part 4x as far
+    for dx in range(2, 32, 3):
+        try:
+            made = add(model, k, wide, j, mask, (dx, 0), donor_view.camera, options=EditOptions(steps=1), selection=sel)
+            lost.append(json.loads(made.meta["hyperparameters"])["outside_box"])
+        except CrfError as e:
+            refused.append(str(e))
+    assert lost and lost == sorted(lost) and lost[-1] <= 0.5 and lost[0] == 0.0, lost
+    assert refused and all(re.fullmatch(r"--offset \d+,0 moves (\d+% of the part|the whole part|the whole copied region) out of the (scene box|32x32 view).*", m)
+                           for m in refused), refused
+    assert any("% of the part" in m for m in refused), refused
 
 
 def test_an_addition_fits_the_donor_between_its_points(trained, monkeypatch):
@@ -500,7 +522,8 @@ def test_strokes_rasterize_at_the_view_resolution():
     assert mask.shape == (10, 12) and mask[3, 2:9].all() and mask[2, 5] and mask[4, 5] and not mask[6, 5]
     dot = strokes_json_mask([[[5, 5]]], 48, 48, "s.json")  # a bare list; radius max(1, 48/48)
     assert dot[5, 5] and dot[4, 5] and not dot[3, 5] and int(dot.sum()) == 5
-    for bad in ({"strokes": []}, [[["a", 1]]], {"strokes": [[[1, 2]]], "radius": -1}, [[[1, 2, 3]]]):
+    assert not strokes_json_mask({"strokes": []}, 12, 10, "s.json").any()  # no strokes: an empty mask, judged by its reader
+    for bad in ({"strokes": "none"}, [[["a", 1]]], {"strokes": [[[1, 2]]], "radius": -1}, [[[1, 2, 3]]]):
         with pytest.raises(CrfError, match="s.json"):
             strokes_json_mask(bad, 12, 10, "s.json")
     # fractions of the view (0..1) are named as such, not read as a dot in the corner
@@ -566,10 +589,13 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
                                                           for n in ("a.safetensors", "b.safetensors")], r.stderr
     r = invoke("render", path, "--instance", 1, "--views", "test:0", "--edit", out, "--edit", out2, "--out", tmp_path / "r1", "--device", "cpu")
     assert r.exit_code == 0 and "note:" not in r.stderr
-    # ... but not when the render takes the edited instance's codes, which carry its edits along
+    # ... but not when the render takes the edited instance's codes (and grid), which the edits changed;
+    # what it says then is that the edits' own weights stay with chair 1
     for option in ("--shape-from", "--color-from"):
         r = invoke("render", path, "--instance", 0, option, 1, "--views", "test:0", "--edit", out, "--edit", out2, "--out", tmp_path / "r2", "--device", "cpu")
-        assert r.exit_code == 0 and "note:" not in r.stderr, r.stderr
+        assert r.exit_code == 0 and "leaves this render unchanged" not in r.stderr, r.stderr
+        assert [line.split(" (")[0] for line in r.stderr.splitlines()] == [
+            f"note: {model.names[1]} renders with its own " + ("F_fuse, F_dens, bottleneck" if option == "--shape-from" else "F_rad")], r.stderr
     assert invoke("edits", "check", path, "--edit", out, "--edit", out2).exit_code == 0
     assert_user_error(invoke("edits", "check", path, "--edit", out2), "b.safetensors", "order they were made")
 

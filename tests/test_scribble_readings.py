@@ -157,7 +157,8 @@ def test_every_command_reads_scribble_json_the_same(view, tiny_model, tmp_path):
 def test_add_reads_the_copy_mask_as_drawn(view, tiny_model, tmp_path):
     """``add --copy`` reads its mask like a scribble: strokes painted over the donor view's render
     copy the same part as the same strokes drawn white on black."""
-    model, camera, _, mask = view
+    model, _, _, mask = view
+    camera = model.views["train"].cameras(1)[0]  # the mask is drawn on the donor's own train:0, --view's spec read on the donor
     donor = render_camera(model.field_for(1), camera, 1).rgb.clamp(0, 1).numpy()
     donor = np.round(donor * 255) / 255
     painted = donor.copy()
@@ -192,7 +193,11 @@ def test_add_reads_the_copy_mask_as_drawn(view, tiny_model, tmp_path):
     assert invoke("remove", tiny_model, "--instance", 1, "--view", "train:0", "--scribble", tmp_path / "wob.png", "--steps", 2,
                   "--out", removal, "--device", "cpu").exit_code == 0
     r = invoke(*base, "--copy", tmp_path / "wob.png", "--edit", removal, "--out", tmp_path / "after.safetensors")
-    assert r.exit_code == 0 and "note: an earlier --edit changed chair_001's shape" in r.stderr, r.output
+    # here the removal took the very part the mask copies: nothing is left of it to copy, as the note warns
+    note, error = r.stderr.splitlines()
+    assert r.exit_code == 2 and note.startswith("note: an earlier --edit changed chair_001's shape"), r.output
+    assert error == "error: nothing to copy: the copy mask covers none of the donor's opaque pixels in the donor view"
+    assert not (tmp_path / "after.safetensors").exists()
 
 
 def test_keep_strokes_over_the_scribble_are_warned_of():

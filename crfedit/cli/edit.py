@@ -364,7 +364,7 @@ def add_cmd(
     donor: Annotated[str, typer.Option("--donor", help="Instance to copy a part from: a name or an index.")],
     copy_mask: Annotated[Path, typer.Option("--copy", help="The part to copy, drawn on the donor view: read like --scribble (white on black, strokes on a transparent PNG or over the donor view's render, or strokes JSON when the name ends in .json).")],
     offset: Annotated[str, typer.Option("--offset", help="Where to paste: DX,DY pixels right and down, e.g. 6,0 or -4,2.")],
-    donor_view: Annotated[Optional[str], typer.Option("--donor-view", help="The donor view the copy mask belongs to (default: --view).")] = None,
+    donor_view: Annotated[Optional[str], typer.Option("--donor-view", help="The donor's view the copy mask is drawn on (default: --view's spec, of the donor: train:5 is the donor's train:5).")] = None,
     method: Annotated[AddMethod, typer.Option("--method", help="composite: fit the pasted image; density: match the donor's density along the pasted rays; selection (default): lift the copy mask to a 3-D selection of the donor's part and copy its density and features, moved into place, at points in 3-D.")] = AddMethod.selection,
     selection: Annotated[Optional[Path], typer.Option("--selection", help="With --method selection: a selection file of the DONOR's part from `crfedit select` (default: computed from --copy).")] = None,
     keep: KeepShapeOpt = None,
@@ -385,6 +385,7 @@ def add_cmd(
     from ..edit import add
     from ..edit.scribble import load_mask
     from ..edit.shape import parse_offset
+    from ..edit.supervised import OUTSIDE_WARN
 
     dxdy = parse_offset(offset)
     options = _options(strategy, steps, lr, rays, seed, penalty)
@@ -396,7 +397,8 @@ def add_cmd(
                    "(a part it removed is not there to copy; check the preview)", err=True)
     shown = _preview_views(m, k, preview, views)
     label, camera = _one_view(m, view, k)
-    donor_camera = camera if donor_view is None else _one_view(m, donor_view, j, "--donor-view")[1]
+    # the copy mask is drawn on the donor's own view: --view's spec read on the donor by default
+    donor_camera = _one_view(m, view if donor_view is None else donor_view, j, "--view" if donor_view is None else "--donor-view")[1]
     copied = load_mask(copy_mask, None, donor_camera.width, donor_camera.height, "copy", _view_render(m, j, donor_camera))
     mask = copied.mask
     typer.echo(f"copy: {copied.reading}, {int(mask.sum())} pixels")
@@ -407,6 +409,10 @@ def add_cmd(
     sel = _selection(selection, m, j, "add")
     result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel,
                  on_selection=lambda made: _echo_selection(made, "donor ", takes_keep=False))
+    lost = json.loads(result.meta.get("hyperparameters", "{}")).get("outside_box", 0.0)
+    if lost > OUTSIDE_WARN:
+        typer.echo(f"warning: --offset {offset} moves {lost:.0%} of the donor's part out of the scene box: that much of it "
+                   "is not added (a smaller offset keeps it)", err=True)
     _write(result, out, label)
     _preview(result.model, k, preview, shown, views, out)
 

@@ -30,7 +30,8 @@ The occupancy grid follows the density.  Before adding, the cells that the donor
 samples map to along the pasted rays are opened (dilated by one cell).  After either edit, the
 candidate cells are re-thresholded with the edited density (a few random probes per cell,
 threshold as in training) and dilated by one cell within the candidates, so cells are freed
-only where no density is left nearby.
+only where no density is left nearby; an addition frees none of the instance's own cells
+(a few probes miss a thin surface inside a cell).
 """
 
 from __future__ import annotations
@@ -167,6 +168,19 @@ def remove(
     return finish(edit, "remove", options, hyper, final, started, extra, extra_modules)
 
 
+def same_camera(a: Camera, b: Camera, tolerance: float = 1e-4) -> bool:
+    """Whether two cameras see one image: the same size, focal and pose (to ``tolerance``)."""
+    return ((a.width, a.height) == (b.width, b.height) and abs(a.focal - b.focal) <= tolerance * max(a.focal, 1.0)
+            and np.allclose(np.asarray(a.c2w, np.float64), np.asarray(b.c2w, np.float64), atol=tolerance))
+
+
+def view_angle(a: Camera, b: Camera) -> float:
+    """Degrees between two cameras' viewing directions (their −z axes)."""
+    da, db = -np.asarray(a.c2w, np.float64)[:3, 2], -np.asarray(b.c2w, np.float64)[:3, 2]
+    cos = float(da @ db / max(np.linalg.norm(da) * np.linalg.norm(db), 1e-12))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
 def parse_offset(text: str) -> tuple[int, int]:
     """``"12,-3"`` → (12, -3): pixels right and down."""
     parts = str(text).replace(" ", "").split(",")
@@ -249,6 +263,13 @@ def add(
     w, h = camera.width, camera.height
     if (donor_camera.width, donor_camera.height) != (w, h):
         raise CrfError(f"--donor-view is {donor_camera.width}x{donor_camera.height} but --view is {w}x{h}; use views of one size")
+    if method != "selection" and not same_camera(camera, donor_camera):
+        raise CrfError(f"--method {method} pastes the donor view's pixels into --view, so both need one camera, but they look "
+                       f"{view_angle(camera, donor_camera):.0f}° apart: use --method selection (the default), or a view both "
+                       "instances share (orbit:N, a camera JSON)")
+    if method == "selection" and keep is not None and np.asarray(keep).any():
+        raise CrfError("--keep belongs to --method composite and density: the default method copies the donor's part "
+                       "in 3-D and holds the rest of the chair in every view")
     copy_mask = as_mask(copy_mask, "copy")
     if tuple(copy_mask.shape) != (h, w):
         raise CrfError(f"copy mask is {copy_mask.shape[1]}x{copy_mask.shape[0]} but the donor view is {w}x{h}")
@@ -325,7 +346,7 @@ def add(
         return total
 
     final = optimize(edit, loss_fn, options, "add edit")
-    extra, extra_modules = occupancy_after(edit, candidates, generator)
+    extra, extra_modules = occupancy_after(edit, candidates, generator, kept=original)
     hyper = {
         "rays": options.rays, "lambda_surface": options.lambda_surface,
         "lambda_match": options.lambda_match, "method": method, "donor": model.names[j],

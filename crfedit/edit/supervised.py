@@ -535,16 +535,26 @@ def paste_translation(field, selection_mask: Tensor, camera: Camera, offset: tup
     return (dx * right - dy * up) * depth / camera.focal
 
 
-def shifted_cells(mask: Tensor, shift_n: Tensor) -> Tensor:
-    """The cells ``mask`` [R, R, R] covers after a translation ``shift_n`` [3] in normalized
-    units, dilated by one cell so that no part of a shifted cell is missed."""
+OUTSIDE_REFUSE = 0.5
+"""``add`` refuses an offset that moves more than this share of the part's cells out of the scene
+box (the page accepted a paste that kept 24 of 7 874 cells)."""
+OUTSIDE_WARN = 0.02
+"""``add`` warns when its offset moves more than this share of the donor part's cells out of the
+scene box (those cells are not added: a part pushed off the box came out as slivers)."""
+
+
+def shifted_cells(mask: Tensor, shift_n: Tensor) -> tuple[Tensor, float]:
+    """(the cells ``mask`` [R, R, R] covers after a translation ``shift_n`` [3] in normalized
+    units, dilated by one cell so that no part of a shifted cell is missed; the share of its
+    cells the translation moves out of the scene box, which the paste loses)."""
     res = mask.shape[-1]
     cells = mask.reshape(-1).nonzero().squeeze(-1)
     ijk, inside = occupancy.cell_index(occupancy.cell_centers(res, mask.device)[cells] + shift_n, res)
+    lost = 1.0 - float(inside.float().mean()) if inside.numel() else 0.0
     ijk = ijk[inside]
     out = torch.zeros_like(mask)
     out[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    return occupancy.dilate(out, 1)
+    return occupancy.dilate(out, 1), lost
 
 
 def add_selected(
@@ -571,9 +581,12 @@ def add_selected(
     shift = paste_translation(field, source, camera, offset)
     lo, hi = field.aabb[:3], field.aabb[3:]
     shift_n = shift * 2.0 / (hi - lo)
-    pasted = shifted_cells(source, shift_n)
+    pasted, lost = shifted_cells(source, shift_n)
     if not bool(pasted.any()):
         raise CrfError(f"--offset {offset[0]},{offset[1]} moves the whole part out of the scene box")
+    if lost > OUTSIDE_REFUSE:
+        raise CrfError(f"--offset {offset[0]},{offset[1]} moves {lost:.0%} of the part out of the scene box, which holds "
+                       "nothing outside it: paste it nearer the object")
     original = field.occupancy[k].clone()
     union = original | pasted
     pts, in_pasted = occupied_points(union, pasted, ADD_POINT_POOL * options.rays, ADD_POINT_POOL * 2 * options.rays, generator)
@@ -616,10 +629,11 @@ def add_selected(
         return total + (w_feat[idx] * ((feat - feat_t[idx]) ** 2).sum(dim=-1)).mean()
 
     final = optimize(edit, loss_fn, options, "add edit")
-    extra, modules = occupancy_after(edit, union, generator)
+    extra, modules = occupancy_after(edit, union, generator, kept=original)
     hyper = {
         "method": "selection", "points": int(pts.shape[0]), "donor": model.names[donor], "offset": list(offset),
         "translation": [round(float(v), 6) for v in shift],
         "selected_cells": int(source.sum()), "pasted_cells": int(pasted.sum()), "camera": camera_meta(camera),
+        "outside_box": round(lost, 4),
     }
     return finish(edit, "add", options, hyper, final, started, extra, modules)
