@@ -432,18 +432,42 @@ def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str,
 
 
 def rebase(delta: Delta, model: CategoryModel) -> Delta:
-    """``delta`` pinned to ``model``'s place instead of its own: the same tensors (the same
-    change), with ``base``, ``parent`` and ``fingerprint`` recomputed from :func:`stack_of`
-    ``(model)``.  Unchanged (the very same object) when it already fits there (:func:`restack`
-    re-pins a whole stack); the result passes :func:`check_stack`
-    wherever its instance and tensors fit the model."""
+    """``delta`` pinned to ``model``'s place instead of its own: the same change, with
+    ``base``, ``parent`` and ``fingerprint`` recomputed from :func:`stack_of` ``(model)``.
+    Unchanged (the very same object) when it already fits there (:func:`restack` re-pins a
+    whole stack); the result passes :func:`check_stack` wherever its instance and tensors fit
+    the model.  An optimized edit keeps its tensors; a transfer's change is "take J's code"
+    (:func:`retaken`), so its tensors are derived again at the new place."""
     base, stack = stack_of(model)
     parent = chain_fingerprint(base, stack)
     if delta.meta["base"] == base and delta.meta["parent"] == parent:
         return delta
+    tensors = retaken(delta, model) if delta.kind == "transfer" else delta.tensors
     meta = {**delta.meta, "base": base, "parent": parent}
-    meta["fingerprint"] = delta_fingerprint(delta.tensors, meta)
-    return Delta(delta.path, delta.tensors, meta)
+    meta["fingerprint"] = delta_fingerprint(tensors, meta)
+    return Delta(delta.path, tensors, meta)
+
+
+def retaken(delta: Delta, model: CategoryModel) -> dict[str, Tensor]:
+    """A transfer's tensors as it would make them on ``model``: each code row it took becomes
+    the source's row minus the instance's there (and a shape transfer's grid the source's grid
+    minus the instance's).  Stored as differences, a transfer rebased as-is took the source's
+    code only where the instance's code was what it was when made: left out of a stack's middle,
+    a colour transfer gave a code no chair has (1.46 from its source's, chairs lie ~1.15 apart)."""
+    hyper = json.loads(delta.meta.get("hyperparameters") or "{}")
+    k = model.instance_index(delta.instance)
+    here = instance_state(model, k)
+    out = dict(delta.tensors)
+    for row, table in CODE_ROWS.items():
+        source = hyper.get(f"{'shape' if table == SHAPE_CODES else 'color'}_from")
+        if row not in out or source is None:
+            continue
+        j = model.instance_index(source)
+        there = instance_state(model, j)
+        out[row] = (there[table][j] - here[table][k]).detach().cpu().to(out[row].dtype).clone()
+        if table == SHAPE_CODES and GRID in out:
+            out[GRID] = (there[GRID][j].to(torch.int8) - here[GRID][k].to(torch.int8)).cpu()
+    return out
 
 
 def restack(model: CategoryModel, deltas: Sequence[Delta]) -> tuple[CategoryModel, list[Delta]]:

@@ -31,6 +31,7 @@ from crfedit.delta import (
     bake,
     chain_fingerprint,
     grow,
+    instance_state,
     make_delta,
     read_delta,
     save_delta,
@@ -342,6 +343,31 @@ def test_transfer_delta_equals_swap_codes(tmp_path, model):
     torch.testing.assert_close(swapped.overrides[0]["color_codes"][0], model.field.color_codes[1].detach(), rtol=1e-6, atol=1e-6)
     with pytest.raises(CrfError, match="give --shape-from or --color-from"):
         swap_codes(model, 0)
+
+
+def test_a_transfer_rebased_still_takes_its_source_s_code(tmp_path, model):
+    """Three colour transfers onto chair 0 (from 1, then 2, then 1 again, each on the one before);
+    the middle one left out, the last still gives chair 0 exactly chair 1's colour code and the
+    grid a shape transfer took, where its stored difference would give a code no chair has."""
+    from crfedit.delta import restack
+
+    files, current = [], model
+    for i, source in enumerate((1, 2, 1)):
+        result = transfer(current, 0, color_from=source, shape_from=2 if i == 1 else None)
+        result.save(tmp_path / f"t{i}.safetensors")
+        files.append(read_delta(tmp_path / f"t{i}.safetensors"))
+        current = result.model
+    kept, pinned = restack(model, [files[0], files[2]])
+    torch.testing.assert_close(instance_state(kept, 0)["color_codes"][0], model.field.color_codes[1].detach(), rtol=0, atol=1e-6)
+    assert torch.equal(kept.field_for(0).occupancy[0], model.field.occupancy[0])  # the shape transfer left out: chair 0's grid
+    stale = files[2].tensors["color_code"]  # as stored: chair 1 minus chair 2, from the place it was made
+    assert not torch.allclose(pinned[1].tensors["color_code"], stale)
+    # the shape transfer alone, moved to the front: it takes chair 2's grid and shape code where it now stands
+    kept, _ = restack(model, [files[1]])
+    assert torch.equal(kept.field_for(0).occupancy[0], model.field.occupancy[2])
+    torch.testing.assert_close(instance_state(kept, 0)["color_codes"][0], model.field.color_codes[2].detach(), rtol=0, atol=1e-6)
+    # in place, each transfer is the very same file
+    assert all(a is b for a, b in zip(restack(model, files)[1], files))
 
 
 def test_fit_real_delta_adds_an_instance(tmp_path, model):

@@ -571,9 +571,10 @@ def rebase_cmd(
 ) -> None:
     """Re-pin edits to a new stack: drop one from the middle, reorder them, or share one alone.
 
-    Each file keeps its change (the same tensors); base, parent and fingerprint are recomputed
-    for its new place, so the written files pass `crfedit edits check` in the order given. An
-    edit made after one that is now left out applies its change without it, not optimized again.
+    Each file keeps its change (the same tensors; a transfer takes its source's code again at its
+    new place); base, parent and fingerprint are recomputed for its new place, so the written
+    files pass `crfedit edits check` in the order given. An edit made after one that is now left
+    out applies its change without it, not optimized again.
     """
     from ..delta import read_delta, restack, save_delta
     from ..model import load_model
