@@ -373,10 +373,13 @@ def _base_error(delta: Delta, model: CategoryModel, base: str) -> ModelFileError
     return ModelFileError(f"{delta.path}: made for model {delta.meta['base']}, not this model ({base}); edits apply only to the model they were made on")
 
 
-def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str, applied: Sequence[str]) -> ModelFileError:
+def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str, applied: Sequence[str], baked: bool = False) -> ModelFileError:
     """Why ``delta``'s parent does not match its place in the stack, in one line."""
     where = f"{delta.path}: "
     parent = delta.meta["parent"]
+    if delta.fingerprint in applied:  # in the stack the model stands on (a baked model's, or one applied before)
+        return ModelFileError(f"{where}is already baked into this model; leave it out (crfedit info lists the baked edits)" if baked
+                              else f"{where}is already applied to this model; leave it out")
     if delta.fingerprint in [d.fingerprint for d in deltas[:position]]:
         return ModelFileError(f"{where}is given twice (edit {position + 1} of the stack is an earlier one again); give each edit once")
     if parent == "":
@@ -410,7 +413,7 @@ def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str,
         if d.meta["base"] != base:
             raise _base_error(d, model, base)
         if d.meta["parent"] != chain_fingerprint(base, fps):
-            raise _order_error(d, i, deltas, base, applied)
+            raise _order_error(d, i, deltas, base, applied, "baked_edits" in model.meta)
         if d.kind == "fit-real":
             if d.instance in names:
                 raise ModelFileError(f"{d.path}: adds instance {d.instance!r}, which the model already has")
@@ -568,15 +571,17 @@ def apply_edit_files(model: CategoryModel, paths: Sequence[str | os.PathLike]) -
 
 def bake(model: CategoryModel, edits: Sequence[str | os.PathLike | Delta]) -> CategoryModel:
     """The stack folded into a model of its own: the edited tensors become ``overrides`` (which
-    :func:`~crfedit.model.save_model` writes as ``override.<k>.<name>``).  The baked model is a new
-    base: edits made on the unbaked stack do not apply to it.  ``edits``: edit files, or edits
+    :func:`~crfedit.model.save_model` writes as ``override.<k>.<name>``).  The baked model keeps
+    the stack's record (:func:`stack_of`), so it stands where the stack does: an edit made on the
+    unbaked stack continues it, an edit made on the baked model applies to the unbaked stack,
+    and a bake of a bake lists every edit since the first base.  ``edits``: edit files, or edits
     already read (the page bakes before it writes anything).  The cameras of the photos that
     fit-real edits fitted their instances to go with them (:func:`photo_cameras`, which
     :func:`apply_deltas` records in the model's metadata)."""
     deltas = [e if isinstance(e, Delta) else read_delta(e) for e in edits]
     applied = apply_deltas(model, deltas)
     base, stack = stack_of(applied)
-    meta = {k: v for k, v in applied.meta.items() if k not in STACK_KEYS}
+    meta = dict(applied.meta)  # its stack record too: trusted while the state is the stack's (stack_of)
     meta.update(baked_from=base, baked_edits=json.dumps(stack))
     return dataclasses.replace(applied, names=list(applied.names), meta=meta)
 

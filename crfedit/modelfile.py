@@ -115,14 +115,14 @@ def stored_training(path: str | os.PathLike) -> StoredRun:
 MODULE_ORDER = (*MODULES, *CODE_TABLES)
 
 
-def _baked_edits(meta: dict[str, str]) -> int | None:
-    """How many edits ``crfedit edits bake`` folded in (None: not a baked model, or a record
-    that does not read as a list)."""
+def _baked_edits(meta: dict[str, str]) -> list[str] | None:
+    """The fingerprints of the edits ``crfedit edits bake`` folded in, in order (None: not a
+    baked model, or a record that does not read as a list of them)."""
     try:
         stack = json.loads(meta.get("baked_edits", ""))
     except json.JSONDecodeError:
         return None
-    return len(stack) if isinstance(stack, list) else None
+    return stack if isinstance(stack, list) and all(isinstance(s, str) for s in stack) else None
 
 
 def model_info(path: str | os.PathLike) -> dict:

@@ -324,11 +324,28 @@ def test_bake_renders_bit_identical_to_the_stack(tmp_path, model):
     for k in range(3):
         assert torch.equal(render(loaded, k), render(stacked, k))
     assert json.loads(loaded.meta["baked_edits"]) == [read_delta(a).fingerprint, read_delta(b).fingerprint]
-    with pytest.raises(ModelFileError, match="a.safetensors: is already baked into this model"):  # a new base, which says so
+    with pytest.raises(ModelFileError, match="a.safetensors: is already baked into this model"):
         apply_edit_files(loaded, [a])
+    # the baked model stands where the stack does: an edit made on it continues the unbaked stack
+    # (and the other way round), and a bake of a bake lists every edit since the first base
     c = delta_file(tmp_path, "c.safetensors", loaded, 1, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
-    assert read_delta(c).meta["base"] == loaded.fingerprint() and read_delta(c).meta["parent"] == ""
-    apply_edit_files(loaded, [c])
+    assert read_delta(c).meta["base"] == model.fingerprint()
+    assert read_delta(c).meta["parent"] == chain_fingerprint(model.fingerprint(), [read_delta(p).fingerprint for p in (a, b)])
+    on_baked, on_stack = apply_edit_files(loaded, [c]), apply_edit_files(model, [a, b, c])
+    for k in range(3):
+        assert torch.equal(render(on_baked, k), render(on_stack, k))
+    half = bake(model, [a])  # a stack baked part way goes on with the rest
+    assert all(torch.equal(render(apply_edit_files(half, [b, c]), k), render(on_stack, k)) for k in range(3))
+    twice = bake(half, [b, c])
+    assert json.loads(twice.meta["baked_edits"]) == [read_delta(p).fingerprint for p in (a, b, c)]
+    assert twice.meta["baked_from"] == model.fingerprint()
+    with pytest.raises(ModelFileError, match="b.safetensors: is already baked into this model"):
+        apply_edit_files(twice, [b])
+    with pytest.raises(ModelFileError, match="b.safetensors: is already applied to this model"):
+        apply_edit_files(apply_edit_files(model, [a, b]), [b])
+    # a bake whose weights changed since (trained on) is a base of its own, as before this record
+    changed = dataclasses.replace(loaded, meta={**loaded.meta, "edit_state": "0" * 16})
+    assert stack_of(changed) == (changed.fingerprint(), [])
 
 
 def test_transfer_delta_equals_swap_codes(tmp_path, model):

@@ -385,9 +385,11 @@ def _baked(meta: dict) -> str:
     if not meta["baked_instances"]:
         return "none"
     text = ", ".join(meta["baked_instances"])
-    if meta["baked_edits"] is not None:
-        text += f" ({meta['baked_edits']} edit{'s' * (meta['baked_edits'] != 1)}"
+    edits = meta["baked_edits"]
+    if edits is not None:
+        text += f" ({len(edits)} edit{'s' * (len(edits) != 1)}"
         text += f" onto {meta['baked_from']})" if meta["baked_from"] else ")"
+        text += "".join(f"\n{'':<15}{fp}" for fp in edits)  # the edit fingerprints, in order (edits show prints each file's)
     return text
 
 
