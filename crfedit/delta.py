@@ -383,6 +383,10 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
     if delta.fingerprint in [d.fingerprint for d in deltas[:position]]:
         return ModelFileError(f"{where}is given twice (edit {position + 1} of the stack is an earlier one again); give each edit once")
     if parent == "":
+        other = next((d.path for d in deltas[:position] if d.meta["parent"] == ""), None)
+        if other is not None:  # two edits of the bare model: alternatives, not a stack
+            return ModelFileError(f"{where}made on the bare model, as {other} was: they are two edits of one model, not a stack; "
+                                  "to apply both, re-pin them as one with `crfedit edits rebase MODEL --edit … --out-dir DIR`")
         return ModelFileError(f"{where}made on the bare model, so it must come first (it is edit {position + 1} of the stack)")
     names = [d.path for d in deltas]
     fps = [d.fingerprint for d in deltas]

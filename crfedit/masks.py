@@ -73,3 +73,14 @@ def strokes_mask(shape: tuple[int, int], strokes: Sequence[np.ndarray], radius: 
             s = np.clip(((pix - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
             mask |= np.linalg.norm(pix - (a + s[..., None] * ab), axis=-1) <= radius
     return mask
+
+
+def mask_digest(mask: np.ndarray | None) -> str | None:
+    """16 hex digits naming a mask's pixels and size (None for no mask): what an edit file
+    records of the scribble it was made from, so a re-run from other strokes shows."""
+    if mask is None:
+        return None
+    import hashlib
+
+    mask = np.asarray(mask, dtype=bool)
+    return hashlib.sha256(f"{mask.shape}".encode() + np.packbits(mask).tobytes()).hexdigest()[:16]

@@ -284,8 +284,11 @@ def test_wrong_order_parent_and_base_are_rejected(tmp_path, model):
         apply_edit_files(model, [b, a])
     with pytest.raises(ModelFileError, match=r"b\.safetensors: was made after other edits"):
         apply_edit_files(model, [b])
-    with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, so it must come first \(it is edit 2"):
+    with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, as .*a\.safetensors was: they are two edits of one "
+                                             r"model, not a stack; to apply both, re-pin them as one with `crfedit edits rebase"):
         apply_edit_files(model, [a, c])
+    with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, so it must come first \(it is edit 1"):
+        apply_edit_files(apply_edit_files(model, [a]), [c])  # the model has an edit applied already
     with pytest.raises(ModelFileError, match=r"a\.safetensors: is given twice \(edit 2 of the stack"):
         apply_edit_files(model, [a, a])
     other = make_model(seed=1)
@@ -569,7 +572,10 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     assert not typo.parent.exists()
     assert all(p.read_bytes() == data for p, data in inputs.items())
     again = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out-dir", str(out)])
-    assert again.exit_code == 0 and "unchanged (already in this place)" in again.output and "note:" not in again.output
+    assert again.exit_code == 0 and "unchanged (already in this place)" in again.output and "re-pinned" not in again.output
+    # the folder still holds the earlier rebase's files, which this stack leaves out: said, as edits check with them fails
+    assert [ln for ln in again.output.splitlines() if ln.startswith("note:")] == [
+        f"note: {out} also holds b.safetensors, c.safetensors from before, which this stack does not include"], again.output
     again = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(a), "--out-dir", str(out)])
     assert again.exit_code == 0 and "a.safetensors: remove edit of chair_0, unchanged (already in this place), replacing the edit file there" in again.output
     (out / "c.safetensors").write_text("notes, not an edit")  # a file of the same name that is not an edit: refused, kept

@@ -563,6 +563,12 @@ def test_edit_color_command_end_to_end(trained, tmp_path, monkeypatch):
     assert len(said) == 1 and said[0].startswith(cells) and re.fullmatch(r".*\(\d+\.\d\d s\)", said[0]), lines
     assert any(line.startswith("colour join: ") for line in lines) and any(line.startswith("strokes: ") for line in lines)
     assert sel.meta["keep_points"] > 0 and not any(line.startswith("keep strokes: ") for line in lines)
+    from crfedit.masks import mask_digest
+
+    inputs = json.loads(read_delta(out).meta["inputs"])  # what it was made from: a re-run from other strokes shows
+    assert inputs == {"scribble": mask_digest(fg), "keep": mask_digest(keep), "selection": inputs["selection"], "mirror": None, "colour_join": None}
+    assert mask_digest(fg) != mask_digest(np.roll(fg, 1, axis=1)) and len(inputs["selection"]) == 16
+    assert f"inputs        scribble={mask_digest(fg)}, keep={mask_digest(keep)}, selection=" in invoke("edits", "show", out).stdout
     d = read_delta(out)
     assert d.meta["view"] == f"train:{i}" and d.meta["command"] == "crfedit edit-color 'my model.safetensors' --color '#00f'"
     shown = json.loads(invoke("edits", "show", out, "--json").stdout)

@@ -187,6 +187,18 @@ class _Scribbled(NamedTuple):
     keep: object  # [H, W] bool or None
     mirror: str | None
     selection: object  # a checked Selection, or None
+    join: str | None = None  # the --colour-join mode asked for
+
+    def inputs(self) -> dict:
+        """What the edit was made from, for its file (``inputs``): digests of the scribble, the
+        keep strokes and the selection (:func:`~crfedit.masks.mask_digest`), and the modes asked for."""
+        import hashlib
+
+        from ..masks import mask_digest
+
+        sel = None if self.selection is None else hashlib.sha256(self.selection.values.cpu().numpy().tobytes()).hexdigest()[:16]
+        return {"scribble": mask_digest(self.scribble), "keep": mask_digest(self.keep), "selection": sel,
+                "mirror": self.mirror, "colour_join": self.join}
 
 
 def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: str, masks: tuple, force: bool, method,
@@ -211,7 +223,7 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
             raise CrfError(f"the removal's selection takes {sel.meta['selected_cells']} of the instance's {sel.meta['occupied_cells']} "
                            f"occupied cells, nearly all of it: check that the scribble was drawn on view {label} of this instance "
                            "(crfedit select --preview shows it), or pass --force to remove that much")
-    return _Scribbled(m, k, shown, label, camera, fg, bg, mode, sel)
+    return _Scribbled(m, k, shown, label, camera, fg, bg, mode, sel, join_mode)
 
 
 def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None, join: str | None = None):
@@ -243,8 +255,9 @@ def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, pe
     return EditOptions(strategy=strategy.value, steps=steps, lr=lr, rays=rays, seed=seed, penalty=penalty.value, recolor=recolor.value).validated()
 
 
-def _write(result, out: Path, label: str) -> None:
-    result.save(out, command=command_line(), **({"view": label} if label else {}))
+def _write(result, out: Path, label: str, inputs: dict | None = None) -> None:
+    extra = {"command": command_line(), **({"view": label} if label else {}), **({"inputs": json.dumps(inputs)} if inputs else {})}
+    result.save(out, **extra)
     meta = result.meta
     size, n = out.stat().st_size, len(result.tensors)
     typer.echo(
@@ -301,7 +314,7 @@ def edit_color_cmd(
         how = "kept that fit" if widened["kept"] else "kept the first fit"
         typer.echo(f"colour hold: with F_rad alone {100 * hyper['bleed']:.1f} % of the points outside the selection took the new colour "
                    f"(they look like the part to it); fitted again training the bottleneck layer too: {100 * widened['bleed']:.1f} %, {how}")
-    _write(result, out, p.label)
+    _write(result, out, p.label, p.inputs())
     _preview(result.model, p.instance, preview, p.shown, views, out)
 
 
@@ -349,7 +362,7 @@ def remove_cmd(
         taken, junction = hyper["removed_cells"], hyper["junction_cells"]
         typer.echo(f"removal: {taken} cells, the selection with the skin around it; {junction} of them touch a kept part and "
                    f"lose only their side toward the selection, so {taken - junction} leave the occupancy grid")
-    _write(result, out, p.label)
+    _write(result, out, p.label, p.inputs())
     _preview(result.model, p.instance, preview, p.shown, views, out)
 
 
@@ -413,7 +426,9 @@ def add_cmd(
     if lost > OUTSIDE_WARN:
         typer.echo(f"warning: --offset {offset} moves {lost:.0%} of the donor's part out of the scene box: that much of it "
                    "is not added (a smaller offset keeps it)", err=True)
-    _write(result, out, label)
+    from ..masks import mask_digest
+
+    _write(result, out, label, {"copy": mask_digest(mask), "keep": mask_digest(bg), "donor_view": donor_view or view})
     _preview(result.model, k, preview, shown, views, out)
 
 
@@ -465,7 +480,7 @@ def _short(value) -> str:
     return str(value)
 
 
-JSON_META = ("modules", "hyperparameters", "final_loss", "seconds")
+JSON_META = ("modules", "hyperparameters", "final_loss", "seconds", "inputs")
 """An edit's metadata values that hold JSON (a list, a table, a number): ``--json`` shows them parsed."""
 
 
@@ -496,6 +511,10 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
         if isinstance(hyper, dict):
             shown = {k: v for k, v in hyper.items() if not isinstance(v, dict)}
             rows.append(("hyper", ", ".join(f"{k}={_short(v)}" for k, v in shown.items())))
+    if meta.get("inputs"):  # digests of what it was made from (and the modes asked for)
+        inputs = _parsed("inputs", meta["inputs"])
+        if isinstance(inputs, dict):
+            rows.append(("inputs", ", ".join(f"{k}={v}" for k, v in inputs.items() if v is not None) or "(none recorded)"))
     n = len(delta.tensors)
     rows.append(("size", f"{size} bytes, {n} tensor{'s' * (n != 1)}, edit format version {meta['version']}"))
     grid = delta.tensors.get("occupancy")
@@ -608,9 +627,23 @@ def rebase_cmd(
         replaced = ", replacing the edit file there" if out_dir / p.name in there else ""
         typer.echo(printable(f"wrote {out_dir / p.name}: {after.kind} edit of {after.instance}, {how}{old_grid}{replaced}"))
     typer.echo(f"ok: {len(pinned)} edit(s) apply to {model} in this order")
+    stale = sorted(p.name for p in out_dir.glob("*.safetensors") if p.name not in names and _is_edit_file(p))
+    if stale:  # an earlier rebase's files: not in this stack, and `edits check` with them fails
+        typer.echo(printable(f"note: {out_dir} also holds {', '.join(stale)} from before, which this stack does not include"))
     if any(after is not before for before, after in zip(deltas, pinned)):
         typer.echo("note: a re-pinned edit keeps the change it was optimized for on its old stack; where an edit of the same "
                    "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)")
+
+
+def _is_edit_file(path: Path) -> bool:
+    """Whether ``path`` is an edit file, by its header alone (anything unreadable is not)."""
+    from ..names import EDIT_FORMAT
+    from ..safefile import read_header
+
+    try:
+        return read_header(path)[1].get("format") == EDIT_FORMAT
+    except Exception:  # noqa: BLE001 - a damaged or foreign file is simply not one of ours
+        return False
 
 
 @edits_app.command("bake")

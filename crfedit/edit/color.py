@@ -77,7 +77,7 @@ def edit_color(
 
     final = optimize(edit, loss_fn, options, "colour edit")
     hyper = {
-        "rays": options.rays, "color": list(rgb),
+        "method": "paper", "rays": options.rays, "color": list(rgb),
         "scribble_rays": fg.numel(), "keep_rays": bg.numel(), "keep": "strokes" if keep is not None else "random",
         "cached_samples": render.n_cached, "stage": render.stage, "camera": camera_meta(camera),
     }

@@ -160,7 +160,7 @@ def remove(
     final = optimize(edit, loss_fn, options, "removal")
     extra, extra_modules = occupancy_after(edit, candidates, generator)
     hyper = {
-        "rays": options.rays, "lambda_dens": options.lambda_dens,
+        "method": "paper", "rays": options.rays, "lambda_dens": options.lambda_dens,
         "lambda_surface": options.lambda_surface, "occluded": occluded, "scribble_rays": n_fg, "keep_rays": bg.numel(),
         "keep": "strokes+random" if keep is not None else "random", "stage": passes[-1].stage,
         "cached_samples": sum(p.n_cached for p in passes), "camera": camera_meta(camera),
