@@ -353,7 +353,7 @@ def refresh_occupancy(field, hulls, ema, instances, generator, ranks: Ranks = SI
 
 @contextlib.contextmanager
 def interrupt_between_steps(enabled: bool = True):
-    """Yield an event that the first Ctrl-C (SIGINT) sets instead of raising, for the training
+    """Yield an event that the first Ctrl-C (SIGINT, or SIGTERM) sets instead of raising, for the training
     loop to read between steps: the checkpoint an interrupted run writes is then a step boundary
     (weights, optimizer moments and generator state of the same step), and ``--resume`` goes on
     as if never stopped.  A second Ctrl-C interrupts at once.  Only in the main thread, where
@@ -369,11 +369,16 @@ def interrupt_between_steps(enabled: bool = True):
             raise KeyboardInterrupt
         event.set()
 
+    term = signal.getsignal(signal.SIGTERM)  # SIGTERM (timeout, kill) alike, unless it is ignored
     signal.signal(signal.SIGINT, on_sigint)
+    if term is not signal.SIG_IGN:
+        signal.signal(signal.SIGTERM, on_sigint)
     try:
         yield event
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        if term is not signal.SIG_IGN:
+            signal.signal(signal.SIGTERM, term)
 
 
 def train(

@@ -558,3 +558,31 @@ def test_views_of_several_sizes_keep_their_own_size(tiny_chairs, model_path, tmp
 
     assert _resumed(out, None, None, SINGLE)[1] is None
     assert_user_error(invoke("train", data, "--out", out, "--resume", "--res", 16, *TINY), "each view at its own width (16, 24)")
+
+
+def test_sigterm_stops_a_render_as_ctrl_c_does(tiny_model, tmp_path):
+    """SIGTERM (timeout, kill, a scheduler's stop) runs Ctrl-C's clean-up: the render's hidden
+    part-built folder goes, the earlier set stays whole, and the exit status is 143.  (Before,
+    the process died where it stood and left the hidden folder behind.)"""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "views"
+    first = invoke("render", tiny_model, "--instance", 0, "--views", "orbit:2", "--out", out, "--device", "cpu")
+    assert first.exit_code == 0, first.output
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    env = {**os.environ, "CRFEDIT_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "crfedit", "render", str(tiny_model), "--instance", "0", "--views", "orbit:5000",
+                             "--out", str(out), "--device", "cpu"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 120
+    while not any(p.name.startswith(".views.") and any(p.iterdir()) for p in tmp_path.iterdir() if p.is_dir()):  # frames being written
+        assert proc.poll() is None and time.monotonic() < deadline, "the render ended before it could be stopped"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and err.splitlines()[-1] == "terminated (SIGTERM)", (proc.returncode, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["views"]  # no hidden folder left
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

@@ -71,7 +71,7 @@ def _main() -> None:
 
     from ..errors import CrfError
     from ..threads import threads_choice
-    from .common import Session, debug_requested, torchrun_ranks
+    from .common import Session, Terminated, debug_requested, terminate_as_interrupt, torchrun_ranks
 
     def rank_0() -> bool:
         """Whether this process says the command line's own errors: under torchrun rank 0
@@ -86,6 +86,7 @@ def _main() -> None:
     # Typer 0.29 vendors click without its Abort; typer.Abort is what it raises on Ctrl-C.
     aborts = tuple({typer.Abort, getattr(click_errors, "Abort", typer.Abort)})
     try:
+        terminate_as_interrupt()
         Session.threads, Session.threads_why = threads_choice()
         code = app(standalone_mode=False)
     except CrfError as e:
@@ -103,9 +104,9 @@ def _main() -> None:
     except click_errors.ClickException as e:
         say(f"error: {' '.join(e.format_message().split())}")
         raise SystemExit(e.exit_code) from None
-    except (*aborts, KeyboardInterrupt):
+    except (*aborts, KeyboardInterrupt) as e:
         say("error: aborted")
-        raise SystemExit(130) from None
+        raise SystemExit(143 if isinstance(e, Terminated) else 130) from None
     except Exception as e:
         if debug_requested():
             raise

@@ -199,6 +199,28 @@ def torchrun_ranks():
         return None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``timeout``, ``kill``, a scheduler's stop) taken as Ctrl-C, so that the same
+    clean-up runs (no half-written output, run records as they were); the exit status is 143."""
+
+
+def terminate_as_interrupt() -> None:
+    """Make SIGTERM raise :class:`Terminated` in the main thread, unless something else
+    already handles it.  Without this a killed render left its hidden part-built folder and a
+    killed training run records that described no model."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        return
+
+    def handler(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM during the clean-up ends it at once
+        raise Terminated()
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def _says_it(error: BaseException) -> bool:
     """Whether this process prints ``error``.  Under torchrun a rank other than 0 keeps quiet
     about a user error met before its process group formed, and about Ctrl-C: it read the same
@@ -300,8 +322,9 @@ def user_errors(fn=None, *, ranked: bool = False):
             raise stop(str(e), e) from None
         except KeyboardInterrupt as e:
             if _says_it(e):
-                typer.echo(f"interrupted{': ' + str(e) if str(e) else ''}", err=True)
-            raise typer.Exit(130) from None
+                word = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+                typer.echo(f"{word}{': ' + str(e) if str(e) else ''}", err=True)
+            raise typer.Exit(143 if isinstance(e, Terminated) else 130) from None
         except MemoryError as e:
             raise stop("out of memory (try a smaller --res, --rays or --chunk)", e) from None
         except BrokenPipeError:
