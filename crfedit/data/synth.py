@@ -11,6 +11,7 @@ the images exactly.  World is Z-up; every chair is centered and scaled so its la
 from __future__ import annotations
 
 import colorsys
+import itertools
 import math
 import time
 from dataclasses import dataclass, replace
@@ -394,8 +395,14 @@ def twin_sources(instances: int, count: int = TWIN_SOURCES) -> list[int]:
     adds twins: the default ones, and so every score measured on them, stay as they were),
     the rest are spread over the category as well."""
     base = _spread(instances, min(count, TWIN_SOURCES))
-    extra = [i for i in _spread(instances, count) + list(range(instances)) if i not in base]
-    return sorted(base + list(dict.fromkeys(extra))[: max(0, min(count, instances) - len(base))])
+    need, taken, extra = max(0, min(count, instances) - len(base)), set(base), []
+    for i in itertools.chain(_spread(instances, count), range(instances)):  # lazily: memory as the sources, not the chairs
+        if len(extra) >= need:
+            break
+        if i not in taken:
+            taken.add(i)
+            extra.append(i)
+    return sorted(base + extra)
 
 
 def synth_steps(config: SynthConfig) -> int:
