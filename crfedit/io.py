@@ -263,6 +263,8 @@ def write_json(path: str | os.PathLike, obj) -> None:
 def read_json(path: str | os.PathLike):
     """Parse a JSON file; a missing or malformed file is a one-line :class:`CrfError`."""
     path = Path(path)
+    if not path.is_file():  # a pipe would block the read for ever
+        raise CrfError(f"{path}: {not_a_file(path)}")
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -303,9 +305,13 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
+    if not path.is_file():  # a pipe would block the read for ever
+        raise CrfError(f"{path}: {not_a_file(path)}")
     try:
         with Image.open(path) as im:
             im.load()
+            if im.mode == "F":  # floats: no range to read them by (NaN, 0/1, 0/255 all occur)
+                raise CrfError(f"{path}: image mode F (32-bit float) is not supported: save it as an 8- or 16-bit PNG")
             if im.mode in ("I;16", "I;16B", "I;16L", "I"):
                 arr = np.asarray(im, dtype=np.float64) / 65535.0
                 return np.repeat(arr[..., None], 3, axis=2).astype(np.float32)

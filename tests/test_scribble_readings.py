@@ -48,6 +48,22 @@ def test_white_on_black(view, tmp_path):
     assert got.reading == "white on black" and np.array_equal(got.mask, mask)
 
 
+def test_a_0_1_mask_saved_unscaled_reads_its_ones(view, tmp_path):
+    """numpy's bool mask saved as uint8 without * 255 (pixels 0 and 1) read as an empty mask
+    ("white on black, 0 pixels"); its ones are the strokes.  A float image is refused."""
+    from PIL import Image
+
+    mask = view[3]
+    Image.fromarray(mask.astype(np.uint8)).save(tmp_path / "m01.png")
+    got = read(tmp_path / "m01.png", view, with_render=False)
+    assert got.reading.startswith("0/1 values") and np.array_equal(got.mask, mask)
+    Image.fromarray(np.where(mask, 2, 0).astype(np.uint8)).save(tmp_path / "dim.png")  # a dim stroke is no 0/1 mask
+    assert not read(tmp_path / "dim.png", view, with_render=False).mask.any()
+    Image.fromarray(mask.astype(np.float32), "F").save(tmp_path / "m.tiff")
+    with pytest.raises(CrfError, match=r"m\.tiff: image mode F \(32-bit float\) is not supported"):
+        read(tmp_path / "m.tiff", view, with_render=False)
+
+
 def test_alpha_mask(view, tmp_path):
     mask = view[3]
     rgba = np.zeros(mask.shape + (4,), np.uint8)

@@ -151,7 +151,10 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
     if image.shape[2] == 4 and (image[..., 3] < 0.5).any():
         return Scribble(image[..., 3] >= 0.5, "opaque pixels of a transparent PNG")
     if (rgb.max(axis=-1) - rgb.min(axis=-1) <= GRAY_TOLERANCE).all():
-        return Scribble(rgb.mean(axis=-1) >= 0.5, "white on black")
+        gray = rgb.mean(axis=-1)
+        if 0.0 < float(gray.max()) <= 1.5 / 255.0:  # numpy's 0/1 mask saved as is (Image.fromarray(mask.astype(np.uint8)))
+            return Scribble(gray > 0.0, "0/1 values (a mask saved without scaling to 255)")
+        return Scribble(gray >= 0.5, "white on black")
     if render is not None:
         differs = (np.abs(rgb - np.clip(render(), 0.0, 1.0)) > PAINT_TOLERANCE).any(axis=-1)
         if differs.mean() <= 0.5:
