@@ -239,12 +239,21 @@ def check_folder_target(path: str | os.PathLike, what: str = "") -> None:
     if p.exists():
         if not p.is_dir():
             raise CrfError(f"{label}: exists and is not a folder")
+        _writable(p, label)
         return
     for parent in p.parents:
         if parent.exists():
             if not parent.is_dir():
                 raise CrfError(f"{label}: {parent} is a file, not a folder")
+            _writable(parent, label)
             return
+
+
+def _writable(folder: Path, label: str) -> None:
+    """A :class:`CrfError` when nothing can be written in ``folder`` (a read-only file system, or
+    no permission): found before the work, not after it."""
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CrfError(f"{label}: cannot write in {folder} (a read-only file system, or no permission)")
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -667,6 +667,23 @@ def test_ctrl_c_in_the_previews_says_the_edit_was_written(trained, tmp_path, mon
     assert read_delta(edit).kind == "transfer"
 
 
+def test_a_preview_that_fails_to_write_says_the_edit_was_written(trained, tmp_path, monkeypatch):
+    """A disk that fills (or a folder made read-only) while an edit writes its --preview: one
+    error line that says the edit file was written and the previews were not."""
+    import errno
+
+    import crfedit.io
+
+    def full(path, image):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(crfedit.io, "write_png", full)
+    edit, prev = tmp_path / "t.safetensors", tmp_path / "prev"
+    r = invoke("transfer", trained[0], "--instance", 0, "--color-from", 1, "--out", edit, "--device", "cpu", "--preview", prev, "--views", "test:0")
+    line = assert_user_error(r, f"{edit} was written, its previews in {prev}/ were not")
+    assert "0000.png: the disk is full" in line and read_delta(edit).kind == "transfer"
+
+
 def test_edit_command_errors_write_nothing(trained, tmp_path):
     path, model, category = trained
     i, view, fg, keep, _ = scribbles(category, 0, "seat")

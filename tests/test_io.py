@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import struct
 import zlib
 from pathlib import Path
@@ -174,6 +175,23 @@ def test_write_into_read_only_folder_is_user_error(tmp_path):
         assert_one_line_naming(e, folder / "x.json")
     finally:
         folder.chmod(0o755)
+
+
+def test_an_output_folder_nothing_can_be_written_in_is_refused_before_the_work(tmp_path, monkeypatch):
+    """``check_folder_target`` (run before long work) asks the file system whether the folder,
+    or the nearest one above a folder still to be made, takes files: a read-only mount failed
+    only after an edit's previews (or a render) had been computed.  (os.access answers for the
+    read-only mount even for root; the permission case is simulated.)"""
+    from crfedit.io import check_folder_target
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, *a, **k: False if Path(p) == ro else real(p, mode, *a, **k))
+    for target in (ro, ro / "new" / "deeper"):
+        with pytest.raises(CrfError, match=rf"^--out {re.escape(str(target))}: cannot write in {re.escape(str(ro))} \(a read-only file system, or no permission\)$"):
+            check_folder_target(target, "--out")
+    check_folder_target(tmp_path / "fine", "--out")  # a writable parent: nothing to say
 
 
 # ------------------------------------------------------------------------------ read errors

@@ -146,7 +146,10 @@ def _preview_views(model, instance: int, folder: Path | None, spec: str):
         return None
     if folder.exists() and not folder.is_dir():
         raise CrfError(f"--preview {folder}: is a file; give a folder for the preview PNGs")
+    from ..io import check_folder_target
     from ..views import resolve_views
+
+    check_folder_target(folder, "--preview")
 
     return resolve_views(spec, model, instance)
 
@@ -159,6 +162,10 @@ def previews_of(out: Path, folder: Path) -> Iterator[None]:
         yield
     except KeyboardInterrupt:
         raise KeyboardInterrupt(f"{out} was written; the previews in {folder}/ are incomplete") from None
+    except OSError as e:  # a disk that filled, a folder made read-only since the check
+        from .common import os_error_message
+
+        raise CrfError(f"{os_error_message(e)}: {out} was written, its previews in {folder}/ were not") from None
 
 
 def _preview(model, instance: int, folder: Path | None, views, spec: str, out: Path) -> None:
@@ -168,8 +175,8 @@ def _preview(model, instance: int, folder: Path | None, views, spec: str, out: P
         return
     from ..io import write_png
 
-    folder.mkdir(parents=True, exist_ok=True)
     with previews_of(out, folder):
+        folder.mkdir(parents=True, exist_ok=True)
         for i, (_, camera) in enumerate(views):
             write_png(folder / f"{i:04d}.png", _view_render(model, instance, camera)())
     typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")

@@ -99,8 +99,8 @@ def select_cmd(
     )
     echo_summaries(info)
     if preview is not None:
-        preview.mkdir(parents=True, exist_ok=True)
         with previews_of(out, preview):
+            preview.mkdir(parents=True, exist_ok=True)
             for i, (label, camera) in enumerate(shown):
                 write_png(preview / f"{i:04d}.png", tinted(m, sel, camera))
         typer.echo(f"wrote previews of {views} to {preview}/")
