@@ -182,6 +182,20 @@ def visual_hulls(category: Category, aabb: torch.Tensor, res: int, margin: int =
     ])
 
 
+def check_camera_reach(category: Category, aabb: torch.Tensor) -> None:
+    """A one-line :class:`CrfError` naming the first view (file, split and index) whose camera
+    lies too far from the scene box for float32 rays (:func:`~crfedit.renderer.camera_far_problem`):
+    a frame 10³⁰ away trained, and then every render and eval of the model failed naming no view."""
+    from .renderer import camera_far_problem
+
+    for inst in category.instances:
+        for split, views in inst.splits.items():
+            for i, view in enumerate(views):
+                problem = camera_far_problem(view.camera, aabb)
+                if problem is not None:
+                    raise CrfError(f"{inst.path}: {split}:{i} ({view.file_path}): camera: {problem}")
+
+
 def check_hulls(category: Category, hulls: torch.Tensor) -> None:
     """A one-line error naming the first instance whose training silhouettes carve nothing
     (``hulls`` [K, R, R, R]): a model of it would train blank."""
@@ -446,6 +460,7 @@ def train(
     else:
         cfg = part_config(category, cfg)
         aabb = scene_box(category, on_note=on_note)
+        check_camera_reach(category, aabb)
         carved = visual_hulls(category, aabb, cfg.occ_res, max(cfg.hull_margin, 0))  # whatever the sampler: an empty hull stops here
         check_hulls(category, carved)
         with torch.random.fork_rng(devices=[]):

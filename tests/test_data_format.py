@@ -226,6 +226,8 @@ BAD_INPUTS = {
     "matrix non-finite": (lambda r: _edit_json(r / TRAIN, _set_matrix([[1, 0, 0, 0]] * 3 + [[0, 0, 0, 1e999]])), TRAIN, "non-finite"),
     "matrix singular": (lambda r: _edit_json(r / TRAIN, _set_matrix([[1, 0, 0, 0]] * 3 + [[0, 0, 0, 1]])), TRAIN, "not invertible"),
     "no camera angle": (lambda r: _edit_json(r / TRAIN, lambda m: m.pop("camera_angle_x")), TRAIN, "camera_angle_x"),
+    "camera angle too narrow": (lambda r: _edit_json(r / TRAIN, lambda m: m.__setitem__("camera_angle_x", 1e-30)), TRAIN,
+                                "field of view, too narrow to see an object"),
     "wrong mode": (_cmyk, "a/train/r_001.jpg", "mode CMYK"),
     "inconsistent sizes": (
         lambda r: Image.new("RGBA", (RES // 2, RES // 2)).save(r / "a" / "train" / "r_001.png"),

@@ -245,3 +245,25 @@ def test_a_resume_drops_the_log_rows_past_its_checkpoint(tmp_path):
     run.file.close()
     steps = [line.split(",")[0] for line in log.read_text().splitlines()[1:]]
     assert steps == ["10", "20", "30"]
+
+
+def test_a_camera_too_far_for_float32_is_named_before_training(tiny_chairs, tmp_path):
+    """One training frame 10³⁰ away trained before, and then every render and eval of the model
+    failed with a line naming no view; now training refuses it, naming the file and the frame."""
+    import json
+    import re
+    import shutil
+
+    from crfedit.errors import CrfError
+
+    data = tmp_path / "far"
+    shutil.copytree(tiny_chairs, data)
+    inst = (data / "instances.txt").read_text().split()[0]
+    path = data / inst / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    meta["frames"][0]["transform_matrix"][0][3] = 1e30
+    path.write_text(json.dumps(meta))
+    cfg = make_config("fast", overrides=dict(steps=2, rays=64))
+    with pytest.raises(CrfError, match=rf"^{re.escape(str(data / inst))}: train:0 \(.*\): camera: it lies [0-9.e+]+ scene-box diagonals"):
+        train(load_category(data), cfg, tmp_path / "m.safetensors", torch.device("cpu"))
+    assert not (tmp_path / "m.safetensors").exists()

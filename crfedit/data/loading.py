@@ -44,6 +44,11 @@ class View:
     file_path: str
 
 
+MIN_FIELD_OF_VIEW = 1e-3
+"""Radians: a split whose horizontal field of view is narrower is refused when loaded (10⁻³⁰
+passed, and training then blamed the camera axes for the empty visual hull it carved)."""
+
+
 def parse_view_spec(spec: str) -> tuple[str, int]:
     """``"train:7"`` → ``("train", 7)``."""
     split, sep, index = str(spec).partition(":")
@@ -165,6 +170,10 @@ def _load_split(
             focal = float(focal_px) * w / float(meta.get("w", w))
         if not (math.isfinite(focal) and focal > 0):
             raise DataError(f"{path}: camera_angle_x / focal gives a non-positive focal length")
+        fov = 2.0 * math.atan(0.5 * w / focal)
+        if fov < MIN_FIELD_OF_VIEW:
+            raise DataError(f"{path}: camera_angle_x / focal gives a {math.degrees(fov):.3g}° field of view, too narrow to see an "
+                            f"object (at least {math.degrees(MIN_FIELD_OF_VIEW):.2g}°); camera_angle_x is in radians, focal in pixels")
         alpha = image[..., 3] if image.shape[2] == 4 else np.ones((h, w), np.float32)
         rgb = image[..., :3] * alpha[..., None] + (1.0 - alpha[..., None]) if image.shape[2] == 4 else image[..., :3]
         depth = parts = None
