@@ -275,7 +275,7 @@ def read_json(path: str | os.PathLike):
     if not path.is_file():  # a pipe would block the read for ever
         raise CrfError(f"{path}: {not_a_file(path)}")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a leading BOM (Windows editors) is not JSON
     except FileNotFoundError:
         raise CrfError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as e:

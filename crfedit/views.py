@@ -32,7 +32,7 @@ import numpy as np
 
 from .cameras import Camera, c2w_problem, focal_from_angle, orbit_cameras
 from .errors import CrfError
-from .io import read_json
+from .io import not_a_file, read_json
 
 SPLITS = ("train", "val", "test")
 DEFAULT_ELEVATION = 30.0
@@ -226,7 +226,7 @@ def _size(spec: str, data: dict, keys: tuple[str, str], model) -> tuple[int, int
 def _file_views(spec: str, model) -> list[tuple[str, Camera]]:
     path = Path(spec)
     if not path.is_file():
-        raise CrfError(f"view spec {spec!r}: camera file not found")
+        raise CrfError(f"view spec {spec!r}: camera file {not_a_file(path, 'not found')}")
     data = read_json(path)  # a malformed file is an error that names it
     if not isinstance(data, dict):
         raise CrfError(f"view spec {spec!r}: expected a JSON object (camera_path, transform_matrix or frames)")

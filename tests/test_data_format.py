@@ -240,6 +240,14 @@ BAD_INPUTS = {
 }
 
 
+def test_instances_txt_saved_with_a_bom_reads_its_names(tmp_path):
+    """Windows Notepad's UTF-8 starts the file with a byte-order mark, which was read as part of
+    the first name ("instance folder \\ufeffa not found")."""
+    make_category(tmp_path)
+    (tmp_path / "instances.txt").write_text("a\nb\n", encoding="utf-8-sig")
+    assert [i.name for i in load_category(tmp_path).instances] == ["a", "b"]
+
+
 @pytest.mark.parametrize("case", list(BAD_INPUTS))
 def test_bad_input_is_one_line_data_error_naming_the_file(tmp_path, case):
     make_category(tmp_path)

@@ -523,6 +523,8 @@ def test_strokes_rasterize_at_the_view_resolution():
     dot = strokes_json_mask([[[5, 5]]], 48, 48, "s.json")  # a bare list; radius max(1, 48/48)
     assert dot[5, 5] and dot[4, 5] and not dot[3, 5] and int(dot.sum()) == 5
     assert not strokes_json_mask({"strokes": []}, 12, 10, "s.json").any()  # no strokes: an empty mask, judged by its reader
+    with pytest.raises(CrfError, match=r"^s\.json: stroke 0 has a point more than 10000 view widths away from the 12x10 view"):
+        strokes_json_mask({"strokes": [[[1e308, 3], [-1e308, 4]]]}, 12, 10, "s.json")  # it overflowed into warnings
     for bad in ({"strokes": "none"}, [[["a", 1]]], {"strokes": [[[1, 2]]], "radius": -1}, [[[1, 2, 3]]]):
         with pytest.raises(CrfError, match="s.json"):
             strokes_json_mask(bad, 12, 10, "s.json")

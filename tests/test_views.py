@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import json
 import math
 
@@ -215,6 +216,9 @@ def test_bad_camera_files(model, tmp_path, content, message):
 def test_missing_camera_file(model, tmp_path):
     with pytest.raises(CrfError, match="camera file not found"):
         resolve_views(str(tmp_path / "nope.json"), model, 0)
+    os.mkfifo(tmp_path / "pipe.json")  # exists, but reading it would block: named for what it is
+    with pytest.raises(CrfError, match=r"pipe\.json': camera file is not a regular file \(a device or pipe\)$"):
+        resolve_views(str(tmp_path / "pipe.json"), model, 0)
 
 
 def test_parse_resolution():

@@ -232,7 +232,7 @@ def instance_names(root: Path) -> list[str]:
             return [root.resolve().name]
         raise DataError(f"{listing}: file not found (neither a category folder, a NeRF-synthetic scene nor nerfstudio transforms.json scenes)")
     try:
-        lines = listing.read_text(encoding="utf-8").splitlines()
+        lines = listing.read_text(encoding="utf-8-sig").splitlines()  # a BOM (Windows Notepad) is not part of the first name
     except (OSError, UnicodeDecodeError) as e:
         raise DataError(f"{listing}: cannot read ({e.__class__.__name__})") from None
     names = [ln.strip() for ln in lines if ln.strip() and not ln.strip().startswith("#")]

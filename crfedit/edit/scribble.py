@@ -76,6 +76,11 @@ def default_radius(width: int) -> float:
     return max(1.0, width / 48)
 
 
+STROKE_REACH = 1e4
+"""A stroke point farther than this many view widths from the view is refused (at 10³⁰⁸ the
+rasterizer's float arithmetic overflowed into warnings and a false "outside the view")."""
+
+
 def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
     """Rasterize strokes JSON at (width, height): ``{"strokes": [[[x, y], …], …], "radius": r}``
     or a bare list of strokes ``[[[x, y], …], …]``; the radius defaults to max(1, width/48) px.
@@ -103,6 +108,9 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
         pts = np.asarray(stroke, dtype=np.float64) if ok else None
         if pts is None or not np.isfinite(pts).all():
             raise CrfError(f"{where}: stroke {i} is not a list of [x, y] pixel positions")
+        if np.abs(pts).max() > STROKE_REACH * max(width, height):  # far enough to overflow the distance arithmetic
+            raise CrfError(f"{where}: stroke {i} has a point more than {STROKE_REACH:g} view widths away from the "
+                           f"{width}x{height} view (x from 0 to {width - 1}, y from 0 to {height - 1})")
         mask |= strokes_mask((height, width), [pts], r)
         points.append(pts)
     if min(width, height) >= 8 and all(((p >= 0) & (p <= 1)).all() for p in points) and any((p % 1 != 0).any() for p in points):
