@@ -589,6 +589,14 @@ def test_copy_as_shell_replays_the_stack_to_the_same_edit_files(ui, scene, tmp_p
     assert run.returncode == 0, run.stderr
     made = sorted((tmp_path / "crfedit-replay").glob("0*-*-chair_*.safetensors"))
     assert [read_delta(p).fingerprint for p in made] == [r["fingerprint"] for r in json.loads(ui.get("/api/state"))["stack"]]
+    assert "optimized again" not in script  # every edit where it was made: the replay is exact, and says nothing
+    # the first edit turned off: the removal and the addition were made on top of it, and the replay
+    # optimizes them again without it, which the script says; the transfer takes its code again, exactly
+    stack = json.loads(ui.get("/api/state"))["stack"]
+    ui.post("/api/stack/toggle", {"id": stack[0]["id"], "enabled": False})
+    lines = ui.get("/api/shell").decode().splitlines()
+    noted = [lines[i + 1].split(" --instance")[0] for i, ln in enumerate(lines) if "optimized again" in ln]
+    assert noted == ["crfedit add " + shlex.quote(str(Path(scene[0]).resolve()))], noted
 
 
 def test_edits_given_with_edit_start_the_stack(scene, tmp_path):

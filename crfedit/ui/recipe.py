@@ -278,7 +278,9 @@ class Replay:
             self.lines.append(f"# {note}")
         self.outputs.append(shlex.quote(path))
 
-    def add_recipe(self, n: int, req: EditRequest) -> None:
+    def add_recipe(self, n: int, req: EditRequest, note: str = "") -> None:
+        if note:
+            self.lines.append(f"# {note}")
         prefix = f"{n:02d}"
         name = self.names[req.instance]
         out = f'"$out/{prefix}-{req.kind}-{name}.safetensors"'

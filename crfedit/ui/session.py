@@ -77,6 +77,7 @@ class Entry:
     seconds: float
     enabled: bool = True
     source: str = ""  # the file it was loaded from
+    made_on: tuple[int, ...] = ()  # the ids of the edits on when it was made, in their order then
 
 
 class _Lru(OrderedDict):
@@ -323,7 +324,7 @@ class UiSession:
         with self._lock:
             if self.state_key != key:
                 raise CrfError("the stack changed while the edit ran; apply it again")
-            entry = Entry(self._next_id, delta, req, result.seconds)
+            entry = Entry(self._next_id, delta, req, result.seconds, made_on=tuple(e.id for e in self.entries if e.enabled))
             self._next_id += 1
             self.entries.append(entry)
             self.model, self.pinned = result.model, {**self.pinned, entry.id: delta}
@@ -484,6 +485,18 @@ class UiSession:
             save_model(out, baked, None, extra_meta={"command": "crfedit ui (bake)"})
         return {"model": str(out), "edits": [str(p) for p, _ in files], "again": again}
 
+    def _made_elsewhere(self, e: Entry, i: int) -> bool:
+        """Whether edit ``e`` (at ``i`` in the stack) was made with other edits of the instances it
+        reads before it (its own; an addition's donor too) than those on before it now: then the
+        replay optimizes it again on another state.  A transfer takes its code again, exactly."""
+        req = e.recipe
+        if req is None or req.kind == "transfer":
+            return False
+        reads = {self.base.names[req.instance]} | ({self.base.names[req.donor]} if req.kind == "add" else set())
+        by_id = {x.id: x for x in self.entries}
+        touches = lambda ids: [j for j in ids if j in by_id and by_id[j].delta.instance in reads]
+        return touches(e.made_on) != touches(x.id for x in self.entries[:i] if x.enabled)
+
     def shell(self) -> str:
         """The ``crfedit`` command lines that replay the enabled edits in order."""
         with self._lock:
@@ -492,7 +505,9 @@ class UiSession:
                 if not e.enabled:
                     continue
                 if e.recipe is not None:
-                    replay.add_recipe(i + 1, e.recipe)
+                    replay.add_recipe(i + 1, e.recipe, "made on the page with other edits of the chairs it reads before it (one turned "
+                                      "off or moved since): here it is optimized again on the edits above, so its file and result differ "
+                                      "from the page's" if self._made_elsewhere(e, i) else "")
                 elif self.pinned[e.id].fingerprint == e.delta.fingerprint:
                     replay.add_file(str(Path(e.source).resolve()))
                 else:
