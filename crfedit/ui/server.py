@@ -220,7 +220,7 @@ class Server:
 
     def _busy(self) -> None:
         if self.job is not None and self.job.state == "running":
-            message = f"an edit ({self.job.kind}) is already running: wait for it or press Cancel"
+            message = f"an edit ({self.job.kind}) is already running: wait for it, or press Cancel in the tab that started it"
             raise web.HTTPConflict(text=json.dumps({"error": message}), content_type="application/json")
 
     # ------------------------------------------------------------------------- page and images

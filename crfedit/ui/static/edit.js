@@ -212,7 +212,7 @@ function clearUsedStrokes(instance) {
 
 // ------------------------------------------------------------------------------------ stack
 
-function kb(n) { return n < 1024 ? `${n} B` : `${(n / 1024).toFixed(1)} KB`; }
+function kb(n) { return n < 1024 ? `${n} B` : `${(n / 1024).toFixed(1)} KiB`; }
 
 function renderStack(rows) {
   const ol = $("stack");
@@ -234,6 +234,9 @@ function renderStack(rows) {
     text.textContent = `${row.kind} · ${row.instance} · ${kb(row.bytes)} · ${row.seconds.toFixed(2)} s — ${row.label}`;
     const up = button("↑", !row.up, () => stackOp("/api/stack/move", { id: row.id, to: row.position - 1 }));
     const down = button("↓", !row.down, () => stackOp("/api/stack/move", { id: row.id, to: row.position + 1 }));
+    const held = "the neighbouring edit changes the same tensors (same chair and modules): their order matters";
+    up.title = row.up ? "move up" : row.position === 1 ? "first in the stack" : held;  // positions count from 1
+    down.title = row.down ? "move down" : row.position === rows.length ? "last in the stack" : held;
     const save = button("Save", false, async () => {
       const r = await postJson("/api/stack/save", { id: row.id });
       $("saved").textContent = `saved ${r.path}`;
