@@ -2,7 +2,7 @@
 the edits made with them, scored like `crfedit eval edits`.
 
     python benchmarks/correction.py MODEL DATA [--rounds 2] [--pick worst|random|farthest] [--seed 0]
-        [--errors thin|eroded] [--out FILE.md]
+        [--errors thin|eroded] [--filler none|right] [--out FILE.md]
 
 `crfedit select` takes one set of strokes per view, so that a user who sees a wrong selection in
 the preview can correct it from another view.  Each round here plays that user, as interactive
@@ -11,8 +11,9 @@ it takes the one where the current selection errs on the most pixels (ground-tru
 each error region eroded by 1 px so that the blur at part boundaries does not count;
 ``--errors thin`` also strokes a thin part taken or missed whole, :func:`error_regions`), draws keep
 strokes on the wrongly selected pixels and scribble strokes on the missed ones (2 strokes each, the
-dataset's stroke size; a view needs a scribble, so with nothing missed a stroke goes on the part
-where it is rightly selected), adds that view to the scribbles and selects again.  The simulated
+dataset's stroke size; with nothing missed the view holds keep strokes alone, or with
+``--filler right`` also a stroke on the part where it is rightly selected, as it had to before
+a view could go without a scribble), adds that view to the scribbles and selects again.  The simulated
 user reads the ground truth, so this measures the multi-view selection, not a method.
 
 ``--pick`` says which unused train view the user corrects from: ``worst`` (the default, above),
@@ -93,8 +94,11 @@ def error_regions(pred: np.ndarray, gt: np.ndarray, parts: np.ndarray, rule: str
     return wrong, missed
 
 
+FILLERS = ("none", "right")
+
+
 def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object], rng: np.random.Generator, pick: str = "worst",
-                    errors: str = "eroded"):
+                    errors: str = "eroded", filler: str = "none"):
     """(view name, camera, ScribbleView or None) of one simulated correction of ``sel``, or None
     when no view is left to look at.  The ScribbleView is None where the view looked at shows no
     error region (:func:`error_regions`; the user checked it and found nothing to fix);
@@ -121,9 +125,9 @@ def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object
     step, radius = max(3.0, size / 10), max(1.0, size / 48)
     keep = random_strokes(rng, wrong, 2, step, radius)
     scribble = random_strokes(rng, missed, 2, step, radius)
-    if not scribble.any():
+    if not scribble.any() and (filler == "right" or not keep.any()):
         scribble = random_strokes(rng, erode(right, 1) if erode(right, 1).any() else right, 1, step, radius)
-    if not scribble.any():
+    if not scribble.any() and not keep.any():
         return name, view.camera, None
     return name, view.camera, ScribbleView(view.camera, scribble, keep if keep.any() else None)
 
@@ -134,7 +138,8 @@ def merged(first: ScribbleView, more: ScribbleView) -> ScribbleView:
     return ScribbleView(first.camera, first.scribble | more.scribble, np.logical_or.reduce(keeps) if keeps else None)
 
 
-def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pick: str = "worst", errors: str = "eroded") -> list[dict]:
+def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pick: str = "worst", errors: str = "eroded",
+                         filler: str = "none") -> list[dict]:
     """Per round (0: the twins' own scribbles), {id(case.scribble): Selection} for every twin."""
     out = [dict() for _ in range(rounds + 1)]
     for case in cases:
@@ -146,7 +151,7 @@ def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pic
         sel = select(model, case.instance, views, options)
         out[0][id(case.scribble)] = sel
         for r in range(1, rounds + 1):
-            found = correction_view(model, case, inst, pid, sel, used, rng, pick, errors)
+            found = correction_view(model, case, inst, pid, sel, used, rng, pick, errors, filler)
             if found is not None:
                 name, camera, view = found
                 used[name] = camera
@@ -168,14 +173,15 @@ def main() -> None:
     ap.add_argument("--pick", choices=PICKS, default="worst", help="which view each correction comes from")
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated strokes (and of --pick random)")
     ap.add_argument("--errors", choices=ERRORS, default="eroded", help="which errors the simulated user strokes (error_regions)")
+    ap.add_argument("--filler", choices=FILLERS, default="none", help="with nothing missed in a view: keep strokes alone, or also a stroke on the rightly selected part")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
-    per_round = corrected_selections(model, category, cases, args.rounds, args.seed, args.pick, args.errors)
+    per_round = corrected_selections(model, category, cases, args.rounds, args.seed, args.pick, args.errors, args.filler)
     where = "in the scribbled view" if args.pick == "same" else f"from the {args.pick} unused train view"
     lines = [
         f"Model `{args.model}`, data `{args.data}`, {len(cases)} twins; hybrid strategy, default options; "
-        f"round r: the scribbles plus r simulated corrections, each {where} (seed {args.seed}, {args.errors} errors).", "", *bench_selection.edit_table_header("round"),
+        f"round r: the scribbles plus r simulated corrections, each {where} (seed {args.seed}, {args.errors} errors, filler {args.filler}).", "", *bench_selection.edit_table_header("round"),
     ]
     per_twin = []
     for r, selections in enumerate(per_round):
