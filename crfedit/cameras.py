@@ -46,6 +46,13 @@ class Camera:
         return replace(self, focal=self.focal * width / self.width, width=width, height=height)
 
 
+MIN_FIELD_OF_VIEW = 1e-5
+"""Radians: a camera whose horizontal field of view is narrower sees too little to render or
+train on (a dataset split with 10⁻³⁰ passed, and training blamed the camera axes for the empty
+visual hull it carved); loading and rendering refuse it.  A camera framing the object from the
+farthest a render allows (``renderer.MAX_CAMERA_REACH``, 10⁴ box diagonals) needs about 10⁻⁴."""
+
+
 RIGID_TOLERANCE = 1e-3
 """Largest |RᵀR − I| entry a camera-to-world rotation may have: float32 storage and rounded
 exports stay far below it, a scaled or sheared matrix does not."""

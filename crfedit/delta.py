@@ -469,6 +469,9 @@ def retaken(delta: Delta, model: CategoryModel) -> dict[str, Tensor]:
         source = hyper.get(f"{'shape' if table == SHAPE_CODES else 'color'}_from")
         if row not in out or source is None:
             continue
+        if source not in model.names:
+            raise ModelFileError(f"{delta.path}: a transfer takes {source}'s code, and {source} is not in the model at this place "
+                                 "(an instance fit-real added: give the edit that adds it before this one)")
         j = model.instance_index(source)
         there = instance_state(model, j)
         out[row] = (there[table][j] - here[table][k]).detach().cpu().to(out[row].dtype).clone()

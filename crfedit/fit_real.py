@@ -174,6 +174,9 @@ def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height
     out = np.clip(resize_area(stacked, width, height), 0.0, 1.0)
     if silhouette == "whole photo":
         background = white_background(out[..., :3])
+        if background.all() and bool((rgb.min(axis=-1) < WHITE_LEVEL).any()):  # the object is there, beside the crop
+            raise CrfError(f"{where}: the centre crop to the view's {width}:{height} aspect leaves none of the object, which lies "
+                           "beside it: crop the photo around the object first")
         if background.all():
             raise CrfError(f"{where}: the photo is white all over at the view's size: no object to fit "
                            "(an object as white as its background needs --mask or an alpha channel)")

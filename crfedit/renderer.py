@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from . import occupancy
-from .cameras import Camera, Rays, rays_from_camera
+from .cameras import MIN_FIELD_OF_VIEW, Camera, Rays, rays_from_camera
 from .errors import CrfError
 from .names import whole_number
 from .field import ConditionalRadianceField, FieldNet
@@ -352,6 +352,10 @@ def render_camera(
     far = camera_far_problem(camera, field.aabb)
     if far:
         raise CrfError(f"camera: {far}")
+    fov = 2.0 * math.atan(0.5 * camera.width / camera.focal)
+    if fov < MIN_FIELD_OF_VIEW:
+        raise CrfError(f"camera: its field of view, {math.degrees(fov):.3g}°, is too narrow to see an object "
+                       f"(at least {math.degrees(MIN_FIELD_OF_VIEW):.2g}°); camera_angle_x is in radians")
     rays = rays_from_camera(camera, device)
     outs = [
         render_rays(

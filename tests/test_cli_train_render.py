@@ -226,7 +226,7 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
     wide = model.views["train"].width + 4
     result = invoke("render", model_path, "--instance", "1", "--views", "test:0", "--res", wide, "--out", tmp_path / "wide", "--device", "cpu")
     assert result.exit_code == 0 and result.stderr.splitlines() == [
-        f"note: --res {wide} is wider than the {wide - 4}-pixel views the model was trained on: "
+        f"note: views {wide} pixels wide are wider than the {wide - 4}-pixel views the model was trained on: "
         "the rays are denser, but the field holds no finer detail than it learned"], result.stderr
 
 

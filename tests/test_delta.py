@@ -388,6 +388,15 @@ def test_a_transfer_rebased_still_takes_its_source_s_code(tmp_path, model):
     torch.testing.assert_close(instance_state(kept, 0)["color_codes"][0], model.field.color_codes[2].detach(), rtol=0, atol=1e-6)
     # in place, each transfer is the very same file
     assert all(a is b for a, b in zip(restack(model, files)[1], files))
+    # a transfer from an instance a fit-real edit added, rebased without that edit: named, with the fix
+    after = grow(model, "real_0")
+    after.overrides[3] = {"color_codes": after.field.color_codes.detach().clone(), "occupancy": after.field.occupancy.clone()}
+    tensors, meta = make_delta(model, after, "real_0", "fit-real", ("color_codes", "occupancy"))
+    save_delta(tmp_path / "fit.safetensors", tensors, meta)
+    grown = apply_edit_files(model, [tmp_path / "fit.safetensors"])
+    transfer(grown, 0, color_from=3).save(tmp_path / "from_real.safetensors")
+    with pytest.raises(ModelFileError, match=r"from_real\.safetensors: a transfer takes real_0's code, and real_0 is not in the model at this place"):
+        restack(model, [read_delta(tmp_path / "from_real.safetensors")])
 
 
 def test_fit_real_delta_adds_an_instance(tmp_path, model):

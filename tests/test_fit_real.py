@@ -277,6 +277,10 @@ def test_a_photo_on_white_takes_its_outline_from_the_white_around_it(setup):
     assert prepare_photo(opaque, None, RES, RES).silhouette == "white background"  # alpha 1 everywhere outlines nothing
     with pytest.raises(CrfError, match="white all over at the view's size: no object to fit"):
         prepare_photo(np.full((8, 8, 3), 0.97, np.float32), None, 8, 8)
+    beside = np.ones((8, 24, 3), np.float32)
+    beside[2:6, 1:5] = 0.2  # a dark object at the left of a wide white photo: the centre crop (columns 8..15) misses it
+    with pytest.raises(CrfError, match=r"the centre crop to the view's 8:8 aspect leaves none of the object, which lies beside it"):
+        prepare_photo(beside, None, 8, 8)
 
 
 def test_a_nan_pose_is_named_as_the_camera_not_as_a_silhouette_off_the_object(setup):

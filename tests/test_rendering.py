@@ -598,6 +598,16 @@ def test_a_camera_too_far_for_float32_samples_is_refused():
                 render_camera(field, cam, 0)
     with pytest.raises(CrfError, match="camera_angle_x 5e-324: no finite focal length"):
         focal_from_angle(5e-324, 64)
+    # a field of view under MIN_FIELD_OF_VIEW sees too little: refused as a dataset split is
+    from crfedit.cameras import MIN_FIELD_OF_VIEW
+
+    for angle, ok in ((1.5 * MIN_FIELD_OF_VIEW, True), (0.5 * MIN_FIELD_OF_VIEW, False)):
+        cam = Camera(CAM.c2w, focal_from_angle(angle, CAM.width), CAM.width, CAM.height)
+        if ok:
+            render_camera(field, cam, 0)
+        else:
+            with pytest.raises(CrfError, match=r"^camera: its field of view, 0\.000286°, is too narrow to see an object"):
+                render_camera(field, cam, 0)
 
 
 def test_render_camera_shapes():

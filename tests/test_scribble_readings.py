@@ -57,6 +57,11 @@ def test_a_0_1_mask_saved_unscaled_reads_its_ones(view, tmp_path):
     Image.fromarray(mask.astype(np.uint8)).save(tmp_path / "m01.png")
     got = read(tmp_path / "m01.png", view, with_render=False)
     assert got.reading.startswith("0/1 values") and np.array_equal(got.mask, mask)
+    rgba = np.zeros((*mask.shape, 4), np.uint8)
+    rgba[..., 0], rgba[..., 3] = 255, mask  # the same 0/1 mask as the alpha channel
+    Image.fromarray(rgba).save(tmp_path / "a01.png")
+    got = read(tmp_path / "a01.png", view, with_render=False)
+    assert got.reading.startswith("0/1 alpha values") and np.array_equal(got.mask, mask)
     Image.fromarray(np.where(mask, 2, 0).astype(np.uint8)).save(tmp_path / "dim.png")  # a dim stroke is no 0/1 mask
     assert not read(tmp_path / "dim.png", view, with_render=False).mask.any()
     Image.fromarray(mask.astype(np.float32), "F").save(tmp_path / "m.tiff")

@@ -1259,6 +1259,15 @@ def test_a_view_with_keep_strokes_alone_holds_back_what_it_marks(trained, tmp_pa
     r = CliRunner().invoke(app, [*args, "--keep", "none", "--out", str(tmp_path / "x.safetensors")])
     assert_user_error(r, f"--view train:{inst.index(other)} --scribble none: a view without a scribble needs its --keep strokes")
     assert not (tmp_path / "x.safetensors").exists()
+    one = ["select", str(path), "--instance", model.names[k], "--view", f"train:{inst.index(other)}", "--scribble", "none",
+           "--keep", str(tmp_path / "kept.png"), "--out", str(tmp_path / "x.safetensors")]
+    assert_user_error(CliRunner().invoke(app, one), "no view holds a scribble: keep strokes alone select nothing")
+    # `none` belongs to select's further views: an edit command says so rather than "none: file not found"
+    for option, fix in (("--scribble", "needs its scribble"), ("--keep", "takes no --keep when it has no keep strokes")):
+        masks = {"--scribble": str(tmp_path / "fg.png"), "--keep": str(tmp_path / "kept.png"), option: "none"}
+        r = CliRunner().invoke(app, ["remove", str(path), "--instance", model.names[k], "--view", f"train:{inst.index(view)}",
+                                     *(w for o, m in masks.items() for w in (o, m)), "--out", str(tmp_path / "x.safetensors")])
+        assert_user_error(r, f"{option} none: `none` is for `crfedit select`'s views without such strokes", fix)
 
 
 def test_twin_score_closed_forms():

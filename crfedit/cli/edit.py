@@ -98,6 +98,10 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
     """(scribble mask, keep mask or None), each image read as drawn (one line says how)."""
     from ..edit.scribble import check_coverage, check_masks, keep_overlap, load_mask
 
+    for option, path in (("--scribble", scribble), ("--keep", keep)):
+        if path is not None and str(path).lower() == "none" and not Path(path).exists():
+            raise CrfError(f"{option} none: `none` is for `crfedit select`'s views without such strokes; an edit's one view "
+                           + ("needs its scribble" if option == "--scribble" else "takes no --keep when it has no keep strokes"))
     render = _view_render(model, instance, camera)
     fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble", render)
     fraction = check_coverage(fg.mask, force)
@@ -630,6 +634,8 @@ def rebase_cmd(
         meta = after.meta if after is before else {**after.meta, "rebased": f"{earlier}; then {command_line()}" if earlier else command_line()}
         save_delta(out_dir / p.name, after.tensors, meta)
         how = "unchanged (already in this place)" if after is before else "re-pinned"
+        if after is not before and after.kind == "transfer":
+            how += f" (a transfer: it takes {_transfer_sources(after)}'s code again here)"
         old_grid = " (format version 1: its grid replaces the instance's)" if after.meta["version"] == "1" and "occupancy" in after.tensors else ""
         replaced = ", replacing the edit file there" if out_dir / p.name in there else ""
         typer.echo(printable(f"wrote {out_dir / p.name}: {after.kind} edit of {after.instance}, {how}{old_grid}{replaced}"))
@@ -637,9 +643,16 @@ def rebase_cmd(
     stale = sorted(p.name for p in out_dir.glob("*.safetensors") if p.name not in names and _is_edit_file(p))
     if stale:  # an earlier rebase's files: not in this stack, and `edits check` with them fails
         typer.echo(printable(f"note: {out_dir} also holds {', '.join(stale)} from before, which this stack does not include"))
-    if any(after is not before for before, after in zip(deltas, pinned)):
+    if any(after is not before and after.kind != "transfer" for before, after in zip(deltas, pinned)):
         typer.echo("note: a re-pinned edit keeps the change it was optimized for on its old stack; where an edit of the same "
                    "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)")
+
+
+def _transfer_sources(delta) -> str:
+    """The instances a transfer takes its codes from, for a line: ``chair_001`` or ``chair_001 and chair_002``."""
+    hyper = json.loads(delta.meta.get("hyperparameters") or "{}")
+    names = dict.fromkeys(hyper[k] for k in ("shape_from", "color_from") if hyper.get(k))
+    return " and ".join(names) or "its source"
 
 
 def _is_edit_file(path: Path) -> bool:

@@ -58,15 +58,16 @@ def render_cmd(
         for note in weights_not_carried(m, k, shape_from, color_from):
             typer.echo(printable(f"note: {note}"), err=True)
         m = swap_codes(m, k, shape_from=shape_from, color_from=color_from)
-    trained = m.views.get("train")
-    widest = None if trained is None else (trained.width if trained.sizes is None else int(trained.sizes[:, 0].max()))
-    if ranks.main and res is not None and widest is not None and res > widest:
-        typer.echo(f"note: --res {res} is wider than the {widest}-pixel views the model was trained on: "
-                   "the rays are denser, but the field holds no finer detail than it learned", err=True)
     with process_group(ranks, dev):
         result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks)
     if not ranks.main:
         return
+    trained = m.views.get("train")
+    widest = None if trained is None else (trained.width if trained.sizes is None else int(trained.sizes[:, 0].max()))
+    drawn = max(w for w, _ in (result.sizes or ((result.width, result.height),)))
+    if widest is not None and drawn > widest:  # --res, or a camera file's size
+        typer.echo(f"note: views {drawn} pixels wide are wider than the {widest}-pixel views the model was trained on: "
+                   "the rays are denser, but the field holds no finer detail than it learned", err=True)
     per_view = result.seconds / max(result.count, 1)
     typer.echo(
         f"rendered {result.count} view{'s' if result.count != 1 else ''} of {m.names[k]} at {result.size_text} "

@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..cameras import Camera, c2w_problem, focal_from_angle, rays_from_camera
+from ..cameras import MIN_FIELD_OF_VIEW, Camera, c2w_problem, focal_from_angle, rays_from_camera
 from ..errors import DataError
 from ..names import did_you_mean, is_digits
 from .format import (
@@ -42,11 +42,6 @@ class View:
     depth: np.ndarray | None  # [H, W] float32 ray distance, +inf = background
     parts: np.ndarray | None  # [H, W] uint8
     file_path: str
-
-
-MIN_FIELD_OF_VIEW = 1e-3
-"""Radians: a split whose horizontal field of view is narrower is refused when loaded (10⁻³⁰
-passed, and training then blamed the camera axes for the empty visual hull it carved)."""
 
 
 def parse_view_spec(spec: str) -> tuple[str, int]:

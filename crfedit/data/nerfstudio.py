@@ -17,9 +17,9 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from ..cameras import Camera
+from ..cameras import MIN_FIELD_OF_VIEW, Camera
 from .format import DataError, _read_json, _read_rgba, resize_area
-from .loading import MIN_FIELD_OF_VIEW, Category, InstanceData, View, _matrix, posix_path
+from .loading import Category, InstanceData, View, _matrix, posix_path
 
 TRANSFORMS = "transforms.json"
 INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")

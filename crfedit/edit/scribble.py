@@ -157,7 +157,10 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
         )
     rgb = image[..., :3]
     if image.shape[2] == 4 and (image[..., 3] < 0.5).any():
-        return Scribble(image[..., 3] >= 0.5, "opaque pixels of a transparent PNG")
+        alpha = image[..., 3]
+        if 0.0 < float(alpha.max()) <= 1.5 / 255.0:  # a 0/1 mask saved as the alpha channel without scaling
+            return Scribble(alpha > 0.0, "0/1 alpha values (a mask saved without scaling to 255)")
+        return Scribble(alpha >= 0.5, "opaque pixels of a transparent PNG")
     if (rgb.max(axis=-1) - rgb.min(axis=-1) <= GRAY_TOLERANCE).all():
         gray = rgb.mean(axis=-1)
         if 0.0 < float(gray.max()) <= 1.5 / 255.0:  # numpy's 0/1 mask saved as is (Image.fromarray(mask.astype(np.uint8)))

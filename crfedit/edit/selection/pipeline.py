@@ -252,12 +252,12 @@ def select(
     k = model.instance_index(instance)
     if not views:
         raise CrfError("select: give at least one view with a scribble")
+    if not any(v.scribble.any() for v in views) and any(v.keep is not None and v.keep.any() for v in views):
+        raise CrfError("no view holds a scribble: keep strokes alone select nothing (scribble the part on at least one view)")
     for i, v in enumerate(views):  # a view with keep strokes alone holds back what it shows (a second view's fix)
         if not v.scribble.any() and (len(views) == 1 or v.keep is None or not v.keep.any()):
             raise CrfError(f"the scribble of view {i + 1} is empty: no pixel is set"
                            + ("" if len(views) == 1 else " (a view without a scribble needs keep strokes)"))
-    if not any(v.scribble.any() for v in views):
-        raise CrfError("no view holds a scribble: keep strokes alone select nothing (scribble the part on at least one view)")
     if options.shape_from not in SHAPE_SOURCES:
         raise CrfError(f"selection shape_from {options.shape_from!r}: expected one of {', '.join(SHAPE_SOURCES)}")
     if options.mirror not in MIRROR_MODES:
