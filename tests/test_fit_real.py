@@ -334,6 +334,11 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     assert "adding instance my_chair" in result.stdout
     delta = read_delta(out)
     assert delta.meta["pose"] == "train:0 of chair_000" and delta.meta["photo"] == str(photo)  # --pose-instance's default, 0
+    shown = invoke("edits", "show", out).stdout.splitlines()  # the record fit-real.md points to, in the text view too
+    assert f"photo         {photo}" in shown and "pose          train:0 of chair_000" in shown
+    assert [ln.split(",")[0] for ln in shown if ln.startswith("stage ")] == [f"stage         stage={s}" for s in ("codes", "joint", "final")]
+    as_json = json.loads(invoke("edits", "show", out, "--json").stdout)["metadata"]
+    assert isinstance(as_json["stages"], list) and as_json["photo_psnr"] == float(delta.meta["photo_psnr"])
     rendered = invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "orbit:2", "--out", tmp_path / "r", "--device", "cpu")
     assert rendered.exit_code == 0, rendered.output
     assert (tmp_path / "r" / "0001.png").is_file()

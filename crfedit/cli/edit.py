@@ -491,7 +491,7 @@ def _short(value) -> str:
     return str(value)
 
 
-JSON_META = ("modules", "hyperparameters", "final_loss", "seconds", "inputs")
+JSON_META = ("modules", "hyperparameters", "final_loss", "seconds", "inputs", "stages", "photo_psnr")
 """An edit's metadata values that hold JSON (a list, a table, a number): ``--json`` shows them parsed."""
 
 
@@ -522,10 +522,16 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
         if isinstance(hyper, dict):
             shown = {k: v for k, v in hyper.items() if not isinstance(v, dict)}
             rows.append(("hyper", ", ".join(f"{k}={_short(v)}" for k, v in shown.items())))
-    if meta.get("inputs"):  # digests of what it was made from (and the modes asked for)
+    if meta.get("inputs"):  # digests of what it was made from (and the modes asked for; null: the default)
         inputs = _parsed("inputs", meta["inputs"])
         if isinstance(inputs, dict):
-            rows.append(("inputs", ", ".join(f"{k}={v}" for k, v in inputs.items() if v is not None) or "(none recorded)"))
+            rows.append(("inputs", ", ".join(f"{k}={'default' if v is None else v}" for k, v in inputs.items()) or "(none recorded)"))
+    rows += [(key, meta[key]) for key in ("photo", "mask", "pose", "photo_psnr") if meta.get(key)]  # fit-real's record
+    stages = _parsed("stages", meta["stages"]) if meta.get("stages") else None
+    if isinstance(stages, list):
+        for st in stages:
+            if isinstance(st, dict):
+                rows.append(("stage", ", ".join(f"{k}={_short(v)}" for k, v in st.items())))
     n = len(delta.tensors)
     rows.append(("size", f"{size} bytes, {n} tensor{'s' * (n != 1)}, edit format version {meta['version']}"))
     grid = delta.tensors.get("occupancy")
