@@ -198,10 +198,30 @@ def eye_angles(eye: np.ndarray) -> tuple[float, float]:
 
 
 def orbit_cameras(
-    n: int, elevation_deg: float, radius: float, focal: float, width: int, height: int
+    n: int, elevation_deg: float, radius: float, focal: float, width: int, height: int, target=(0.0, 0.0, 0.0)
 ) -> list[Camera]:
-    """``n`` cameras evenly spaced in azimuth around the Z axis, all looking at the origin."""
+    """``n`` cameras evenly spaced in azimuth around the vertical through ``target`` (default
+    the origin), all looking at it."""
+    centre = np.asarray(target, dtype=np.float64)
     return [
-        Camera(look_at(spherical_eye(360.0 * k / n, elevation_deg, radius)), focal, width, height)
+        Camera(look_at(centre + spherical_eye(360.0 * k / n, elevation_deg, radius), centre), focal, width, height)
         for k in range(n)
     ]
+
+
+def look_at_point(cameras) -> np.ndarray | None:
+    """The point nearest every camera's optical axis (least squares); None when the axes are
+    (nearly) parallel."""
+    a, b = np.zeros((3, 3)), np.zeros(3)
+    for cam in cameras:
+        d = -np.asarray(cam.c2w, np.float64)[:3, 2]
+        d /= np.linalg.norm(d)
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ np.asarray(cam.center, np.float64)
+    return np.linalg.solve(a, b) if np.linalg.cond(a) < 1e6 else None
+
+
+OFF_CENTRE = 0.1
+"""Cameras whose axes meet farther than this share of their nearest distance from the origin
+look at an object off the origin: the scene box (training) and orbits (rendering) centre there."""

@@ -28,3 +28,8 @@ class ModelFileError(CrfError):
 
 class NonFiniteError(CrfError):
     """Optimization produced a NaN/inf; nothing was written."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``timeout``, ``kill``, a scheduler's stop) taken as Ctrl-C, so that the same
+    clean-up runs (no half-written output, run records as they were); the CLI exits 143."""

@@ -43,11 +43,11 @@ import numpy as np
 import torch
 
 from . import occupancy
-from .cameras import Rays, rays_from_camera
+from .cameras import OFF_CENTRE, Rays, look_at_point, rays_from_camera
 from .config import Config
 from .data.loading import Category, TrainingRays, training_rays
 from .distributed import SINGLE, Ranks, rank_seed
-from .errors import CrfError
+from .errors import CrfError, Terminated
 from .field import ConditionalRadianceField
 from .optim import StepLog, adam_step, check_finite, check_losses
 from .parts import labelled_instances, labelled_points, part_config, part_contrastive_loss, sample_parts
@@ -108,8 +108,8 @@ def scene_box(category: Category, res: int = 48, views_per_instance: int = 40,
     leaving = silhouettes_leave(category, cube, views_per_instance)
     if union.any() and not leaving:
         return occupancy.occupied_box(union, cube, margin_cells=2)
-    target = look_at_point(views)
-    if target is not None and np.linalg.norm(target) > 0.1 * radius:
+    target = look_at_point([v.camera for v in views])
+    if target is not None and np.linalg.norm(target) > OFF_CENTRE * radius:
         half = 0.5 * float(np.linalg.norm(centers - target, axis=1).min())
         moved = torch.tensor(np.concatenate([target - half, target + half]), dtype=torch.float32)
         moved_union = _hull_union(category, moved, res, views_per_instance)
@@ -142,19 +142,6 @@ def _hull_union(category: Category, cube: torch.Tensor, res: int, views_per_inst
         vs = inst.splits["train"][:views_per_instance]
         union |= occupancy.carve_visual_hull([v.camera for v in vs], [v.alpha > 0 for v in vs], cube, res, margin=0)
     return union
-
-
-def look_at_point(views) -> np.ndarray | None:
-    """The point nearest every camera's optical axis (least squares); None when the axes are
-    (nearly) parallel."""
-    a, b = np.zeros((3, 3)), np.zeros(3)
-    for v in views:
-        d = -np.asarray(v.camera.c2w, np.float64)[:3, 2]
-        d /= np.linalg.norm(d)
-        p = np.eye(3) - np.outer(d, d)
-        a += p
-        b += p @ np.asarray(v.camera.center, np.float64)
-    return np.linalg.solve(a, b) if np.linalg.cond(a) < 1e6 else None
 
 
 def silhouette(alpha: np.ndarray, grow: int = 1) -> np.ndarray:
@@ -367,32 +354,35 @@ def refresh_occupancy(field, hulls, ema, instances, generator, ranks: Ranks = SI
 
 @contextlib.contextmanager
 def interrupt_between_steps(enabled: bool = True):
-    """Yield an event that the first Ctrl-C (SIGINT, or SIGTERM) sets instead of raising, for the training
-    loop to read between steps: the checkpoint an interrupted run writes is then a step boundary
-    (weights, optimizer moments and generator state of the same step), and ``--resume`` goes on
-    as if never stopped.  A second Ctrl-C interrupts at once.  Only in the main thread, where
-    Python's own handler is installed (and not under torchrun, whose ranks could stop at
-    different steps): elsewhere the event is never set and Ctrl-C raises as usual."""
+    """Yield an event that the first Ctrl-C (SIGINT) or SIGTERM sets instead of raising, for the
+    training loop to read between steps (``event.signal`` says which came): the checkpoint an
+    interrupted run writes is then a step boundary (weights, optimizer moments and generator
+    state of the same step), and ``--resume`` goes on as if never stopped.  A second signal
+    interrupts at once.  Only in the main thread, and for SIGINT only where Python's own handler
+    is installed (a background job starts with SIGINT ignored, and is stopped by SIGTERM, which
+    is handled unless ignored), and not under torchrun, whose ranks could stop at different
+    steps: elsewhere the event is never set and the signal acts as it would."""
     event = threading.Event()
-    if not enabled or threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+    event.signal = None
+    if not enabled or threading.current_thread() is not threading.main_thread():
         yield event
         return
 
-    def on_sigint(signum, frame) -> None:
+    def on_signal(signum, frame) -> None:
         if event.is_set():
-            raise KeyboardInterrupt
+            raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt
+        event.signal = signum
         event.set()
 
-    term = signal.getsignal(signal.SIGTERM)  # SIGTERM (timeout, kill) alike, unless it is ignored
-    signal.signal(signal.SIGINT, on_sigint)
-    if term is not signal.SIG_IGN:
-        signal.signal(signal.SIGTERM, on_sigint)
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    taken = [sig for sig, h in previous.items() if (h is signal.default_int_handler if sig == signal.SIGINT else h is not signal.SIG_IGN)]
+    for sig in taken:
+        signal.signal(sig, on_signal)
     try:
         yield event
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        if term is not signal.SIG_IGN:
-            signal.signal(signal.SIGTERM, term)
+        for sig in taken:
+            signal.signal(sig, previous[sig])
 
 
 def train(
@@ -552,7 +542,7 @@ def train(
         with interrupt_between_steps(ranks.world == 1) as interrupted:
             while step < cfg.steps and (budget is None or elapsed < budget):
                 if interrupted.is_set():
-                    raise KeyboardInterrupt
+                    raise Terminated() if interrupted.signal == signal.SIGTERM else KeyboardInterrupt
                 progress = None if budget is None else max(step / cfg.steps, elapsed / budget)
                 for g in opt.param_groups:
                     g["lr"] = learning_rate(cfg, g["base_lr"], step, progress)
@@ -600,14 +590,15 @@ def train(
                     on_step(step, loss_value, mse_to_psnr(mse_value), cfg.rays * step / max(elapsed, 1e-9))
                 if step % cfg.checkpoint_every == 0:
                     checkpoint()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
+        stop = type(e) if isinstance(e, Terminated) else KeyboardInterrupt  # SIGTERM stays itself (the CLI's exit 143)
         if ranks.world > 1:  # the ranks may be interrupted inside different collectives: no joint write
             if saved is None and not resume:
-                raise KeyboardInterrupt(f"interrupted at step {step}, before this run's first checkpoint: nothing to resume") from None
+                raise stop(f"interrupted at step {step}, before this run's first checkpoint: nothing to resume") from None
             kept = f"its checkpoint at step {saved}" if saved is not None else "the checkpoint it was resumed from"
-            raise KeyboardInterrupt(f"{out} keeps {kept} (interrupted at step {step}); continue with --resume") from None
+            raise stop(f"{out} keeps {kept} (interrupted at step {step}); continue with --resume") from None
         checkpoint()
-        raise KeyboardInterrupt(f"checkpoint at step {step} written to {out}; continue with --resume") from None
+        raise stop(f"checkpoint at step {step} written to {out}; continue with --resume") from None
     checkpoint()
     dropped += march.pending_drops() if march is not None else 0
     return model, TrainResult(step, elapsed, loss_value, mse_to_psnr(mse_value), dropped)

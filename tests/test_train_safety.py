@@ -33,14 +33,17 @@ def test_ctrl_c_before_the_first_checkpoint_writes_one(tiny_chairs, tmp_path):
     assert result.steps == 50 and int(load_model(out)[1]["step"]) == 50
 
 
-def test_a_ctrl_c_mid_step_stops_at_the_step_boundary_and_resume_is_bit_identical(tiny_chairs, tmp_path):
-    """SIGINT arrives inside step 3's forward pass: the step finishes, the checkpoint is of
-    step 3 (weights, Adam moments, generator), and --resume ends bit-identical to a run never
-    stopped."""
+@pytest.mark.parametrize("sent", ["SIGINT", "SIGTERM"])
+def test_a_ctrl_c_mid_step_stops_at_the_step_boundary_and_resume_is_bit_identical(tiny_chairs, tmp_path, sent):
+    """SIGINT (or SIGTERM, in a background job whose SIGINT is ignored: a `kill` stopped such a
+    run mid-step and the resumed model differed) arrives inside step 3's forward pass: the step
+    finishes, the checkpoint is of step 3 (weights, Adam moments, generator), and --resume ends
+    bit-identical to a run never stopped."""
     import os
     import signal
 
     import crfedit.train as train_module
+    from crfedit.errors import Terminated
 
     cfg = make_config("fast", overrides=dict(steps=8, rays=64, checkpoint_every=10**9))
     category = load_category(tiny_chairs)
@@ -51,18 +54,22 @@ def test_a_ctrl_c_mid_step_stops_at_the_step_boundary_and_resume_is_bit_identica
     def render_rays(*args, **kwargs):  # Ctrl-C in the middle of the third step's forward pass
         calls.append(1)
         if len(calls) == 3:
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), getattr(signal, sent))
         return real(*args, **kwargs)
 
     train_module.render_rays = render_rays
-    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)  # a background job starts with SIGINT ignored
+    # pytest's background runs may start with SIGINT ignored; a background job's SIGTERM case ignores it on purpose
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler if sent == "SIGINT" else signal.SIG_IGN)
+    term = signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        with pytest.raises(KeyboardInterrupt, match="checkpoint at step 3"):
+        with pytest.raises(Terminated if sent == "SIGTERM" else KeyboardInterrupt, match="checkpoint at step 3"):
             train(category, cfg, stopped, torch.device("cpu"), seed=0)
-        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the loop's handler is gone again
+        assert signal.getsignal(signal.SIGINT) in (signal.default_int_handler, signal.SIG_IGN)  # the loop's handlers are gone again
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
     finally:
         train_module.render_rays = real
         signal.signal(signal.SIGINT, inherited)
+        signal.signal(signal.SIGTERM, term)
     train(category, cfg, stopped, torch.device("cpu"), seed=0, resume=True)
     (a, sa), (b, sb) = load_model(whole), load_model(stopped)
     sa.pop("elapsed"), sb.pop("elapsed")

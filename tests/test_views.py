@@ -251,3 +251,30 @@ def test_orbit_cameras_are_rigid_upright_and_look_at_the_origin(model):
         assert rot[2, 0] == pytest.approx(0.0, abs=1e-12) and rot[2, 1] > 0  # no roll, upright
         rays = rays_from_camera(cam)
         np.testing.assert_allclose(rays.origins.numpy(), np.broadcast_to(eye, (cam.width * cam.height, 3)), atol=1e-6)
+
+
+def test_an_orbit_circles_where_the_cameras_look_when_that_is_off_the_origin():
+    """Cameras that look at an object off the origin (a tester's dataset moved by (0.9, −0.6,
+    0.3)) had their turntable orbit the origin, the chair sliding out of frame; the orbit now
+    circles the point their axes meet at, at their distance from it.  Cameras aimed at the origin
+    (within OFF_CENTRE of their distance) keep the origin exactly."""
+    from crfedit.cameras import look_at_point
+
+    shift = np.array([0.9, -0.6, 0.3])
+    c2w = []
+    for i in range(6):
+        eye = spherical_eye(60.0 * i, 20.0, 3.0) + shift
+        c2w.append(look_at(eye, shift))
+    tables = {"train": ViewTable(torch.tensor(np.stack(c2w)), torch.full((6,), FOCAL, dtype=torch.float64), torch.zeros(6, dtype=torch.long), W, H)}
+    cfg = make_config("fast", sets=["grid_res=0", "occ_res=2", "width=8", "rad_width=8"])
+    moved = CategoryModel(ConditionalRadianceField(cfg, 1), ["chair_a"], views=tables)
+    cams = [cam for _, cam in resolve_views("orbit:8", moved, 0)]
+    np.testing.assert_allclose(look_at_point(cams), shift, atol=1e-9)
+    assert all(np.linalg.norm(cam.center - shift) == pytest.approx(3.0) for cam in cams)
+    # a look-at point a hair off the origin (float noise) is the origin: the usual orbit, unchanged
+    hair = np.full(3, 1e-3)
+    c2w = np.stack([look_at(spherical_eye(60.0 * i, 20.0, 3.0) + hair, hair) for i in range(6)])
+    tables = {"train": ViewTable(torch.tensor(c2w), torch.full((6,), FOCAL, dtype=torch.float64), torch.zeros(6, dtype=torch.long), W, H)}
+    nearly = CategoryModel(ConditionalRadianceField(cfg, 1), ["chair_a"], views=tables)
+    for _, cam in resolve_views("orbit:4", nearly, 0):
+        np.testing.assert_allclose(-cam.c2w[:3, 2], -cam.center / np.linalg.norm(cam.center), atol=1e-12)

@@ -13,7 +13,7 @@ from typing import Annotated
 
 import typer
 
-from ..errors import EXIT_USER_ERROR, CrfError
+from ..errors import EXIT_USER_ERROR, CrfError, Terminated
 from ..names import EDIT_FORMAT, MODEL_FORMAT, SELECTION_FORMAT
 
 def _readable(param) -> None:
@@ -197,11 +197,6 @@ def torchrun_ranks():
         return ranks_from_env()
     except CrfError:
         return None
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (``timeout``, ``kill``, a scheduler's stop) taken as Ctrl-C, so that the same
-    clean-up runs (no half-written output, run records as they were); the exit status is 143."""
 
 
 def terminate_as_interrupt() -> None:
