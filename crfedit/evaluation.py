@@ -271,7 +271,10 @@ def twin_cases(model: CategoryModel, category: Category, twins: Sequence[tuple[T
     for spec, data in twins:
         if spec.source not in model.names:
             raise CrfError(f"twin {spec.name}: source instance {spec.source!r} is not in the model")
-        view = category.instance(spec.source).view(spec.view)
+        try:
+            view = category.instance(spec.source).view(spec.view)
+        except CrfError as e:  # a twin scribbled on a view the source does not have: name the twin and its file
+            raise CrfError(f"twin {spec.name} ({category.root / 'twins.json'}): {e}") from None
         cam = view.camera
         masks = [read_mask(category.root / rel, width=cam.width) for rel in (spec.scribble, spec.keep)]
         for rel, mask in zip((spec.scribble, spec.keep), masks):

@@ -449,6 +449,12 @@ def train(
         restore_generator(generator, state["rng"], seed, 0, step)
     else:
         cfg = part_config(category, cfg)
+        opaque = [inst.name for inst in category.instances if all(float(v.alpha.min()) >= 1.0 for v in inst.splits["train"])]
+        if opaque and on_note is not None:
+            shown = ", ".join(opaque[:3]) + (", …" if len(opaque) > 3 else "")
+            on_note(f"{len(opaque)} instance{'s' * (len(opaque) != 1)} ({shown}) of {category.root} {'have' if len(opaque) != 1 else 'has'} no alpha or mask in any "
+                    "training view: the whole frame counts as the object, so the background is fitted as matter (a cloud "
+                    "around it, and a worse model for the rest); give RGBA images, or masks (nerfstudio mask_path)")
         aabb = scene_box(category, on_note=on_note)
         check_camera_reach(category, aabb)
         carved = visual_hulls(category, aabb, cfg.occ_res, max(cfg.hull_margin, 0))  # whatever the sampler: an empty hull stops here

@@ -274,3 +274,31 @@ def test_a_camera_too_far_for_float32_is_named_before_training(tiny_chairs, tmp_
     with pytest.raises(CrfError, match=rf"^{re.escape(str(data / inst))}: train:0 \(.*\): camera: it lies [0-9.e+]+ scene-box diagonals"):
         train(load_category(data), cfg, tmp_path / "m.safetensors", torch.device("cpu"))
     assert not (tmp_path / "m.safetensors").exists()
+
+
+def test_training_views_without_alpha_are_named_before_training(tiny_chairs, tmp_path):
+    """An instance whose training images carry no alpha (JPEGs, RGB PNGs) and no masks trained
+    silently into a cloud of background matter, and pulled the other chairs down; training now
+    says which instances those are."""
+    import shutil
+
+    from PIL import Image
+
+    data = tmp_path / "rgb"
+    shutil.copytree(tiny_chairs, data)
+    inst = (data / "instances.txt").read_text().split()[0]
+    for png in (data / inst / "train").glob("r_*.png"):
+        if "_" in png.stem[2:]:  # depth previews, part maps: left as they are
+            continue
+        rgba = Image.open(png).convert("RGBA")
+        white = Image.new("RGBA", rgba.size, (255, 255, 255, 255))
+        Image.alpha_composite(white, rgba).convert("RGB").save(png)
+    notes = []
+    train(load_category(data), make_config("fast", overrides=dict(steps=1, rays=64)), tmp_path / "m.safetensors",
+          torch.device("cpu"), on_note=notes.append)
+    said = [n for n in notes if "no alpha or mask" in n]
+    assert len(said) == 1 and said[0].startswith(f"1 instance ({inst}) of {data} has no alpha or mask in any training view"), notes
+    notes.clear()
+    train(load_category(tiny_chairs), make_config("fast", overrides=dict(steps=1, rays=64)), tmp_path / "n.safetensors",
+          torch.device("cpu"), on_note=notes.append)
+    assert not [n for n in notes if "no alpha" in n]

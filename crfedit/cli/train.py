@@ -372,7 +372,7 @@ def train_cmd(
     rate = model.cfg.rays * result.steps / max(result.seconds, 1e-9)
     psnr = f"train PSNR {result.train_psnr:.2f} dB" if math.isfinite(result.train_psnr) else "no step run in this call"
     typer.echo(
-        f"trained {len(model.names)} instances for {result.steps} steps in {result.seconds:.1f} s "
+        f"trained {len(model.names)} instance{'s' * (len(model.names) != 1)} for {result.steps} steps in {result.seconds:.1f} s "
         f"({_si(rate)} rays/s, {psnr}) -> {out}"
     )
 
