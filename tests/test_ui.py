@@ -572,8 +572,9 @@ def test_copy_as_shell_replays_the_stack_to_the_same_edit_files(ui, scene, tmp_p
     the commands write edit files with the page's fingerprints."""
     fg = strokes(scene)
     orbit = {"azimuth": 20, "elevation": 25}
-    two_views = {"kind": "color", "instance": 0, "view": "train:0", "color": "#2040ff", "steps": 5,
-                 "views": [{"view": "train:0", "fg": fg, "bg": {"strokes": [[[2, 2]]], "radius": 1}}, {"view": orbit, "fg": fg}]}
+    keep_only = {"view": {"azimuth": 200, "elevation": 25}, "bg": {"strokes": [[[3, 3], [9, 9]]], "radius": 1.5}}
+    two_views = {"kind": "color", "instance": 0, "view": keep_only["view"], "color": "#2040ff", "steps": 5,  # applied on the keep-only view
+                 "views": [{"view": "train:0", "fg": fg, "bg": {"strokes": [[[2, 2]]], "radius": 1}}, {"view": orbit, "fg": fg}, keep_only]}
     bodies = [two_views,
               {"kind": "remove", "instance": 1, "view": orbit, "views": [{"view": orbit, "fg": fg}], "steps": 3},
               {"kind": "add", "instance": 0, "view": "train:0", "donor": 1, "copy": fg, "offset": [1, -2], "steps": 3},
@@ -583,6 +584,7 @@ def test_copy_as_shell_replays_the_stack_to_the_same_edit_files(ui, scene, tmp_p
         assert job["state"] == "done", job
     script = ui.get("/api/shell").decode()
     assert script.count("crfedit ") >= 5 and "crfedit select" in script and "--selection" in script
+    assert "--scribble none --keep" in script and "--keep none" in script  # the keep-only view; orbit's view without keep strokes
     env = dict(os.environ, CRFEDIT_THREADS="1", PYTHONPATH=str(ROOT))
     run = subprocess.run(["bash", "-c", f'crfedit() {{ "{sys.executable}" -m crfedit "$@"; }}\n{script}'],
                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)

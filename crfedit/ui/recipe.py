@@ -9,8 +9,6 @@ same edit a command makes from the same files.
 
 from __future__ import annotations
 
-import base64
-import io
 import json
 import math
 import shlex
@@ -150,7 +148,8 @@ def parse_strokes(value, camera: Camera, what: str) -> Strokes | None:
 
 
 def parse_scribbles(value, model, instance: int) -> tuple[ScribbleSet, ...]:
-    """``[{"view": V, "fg": strokes, "bg": strokes}, …]``: views without "edit here" strokes are dropped."""
+    """``[{"view": V, "fg": strokes, "bg": strokes}, …]``: views with neither are dropped; a view
+    with keep strokes alone stays (an empty "edit here" mask), but one view at least is scribbled."""
     if not isinstance(value, list):
         raise CrfError("views: expected a list of {\"view\", \"fg\", \"bg\"}")
     if len(value) > MAX_VIEWS:
@@ -162,9 +161,11 @@ def parse_scribbles(value, model, instance: int) -> tuple[ScribbleSet, ...]:
         view = parse_view(item.get("view"), model, instance)
         fg = parse_strokes(item.get("fg"), view.camera, f"{view.label}: edit-here strokes")
         bg = parse_strokes(item.get("bg"), view.camera, f"{view.label}: keep strokes")
+        if fg is None and bg is not None:  # keep strokes alone: they hold back what this view shows
+            fg = Strokes({"strokes": []}, np.zeros((view.camera.height, view.camera.width), dtype=bool))
         if fg is not None:
             out[view.key] = ScribbleSet(view, fg, bg)
-    if not out:
+    if not any(s.fg.mask.any() for s in out.values()):
         raise CrfError("the scribble is empty: draw 'edit here' strokes on the part first (keep strokes only say what to leave)")
     return tuple(out.values())
 
@@ -219,6 +220,9 @@ def parse_edit(body, model) -> EditRequest:
         rgb = parse_color(body.get("color", "") if isinstance(body.get("color"), str) else "")
         color = rgb_to_hex(rgb)
     request = EditRequest(kind, k, options, method, view, scribbles, color)
+    if request.drawn is not None and not request.drawn.fg.mask.any():  # shown: a view with keep strokes alone
+        first = next(s for s in scribbles if s.fg.mask.any())  # the edit is drawn where the part is scribbled
+        request = EditRequest(kind, k, options, method, first.view, scribbles, color)
     if request.drawn is None:
         raise CrfError(f"the view {view.label} has no 'edit here' strokes: scribble the part on it first")
     if method == "paper" and len(scribbles) > 1:
@@ -227,14 +231,6 @@ def parse_edit(body, model) -> EditRequest:
 
 
 # ----------------------------------------------------------------------------- replay
-
-
-def _empty_png(camera: Camera) -> bytes:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.new("L", (camera.width, camera.height), 0).save(buf, format="PNG")
-    return buf.getvalue()
 
 
 class Replay:
@@ -323,13 +319,12 @@ class Replay:
         words = [f"crfedit select {self.model} --instance {shlex.quote(self.names[req.instance])}"]
         for i, s in enumerate(req.scribbles):
             words.append(f"--view {self._view(f'{prefix}-{i}', s.view)}")
-            words.append(f"--scribble {self._strokes(f'{prefix}-{i}', 'fg', s.fg)}")
+            # a view with keep strokes alone: --scribble none
+            words.append(f"--scribble {self._strokes(f'{prefix}-{i}', 'fg', s.fg) if s.fg.mask.any() else 'none'}")
             if s.bg is not None:
                 words.append(f"--keep {self._strokes(f'{prefix}-{i}', 'bg', s.bg)}")
-            elif any_keep:  # --keep is given for every view or none: an empty mask here
-                path = f'"$out/{prefix}-{i}-no-keep.png"'
-                self.lines += [f"base64 -d > {path} <<'EOF'", base64.b64encode(_empty_png(s.view.camera)).decode(), "EOF"]
-                words.append(f"--keep {path}")
+            elif any_keep:  # --keep is given for every view or none
+                words.append("--keep none")
         words += [f"--edit {p}" for p in self.outputs]
         words.append(f"--for {req.kind}")
         if self.device:

@@ -7,19 +7,9 @@ function scribbledViews(instance) {
   const out = [];
   for (const [key, m] of S.marks) {
     const [inst, vkey] = [Number(key.split("|")[0]), key.slice(key.indexOf("|") + 1)];
-    if (inst !== instance || !m.fg.length) continue;
+    if (inst !== instance || (!m.fg.length && !m.bg.length)) continue;  // a view with keep strokes alone holds back what it shows
     const view = vkey.startsWith("orbit:") ? parseOrbit(vkey) : vkey;
     out.push({ view, fg: Strokes.toJson(m.fg), bg: Strokes.toJson(m.bg) });
-  }
-  return out;
-}
-
-// Views of this instance with keep strokes but no "edit here" strokes: their keep strokes are
-// not sent (a view's keep strokes count with its own part strokes, as `crfedit select` takes them).
-function keepOnlyViews(instance) {
-  const out = [];
-  for (const [key, m] of S.marks) {
-    if (Number(key.split("|")[0]) === instance && !m.fg.length && m.bg.length) out.push(key.slice(key.indexOf("|") + 1));
   }
   return out;
 }
@@ -43,10 +33,8 @@ async function doSelect() {
   }
   S.tint = true;
   $("tint").checked = true;
-  const unused = keepOnlyViews(S.instance);
   $("selection-info").textContent = `${info.selected_cells} of ${info.occupied_cells} occupied cells selected from ${info.views} view(s) (${info.seconds.toFixed(2)} s)`
-    + info.summaries.map(([label, line]) => `; ${label}: ${line}`).join("")  // select's lines (crfedit.edit.selection.SUMMARIES)
-    + (unused.length ? `; keep strokes on ${unused.join(", ")} not used: a view's keep strokes count with its own "edit here" strokes` : "");
+    + info.summaries.map(([label, line]) => `; ${label}: ${line}`).join("");  // select's lines (crfedit.edit.selection.SUMMARIES)
   await showView();
   measure("select", start);
   clearError();
