@@ -9,6 +9,8 @@ SHAPE_CODES = "shape_codes"
 COLOR_CODES = "color_codes"
 CODE_TABLES = (SHAPE_CODES, COLOR_CODES)
 """State-dict names of the per-instance code tables [K, code_dim]."""
+INSTANCE_TABLES = (*CODE_TABLES, "occupancy")
+"""State-dict names of the tables with one row per instance (codes [K, D], grids [K, R, R, R])."""
 
 MODEL_FORMAT = "crfedit-model"
 EDIT_FORMAT = "crfedit-edit"

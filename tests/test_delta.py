@@ -324,6 +324,13 @@ def test_bake_renders_bit_identical_to_the_stack(tmp_path, model):
     save_model(tmp_path / "baked.safetensors", baked)
     loaded, state = load_model(tmp_path / "baked.safetensors")
     assert not state and set(loaded.overrides) == {0}
+    # the baked grid and code tables are stored as chair 0's own rows (the rest is the field's), read back whole
+    from safetensors import safe_open
+
+    with safe_open(str(tmp_path / "baked.safetensors"), "pt") as f:
+        stored = {n: tuple(f.get_slice(n).get_shape()) for n in f.keys() if n.startswith("override.0.")}
+    assert stored["override.0.occupancy"] == tuple(model.field.occupancy.shape[1:]) and stored["override.0.color_codes"] == (model.field.color_codes.shape[1],)
+    assert loaded.fingerprint() == baked.fingerprint() and torch.equal(loaded.overrides[0]["occupancy"], baked.overrides[0]["occupancy"])
     for k in range(3):
         assert torch.equal(render(loaded, k), render(stacked, k))
     assert json.loads(loaded.meta["baked_edits"]) == [read_delta(a).fingerprint, read_delta(b).fingerprint]
