@@ -294,6 +294,9 @@ def test_paste_translation_moves_a_pixel_per_depth_over_focal():
     # three cells along x: the block (x = 3, 4) lands on 6, 7, inside; four: on 7, 8, and x = 8 is outside the box
     assert shifted_cells(mask, torch.tensor([0.75, 0.0, 0.0]))[1] == 0.0
     assert shifted_cells(mask, torch.tensor([1.0, 0.0, 0.0]))[1] == 0.5
+    from crfedit.edit.supervised import percent_down
+
+    assert [percent_down(x) for x in (0.9995, 0.5, 0.027, 0.0)] == ["99%", "50%", "2%", "0%"]  # some of it stays: never "100%"
 
 
 def test_add_by_selection_copies_the_part_in_3d_and_holds_the_rest(trained):

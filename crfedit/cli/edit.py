@@ -409,7 +409,7 @@ def add_cmd(
     from ..edit import add
     from ..edit.scribble import load_mask
     from ..edit.shape import parse_offset
-    from ..edit.supervised import OUTSIDE_WARN
+    from ..edit.supervised import OUTSIDE_WARN, percent_down
 
     dxdy = parse_offset(offset)
     options = _options(strategy, steps, lr, rays, seed, penalty)
@@ -435,7 +435,7 @@ def add_cmd(
                  on_selection=lambda made: _echo_selection(made, "donor ", takes_keep=False))
     lost = json.loads(result.meta.get("hyperparameters", "{}")).get("outside_box", 0.0)
     if lost > OUTSIDE_WARN:
-        typer.echo(f"warning: --offset {offset} moves {lost:.0%} of the donor's part out of the scene box: that much of it "
+        typer.echo(f"warning: --offset {offset} moves {percent_down(lost)} of the donor's part out of the scene box: that much of it "
                    "is not added (a smaller offset keeps it)", err=True)
     from ..masks import mask_digest
 

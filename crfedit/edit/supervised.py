@@ -535,6 +535,11 @@ def paste_translation(field, selection_mask: Tensor, camera: Camera, offset: tup
     return (dx * right - dy * up) * depth / camera.focal
 
 
+def percent_down(share: float) -> str:
+    """``share`` as a whole percent rounded down: a part some of which stays is never "100%"."""
+    return f"{math.floor(100.0 * share)}%"
+
+
 OUTSIDE_REFUSE = 0.5
 """``add`` refuses an offset that moves more than this share of the part's cells out of the scene
 box (the page accepted a paste that kept 24 of 7 874 cells)."""
@@ -585,7 +590,7 @@ def add_selected(
     if not bool(pasted.any()):
         raise CrfError(f"--offset {offset[0]},{offset[1]} moves the whole part out of the scene box")
     if lost > OUTSIDE_REFUSE:
-        raise CrfError(f"--offset {offset[0]},{offset[1]} moves {lost:.0%} of the part out of the scene box, which holds "
+        raise CrfError(f"--offset {offset[0]},{offset[1]} moves {percent_down(lost)} of the part out of the scene box, which holds "
                        "nothing outside it: paste it nearer the object")
     original = field.occupancy[k].clone()
     union = original | pasted

@@ -83,6 +83,7 @@ class EditRequest:
     keep: Strokes | None = None  # add: keep strokes on the target view
     shape_from: int | None = None
     color_from: int | None = None
+    on_screen: bool = True  # False: asked from a view with keep strokes alone, so `view` is not the one shown
 
     @property
     def drawn(self) -> ScribbleSet | None:
@@ -222,7 +223,7 @@ def parse_edit(body, model) -> EditRequest:
     request = EditRequest(kind, k, options, method, view, scribbles, color)
     if request.drawn is not None and not request.drawn.fg.mask.any():  # shown: a view with keep strokes alone
         first = next(s for s in scribbles if s.fg.mask.any())  # the edit is drawn where the part is scribbled
-        request = EditRequest(kind, k, options, method, first.view, scribbles, color)
+        request = EditRequest(kind, k, options, method, first.view, scribbles, color, on_screen=False)
     if request.drawn is None:
         raise CrfError(f"the view {view.label} has no 'edit here' strokes: scribble the part on it first")
     if method == "paper" and len(scribbles) > 1:

@@ -34,6 +34,7 @@ from ..delta import Delta, apply_deltas, bake, delta_bytes, read_delta, restack,
 from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
 from ..edit.selection import SUMMARIES, CellPoints, ScribbleView, Selection, cell_points, options_for, preview, select
+from ..edit.supervised import OUTSIDE_WARN, percent_down
 from ..errors import CrfError
 from ..safefile import read_header
 from ..model import CategoryModel, save_model
@@ -332,7 +333,11 @@ class UiSession:
                 self._renders.put((self.state_key, k, req.view.key, None), png)  # render()'s key for the untinted view
                 self._views.put((self.state_key, k, req.view.key), shown)  # and the render, for a tint or a Select on it
         out = {"entry": entry.id, "stack": self.stack_info(), "state": self.state_name()}
-        if png is not None:
+        lost = json.loads(result.meta.get("hyperparameters", "{}")).get("outside_box", 0.0) if req.kind == "add" else 0.0
+        if lost > OUTSIDE_WARN:  # as `crfedit add` warns
+            out["warning"] = (f"the paste moves {percent_down(lost)} of the donor's part out of the scene box: that much of it "
+                              "is not added (paste it nearer the object)")
+        if png is not None and req.on_screen:  # else the page renders the view it shows (a keep-only view's)
             out["image"] = data_url(png)
         return out
 
@@ -348,7 +353,7 @@ class UiSession:
                 rows.append({
                     "id": e.id, "position": i + 1, "kind": d.kind, "instance": d.instance, "bytes": self._sizes[d.fingerprint],
                     "seconds": round(e.seconds, 3), "enabled": e.enabled, "source": Path(e.source).name if e.source else "page",
-                    "label": describe(e, self.base.names), "fingerprint": d.fingerprint, "name": self._default_name(i, d),
+                    "label": describe(e, self.base.names), "fingerprint": d.fingerprint, "name": self._default_name(i, d), "modules": d.modules,
                     "up": i > 0 and self._commute(self.entries[i - 1], e) is None,
                     "down": i + 1 < len(self.entries) and self._commute(e, self.entries[i + 1]) is None,
                 })
@@ -492,9 +497,18 @@ class UiSession:
         req = e.recipe
         if req is None or req.kind == "transfer":
             return False
-        reads = {self.base.names[req.instance]} | ({self.base.names[req.donor]} if req.kind == "add" else set())
+        target, donor = self.base.names[req.instance], self.base.names[req.donor] if req.kind == "add" else None
         by_id = {x.id: x for x in self.entries}
-        touches = lambda ids: [j for j in ids if j in by_id and by_id[j].delta.instance in reads]
+
+        def read(x: Entry) -> bool:
+            """Whether edit ``x`` changes what ``e`` reads: any edit of its instance (a selection reads
+            colour too), but an addition reads the target's density and features only, not its colour."""
+            if x.delta.instance == donor:
+                return True
+            colour_only = all(m.startswith(("F_rad.", "color_codes")) for m in x.delta.modules)
+            return x.delta.instance == target and not (req.kind == "add" and colour_only)
+
+        touches = lambda ids: [j for j in ids if j in by_id and read(by_id[j])]
         return touches(e.made_on) != touches(x.id for x in self.entries[:i] if x.enabled)
 
     def shell(self) -> str:

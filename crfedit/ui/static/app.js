@@ -413,8 +413,15 @@ function buildSplitViews() {
 function toggleDonor() {
   S.donorMode = !S.donorMode;
   $("draw-donor").textContent = S.donorMode ? "Back to the instance" : "Draw on donor";
-  if (!S.donorMode) { S.tool = "paste"; document.querySelector('input[name="tool"][value="paste"]').checked = true; }
+  if (S.donorMode) {  // the target's view is kept for the way back; the donor opens where its copy was drawn
+    S.targetView = S.view;
+    if (S.copy) S.view = S.copy.view;
+  } else {
+    S.tool = "paste"; document.querySelector('input[name="tool"][value="paste"]').checked = true;
+    if (S.targetView !== undefined) S.view = S.targetView;  // back to the view the paste goes on
+  }
   pasteInfo();
+  showSliders();
   showView();
 }
 
@@ -519,7 +526,14 @@ function wire() {
     redraw();
   });
   $("draw-donor").addEventListener("click", toggleDonor);
-  $("donor").addEventListener("change", () => { if (S.donorMode) showView(); });
+  $("donor").addEventListener("change", () => {
+    if (S.copy && S.copy.instance !== Number($("donor").value)) {  // the copy strokes belong to the other chair
+      S.copy = null; S.paste = null;
+      pasteInfo();
+      redraw();
+    }
+    if (S.donorMode) showView();
+  });
   $("apply").addEventListener("click", () => attempt(doApply));
   $("cancel").addEventListener("click", () => attempt(() => postJson("/api/cancel", {})));
   $("bake").addEventListener("click", () => attempt(bake));

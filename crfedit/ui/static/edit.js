@@ -60,7 +60,7 @@ function editBody() {
     if (kind === "color") body.color = $("color").value;
   } else if (kind === "add") {
     const c0 = S.copy && Strokes.centroid(S.copy.strokes);
-    body.donor = Number($("donor").value);
+    body.donor = S.copy ? S.copy.instance : Number($("donor").value);  // the chair the copy strokes were drawn on
     if (c0) {
       body.donor_view = S.copy.view;
       body.copy = Strokes.toJson(S.copy.strokes);
@@ -163,6 +163,7 @@ async function onJobMessage(msg) {
   } else {
     $("selection-info").textContent = "The transfer is applied; Select to see a selection on the edited chair.";
   }
+  if (msg.warning) $("selection-info").textContent += ` Warning: ${msg.warning}.`;  // e.g. an addition that lost part of the part
   if (job.kind === "color" || job.kind === "remove") clearUsedStrokes(job.instance);
   if (job.kind === "add") {  // the copy and the paste point were used: a second Apply would paste the part again
     S.copy = null; S.paste = null;
