@@ -459,7 +459,7 @@ def evaluate_edits(
         raise CrfError(f"--strategies {','.join(strategies)}: {twice[0]!r} is named twice (each row would count its twins twice)")
     if not cases:
         raise CrfError(f"{category.root}: the dataset has no ground-truth twins (twins.json) to evaluate edits on")
-    say = progress or (lambda _msg: None)
+    say = progress if progress is not None and ranks.main else (lambda _msg: None)  # rank 0's lines, as eval recon's
     runs: list[dict] = []
     skipped: list[dict] = []
     note = lpips_unavailable_reason(lpips_weights)
@@ -486,7 +486,12 @@ def evaluate_edits(
     if warm is not None:  # the first edit of a process pays one-off costs; keep them out of the timings
         apply_twin_edit(model, cases[0], dataclasses.replace(options, strategy=warm, steps=1))
     context: dict[str, dict] = {}
-    mine = ranks.shard(cases)
+    if nerf is None:
+        mine = ranks.shard(cases)
+    else:  # by source chair: each single-instance NeRF is trained on one rank (its twins shared out, it trained on each)
+        sources = list(dict.fromkeys(case.spec.source for case in cases))
+        taken = set(ranks.shard(sources))
+        mine = [case for case in cases if case.spec.source in taken]
     for case in mine:
         source_dir = category.instance(case.spec.source).path
         source_views = category.instance(case.spec.source).splits.get("test", [])[: len(case.views)]
@@ -538,7 +543,8 @@ def evaluate_edits(
     if ranks.world > 1:  # every rank edited its share of the twins: gather them in the twins' order
         parts = ranks.gather((runs, skipped, train_seconds, note), "gathering the edit scores")
         order = {case.spec.name: i for i, case in enumerate(cases)}
-        runs = sorted((r for part in parts for r in part[0]), key=lambda r: order[r["twin"]])
+        # as one process lists them: every twin's runs in the twins' order, then the NeRF baseline's
+        runs = sorted((r for part in parts for r in part[0]), key=lambda r: (r["method"] == NERF_BASELINE, order[r["twin"]]))
         skipped = [e for i, part in enumerate(parts) for e in part[1] if e not in [x for p in parts[:i] for x in p[1]]]
         train_seconds = {k: v for part in parts for k, v in part[2].items()}
         note = next((part[3] for part in parts if part[0]), note)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
@@ -153,15 +154,21 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
     import shutil
 
     path = Path(path)
+    named = path
+    if path.is_symlink():  # `runs/latest -> runs/2026-11-28`: the link stays, its folder is the one replaced
+        path = Path(os.path.realpath(path))
     parent = path.parent if str(path.parent) else Path(".")
     try:
         parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{hidden_stem(path)}.", suffix=".partial", dir=parent))
     except OSError as e:  # name the user's folder, not the hidden one
-        raise OSError(e.errno, e.strerror, str(path)) from None
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp creates 0700; give the folder the usual mode
+        raise OSError(e.errno, e.strerror, str(named)) from None
+    if path.is_dir():  # the folder replaced keeps its mode (a group's setgid 2750 came back as 755)
+        os.chmod(tmp, stat.S_IMODE(path.stat().st_mode))
+    else:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp creates 0700; give the folder the usual mode
     old = None
     try:
         yield tmp
@@ -179,7 +186,7 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
                 if not (isinstance(e, OSError) and e.errno in (errno.ENOTEMPTY, errno.EEXIST)):
                     raise
         else:
-            raise OSError(errno.EBUSY, "other processes keep replacing it", str(path))
+            raise OSError(errno.EBUSY, "other processes keep replacing it", str(named))
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -115,6 +115,15 @@ def stored_training(path: str | os.PathLike) -> StoredRun:
 MODULE_ORDER = (*MODULES, *CODE_TABLES)
 
 
+def _number(text) -> float | None:
+    """A metadata value as a finite number (None when it is missing or not one)."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
 def _baked_edits(meta: dict[str, str]) -> list[str] | None:
     """The fingerprints of the edits ``crfedit edits bake`` folded in, in order (None: not a
     baked model, or a record that does not read as a list of them)."""
@@ -144,6 +153,9 @@ def model_info(path: str | os.PathLike) -> dict:
     modules = dict(sorted(modules.items(), key=lambda kv: (kv[0].startswith("coarse."), order.get(kv[0].removeprefix("coarse."), len(order)))))
     buffers = {name: b.numel() * b.element_size() for name, b in field.named_buffers()}
     fill = field.occupancy.flatten(1).float().mean(dim=1).tolist()
+    for k, params in model.overrides.items():  # a baked edit's grid is the one that instance renders with
+        if "occupancy" in params:
+            fill[k] = float(params["occupancy"][k].float().mean())
     cfg = model.cfg
     meta = model.meta
     return {
@@ -174,7 +186,7 @@ def model_info(path: str | os.PathLike) -> dict:
         "fingerprint": model.fingerprint(),
         "step": int(meta["step"]) if is_digits(meta.get("step", "")) else None,
         "steps": cfg.steps,
-        "train_seconds": float(state["elapsed"]) if "elapsed" in state else None,
+        "train_seconds": float(state["elapsed"]) if "elapsed" in state else _number(meta.get("elapsed")),  # a stripped model keeps it in its metadata
         "resumable": bool(state),
         "command": meta.get("command"),
         "config": json.loads(cfg.to_json()),

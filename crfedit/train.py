@@ -600,7 +600,7 @@ def train(
         stop = type(e) if isinstance(e, Terminated) else KeyboardInterrupt  # SIGTERM stays itself (the CLI's exit 143)
         if ranks.world > 1:  # the ranks may be interrupted inside different collectives: no joint write
             if saved is None and not resume:
-                raise stop(f"interrupted at step {step}, before this run's first checkpoint: nothing to resume") from None
+                raise stop(f"at step {step}, before this run's first checkpoint: nothing to resume") from None
             kept = f"its checkpoint at step {saved}" if saved is not None else "the checkpoint it was resumed from"
             raise stop(f"{out} keeps {kept} (interrupted at step {step}); continue with --resume") from None
         checkpoint()

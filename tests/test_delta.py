@@ -331,6 +331,11 @@ def test_bake_renders_bit_identical_to_the_stack(tmp_path, model):
         stored = {n: tuple(f.get_slice(n).get_shape()) for n in f.keys() if n.startswith("override.0.")}
     assert stored["override.0.occupancy"] == tuple(model.field.occupancy.shape[1:]) and stored["override.0.color_codes"] == (model.field.color_codes.shape[1],)
     assert loaded.fingerprint() == baked.fingerprint() and torch.equal(loaded.overrides[0]["occupancy"], baked.overrides[0]["occupancy"])
+    from crfedit.modelfile import model_info  # `info` reports the grid chair 0 renders with, the baked one
+
+    fill = model_info(tmp_path / "baked.safetensors")["occupancy"]["fill"]
+    assert fill[model.names[0]] == pytest.approx(float(loaded.overrides[0]["occupancy"][0].float().mean()))
+    assert fill[model.names[0]] != pytest.approx(float(model.field.occupancy[0].float().mean()))
     for k in range(3):
         assert torch.equal(render(loaded, k), render(stacked, k))
     assert json.loads(loaded.meta["baked_edits"]) == [read_delta(a).fingerprint, read_delta(b).fingerprint]

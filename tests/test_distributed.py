@@ -35,7 +35,7 @@ from crfedit.distributed import DistributedError, Ranks, broken, process_group, 
 from crfedit.errors import CrfError
 from crfedit.data.synth import SynthConfig, write_synth_category
 from crfedit.edit import EditOptions
-from crfedit.evaluation import evaluate_edits, evaluate_recon, load_twin_cases
+from crfedit.evaluation import NERF_BASELINE, NerfBaseline, evaluate_edits, evaluate_recon, load_twin_cases
 from crfedit.model import load_model
 from crfedit.renderer import render_camera
 from crfedit.train import TrainBatch, train
@@ -73,9 +73,10 @@ def twin_report(model, twins: Path, ranks: Ranks = SINGLE_RANK) -> dict:
     """``evaluate_edits`` on a tiny twins dataset, timings removed (they differ run to run)."""
     category = load_category(twins)
     cases = load_twin_cases(model, category)
-    report = evaluate_edits(model, category, cases, ("hybrid",), EditOptions(steps=2, rays=32), ranks=ranks, paper=False)
+    report = evaluate_edits(model, category, cases, ("hybrid",), EditOptions(steps=2, rays=32), ranks=ranks, paper=False,
+                            nerf=NerfBaseline(steps=3))  # shared by source chair, listed after the rest, as one process lists it
     runs = [{k: v for k, v in r.items() if k != "seconds"} for r in report["runs"]]
-    return {"runs": runs, "skipped": report["skipped"]}
+    return {"runs": runs, "skipped": report["skipped"], "nerf_trained": sorted(report["nerf_train_seconds"])}
 
 
 def _worker(rank: int, port: int, data: str, out: str) -> None:
@@ -252,7 +253,8 @@ def test_sharded_edit_evaluation_equals_one_process(two_ranks):
     assert r0 == r1
     full, _ = load_model(two_ranks / "full.safetensors")
     single = json.loads(json.dumps(twin_report(full, two_ranks / "twins")))
-    assert r0 == single and len(r0["runs"]) == 4 * 2  # 4 twins × (unedited, hybrid)
+    assert r0 == single and len(r0["runs"]) == 4 * 3  # 4 twins × (unedited, hybrid, the single-instance NeRF)
+    assert [r["method"] for r in r0["runs"]][-4:] == [NERF_BASELINE] * 4
 
 
 def test_a_broken_job_exits_without_teardown():

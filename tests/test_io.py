@@ -403,6 +403,26 @@ def test_a_folder_another_process_swaps_in_meanwhile_is_moved_aside_too(tmp_path
     assert listing(out) == ["mine"] and listing(tmp_path) == ["f"]
 
 
+def test_a_folder_replaced_through_a_link_keeps_the_link_and_its_mode(tmp_path):
+    """atomic_folder on `latest -> 2026-11-28` replaces the link's folder (the link stays a link;
+    it became a plain folder and the frames missed the target), and the replaced folder keeps its
+    mode (a group's setgid 2750 came back as 755)."""
+    import stat
+
+    import crfedit.io as io
+
+    target = tmp_path / "2026-11-28"
+    target.mkdir()
+    (target / "old").write_text("old")
+    os.chmod(target, 0o2750)
+    link = tmp_path / "latest"
+    link.symlink_to(target.name)
+    with io.atomic_folder(link) as tmp:
+        (tmp / "new").write_text("new")
+    assert link.is_symlink() and listing(target) == ["new"] and listing(link) == ["new"]
+    assert stat.S_IMODE(target.stat().st_mode) == 0o2750 and sorted(p.name for p in tmp_path.iterdir()) == ["2026-11-28", "latest"]
+
+
 def test_a_long_legal_name_is_written_through_short_hidden_files(tmp_path):
     """A 250-byte file name is legal; the temporary beside it must not overflow 255 bytes."""
     from crfedit.io import atomic_path, hidden_stem, writer_lock

@@ -411,8 +411,10 @@ def info_cmd(
     occupancy, fingerprints), an edit file (as `crfedit edits show`) or a selection (its
     instance, model, cells and how it was made)."""
     from ..modelfile import model_info
-    from ..safefile import EDIT_FORMAT, SELECTION_FORMAT, read_header
+    from ..safefile import EDIT_FORMAT, MODEL_FORMAT, SELECTION_FORMAT, read_header
 
+    if model.is_dir():
+        raise CrfError(f"{model}: is a folder; info reads model, edit and selection files (a dataset: crfedit dataset info {model})")
     header = read_header(model)[1]
     kind = header.get("format")
     if kind == EDIT_FORMAT:
@@ -423,6 +425,8 @@ def info_cmd(
         from .select import print_selection
 
         return print_selection(model, as_json, header.get("version"))
+    if kind != MODEL_FORMAT:  # one line for every kind `info` reads, not a model's alone
+        raise CrfError(f"{model}: not a crfedit model, edit or selection file (format {kind or 'unknown'!r})")
     meta = model_info(model)
     if as_json:
         typer.echo(json.dumps(meta, indent=2))
