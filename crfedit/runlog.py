@@ -45,6 +45,25 @@ def _tensorboard_writer(folder: Path):
     return SummaryWriter(str(folder))
 
 
+LOG_EVERY = 100
+"""Steps between the CSV log's rows, unless ``--log-every`` says otherwise."""
+
+
+def stored_log_every(model_path: Path) -> int:
+    """The ``--log-every`` a run was last started or resumed with (its ``run.json``), so that
+    ``--resume`` keeps the log's cadence (it fell back to 100: rows at 20, 40, … 100, then 200);
+    :data:`LOG_EVERY` when the record does not say."""
+    try:
+        first = json.loads(record_paths(model_path)["run"].read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return LOG_EVERY
+    if not isinstance(first, dict):
+        return LOG_EVERY
+    starts = [first, *(r for r in first.get("resumes", []) if isinstance(r, dict))] if isinstance(first.get("resumes", []), list) else [first]
+    said = [r.get("log_every") for r in starts if isinstance(r.get("log_every"), int) and not isinstance(r.get("log_every"), bool) and r["log_every"] >= 1]
+    return said[-1] if said else LOG_EVERY
+
+
 def run_record(path: Path, run: dict, cfg: Config, resume: bool) -> dict:
     """What ``NAME.run.json`` holds after this start: a fresh run's record, or on ``resume`` the
     first start's record (when it reads as one) with this start appended to ``resumes``, so the
@@ -59,7 +78,7 @@ def run_record(path: Path, run: dict, cfg: Config, resume: bool) -> dict:
     if not isinstance(first, dict) or "command" not in first:
         return record
     resumes = first.get("resumes") if isinstance(first.get("resumes"), list) else []
-    keys = ("command", "device", "threads", "minutes", "resumed_at", "world_size")
+    keys = ("command", "device", "threads", "minutes", "resumed_at", "world_size", "log_every")
     return {**first, "resumes": [*resumes, {k: run.get(k) for k in keys}]}
 
 

@@ -143,13 +143,16 @@ def test_resume_keeps_the_first_start_in_the_run_record(data, tmp_path):
     and lists the resume; resuming the finished run changes nothing."""
     out = tmp_path / "m.safetensors"
     with interrupted_at(6):
-        assert invoke("train", data, "--out", out, "--steps", 12, *TINY).exit_code == 130
+        assert invoke("train", data, "--out", out, "--steps", 12, "--log-every", 2, *TINY).exit_code == 130
     first = json.loads((tmp_path / "m.run.json").read_text())
     result = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
     assert result.exit_code == 0, result.output
     record = json.loads((tmp_path / "m.run.json").read_text())
     assert record["command"] == first["command"] and record["config"] == first["config"]
     assert [r["resumed_at"] for r in record["resumes"]] == [6]  # (the command is sys.argv: pytest's here)
+    # the resume keeps the run's --log-every (it fell back to 100: rows at 2, 4, 6, then 12 only)
+    steps = [int(row.split(",")[0]) for row in (tmp_path / "m.log.csv").read_text().splitlines()[1:]]
+    assert steps == [2, 4, 6, 8, 10, 12] and [r["log_every"] for r in record["resumes"]] == [2], steps
     before = (out.read_bytes(), (tmp_path / "m.run.json").read_bytes(), (tmp_path / "m.log.csv").read_bytes())
     again = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
     assert again.exit_code == 0 and "is trained to step 12 of 12: nothing to resume" in again.stdout, again.output

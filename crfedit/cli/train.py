@@ -137,7 +137,7 @@ def format_score(score: dict) -> str:
 
 
 def run_training(
-    category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int = 100, ranks=None,
+    category, out: Path, cfg, device, seed: int, minutes: float | None, resume: bool, log_every: int | None = None, ranks=None,
     compile: bool = False,
     march: str = "auto",
     given: frozenset[str] | None = None,
@@ -150,9 +150,11 @@ def run_training(
     from ..distributed import SINGLE
     from ..modelfile import stored_training
     from ..parts import has_labels, part_config
-    from ..runlog import RunLog, config_block, record_paths
+    from ..runlog import LOG_EVERY, RunLog, config_block, record_paths, stored_log_every
     from ..train import READ_EVERY, train
 
+    if log_every is None:  # a resumed run keeps its cadence
+        log_every = stored_log_every(out) if resume else LOG_EVERY
     fixed = {"auto": None, "fixed": True, "exact": False}[march]
     options = {"read_every": math.gcd(log_every, READ_EVERY), "compile": compile, "fixed_shapes": fixed}
 
@@ -178,7 +180,7 @@ def run_training(
     threads = torch.get_num_threads()  # what this process computes with (the CLI set it at start, :class:`Session`)
     run = {"command": command_line(), "dataset": str(category.root), "dataset_fingerprint": category.fingerprint,
            "seed": seed, "device": str(device), "threads": threads, "minutes": minutes, "resumed_at": first_step,
-           "world_size": ranks.world}  # torchrun's processes (1: one process)
+           "world_size": ranks.world, "log_every": log_every}  # torchrun's processes (1: one process)
     paths = record_paths(out)
     # on stdout with the results: what the run computes with belongs in a log of it (`> run.txt`);
     # an error during training is then still the one line on stderr
@@ -296,7 +298,7 @@ def train_cmd(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out model instead of refusing.")] = False,
     view_reg: Annotated[Optional[float], typer.Option("--view-reg", help="Weight of the view-dependence regularizer (one-view-per-instance data).")] = None,
     sets: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE", help="Override any config field, KEY=VALUE (repeatable), e.g. --set rays=1024.")] = None,
-    log_every: Annotated[int, typer.Option("--log-every", help="Write a row of the CSV log (and TensorBoard, when installed) every N steps.")] = 100,
+    log_every: Annotated[Optional[int], typer.Option("--log-every", help="Write a row of the CSV log (and TensorBoard, when installed) every N steps (default 100; --resume: the run's own).", show_default=False)] = None,
     compile: Annotated[bool, typer.Option("--compile", help="Run the fixed-shape march's networks through torch.compile (needs a C++ compiler; the first steps compile for seconds).")] = False,
     march: Annotated[MarchChoice, typer.Option("--march", help="fixed: fixed-capacity sample buffers, no host read in a step (auto on a GPU); exact: buffers sized by nonzero (auto on a CPU).")] = MarchChoice.auto,
 ) -> None:
@@ -321,7 +323,7 @@ def train_cmd(
 
     if steps is not None and steps < 1:
         raise CrfError(f"--steps {steps}: must be at least 1")
-    if log_every < 1:
+    if log_every is not None and log_every < 1:
         raise CrfError(f"--log-every {log_every}: must be at least 1")
     if minutes is not None and not (minutes > 0 and math.isfinite(minutes)):
         raise CrfError(f"--minutes {minutes:g}: must be a finite positive number")
