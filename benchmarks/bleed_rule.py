@@ -15,6 +15,10 @@ import crfedit.edit.supervised as supervised
 from crfedit.cli import main
 
 if __name__ == "__main__":
-    limit = sys.argv.pop(1)
-    supervised.BLEED_LIMIT = 2.0 if limit == "off" else float(limit)  # a share above 1: never
+    limit = sys.argv.pop(1) if len(sys.argv) > 1 else "--help"
+    try:
+        supervised.BLEED_LIMIT = 2.0 if limit == "off" else float(limit)  # a share above 1: never
+    except ValueError:
+        print(__doc__.strip(), file=sys.stderr if limit not in ("-h", "--help") else sys.stdout)
+        sys.exit(0 if limit in ("-h", "--help") else 2)
     sys.exit(main())

@@ -8,7 +8,7 @@ ground-truth twin.  A recolour is given the colour the part should *appear* unde
 (what `crfedit eval edits` gives it: the twin's new albedo times the mean shading there), or the
 twin's albedo when the dataset has no part maps.  Usage:
 
-    python benchmarks/figure.py MODEL DATA [--out docs/img/edit_before_after.png] [--views 0,3]
+    python benchmarks/figure.py MODEL DATA --out PNG [--views 0,3]   (the README's: --out docs/img/edit_before_after.png)
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model")
     ap.add_argument("data")
-    ap.add_argument("--out", default="docs/img/edit_before_after.png")
+    ap.add_argument("--out", required=True, help="PNG to write (the README's is docs/img/edit_before_after.png: named, never by default)")
     ap.add_argument("--views", default="0,3", help="held-out test view indices to show, comma-separated")
     ap.add_argument("--color-twin", help="the colour twin to show (default: the dataset's first)")
     ap.add_argument("--remove-twin", help="the removal twin to show (default: the dataset's first)")

@@ -38,7 +38,6 @@ from crfedit.model import load_model
 from crfedit.renderer import render_camera
 from crfedit.report import update_markdown
 
-ROOT = Path(__file__).resolve().parent.parent
 BEGIN, END = "<!-- cache:begin -->", "<!-- cache:end -->"
 
 
@@ -115,14 +114,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--res", type=int, default=128)
     parser.add_argument("--threads", default="1,2", help="torch thread counts to measure, comma-separated")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--md", type=Path, default=ROOT / "docs" / "benchmarks.md")
+    parser.add_argument("--md", type=Path, default=None, help="markdown page to update between the cache markers "
+                        "(default: print the table; the repository's page only when named: --md docs/benchmarks.md)")
     args = parser.parse_args(argv)
     try:
         threads = [int(t) for t in args.threads.split(",") if t.strip()]
         if not threads or min(threads) < 1 or args.res < 8 or args.repeats < 1:
             raise CrfError("--threads needs positive counts, --res at least 8, --repeats at least 1")
         rows, meta = measure(args.model, args.data, args.res, threads, args.repeats)
-        update_markdown(args.md, markdown(rows, meta, machine_info()), BEGIN, END)
+        table = markdown(rows, meta, machine_info())
+        if args.md is None:
+            print(table)
+            return 0
+        update_markdown(args.md, table, BEGIN, END)
     except CrfError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -127,6 +127,9 @@ def run_ablation(
     elif minutes is not None:
         base = dataclasses.replace(base, steps=max(base.steps, 10**9))  # the time budget ends every run
     split = split or held_out_split(category, "test")
+    from .parts import part_config
+
+    base = part_config(category, base)  # widths matched (and parameters counted) with the part head training keeps
     configs = ablation_configs(base, archs)
     target = network_parameters(configs["ours"]) if "ours" in configs else network_parameters(dataclasses.replace(base, arch="ours"))
     say = progress or (lambda _msg: None)

@@ -436,7 +436,9 @@ def evaluate_edits(
     made from the twin's scribbles with ``options`` (an :class:`~crfedit.edit.EditOptions`; its
     ``strategy`` is replaced) and scored the same way; with ``nerf`` a single-instance NeRF of
     the source is trained once per source (model files under ``workdir``, a temporary folder by
-    default) and fine-tuned with the same edit, strategy ``all``.  Returns::
+    default) and fine-tuned with the same edit, strategy ``all``; its rows' ``psnr_before`` and
+    ``psnr_ceiling`` (so its gap closed) are the NeRF's own: its unedited render against the
+    twin, its reconstruction of the source.  Returns::
 
         {"runs": [{"twin", "kind", "source", "method", "n", "psnr", "ssim", "lpips", "seconds"}],
          "tables": {"color": [rows], "remove": [rows]}, "skipped": [{"method", "kind", "reason"}],
@@ -464,13 +466,17 @@ def evaluate_edits(
     skipped: list[dict] = []
     note = lpips_unavailable_reason(lpips_weights)
 
-    def record(case: TwinCase, method: str, result: CategoryModel, seconds: float, instance: int | None = None, extra=None) -> None:
+    def record(case: TwinCase, method: str, result: CategoryModel, seconds: float, instance: int | None = None, extra=None,
+               reference: dict | None = None) -> None:
+        """Score ``result``'s render of the twin's views; ``reference`` replaces the twin's
+        psnr_before and psnr_ceiling (the NeRF baseline's own: its unedited render and its
+        reconstruction, not the conditional model's)."""
         nonlocal note
         k = case.instance if instance is None else instance
         preds = [o.rgb.clamp(0.0, 1.0).cpu().numpy() for o in render_views(result, k, [v.camera for v in case.views])]
         score = score_images(preds, [v.rgb for v in case.views], lpips_weights)
         note = score["lpips_note"]
-        ref = context[case.spec.name]
+        ref = {**context[case.spec.name], **(reference or {})}
         row = {
             "twin": case.spec.name, "kind": case.spec.kind, "source": case.spec.source, "method": method,
             "n": score["n"], "psnr": _finite(score["psnr"]), "ssim": score["ssim"], "lpips": score["lpips"],
@@ -537,8 +543,14 @@ def evaluate_edits(
                     baselines[source], train_seconds[source] = train_single_instance_nerf(
                         category, source, model.cfg, nerf, path, device, seed
                     )
+                # the NeRF's own gap: its unedited render against the twin, its reconstruction of the source
+                source_views = category.instance(source).splits.get("test", [])[: len(case.views)]
+                own = lambda views, truth: _finite(score_images([o.rgb.clamp(0.0, 1.0).cpu().numpy() for o in render_views(
+                    baselines[source], 0, [v.camera for v in views])], truth)["psnr"])
+                reference = {"psnr_before": own(case.views, [v.rgb for v in case.views]),
+                             "psnr_ceiling": own(source_views, [v.rgb for v in source_views])}
                 result = apply_twin_edit(baselines[source], case, dataclasses.replace(options, strategy="all"), instance=0, method="paper")
-                record(case, NERF_BASELINE, result.model, result.seconds, instance=0)
+                record(case, NERF_BASELINE, result.model, result.seconds, instance=0, reference=reference)
 
     if ranks.world > 1:  # every rank edited its share of the twins: gather them in the twins' order
         parts = ranks.gather((runs, skipped, train_seconds, note), "gathering the edit scores")
