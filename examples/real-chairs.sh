@@ -31,6 +31,9 @@ while [[ $# -gt 0 ]]; do
         *) echo "error: unknown argument $1 (see --help)" >&2; exit 2 ;;
     esac
 done
+for n in "$count" "$views" "$twin_sources"; do
+    [[ "$n" =~ ^[1-9][0-9]*$ ]] || { echo "error: --count, --views and --twin-sources take whole numbers of at least 1 (got $n)" >&2; exit 2; }
+done
 mkdir -p "$work"
 
 # 1. The Sweet Home 3D furniture catalogs (.sh3f zips of OBJ + MTL models).
@@ -49,6 +52,14 @@ python -c "import trimesh, embreex" 2>/dev/null || python -m pip install --quiet
 
 # 2. Pick the chairs (name says chair/armchair, upright proportions, 2+ materials) and extract
 #    each as meshes/<name>/<name>.obj + MTL + textures + <name>.meta.json (attribution, rotation).
+# The folder is this script's own (it marks it): a meshes/ folder of anything else is refused, not deleted.
+ours() {  # marked, or (made before the mark) every entry a chair folder with the meta.json this script writes
+    [[ -e "$1/.real-chairs" ]] || python -c "import pathlib, sys; p = pathlib.Path(sys.argv[1]); sys.exit(0 if p.is_dir() and all(d.is_dir() and any(d.glob('*.meta.json')) for d in p.iterdir()) else 1)" "$1"
+}
+if [[ -e "$work/meshes" ]] && ! ours "$work/meshes"; then
+    echo "error: $work/meshes exists and was not made by this script; move it, or give another --work" >&2
+    exit 2
+fi
 rm -rf "$work/meshes"
 python - "$catalogs" "$work/meshes" "$count" <<'EOF'
 import sys
@@ -61,7 +72,8 @@ chairs = pick_chairs(debian_catalogs(catalogs), count)
 for chair in chairs:
     obj = extract_model(chair, out)
     print(f"  {obj.stem:<40} {chair.name} by {chair.creator} ({chair.catalog.name})")
-print(f"extracted {len(chairs)} chairs to {out}")
+print(f"extracted {len(chairs)} chairs to {out}" + (f" (the catalogs hold {len(chairs)} such chairs, not {count})" if len(chairs) < count else ""))
+(out / ".real-chairs").write_text("made by examples/real-chairs.sh: replaced whole on its next run\n")
 EOF
 
 # 3. Render the category: parts = material groups, random part colors, depth + part maps, twins.
