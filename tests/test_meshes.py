@@ -232,6 +232,9 @@ def test_hidden_share_tells_a_cushion_from_a_post(boxes, tmp_path):
     # under it the unseen seat top; from low views, past its far edge, the background
     assert hidden_share(cushion, 1, cams["test"], cams["train"]) > 0.8
     assert hidden_share(cushion, 1, cams["test"], cams["train"] + cams["val"]) > 0.8  # however many views
+    # a part no view shows counts as hidden: its removal twin would be its source, byte for byte
+    away = [camera([0.0, 0.0, -40.0], [0.0, 0.0, -60.0], res=16)]  # looking away from the object
+    assert hidden_share(post, 1, away, cams["train"]) == 1.0
     # a removal twin must not measure inpainting: the cushion gets a colour twin only
     out = tmp_path / "data"
     write_mesh_category(out, [tmp_path / "cushion.obj"], MeshDatasetConfig(views=10, res=32, seed=0))
@@ -407,3 +410,24 @@ def test_more_twin_sources_keep_the_default_ones():
     for kind, pick in (("color", 0), ("remove", 1)):
         assert set(base[kind]) <= set(more[kind])
         assert all(picks[i][pick] is not None for i in more[kind])
+
+
+def test_mesh_names_keep_clear_of_the_dataset_files_and_rotations_are_rotations(boxes, tmp_path):
+    """A mesh named like a file of the dataset's root (instances.txt.obj) wrote its instance
+    folders, then failed on its own folder; a sidecar "rotation" that scales, shears or mirrors
+    reshaped the object without a word."""
+    import shutil
+
+    from crfedit.data.meshes import instance_names_from
+
+    names = instance_names_from([Path(n) for n in ("instances.txt.obj", "twins.json.ply", "ATTRIBUTION.txt.obj", "twins.off")])
+    assert names == ["instances.txt_2", "twins.json_2", "ATTRIBUTION.txt_2", "twins_2"]
+    for bad in ([[-1, 0, 0], [0, 1, 0], [0, 0, 1]], [[5, 0, 0], [0, 1, 0], [0, 0, 1]], [[1, 1, 0], [0, 1, 0], [0, 0, 1]]):
+        mesh = tmp_path / "m.obj"
+        shutil.copy(boxes, mesh)
+        (tmp_path / "m.meta.json").write_text(json.dumps({"rotation": bad}))
+        with pytest.raises(DataError, match=r"rotation must be a rotation \(orthonormal rows, determinant \+1\)"):
+            load_normalized(mesh)
+    (tmp_path / "m.meta.json").write_text(json.dumps({"rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]]}))  # a quarter turn: fine
+    load_normalized(tmp_path / "m.obj")
+

@@ -208,6 +208,9 @@ def load_normalized(path: str | Path, up: str = "z") -> tuple[PartMesh, dict]:
             rotation = None
         if rotation is None or rotation.shape != (3, 3) or not np.isfinite(rotation).all():
             raise DataError(f"{path.with_suffix('.meta.json')}: rotation must be a 3x3 matrix of numbers")
+        if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
+            raise DataError(f"{path.with_suffix('.meta.json')}: rotation must be a rotation (orthonormal rows, determinant +1), "
+                            "not a scale, shear or mirror, which would reshape the object")
     mesh = load_part_mesh(path)
     try:
         return normalize_mesh(mesh, up, rotation), meta

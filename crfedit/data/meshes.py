@@ -222,7 +222,7 @@ def hidden_share(mesh: PartMesh, part_id: int, views: list[Camera], seen_by: lis
         points = o[uncovered] + d[uncovered] * (t[uncovered, None] - 1e-3)  # just in front of the face
         pixels += int(on_part.sum())
         hidden += int((~seen_from(scene, seen_by, points)).sum()) if len(points) else 0
-    return hidden / pixels if pixels else 0.0
+    return hidden / pixels if pixels else 1.0  # a part no view shows: its twin would equal its source
 
 
 MAX_HIDDEN_SHARE = 0.25
@@ -274,11 +274,11 @@ class MeshDatasetResult:
 def instance_names_from(paths: list[Path]) -> list[str]:
     """File stems made folder-safe (``[A-Za-z0-9_.-]``) and unique (``_2``, ``_3``, … on clashes).
 
-    >>> instance_names_from([Path("a/chair.obj"), Path("b/chair.obj"), Path("Ché z.ply"), Path("twins.obj")])
-    ['chair', 'chair_2', 'Ch_z', 'twins_2']
+    >>> instance_names_from([Path("a/chair.obj"), Path("b/chair.obj"), Path("Ché z.ply"), Path("twins.obj"), Path("twins.json.obj")])
+    ['chair', 'chair_2', 'Ch_z', 'twins_2', 'twins.json_2']
     """
     names: list[str] = []
-    taken = {"twins"}  # the twins folder of the dataset root
+    taken = {"twins", "instances.txt", "twins.json", "ATTRIBUTION.txt"}  # what the dataset root holds besides the instances
     for path in paths:
         base = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(path).stem).strip("._-") or "mesh"
         name, k = base, 2
