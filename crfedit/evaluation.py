@@ -168,7 +168,8 @@ def score_model(
 
         {"split": "test", "n": total views, "psnr": mean dB, "ssim": mean, "lpips": mean or None,
          "lpips_note": why LPIPS was skipped or None,
-         "instances": {name: {"n", "psnr", "ssim", "lpips"}}}
+         "instances": {name: {"n", "psnr", "ssim", "lpips"}},
+         "without_views": [names of the instances with no view of the split, not in the means]}
 
     Means are over all scored views (each view counts once, whatever its instance).
     Under torchrun (``ranks``) each rank scores every ``world``-th instance and every rank
@@ -216,9 +217,10 @@ def score_model(
         values = [r[key] for r in rows]
         return None if any(v is None for v in values) else float(np.sum(n * np.array(values)) / n.sum())
 
+    unscored = [model.names[k] for k in indices if model.names[k] not in per_instance]  # no views of the split
     return {
         "split": split, "n": int(n.sum()), "psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"),
-        "lpips_note": note, "instances": per_instance,
+        "lpips_note": note, "instances": per_instance, "without_views": unscored,
     }
 
 

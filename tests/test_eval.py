@@ -131,6 +131,10 @@ def test_score_model_is_the_loop_behind_evaluate_recon(model_path, data):
         score_model(lone, category, "test", 1, instances=[0, 1])
     with pytest.raises(CrfError, match="none of the model.s instances has dev views"):
         score_model(model, category, "dev")
+    assert score["without_views"] == []
+    category.instances[0].splits["test"] = []  # an instance without views of the split: named, not dropped in silence
+    gap = score_model(model, category, "test", max_views=2)
+    assert gap["without_views"] == [category.instances[0].name] and category.instances[0].name not in gap["instances"]
 
 
 def test_recon_on_another_dataset_warns_or_fails_with_strict(model_path, data, tmp_path):
@@ -179,6 +183,8 @@ def test_edits_with_one_strategy_runs_end_to_end(model_path, data):
     for text in ("Table 2 (colour edits)", "Table 3 (shape edits: removal)", "unedited", "hybrid", SSIM_NOTE, "LPIPS: skipped (no weights)"):
         assert text in result.stdout, result.stdout
     assert "chair_000_color: hybrid" in result.stderr  # progress goes to stderr
+    # the NeRF's budget without the NeRF: said (it was ignored in silence)
+    assert_user_error(invoke(*args, "--nerf-steps", 3), "--nerf-steps and --nerf-minutes belong to --nerf-baseline")
 
     report = json.loads(invoke(*args, "--json").stdout)
     assert set(report["tables"]) == {"color", "remove"}

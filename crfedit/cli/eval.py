@@ -142,6 +142,10 @@ def recon_cmd(
         score = evaluate_recon(m, category, split.value, max_views, lpips_weights, ranks, progress=_err)
     if not ranks.main:
         return
+    if score["without_views"]:  # left out of the means: said, not silent
+        names = score["without_views"]
+        _err(f"note: {len(names)} instance{'s' * (len(names) != 1)} ({', '.join(names[:4])}{', …' if len(names) > 4 else ''}) "
+             f"{'have' if len(names) != 1 else 'has'} no {split.value} views in {data}: left out of the scores")
     if as_json:
         _echo_json({"model": str(model), "data": str(data), **score})
         return
@@ -183,7 +187,7 @@ def edits_cmd(
     data: DataArg,
     strategies: Annotated[str, typer.Option("--strategies", help="Update strategies to compare, comma-separated: hybrid, codes, all.")] = "hybrid,codes,all",
     nerf_baseline: Annotated[bool, typer.Option("--nerf-baseline/--no-nerf-baseline", help="Also train a single-instance NeRF per source and fine-tune it (slow).")] = False,
-    nerf_steps: Annotated[int, typer.Option("--nerf-steps", help="Training steps of each single-instance NeRF.")] = 1000,
+    nerf_steps: Annotated[Optional[int], typer.Option("--nerf-steps", help="Training steps of each single-instance NeRF (with --nerf-baseline).", show_default="1000")] = None,
     nerf_minutes: Annotated[Optional[float], typer.Option("--nerf-minutes", help="Optional time budget of each single-instance NeRF.")] = None,
     steps: Annotated[int, typer.Option("--steps", help="Optimization steps of each edit.")] = 100,
     rays: Annotated[int, typer.Option("--rays", help="Most rays rendered per edit step.")] = 1024,
@@ -209,6 +213,9 @@ def edits_cmd(
 
     chosen = _strategies(strategies)
     options = EditOptions(steps=steps, rays=rays, lr=lr, seed=seed, penalty=penalty, recolor=recolor).validated()
+    if not nerf_baseline and (nerf_steps is not None or nerf_minutes is not None):  # they set the baseline only
+        raise CrfError("--nerf-steps and --nerf-minutes belong to --nerf-baseline (the single-instance NeRF is not trained without it)")
+    nerf_steps = 1000 if nerf_steps is None else nerf_steps
     if nerf_steps < 1:
         raise CrfError(f"--nerf-steps {nerf_steps}: must be at least 1")
     if nerf_minutes is not None and not (nerf_minutes > 0 and math.isfinite(nerf_minutes)):
