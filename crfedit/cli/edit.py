@@ -409,7 +409,7 @@ def add_cmd(
     from ..edit import add
     from ..edit.scribble import load_mask
     from ..edit.shape import parse_offset
-    from ..edit.supervised import OUTSIDE_WARN, percent_down
+    from ..edit.supervised import outside_box_note
 
     dxdy = parse_offset(offset)
     options = _options(strategy, steps, lr, rays, seed, penalty)
@@ -433,10 +433,9 @@ def add_cmd(
     sel = _selection(selection, m, j, "add")
     result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel,
                  on_selection=lambda made: _echo_selection(made, "donor ", takes_keep=False))
-    lost = json.loads(result.meta.get("hyperparameters", "{}")).get("outside_box", 0.0)
-    if lost > OUTSIDE_WARN:
-        typer.echo(f"warning: --offset {offset} moves {percent_down(lost)} of the donor's part out of the scene box: that much of it "
-                   "is not added (a smaller offset keeps it)", err=True)
+    note = outside_box_note(result.meta, f"--offset {offset}")
+    if note:
+        typer.echo(f"warning: {note}", err=True)
     from ..masks import mask_digest
 
     _write(result, out, label, {"copy": mask_digest(mask), "keep": mask_digest(bg), "donor_view": donor_view or view})

@@ -28,6 +28,7 @@ teacher, θ₀), with targets known in closed form:
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from typing import Sequence
@@ -538,6 +539,16 @@ def paste_translation(field, selection_mask: Tensor, camera: Camera, offset: tup
 def percent_down(share: float) -> str:
     """``share`` as a whole percent rounded down: a part some of which stays is never "100%"."""
     return f"{math.floor(100.0 * share)}%"
+
+
+def outside_box_note(meta: dict, moved: str) -> str | None:
+    """The warning an addition's metadata ``meta`` calls for when its offset moved more than
+    :data:`OUTSIDE_WARN` of the part out of the scene box (None otherwise); ``moved`` names the
+    offset as the user gave it (``--offset 0,-16``, ``the paste``)."""
+    lost = json.loads(meta.get("hyperparameters") or "{}").get("outside_box", 0.0)
+    if lost <= OUTSIDE_WARN:
+        return None
+    return f"{moved} moves {percent_down(lost)} of the donor's part out of the scene box: that much of it is not added (paste it nearer the object)"
 
 
 OUTSIDE_REFUSE = 0.5

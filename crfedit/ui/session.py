@@ -34,7 +34,7 @@ from ..delta import Delta, apply_deltas, bake, delta_bytes, read_delta, restack,
 from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
 from ..edit.selection import SUMMARIES, CellPoints, ScribbleView, Selection, cell_points, options_for, preview, select
-from ..edit.supervised import OUTSIDE_WARN, percent_down
+from ..edit.supervised import outside_box_note
 from ..errors import CrfError
 from ..safefile import read_header
 from ..model import CategoryModel, save_model
@@ -333,10 +333,9 @@ class UiSession:
                 self._renders.put((self.state_key, k, req.view.key, None), png)  # render()'s key for the untinted view
                 self._views.put((self.state_key, k, req.view.key), shown)  # and the render, for a tint or a Select on it
         out = {"entry": entry.id, "stack": self.stack_info(), "state": self.state_name()}
-        lost = json.loads(result.meta.get("hyperparameters", "{}")).get("outside_box", 0.0) if req.kind == "add" else 0.0
-        if lost > OUTSIDE_WARN:  # as `crfedit add` warns
-            out["warning"] = (f"the paste moves {percent_down(lost)} of the donor's part out of the scene box: that much of it "
-                              "is not added (paste it nearer the object)")
+        note = outside_box_note(result.meta, "the paste") if req.kind == "add" else None
+        if note:  # as `crfedit add` warns
+            out["warning"] = note
         if png is not None and req.on_screen:  # else the page renders the view it shows (a keep-only view's)
             out["image"] = data_url(png)
         return out
