@@ -352,7 +352,7 @@ def render_camera(
     far = camera_far_problem(camera, field.aabb)
     if far:
         raise CrfError(f"camera: {far}")
-    fov = 2.0 * math.atan(0.5 * camera.width / camera.focal)
+    fov = camera.camera_angle_x
     if fov < MIN_FIELD_OF_VIEW:
         raise CrfError(f"camera: its field of view, {math.degrees(fov):.3g}°, is too narrow to see an object "
                        f"(at least {math.degrees(MIN_FIELD_OF_VIEW):.2g}°); camera_angle_x is in radians")
