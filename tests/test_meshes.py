@@ -431,3 +431,15 @@ def test_mesh_names_keep_clear_of_the_dataset_files_and_rotations_are_rotations(
     (tmp_path / "m.meta.json").write_text(json.dumps({"rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]]}))  # a quarter turn: fine
     load_normalized(tmp_path / "m.obj")
 
+
+
+def test_a_dataset_written_again_is_replaced_whole(boxes, tmp_path):
+    """Writing a mesh dataset over an earlier one left the earlier instances' folders (and their
+    renders, CC-BY ones among them, without the ATTRIBUTION.txt that went with them)."""
+    out = tmp_path / "data"
+    cushion = write_cushion_on_seat(tmp_path)
+    write_mesh_category(out, [boxes, cushion], MeshDatasetConfig(views=4, res=16, seed=0, twins=False))
+    assert (out / cushion.stem).is_dir()
+    write_mesh_category(out, [boxes], MeshDatasetConfig(views=4, res=16, seed=0, twins=False))
+    assert sorted(p.name for p in out.iterdir()) == sorted([boxes.stem, "instances.txt"])
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no hidden build folder left

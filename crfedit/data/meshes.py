@@ -27,7 +27,6 @@ The sidecar ``<mesh stem>.meta.json`` beside a mesh may hold ``name``, ``title``
 from __future__ import annotations
 
 import re
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +36,7 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import CrfError, DataError
-from ..io import atomic_write_text, write_png
+from ..io import atomic_folder, atomic_write_text, write_png
 from ..masks import erode
 from .format import Frame, TwinSpec, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 from .mesh_io import INSTALL_HINT, PartMesh, _trimesh, albedo_table, load_normalized, part_colors
@@ -422,38 +421,34 @@ def write_mesh_category(
     loaded = [load_normalized(p, config.up) for p in paths]
     meshes, metas = [m for m, _ in loaded], [meta for _, meta in loaded]
     RayScene(meshes[0])  # fail on a missing embreex before touching `out`
-    out.mkdir(parents=True, exist_ok=True)
     names = instance_names_from(paths)
-    if (out / "twins").is_dir():
-        shutil.rmtree(out / "twins")
-    instances, need = [], min_scribble_pixels(config.res)
-    for index, (name, mesh) in enumerate(zip(names, meshes)):
-        colors = part_colors(mesh, config.palette, np.random.default_rng([config.seed, index, 0]))
-        cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
-        frames = _write_instance(out / name, mesh, colors, cams, config.aa)
-        room = {p.id: scribble_view(frames["train"], p.id) for p in mesh.parts}
-        reach = {pid: stroke_view(frames["train"], pid, need) for pid in removable_parts(mesh)} if config.twins else {}
-        hidden = {pid: hidden_share(mesh, pid, cams["test"], cams["train"]) for pid, (_, n) in reach.items() if n >= need}
-        instances.append(_Instance(name, mesh, colors, cams, room, reach, hidden))
-        if progress:
-            progress(name)
-    twins: list[TwinSpec] = []
-    picks = [twin_parts(inst, config.res) for inst in instances] if config.twins else []
-    sources = pick_twin_sources(picks, config.twin_sources) if config.twins else {}
-    for index in sorted(set(sum(sources.values(), []))):
-        for part_id, kind in zip(picks[index], ("color", "remove")):
-            if index in sources[kind]:
-                twins.append(_write_twin(out, instances[index], index, kind, part_id, config))
-        if progress:
-            progress(f"{names[index]} twins")
-    write_instances_txt(out, names)
-    if twins:
-        write_twins_json(out, twins)
-    elif (out / "twins.json").is_file():
-        (out / "twins.json").unlink()
-    text = attribution_text(names, paths, metas)
-    if text is not None:
-        atomic_write_text(out / "ATTRIBUTION.txt", text)
-    elif (out / "ATTRIBUTION.txt").is_file():
-        (out / "ATTRIBUTION.txt").unlink()
+    # built in a hidden folder that replaces `out` whole: an earlier dataset's instances (and their
+    # renders, whose attribution went with it) do not stay behind, and a failure leaves `out` as it was
+    with atomic_folder(out) as root:
+        instances, need = [], min_scribble_pixels(config.res)
+        for index, (name, mesh) in enumerate(zip(names, meshes)):
+            colors = part_colors(mesh, config.palette, np.random.default_rng([config.seed, index, 0]))
+            cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
+            frames = _write_instance(root / name, mesh, colors, cams, config.aa)
+            room = {p.id: scribble_view(frames["train"], p.id) for p in mesh.parts}
+            reach = {pid: stroke_view(frames["train"], pid, need) for pid in removable_parts(mesh)} if config.twins else {}
+            hidden = {pid: hidden_share(mesh, pid, cams["test"], cams["train"]) for pid, (_, n) in reach.items() if n >= need}
+            instances.append(_Instance(name, mesh, colors, cams, room, reach, hidden))
+            if progress:
+                progress(name)
+        twins: list[TwinSpec] = []
+        picks = [twin_parts(inst, config.res) for inst in instances] if config.twins else []
+        sources = pick_twin_sources(picks, config.twin_sources) if config.twins else {}
+        for index in sorted(set(sum(sources.values(), []))):
+            for part_id, kind in zip(picks[index], ("color", "remove")):
+                if index in sources[kind]:
+                    twins.append(_write_twin(root, instances[index], index, kind, part_id, config))
+            if progress:
+                progress(f"{names[index]} twins")
+        write_instances_txt(root, names)
+        if twins:
+            write_twins_json(root, twins)
+        text = attribution_text(names, paths, metas)
+        if text is not None:
+            atomic_write_text(root / "ATTRIBUTION.txt", text)
     return MeshDatasetResult(names, twins, [len(m.parts) for m in meshes], time.perf_counter() - start)
