@@ -274,6 +274,10 @@ def test_broken_and_empty_meshes_are_one_line_errors(tmp_path):
     empty.write_text("v 0 0 0\nv 1 0 0\n")
     with pytest.raises(DataError, match=r"empty\.obj: mesh has no triangles"):
         load_part_mesh(empty)
+    flat = tmp_path / "flat.obj"  # a triangle with its corners in a line: accepted, it rendered empty views that train refused
+    flat.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    with pytest.raises(DataError, match=r"flat\.obj: mesh has no area: every triangle is degenerate"):
+        load_part_mesh(flat)
     with pytest.raises(DataError, match="notes.txt: not a mesh format"):
         (tmp_path / "notes.txt").write_text("hi")
         load_part_mesh(tmp_path / "notes.txt")

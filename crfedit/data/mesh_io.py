@@ -140,8 +140,8 @@ def load_part_mesh(path: str | Path) -> PartMesh:
         name = getattr(material, "name", None) or geom_name
         groups.setdefault(str(name), []).append((vertices, faces, _material_color(visual, material, trimesh)))
 
-    if not groups:
-        raise DataError(f"{path}: mesh has no triangles")
+    if not groups:  # (trimesh drops the faces of NaN vertices as it reads: such a file ends here too)
+        raise DataError(f"{path}: mesh has no triangles (or only ones with NaN or infinite corners)")
     if len(groups) > 255:
         raise DataError(f"{path}: {len(groups)} material groups; at most 255 parts fit a part map")
 
@@ -163,7 +163,11 @@ def load_part_mesh(path: str | Path) -> PartMesh:
     vertices = np.concatenate(all_v)
     if not np.isfinite(vertices).all():
         raise DataError(f"{path}: mesh has NaN or infinite vertex coordinates")
-    return PartMesh(vertices, np.concatenate(all_f), np.concatenate(all_p), parts)
+    faces = np.concatenate(all_f)
+    corners = vertices[faces]
+    if not bool((np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=-1) > 0).any()):
+        raise DataError(f"{path}: mesh has no area: every triangle is degenerate (its corners in a line), so no view would show it")
+    return PartMesh(vertices, faces, np.concatenate(all_p), parts)
 
 
 # ----------------------------------------------------------------------------- normalizing
