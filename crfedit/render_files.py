@@ -94,12 +94,13 @@ def _earlier_frames(out: Path) -> set[str]:
 
 def render_to_folder(
     model, instance: int, spec: str, out: Path, res: int | None = None, depth: bool = False,
-    video: Path | None = None, chunk: int = 16384, fps: float = 12.0, ranks=None,
+    video: Path | None = None, chunk: int = 16384, fps: float = 12.0, ranks=None, source: dict | None = None,
 ) -> RenderResult:
     """Render the views ``spec`` names and write ``out/NNNN.png`` (+ ``NNNN_depth.exr`` with float32
     channels Z = ray distance, +inf where opacity ≤ 1e-3, and A = opacity, and a colour-mapped
     ``NNNN_depth.png`` preview), ``out/views.json``
-    (label and camera of each NNNN) and, with ``video``, an MP4 or GIF of the frames.
+    (label and camera of each NNNN; ``source``'s keys beside them: what the render was of, e.g.
+    the model file, its ``--edit`` stack, swapped codes) and, with ``video``, an MP4 or GIF of the frames.
 
     Under torchrun (``ranks``) each rank renders and writes every ``world``-th view; rank 0
     gathers the camera records (and frames) and writes ``views.json`` and the video, so the
@@ -164,7 +165,8 @@ def render_to_folder(
             seconds = max(part[2] for part in parts)
         video_written = None
         if ranks.main:
-            write_json(tmp / "views.json", {"instance": model.names[instance], "spec": spec, "views": [records[i] for i in sorted(records)]})
+            write_json(tmp / "views.json", {"instance": model.names[instance], "spec": spec, **(source or {}),
+                                            "views": [records[i] for i in sorted(records)]})
             if video is not None:  # one in --out goes into the new folder with the frames
                 inside = video.absolute().parent == out.absolute()
                 video_written = write_video(tmp / video.name if inside else video, [frames[i] for i in sorted(frames)], fps)

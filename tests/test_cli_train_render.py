@@ -215,6 +215,9 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
         assert (preview[a < 0.5] == 1.0).all() and (preview[a >= 0.5] < 1.0).any(axis=-1).all()
     listed = json.loads((out / "views.json").read_text())
     assert [v["view"] for v in listed["views"]] == ["orbit:3@30:0", "orbit:3@30:1", "orbit:3@30:2"] and listed["instance"] == "chair_001"
+    # what the views are of: the model file, its --edit stack, swapped codes and --res (a swapped render looked plain)
+    assert {k: listed[k] for k in ("model", "edits", "res", "shape_from", "color_from")} == {
+        "model": str(model_path), "edits": [], "res": 12, "shape_from": None, "color_from": None}
 
     again = tmp_path / "again"
     # the same device as the first run: on a machine with a GPU, auto would render on it

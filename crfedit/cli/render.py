@@ -59,7 +59,10 @@ def render_cmd(
             typer.echo(printable(f"note: {note}"), err=True)
         m = swap_codes(m, k, shape_from=shape_from, color_from=color_from)
     with process_group(ranks, dev):
-        result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks)
+        source = {"model": str(model), "edits": [str(p) for p in edit or []], "res": res,  # what these views are of
+                  "shape_from": None if shape_from is None else m.names[shape_from],
+                  "color_from": None if color_from is None else m.names[color_from]}
+        result = render_to_folder(m, k, views, out, res, depth, video, chunk, fps, ranks, source)
     if not ranks.main:
         return
     trained = m.views.get("train")
