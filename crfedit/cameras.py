@@ -225,3 +225,12 @@ def look_at_point(cameras) -> np.ndarray | None:
 OFF_CENTRE = 0.1
 """Cameras whose axes meet farther than this share of their nearest distance from the origin
 look at an object off the origin: the scene box (training) and orbits (rendering) centre there."""
+
+
+def off_centre_target(cameras) -> np.ndarray | None:
+    """Where ``cameras`` look (:func:`look_at_point`) when that lies off the origin by more than
+    :data:`OFF_CENTRE` of their nearest distance from it; None when they look at the origin (or
+    their axes do not meet).  The one rule the scene box and the orbits follow."""
+    target = look_at_point(cameras)
+    nearest = min(float(np.linalg.norm(np.asarray(c.center, np.float64))) for c in cameras)
+    return target if target is not None and np.linalg.norm(target) > OFF_CENTRE * nearest else None

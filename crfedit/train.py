@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from . import occupancy
-from .cameras import OFF_CENTRE, Rays, look_at_point, rays_from_camera
+from .cameras import Rays, off_centre_target, rays_from_camera
 from .config import Config
 from .data.loading import Category, TrainingRays, training_rays
 from .distributed import SINGLE, Ranks, rank_seed
@@ -108,8 +108,8 @@ def scene_box(category: Category, res: int = 48, views_per_instance: int = 40,
     leaving = silhouettes_leave(category, cube, views_per_instance)
     if union.any() and not leaving:
         return occupancy.occupied_box(union, cube, margin_cells=2)
-    target = look_at_point([v.camera for v in views])
-    if target is not None and np.linalg.norm(target) > OFF_CENTRE * radius:
+    target = off_centre_target([v.camera for v in views])
+    if target is not None:
         half = 0.5 * float(np.linalg.norm(centers - target, axis=1).min())
         moved = torch.tensor(np.concatenate([target - half, target + half]), dtype=torch.float32)
         moved_union = _hull_union(category, moved, res, views_per_instance)

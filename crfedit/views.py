@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import OFF_CENTRE, Camera, c2w_problem, focal_from_angle, look_at_point, orbit_cameras
+from .cameras import Camera, c2w_problem, focal_from_angle, off_centre_target, orbit_cameras
 from .errors import CrfError
 from .io import not_a_file, read_json
 
@@ -181,10 +181,8 @@ def _orbit_views(spec: str, model, instance: int) -> list[tuple[str, Camera]]:
     stored = _stored_cameras(model, instance)
     if not stored:
         raise CrfError(f"view spec {spec!r}: the model stores no cameras to take the orbit's distance and focal from")
-    centre = look_at_point(stored)  # where the cameras look: an object off the origin stays in frame
-    nearest = min(float(np.linalg.norm(c.center)) for c in stored)
-    if centre is None or np.linalg.norm(centre) <= OFF_CENTRE * nearest:  # as the scene box decides it
-        centre = np.zeros(3)
+    centre = off_centre_target(stored)  # where the cameras look, as the scene box reads it: an object off the origin stays in frame
+    centre = np.zeros(3) if centre is None else centre
     radius = float(np.median([np.linalg.norm(np.asarray(c.center) - centre) for c in stored]))
     width, height = stored[0].width, stored[0].height
     focal = float(np.median([c.focal if c.width == width else c.focal * width / c.width for c in stored]))  # at the first size
