@@ -102,7 +102,7 @@ def model_width(model: CategoryModel, split: str = "test") -> int | None:
     """The image width the model's views of ``split`` were stored at (else its training width);
     None (each view at its own size) for views of several widths."""
     table = model.views.get(split) or model.views.get("train") or next(iter(model.views.values()), None)
-    if table is None or (table.sizes is not None and len(set(table.sizes[:, 0].tolist())) > 1):
+    if table is None or len(table.widths) > 1:
         return None
     return table.width
 

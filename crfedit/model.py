@@ -116,6 +116,11 @@ class ViewTable:
     def size(self, row: int) -> tuple[int, int]:
         return (self.width, self.height) if self.sizes is None else tuple(int(x) for x in self.sizes[row])
 
+    @property
+    def widths(self) -> list[int]:
+        """The views' distinct widths, ascending."""
+        return [self.width] if self.sizes is None else sorted(set(self.sizes[:, 0].tolist()))
+
     def cameras(self, instance: int) -> list[Camera]:
         rows = (self.instance == instance).nonzero().squeeze(-1).tolist()
         return [Camera(self.c2w[i].numpy().copy(), float(self.focal[i]), *self.size(i)) for i in rows]
@@ -176,7 +181,7 @@ def save_model(
         fingerprint=model.fingerprint(),
         view_sizes=json.dumps({split: [t.width, t.height] for split, t in model.views.items()}),
     )
-    widths = {split: sorted(set(t.sizes[:, 0].tolist())) for split, t in model.views.items() if t.sizes is not None}
+    widths = {split: t.widths for split, t in model.views.items() if t.sizes is not None}
     if any(len(w) > 1 for w in widths.values()):  # views of several widths: --resume loads each at its own
         meta["view_widths"] = json.dumps(widths)
     write_safetensors(path, tensors, meta)

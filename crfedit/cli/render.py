@@ -66,7 +66,7 @@ def render_cmd(
     if not ranks.main:
         return
     trained = m.views.get("train")
-    widest = None if trained is None else (trained.width if trained.sizes is None else int(trained.sizes[:, 0].max()))
+    widest = None if trained is None else max(trained.widths)
     drawn = max(w for w, _ in (result.sizes or ((result.width, result.height),)))
     if widest is not None and drawn > widest:  # --res, or a camera file's size
         typer.echo(f"note: views {drawn} pixels wide are wider than the {widest}-pixel views the model was trained on: "
