@@ -12,6 +12,10 @@ CODE_TABLES = (SHAPE_CODES, COLOR_CODES)
 INSTANCE_TABLES = (*CODE_TABLES, "occupancy")
 """State-dict names of the tables with one row per instance (codes [K, D], grids [K, R, R, R])."""
 
+NO_MASK = "none"
+"""``select --scribble none`` / ``--keep none``: this view has no such strokes (a further view
+that only holds keep strokes, or a view without keep strokes beside one with them)."""
+
 MODEL_FORMAT = "crfedit-model"
 EDIT_FORMAT = "crfedit-edit"
 SELECTION_FORMAT = "crfedit-selection"

@@ -15,7 +15,7 @@ from typing import Annotated, Iterator, NamedTuple, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, MODEL_FORMAT, PENALTIES, RECOLOR_RULES, STRATEGIES
+from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, MODEL_FORMAT, NO_MASK, PENALTIES, RECOLOR_RULES, STRATEGIES
 from .common import printable, DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, edits_app, json_record, user_errors
 
 
@@ -99,7 +99,7 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
     from ..edit.scribble import check_coverage, check_masks, keep_overlap, load_mask
 
     for option, path in (("--scribble", scribble), ("--keep", keep)):
-        if path is not None and str(path).lower() == "none" and not Path(path).exists():
+        if path is not None and str(path).lower() == NO_MASK and not Path(path).exists():
             raise CrfError(f"{option} none: `none` is for `crfedit select`'s views without such strokes; an edit's one view "
                            + ("needs its scribble" if option == "--scribble" else "takes no --keep when it has no keep strokes"))
     render = _view_render(model, instance, camera)

@@ -8,11 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import SELECTION_FORMAT
-
-NO_MASK = "none"
-"""``--scribble none`` / ``--keep none``: this view has no such strokes (a further view that only
-holds keep strokes, or a view without keep strokes beside one with them)."""
+from ..names import NO_MASK, SELECTION_FORMAT
 from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, user_errors
 from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _load, _one_view, _preview_views, _view_render, previews_of
 
