@@ -33,6 +33,7 @@ from ..data.loading import Category
 from ..delta import Delta, apply_deltas, bake, delta_bytes, read_delta, restack, save_delta
 from ..edit import add, edit_color, remove, transfer
 from ..edit.cache import ViewCache
+from ..edit.params import TRAINED
 from ..edit.selection import SUMMARIES, CellPoints, ScribbleView, Selection, cell_points, options_for, preview, select
 from ..edit.supervised import outside_box_note
 from ..errors import CrfError
@@ -504,7 +505,7 @@ class UiSession:
             colour too), but an addition reads the target's density and features only, not its colour."""
             if x.delta.instance == donor:
                 return True
-            colour_only = all(m.startswith(("F_rad.", "color_codes")) for m in x.delta.modules)
+            colour_only = all(m.startswith(TRAINED["color"]) for m in x.delta.modules)
             return x.delta.instance == target and not (req.kind == "add" and colour_only)
 
         touches = lambda ids: [j for j in ids if j in by_id and read(by_id[j])]
