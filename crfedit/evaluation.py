@@ -545,12 +545,12 @@ def evaluate_edits(
                     baselines[source], train_seconds[source] = train_single_instance_nerf(
                         category, source, model.cfg, nerf, path, device, seed
                     )
-                # the NeRF's own gap: its unedited render against the twin, its reconstruction of the source
+                # the NeRF's own gap: its unedited render against the twin, and (the twin's views are the
+                # source's test poses: one render) its reconstruction of the source
                 source_views = category.instance(source).splits.get("test", [])[: len(case.views)]
-                own = lambda views, truth: _finite(score_images([o.rgb.clamp(0.0, 1.0).cpu().numpy() for o in render_views(
-                    baselines[source], 0, [v.camera for v in views])], truth)["psnr"])
-                reference = {"psnr_before": own(case.views, [v.rgb for v in case.views]),
-                             "psnr_ceiling": own(source_views, [v.rgb for v in source_views])}
+                unedited = [o.rgb.clamp(0.0, 1.0).cpu().numpy() for o in render_views(baselines[source], 0, [v.camera for v in case.views])]
+                reference = {"psnr_before": _finite(score_images(unedited, [v.rgb for v in case.views])["psnr"]),
+                             "psnr_ceiling": _finite(score_images(unedited[: len(source_views)], [v.rgb for v in source_views])["psnr"])}
                 result = apply_twin_edit(baselines[source], case, dataclasses.replace(options, strategy="all"), instance=0, method="paper")
                 record(case, NERF_BASELINE, result.model, result.seconds, instance=0, reference=reference)
 
