@@ -59,8 +59,9 @@ def stored_log_every(model_path: Path) -> int:
         return LOG_EVERY
     if not isinstance(first, dict):
         return LOG_EVERY
-    starts = [first, *(r for r in first.get("resumes", []) if isinstance(r, dict))] if isinstance(first.get("resumes", []), list) else [first]
-    said = [r.get("log_every") for r in starts if isinstance(r.get("log_every"), int) and not isinstance(r.get("log_every"), bool) and r["log_every"] >= 1]
+    resumes = first.get("resumes")
+    starts = [first, *(r for r in resumes if isinstance(r, dict))] if isinstance(resumes, list) else [first]
+    said = [n for n in (r.get("log_every") for r in starts) if isinstance(n, int) and not isinstance(n, bool) and n >= 1]
     return said[-1] if said else LOG_EVERY
 
 
