@@ -31,7 +31,7 @@ class Camera:
     @property
     def camera_angle_x(self) -> float:
         """Horizontal field of view in radians (the NeRF-synthetic ``camera_angle_x``)."""
-        return 2.0 * math.atan(0.5 * self.width / self.focal)
+        return angle_from_focal(self.focal, self.width)
 
     @property
     def center(self) -> np.ndarray:
@@ -51,6 +51,21 @@ MIN_FIELD_OF_VIEW = 1e-5
 train on (a dataset split with 10⁻³⁰ passed, and training blamed the camera axes for the empty
 visual hull it carved); loading and rendering refuse it.  A camera framing the object from the
 farthest a render allows (``renderer.MAX_CAMERA_REACH``, 10⁴ box diagonals) needs about 10⁻⁴."""
+
+
+def angle_from_focal(focal: float, width: float) -> float:
+    """The horizontal field of view ``2 atan(W / 2f)`` in radians: the inverse of
+    :func:`focal_from_angle`."""
+    return 2.0 * math.atan(0.5 * width / focal)
+
+
+def narrow_view(angle: float) -> str | None:
+    """None when a horizontal field of view of ``angle`` radians can see an object, else the
+    phrase that says it cannot (each loader and the renderer prefix what they read)."""
+    if angle >= MIN_FIELD_OF_VIEW:
+        return None
+    return (f"a {math.degrees(angle):.3g}° field of view, too narrow to see an object "
+            f"(at least {math.degrees(MIN_FIELD_OF_VIEW):.2g}°)")
 
 
 RIGID_TOLERANCE = 1e-3

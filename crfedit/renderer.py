@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from . import occupancy
-from .cameras import MIN_FIELD_OF_VIEW, Camera, Rays, rays_from_camera
+from .cameras import Camera, Rays, narrow_view, rays_from_camera
 from .errors import CrfError
 from .names import whole_number
 from .field import ConditionalRadianceField, FieldNet
@@ -352,10 +352,9 @@ def render_camera(
     far = camera_far_problem(camera, field.aabb)
     if far:
         raise CrfError(f"camera: {far}")
-    fov = camera.camera_angle_x
-    if fov < MIN_FIELD_OF_VIEW:
-        raise CrfError(f"camera: its field of view, {math.degrees(fov):.3g}°, is too narrow to see an object "
-                       f"(at least {math.degrees(MIN_FIELD_OF_VIEW):.2g}°); camera_angle_x is in radians")
+    narrow = narrow_view(camera.camera_angle_x)
+    if narrow:
+        raise CrfError(f"camera: {narrow}; camera_angle_x is in radians")
     rays = rays_from_camera(camera, device)
     outs = [
         render_rays(

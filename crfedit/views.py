@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, c2w_problem, focal_from_angle, off_centre_target, orbit_cameras
+from .cameras import Camera, angle_from_focal, c2w_problem, focal_from_angle, off_centre_target, orbit_cameras
 from .errors import CrfError
 from .io import not_a_file, read_json
 
@@ -145,7 +145,7 @@ def _photo_views(model, instance: int) -> list[tuple[str, Camera]]:
                        "photo is the camera of its photo")
     try:
         data = {"transform_matrix": cam["c2w"], "width": cam["width"], "height": cam["height"],
-                "camera_angle_x": 2.0 * math.atan(cam["width"] / (2.0 * cam["focal"]))}
+                "camera_angle_x": angle_from_focal(cam["focal"], cam["width"])}
     except (KeyError, TypeError, ValueError, ZeroDivisionError):
         raise CrfError(f"view spec 'photo': the record of {name}'s photo camera cannot be read") from None
     return [("photo", camera_from_json(data, model, f"photo (the camera of {name}'s photo)"))]
@@ -256,8 +256,7 @@ def _file_views(spec: str, model) -> list[tuple[str, Camera]]:
 def camera_json(camera: Camera) -> dict:
     """A single-camera JSON object for ``camera`` (``transform_matrix``, ``camera_angle_x``,
     ``width``, ``height``): a camera file any ``--view`` reads back."""
-    angle = 2.0 * math.atan(0.5 * camera.width / camera.focal)
-    return {"transform_matrix": np.asarray(camera.c2w, dtype=np.float64).tolist(), "camera_angle_x": angle,
+    return {"transform_matrix": np.asarray(camera.c2w, dtype=np.float64).tolist(), "camera_angle_x": camera.camera_angle_x,
             "width": int(camera.width), "height": int(camera.height)}
 
 

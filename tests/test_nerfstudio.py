@@ -78,7 +78,8 @@ def test_a_folder_of_scenes_is_a_category_with_masks_and_default_split(tiny_chai
 def test_unsupported_cameras_are_refused(tiny_chairs, tmp_path):
     to_nerfstudio(tiny_chairs / "chair_000", tmp_path / "s")
     doc = json.loads((tmp_path / "s" / "transforms.json").read_text())
-    for change, fragment in (({"k1": 0.1}, "distortion"), ({"cx": 2.0}, "principal point"), ({"fl_y": 99.0}, "fl_x")):
+    for change, fragment in (({"k1": 0.1}, "distortion"), ({"cx": 2.0}, "principal point"), ({"fl_y": 99.0}, "fl_x"),
+                             ({"fl_x": 1e12, "fl_y": 1e12}, r"fl_x 1e\+12 for an image 16 pixels wide gives a 9\.17e-10° field of view, too narrow")):
         (tmp_path / "s" / "transforms.json").write_text(json.dumps({**doc, **change}))
         with pytest.raises(DataError, match=fragment):
             load_category(tmp_path / "s")

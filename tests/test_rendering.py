@@ -606,7 +606,7 @@ def test_a_camera_too_far_for_float32_samples_is_refused():
         if ok:
             render_camera(field, cam, 0)
         else:
-            with pytest.raises(CrfError, match=r"^camera: its field of view, 0\.000286°, is too narrow to see an object"):
+            with pytest.raises(CrfError, match=r"^camera: a 0\.000286° field of view, too narrow to see an object"):
                 render_camera(field, cam, 0)
 
 

@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..cameras import MIN_FIELD_OF_VIEW, Camera, c2w_problem, focal_from_angle, rays_from_camera
+from ..cameras import Camera, angle_from_focal, c2w_problem, focal_from_angle, narrow_view, rays_from_camera
 from ..errors import DataError
 from ..names import did_you_mean, is_digits
 from .format import (
@@ -165,10 +165,9 @@ def _load_split(
             focal = float(focal_px) * w / float(meta.get("w", w))
         if not (math.isfinite(focal) and focal > 0):
             raise DataError(f"{path}: camera_angle_x / focal gives a non-positive focal length")
-        fov = 2.0 * math.atan(0.5 * w / focal)
-        if fov < MIN_FIELD_OF_VIEW:
-            raise DataError(f"{path}: camera_angle_x / focal gives a {math.degrees(fov):.3g}° field of view, too narrow to see an "
-                            f"object (at least {math.degrees(MIN_FIELD_OF_VIEW):.2g}°); camera_angle_x is in radians, focal in pixels")
+        narrow = narrow_view(angle_from_focal(focal, w))
+        if narrow:
+            raise DataError(f"{path}: camera_angle_x / focal gives {narrow}; camera_angle_x is in radians, focal in pixels")
         alpha = image[..., 3] if image.shape[2] == 4 else np.ones((h, w), np.float32)
         rgb = image[..., :3] * alpha[..., None] + (1.0 - alpha[..., None]) if image.shape[2] == 4 else image[..., :3]
         depth = parts = None

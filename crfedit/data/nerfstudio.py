@@ -17,7 +17,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from ..cameras import MIN_FIELD_OF_VIEW, Camera
+from ..cameras import Camera, angle_from_focal, narrow_view
 from .format import DataError, _read_json, _read_rgba, resize_area
 from .loading import Category, InstanceData, View, _matrix, posix_path
 
@@ -65,9 +65,9 @@ def _intrinsics(path: Path, meta: dict, frame: dict, k: int, size: tuple[int, in
     if any(abs(float(frame.get(d, meta.get(d, 0.0)) or 0.0)) > 1e-6 for d in DISTORTION):
         raise DataError(f"{path}: lens distortion (k1..p2) is not supported; undistort the images first (ns-process-data does)")
     w, h = values["w"], values["h"]
-    if not (math.isfinite(values["fl_x"]) and values["fl_x"] > 0 and 2.0 * math.atan(0.5 * w / values["fl_x"]) >= MIN_FIELD_OF_VIEW):
-        raise DataError(f"{path}: frames[{k}]: fl_x {values['fl_x']:g} for an image {w:g} pixels wide: no field of view to see an object "
-                        f"(at least {math.degrees(MIN_FIELD_OF_VIEW):.2g}°; fl_x is in pixels)")
+    narrow = narrow_view(angle_from_focal(values["fl_x"], w)) if math.isfinite(values["fl_x"]) and values["fl_x"] > 0 else "no field of view"
+    if narrow:
+        raise DataError(f"{path}: frames[{k}]: fl_x {values['fl_x']:g} for an image {w:g} pixels wide gives {narrow}; fl_x is in pixels")
     if abs(values["fl_x"] - values["fl_y"]) > 0.01 * values["fl_x"]:
         raise DataError(f"{path}: frames[{k}]: fl_x {values['fl_x']:g} and fl_y {values['fl_y']:g} differ; crfedit cameras have square pixels")
     if abs(values["cx"] - w / 2) > 0.02 * w or abs(values["cy"] - h / 2) > 0.02 * h:
