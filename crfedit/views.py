@@ -13,7 +13,8 @@ A SPEC names cameras of one instance of a trained model:
                        16 floats row-major or a 4×4 list, ``fov``: vertical degrees,
                        ``render_width``/``render_height``), a single camera
                        ``{"transform_matrix", "camera_angle_x", "width", "height"}``, or a
-                       NeRF ``transforms_*.json`` (``camera_angle_x`` + ``frames[].transform_matrix``)
+                       NeRF ``transforms_*.json`` (``camera_angle_x`` + ``frames[].transform_matrix``),
+                       or a render's ``views.json`` (its cameras again, each at its own size)
 =====================  ==========================================================================
 
 Split views come from the camera tables stored in the model file (``model.views``), so a SPEC
@@ -231,7 +232,7 @@ def _file_views(spec: str, model) -> list[tuple[str, Camera]]:
         raise CrfError(f"view spec {spec!r}: camera file {not_a_file(path, 'not found')}")
     data = read_json(path)  # a malformed file is an error that names it
     if not isinstance(data, dict):
-        raise CrfError(f"view spec {spec!r}: expected a JSON object (camera_path, transform_matrix or frames)")
+        raise CrfError(f"view spec {spec!r}: expected a JSON object (camera_path, transform_matrix, frames or views)")
     name = path.name
     if "camera_path" in data:
         return _camera_path_views(spec, name, data, model)
@@ -250,7 +251,12 @@ def _file_views(spec: str, model) -> list[tuple[str, Camera]]:
             c2w = _matrix(spec, where, frame.get("transform_matrix") if isinstance(frame, dict) else None)
             out.append((f"{name}:{k}", Camera(c2w, focal, width, height)))
         return out
-    raise CrfError(f"view spec {spec!r}: expected a camera_path list, a transform_matrix, or a frames list")
+    if "views" in data:  # a render's views.json: the cameras it rendered, each its own size
+        records = data["views"]
+        if not isinstance(records, list) or not records or not all(isinstance(r, dict) for r in records):
+            raise CrfError(f"view spec {spec!r}: views must be a non-empty list of camera objects (a render's views.json)")
+        return [(f"{name}:{k}", camera_from_json(r, model, f"{spec}: views[{k}]")) for k, r in enumerate(records)]
+    raise CrfError(f"view spec {spec!r}: expected a camera_path list, a transform_matrix, a frames list, or a render's views list")
 
 
 def camera_json(camera: Camera) -> dict:

@@ -228,6 +228,12 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
                 np.testing.assert_array_equal(values, read_exr(again / name)[channel])
         else:
             assert (out / name).read_bytes() == (again / name).read_bytes(), name
+    # the views.json passed back as the view spec renders the same cameras, each at its recorded size
+    replay = tmp_path / "replay"
+    assert invoke("render", model_path, "--instance", "1", "--views", out / "views.json", "--out", replay, "--device", "cpu").exit_code == 0
+    for i in range(3):
+        assert (replay / f"{i:04d}.png").read_bytes() == (out / f"{i:04d}.png").read_bytes()
+    assert [v["view"] for v in json.loads((replay / "views.json").read_text())["views"]] == [f"views.json:{i}" for i in range(3)]
     # wider than the model was trained at: said, since the render holds no finer detail
     wide = model.views["train"].width + 4
     result = invoke("render", model_path, "--instance", "1", "--views", "test:0", "--res", wide, "--out", tmp_path / "wide", "--device", "cpu")
