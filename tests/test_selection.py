@@ -1151,7 +1151,7 @@ def test_select_command_and_its_errors(trained, tmp_path):
     r = runner.invoke(app, [*args, "--out", str(out), "--preview", str(tmp_path / "prev"), "--views", "orbit:2"])
     assert r.exit_code == 0, r.output
     assert out.is_file() and sorted(p.name for p in (tmp_path / "prev").iterdir()) == ["0000.png", "0001.png"]
-    assert f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): " in r.output
+    assert f"wrote {out} ({out.stat().st_size / 1000:.1f} KB): " in r.output
     edge_points = load_selection(out).meta["stroke_centres"]["edge_points"]  # the seat's strokes have centres
     assert edge_points > 0 and f"strokes: their centres lifted ({edge_points} edge points left out" in r.output
     assert f"colour join: {join_summary(load_selection(out).meta)}\n" in r.output  # a recolour's selection joins or says why not

@@ -113,6 +113,16 @@ def printable(text: object) -> str:
     return "".join(c if c.isprintable() or c in "\n\t" else repr(c)[1:-1] for c in str(text))
 
 
+def size_text(n: float) -> str:
+    """A byte count as every command prints it, in decimal units (B, KB, MB, GB) as the docs give
+    sizes: ``66 200`` → ``66.2 KB``."""
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return ""
+
+
 def fail(message: str) -> "typer.Exit":
     """Print ``error: message`` to stderr and return the exit to raise (code 2)."""
     typer.echo(f"error: {printable(' '.join(str(message).split()))}", err=True)

@@ -16,7 +16,7 @@ import typer
 
 from ..errors import CrfError
 from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, MODEL_FORMAT, NO_MASK, PENALTIES, RECOLOR_RULES, STRATEGIES
-from .common import printable, DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, edits_app, json_record, user_errors
+from .common import printable, DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, edits_app, json_record, size_text, user_errors
 
 
 Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
@@ -273,7 +273,7 @@ def _write(result, out: Path, label: str, inputs: dict | None = None) -> None:
     size, n = out.stat().st_size, len(result.tensors)
     typer.echo(
         f"wrote {out}: {meta['kind']} edit of {meta['instance']}, {n} tensor{'s' * (n != 1)}, "
-        f"{size / 1024:.1f} KiB, final loss {result.final_loss:.4g}, {result.seconds:.2f} s"
+        f"{size_text(size)}, final loss {result.final_loss:.4g}, {result.seconds:.2f} s"
     )
 
 
@@ -693,6 +693,6 @@ def bake_cmd(
     save_model(out, baked, state if training_state else None, extra_meta={"command": command_line()})
     kept = "with" if training_state and state else "without"
     typer.echo(
-        f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB, {kept} training state): the model {model} "
+        f"wrote {out} ({size_text(out.stat().st_size)}, {kept} training state): the model {model} "
         f"with {len(edit)} edit(s) baked in; {model} is unchanged"
     )

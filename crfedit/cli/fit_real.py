@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from .common import DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, stderr_progress, user_errors
+from .common import DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, size_text, stderr_progress, user_errors
 
 
 class JointWeights(str, enum.Enum):
@@ -116,5 +116,5 @@ def fit_real_cmd(
                 **({"mask": str(mask)} if mask else {}))
     typer.echo(
         f"wrote {out}: fit-real edit adding instance {name} ({len(result.tensors)} tensors, "
-        f"{out.stat().st_size / 1024:.1f} KiB), photo PSNR {result.stages[-1].psnr:.2f} dB, {result.seconds:.2f} s"
+        f"{size_text(out.stat().st_size)}), photo PSNR {result.stages[-1].psnr:.2f} dB, {result.seconds:.2f} s"
     )

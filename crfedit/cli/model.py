@@ -8,14 +8,11 @@ from typing import Annotated
 import typer
 
 from ..names import MODEL_FORMAT
-from .common import app, check_out_file, user_errors
+from .common import app, check_out_file, size_text, user_errors
 
 model_app = typer.Typer(help="Shareable model files.", no_args_is_help=True)
 app.add_typer(model_app, name="model")
 
-
-def _kb(n: int) -> str:
-    return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} KB"
 
 
 @model_app.command("strip")
@@ -36,5 +33,5 @@ def strip_cmd(
     sizes = strip_model(model, out)
     after = out.stat().st_size
     dropped = "training state dropped" if after < before else "it held no training state (a copy)"
-    typer.echo(f"wrote {out} ({_kb(after)}) from {model} ({_kb(before)}): {dropped}, "
-               f"weights {_kb(sizes['weights'])}, codes {_kb(sizes['codes'])}, occupancy {_kb(sizes['occupancy'])}")
+    typer.echo(f"wrote {out} ({size_text(after)}) from {model} ({size_text(before)}): {dropped}, "
+               f"weights {size_text(sizes['weights'])}, codes {size_text(sizes['codes'])}, occupancy {size_text(sizes['occupancy'])}")

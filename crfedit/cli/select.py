@@ -9,7 +9,7 @@ import typer
 
 from ..errors import CrfError
 from ..names import NO_MASK, SELECTION_FORMAT
-from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, user_errors
+from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, size_text, user_errors
 from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _load, _one_view, _preview_views, _view_render, previews_of
 
 
@@ -90,7 +90,7 @@ def select_cmd(
     save_selection(out, sel)
     info = sel.meta
     typer.echo(
-        f"wrote {out} ({out.stat().st_size / 1024:.1f} KiB): {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
+        f"wrote {out} ({size_text(out.stat().st_size)}): {info['selected_cells']} of {info['occupied_cells']} occupied cells of {m.names[k]} selected "
         f"({info['positives']} scribbled, {info['keep_points']} keep, {info['view_points']} other surface points; {info['seconds']:.2f} s)"
     )
     echo_summaries(info)

@@ -15,7 +15,7 @@ from ..io import check_folder_target, writer_lock
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from ..names import MODEL_FORMAT
-from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, user_errors
+from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, size_text, user_errors
 
 
 PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
@@ -395,13 +395,6 @@ def _baked(meta: dict) -> str:
     return text
 
 
-def _bytes(n: int) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1000 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1000
-    return ""
-
 
 @app.command("info")
 @user_errors
@@ -447,15 +440,15 @@ def info_cmd(
     if meta["train_seconds"] is not None:
         step += f" ({meta['train_seconds']:.0f} s of training)"
     rows = [
-        ("model", f"{meta['path']} ({_bytes(meta['file_bytes'])})"),
-        ("  size", ", ".join(f"{kind} {_bytes(n)}" for kind, n in meta["sizes"].items() if n)
+        ("model", f"{meta['path']} ({size_text(meta['file_bytes'])})"),
+        ("  size", ", ".join(f"{kind} {size_text(n)}" for kind, n in meta["sizes"].items() if n)
          + ("" if meta["resumable"] else " (no training state: stripped or baked)")
          + (" (crfedit model strip drops the training state)" if meta["sizes"]["training state"] else "")),
         ("preset", f"{meta['preset']}, arch {meta['arch']}, sampler {meta['sampler']}"),
         ("instances", f"{meta['instances']}: {shown}"),
         ("parameters", f"{meta['parameters']:,}"),
     ]
-    rows += [(f"  {name}", f"{m['params']:>10,}  {_bytes(m['bytes']):>9}") for name, m in meta["modules"].items()]
+    rows += [(f"  {name}", f"{m['params']:>10,}  {size_text(m['bytes']):>9}") for name, m in meta["modules"].items()]
     rows += [
         ("occupancy", occupancy),
         ("scene box", "[" + ", ".join(f"{x:.3f}" for x in lo) + "] .. [" + ", ".join(f"{x:.3f}" for x in hi) + "]"),

@@ -201,7 +201,7 @@ function clearUsedStrokes(instance) {
 
 // ------------------------------------------------------------------------------------ stack
 
-function kb(n) { return n < 1024 ? `${n} B` : `${(n / 1024).toFixed(1)} KiB`; }
+function kb(n) { return n < 1000 ? `${n} B` : n < 1e6 ? `${(n / 1000).toFixed(1)} KB` : `${(n / 1e6).toFixed(1)} MB`; }  // decimal, as the CLI prints sizes
 
 function renderStack(rows) {
   const ol = $("stack");
