@@ -19,6 +19,8 @@ import json
 import multiprocessing
 import os
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -260,9 +262,6 @@ def test_sharded_edit_evaluation_equals_one_process(two_ranks):
 def test_a_broken_job_exits_without_teardown():
     """After a failed collective the command line leaves with its exit code and runs no
     interpreter teardown (no atexit handler, no gloo destructor); otherwise it exits normally."""
-    import subprocess
-    import sys
-
     script = ("import atexit, sys; import crfedit.distributed as d; d._BROKEN = {b}; "
               "atexit.register(lambda: print('teardown')); from crfedit.cli import main; "
               "sys.argv = ['crfedit', 'info', 'no/such/folder']; main()")
@@ -296,6 +295,19 @@ def test_under_torchrun_one_line_per_job_and_unshared_commands_refused(tiny_mode
     assert invoke(*export).exit_code == 0 and (tmp_path / "s.safetensors").is_file()
 
 
+def test_help_under_torchrun_is_printed_once():
+    """``torchrun --nproc-per-node N crfedit render --help`` printed the help N times: rank 0
+    alone prints it (and --version), the others exit as it does with nothing on stdout."""
+    for args in (["render", "--help"], ["--version"]):
+        outs = []
+        for rank in (0, 1):
+            env = {**os.environ, "RANK": str(rank), "LOCAL_RANK": str(rank), "WORLD_SIZE": "2"}
+            r = subprocess.run([sys.executable, "-m", "crfedit", *args], capture_output=True, text=True, timeout=120, env=env)
+            outs.append((r.returncode, r.stdout, r.stderr))
+        assert outs[0][0] == outs[1][0] == 0 and outs[1][1:] == ("", ""), outs
+        assert ("Usage:" in outs[0][1]) == (args[0] == "render") and outs[0][1].strip(), outs[0]
+
+
 def test_timeouts_world_checks_and_clipped_reasons(monkeypatch):
     from crfedit.distributed import _clipped, collective_timeout
     from types import SimpleNamespace
@@ -320,8 +332,6 @@ def test_timeouts_world_checks_and_clipped_reasons(monkeypatch):
 
 def test_usage_errors_under_torchrun_are_rank_0_s_line(monkeypatch, capsys):
     """Every rank parses the same arguments: a usage error is printed by rank 0 alone."""
-    import sys
-
     from crfedit.cli import main
 
     for rank, expected in ((0, 1), (1, 0)):

@@ -60,6 +60,7 @@ def _leave_a_broken_job(code) -> None:
 
 
 def _main() -> None:
+    import os
     import sys
 
     import typer
@@ -85,6 +86,8 @@ def _main() -> None:
 
     # Typer 0.29 vendors click without its Abort; typer.Abort is what it raises on Ctrl-C.
     aborts = tuple({typer.Abort, getattr(click_errors, "Abort", typer.Abort)})
+    if not rank_0() and {"--help", "--version"} & set(sys.argv[1:]):
+        sys.stdout = open(os.devnull, "w")  # under torchrun the help (the version) is rank 0's to print, once
     try:
         terminate_as_interrupt()
         Session.threads, Session.threads_why = threads_choice()
