@@ -384,7 +384,8 @@ def test_shape_summary_lines():
     assert shape_summary({}) is None
     assert shape_summary({"shape_gate": {"dropped": 0}}) == "nothing left out of the joins"
     assert shape_summary({"shape_gate": {"dropped": 412}}).startswith("left 412 cells out of the joins")
-    assert shape_summary({"shape_gate": {"dropped": 1}, "rim_fill": {"cells": 1}}) == ("left 1 cell out of the joins (pieces of lines square to the scribble); "
+    assert shape_summary({"shape_gate": {"dropped": 1}, "rim_fill": {"cells": 1}}) == ("left 1 cell out of the joins (pieces of lines square to the scribble, such as legs under scribbled "
+                                                                                           "stretchers; if they belong to the part, scribble them too, here or from a second view); "
                                                                            "took 1 rim cell (lines lying in the scribbled panel's plane)")
     both = shape_summary({"shape_gate": {"dropped": 0}, "rim_fill": {"cells": 37}})
     assert both.startswith("nothing left out of the joins; took 37 rim cells")

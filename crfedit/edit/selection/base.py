@@ -163,7 +163,9 @@ def shape_summary(meta: dict) -> str | None:
     said = []
     if gate is not None:
         said.append("nothing left out of the joins" if gate["dropped"] == 0
-                    else f"left {cells(gate['dropped'], '')} out of the joins (pieces of lines square to the scribble)")
+                    else f"left {cells(gate['dropped'], '')} out of the joins (pieces of lines square to the scribble, "
+                         "such as legs under scribbled stretchers; if they belong to the part, scribble them too, "
+                         "here or from a second view)")
     sheets = meta.get("sheet_veto")
     if sheets is not None and sheets["cells"] > 0:
         said.append(f"left {cells(sheets['cells'], 'sheet ')} out (the scribble lies on lines: {sheets['line_share']:.0%})")
@@ -192,7 +194,7 @@ def _centres_summary(info: dict) -> str:
     points = lambda m: f"{m} edge point{'' if m == 1 else 's'}"
     keep = f"; {points(n_keep)} of the keep strokes left out" if n_keep else ""
     if n == 0:
-        return f"lifted whole (no stroke had a centre to trust: one or two pixels wide){keep}"
+        return f"lifted whole (strokes one or two pixels wide: every scribbled pixel is lifted){keep}"
     return f"their centres lifted ({points(n)} left out: a brush strays off a thin part){keep}"
 
 
