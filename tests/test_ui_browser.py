@@ -61,6 +61,8 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     p.wait("return document.getElementById('az-out').textContent.startsWith('≈')", 30)
     assert p.js("return [Number(document.getElementById('azimuth').value), Number(document.getElementById('elevation').value)]") \
         == [round(az) % 360, round(el)]
+    # the turntable follows the stored view's elevation, so a tile opens the view it shows
+    p.wait(f"return S.turnEl === {round(el)}", 30)
 
     p.draw(stroke)
     drawn = p.js("return Strokes.toJson(marks().fg)")
@@ -130,7 +132,7 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     # the thumbnails take the keyboard: Tab reaches them, Enter picks one
     assert p.js("return [...document.querySelectorAll('#instances img, #turntable img')].every(i => i.tabIndex === 0)")
     p.js("document.querySelectorAll('#turntable img')[2].dispatchEvent(new KeyboardEvent('keydown', {key: 'Enter'}))")
-    p.wait("return typeof S.view === 'object' && S.view.azimuth === 90", 30)
+    p.wait("return typeof S.view === 'object' && S.view.azimuth === 90 && S.view.elevation === S.turnEl", 30)
     n = p.count("view")
     p.js("pickInstance(0)")
     p.wait(f"return performance.getEntriesByName('crfedit:view').length > {n} && !S.viewBusy", 60)

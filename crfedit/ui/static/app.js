@@ -14,7 +14,7 @@ const S = {
   copy: null, // add: {instance, view, strokes: []}
   paste: null, donorMode: false,
   tool: "fg", radius: 1.5, tint: false, drag: null,
-  viewBusy: false, viewAgain: false, turnSeq: 0,
+  viewBusy: false, viewAgain: false, turnSeq: 0, turnEl: null,
   job: null, ws: null, lost: false, ownOps: 0, // ownOps: this tab's stack changes in flight (their replies update it)
   angles: new Map(), // instance -> {split: [[azimuth, elevation], ...]} of its stored views (/api/angles)
 };
@@ -173,11 +173,13 @@ function wipe() {
   $("before").style.clipPath = `inset(0 ${100 - Number($("wipe").value)}% 0 0)`;
 }
 
-// The turntable of the current instance.  A newer call wins: an older call's late replies (the
-// user clicked through several chairs) are dropped, not drawn among the newer chair's tiles.
+// The turntable of the current instance, at the shown view's elevation (S.turnEl: a tile opens
+// the view it shows).  A newer call wins: an older call's late replies (the user clicked through
+// several chairs) are dropped, not drawn among the newer chair's tiles.
 async function showTurntable() {
   const start = performance.now(), seq = ++S.turnSeq;
   const el = (viewAngles() || { elevation: 30 }).elevation;
+  S.turnEl = el;
   const tint = S.tint ? "&tint=1" : "";
   const imgs = [...$("turntable").children];
   await Promise.all(imgs.map(async (img, i) => {
@@ -211,11 +213,21 @@ function setView(view) {
   showSliders();
   saveMarks();
   showView();
+  if (typeof view === "string") followTurntable();
 }
 
 async function loadAngles(k) {
   if (!S.angles.has(k)) S.angles.set(k, await getJson(`/api/angles?instance=${k}`));
   showSliders();
+  followTurntable();
+}
+
+// The turntable drawn again when the view's elevation is not the tiles' (a stored view picked,
+// its angles come, the elevation slider let go): drawn at 30° before a stored view's angles had
+// come, a tile opened a view at that view's elevation, not the one it showed.
+function followTurntable() {
+  const a = viewAngles();
+  if (a && a.elevation !== S.turnEl) attempt(showTurntable);
 }
 
 function orbitFromSliders() {
@@ -477,7 +489,7 @@ async function start() {
   for (let i = 0; i < 8; i++) {
     const img = document.createElement("img");
     img.title = `orbit ${i * 45}°`;
-    clickable(img, () => setView({ azimuth: i * 45, elevation: (viewAngles() || { elevation: 30 }).elevation }));
+    clickable(img, () => setView({ azimuth: i * 45, elevation: S.turnEl ?? 30 }));  // the view the tile shows
     $("turntable").append(img);
   }
   S.radius = Math.max(1, Math.round(S.info.width / 48 * 4) / 4);  // on the slider's 0.25 steps, so it can be chosen again
@@ -495,6 +507,7 @@ async function start() {
 function wire() {
   $("azimuth").addEventListener("input", orbitFromSliders);
   $("elevation").addEventListener("input", orbitFromSliders);
+  $("elevation").addEventListener("change", followTurntable);  // let go: the tiles at the new elevation
   $("instance-select").addEventListener("change", () => pickInstance(Number($("instance-select").value)));
   document.querySelectorAll('input[name="tool"]').forEach((r) => r.addEventListener("change", () => { S.tool = r.value; }));
   $("radius").addEventListener("input", () => { S.radius = Number($("radius").value); $("radius-out").textContent = `${S.radius.toFixed(2)} px`; });
