@@ -74,11 +74,17 @@ def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: floa
     return target
 
 
+def gif_frame_rate(fps: float) -> float:
+    """The rate a GIF asked for ``fps`` plays at: a GIF's frame time is a whole number of
+    hundredths of a second, at least 2 (browsers clamp shorter ones), so 12 fps plays at 12.5."""
+    return 100.0 / max(2, round(100.0 / fps))
+
+
 def _write_gif(path: Path, images: list[np.ndarray], fps: float) -> None:
     from PIL import Image
 
     pil = [Image.fromarray(im) for im in images]
-    duration = max(20, round(1000.0 / fps))  # ms per frame; browsers clamp anything below 20 ms
+    duration = round(1000.0 / gif_frame_rate(fps))  # ms per frame, a multiple of 10 that Pillow stores exactly
     with atomic_path(path) as tmp:
         pil[0].save(tmp, format="GIF", save_all=True, append_images=pil[1:], duration=duration, loop=0)
 

@@ -290,11 +290,16 @@ def test_render_split_views_at_stored_size_and_gif(model_path, tmp_path):
     result = invoke("render", model_path, "--instance", 0, "--views", "train:0-2", "--out", out, "--video", tmp_path / "t.gif")
     assert result.exit_code == 0, result.output
     assert read_image(out / "0002.png").shape == (16, 16, 3) and not (out / "0003.png").exists()
-    assert f"wrote GIF {tmp_path / 't.gif'}" in result.stdout
+    # the default 12 fps is 8.33 hundredths of a second a frame: the GIF stores 8, and says so
+    assert f"wrote GIF {tmp_path / 't.gif'} at 12.5 fps (a GIF's frame time is whole hundredths of a second; --fps 12 asked)" in result.stdout
     from PIL import Image
 
     with Image.open(tmp_path / "t.gif") as gif:
-        assert gif.n_frames == 3 and gif.size == (16, 16)
+        assert gif.n_frames == 3 and gif.size == (16, 16) and gif.info["duration"] == 80
+    result = invoke("render", model_path, "--instance", 0, "--views", "train:0-2", "--out", out, "--video", tmp_path / "t.gif", "--fps", 20)
+    assert result.exit_code == 0 and f"wrote GIF {tmp_path / 't.gif'}\n" in result.stdout  # 5 hundredths: as asked
+    with Image.open(tmp_path / "t.gif") as gif:
+        assert gif.info["duration"] == 50
 
 
 def test_video_falls_back_to_gif_without_imageio_ffmpeg(tmp_path, monkeypatch):

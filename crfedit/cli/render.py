@@ -35,6 +35,7 @@ def render_cmd(
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..model import load_model
     from ..render_files import render_to_folder
+    from ..video import gif_frame_rate
     from ..runtime import resolve_device
     from ..views import parse_resolution
 
@@ -81,6 +82,8 @@ def render_cmd(
         note = ""
         if video is not None and result.video != video:
             note = " (imageio-ffmpeg is not installed, so a GIF instead of MP4: pip install -e '.[video]')"
+        if kind == "GIF" and abs(gif_frame_rate(fps) - fps) > 1e-6 * fps:
+            note += f" at {gif_frame_rate(fps):g} fps (a GIF's frame time is whole hundredths of a second; --fps {fps:g} asked)"
         typer.echo(f"wrote {kind} {result.video}{note}")
     # the instances this render reads: its own, and those whose codes (and grid) --shape-from/--color-from take
     read = {m.names[k], *(m.names[m.instance_index(i)] for i in (shape_from, color_from) if i is not None)}
