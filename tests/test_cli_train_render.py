@@ -421,6 +421,12 @@ def test_quickstart_end_to_end(tmp_path):
         gap = "n/a" if e["gap_closed"] is None else f"{e['gap_closed']:.2f}"
         assert (e["gap_closed"] is None) == (e["psnr_ceiling"] - e["psnr_before"] <= 1e-9)
         assert f"chair_000's {e['part']}: closes {gap} of the PSNR gap" in result.stdout
+    # an edit that ends below the unedited chair is said to be worse than none (a one-minute model's recolour closed -0.01)
+    worse = sum(e["gap_closed"] is not None and e["gap_closed"] < 0 for e in score["edits"])
+    assert result.stdout.count("worse than no edit: a model of ") == worse
+    import importlib.util
+
+    assert ("needs pip install -e '.[ui]'" in result.stdout) == (importlib.util.find_spec("aiohttp") is None)
     # two rows (recolour, removal) of the scribbled view + two test views × (before, after, twin), 16 px × 3
     assert read_image(out / "edits" / "edits.png").shape[:2] == (2 * (48 + 16 + 6) + 6, 6 + 6 * 54 + 2 * 18 + 48 + 6)
     plain = tmp_path / "plain"

@@ -551,11 +551,17 @@ def quickstart_cmd(
     for row in demo["edits"] if demo else []:
         what = "recolour" if row["kind"] == "color" else "removal "
         gap = "n/a" if row["gap_closed"] is None else f"{row['gap_closed']:.2f}"
+        worse = row["gap_closed"] is not None and row["gap_closed"] < 0  # a model too rough to edit: said, not left to the number
         typer.echo(printable(f"{what}   {row['source']}'s {row['part']}: closes {gap} of the PSNR gap to its twin "
-                             f"({_db(row['psnr_before'])} -> {_db(row['psnr'])} dB) in {row['seconds']:.2f} s; delta {row['delta']}"))
+                             f"({_db(row['psnr_before'])} -> {_db(row['psnr'])} dB) in {row['seconds']:.2f} s; delta {row['delta']}"
+                             + (f"\n           worse than no edit: a model of {score['psnr']:.1f} dB held-out is too rough to edit "
+                                "well (train longer: --minutes)" if worse else "")))
     if demo:
         first = demo["edits"][0]
         typer.echo(f"picture    {demo['picture']}")
         typer.echo(printable(f"next       crfedit render {model_path} --instance {first['source']} --edit {first['delta']} --views orbit:24 --out {out / 'edited'}"))
-        typer.echo(printable(f"           crfedit ui {model_path} --data {out / 'data'} --edit {first['delta']}  (scribble your own; needs pip install -e '.[ui]')"))
+        import importlib.util
+
+        extra = "" if importlib.util.find_spec("aiohttp") else "; needs pip install -e '.[ui]'"
+        typer.echo(printable(f"           crfedit ui {model_path} --data {out / 'data'} --edit {first['delta']}  (scribble your own{extra})"))
     typer.echo(f"done in {time.perf_counter() - start:.0f} s")
