@@ -399,11 +399,27 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
         if chain_fingerprint(base, prefix) == parent:
             after = ", ".join(n for j, n in enumerate(names) if j != position and j <= i)
             return ModelFileError(f"{where}was made after {after}; pass the --edit files in the order they were made")
+    made_on = _command_edits(delta.meta.get("command", ""))  # the stack it was made on, as its command named it
+    told = (f"; it was made on {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}), here {position} come before it"
+            if made_on else "")
     return ModelFileError(
         f"{where}was made after other edits than the ones before it here (parent {parent}, "
-        f"expected {chain_fingerprint(base, list(applied) + fps[:position]) or 'none'}); "
+        f"expected {chain_fingerprint(base, list(applied) + fps[:position]) or 'none'}{told}); "
         "pass the --edit files in the order they were made, or re-pin them with `crfedit edits rebase`"
     )
+
+
+def _command_edits(command: str) -> list[str]:
+    """The ``--edit`` files a recorded command line gave (an edit made on a stack names it there);
+    [] when it names none or cannot be split."""
+    import shlex
+
+    try:
+        words = shlex.split(command)
+    except ValueError:
+        return []
+    return [w.split("=", 1)[1] if w.startswith("--edit=") else words[i + 1] for i, w in enumerate(words)
+            if (w == "--edit" and i + 1 < len(words)) or w.startswith("--edit=")]
 
 
 def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str, list[str]] | None = None) -> None:

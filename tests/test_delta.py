@@ -284,6 +284,14 @@ def test_wrong_order_parent_and_base_are_rejected(tmp_path, model):
         apply_edit_files(model, [b, a])
     with pytest.raises(ModelFileError, match=r"b\.safetensors: was made after other edits"):
         apply_edit_files(model, [b])
+    # an edit missing from the stack: the line names the stack its command was given
+    from crfedit.delta import check_stack, read_delta
+
+    missing = read_delta(b)
+    missing.meta["command"] = "crfedit edit-color m.safetensors --edit 'x/a 1.safetensors' --edit=x/z.safetensors --out b.safetensors"
+    with pytest.raises(ModelFileError, match=r"was made after other edits .*; it was made on 2 edits \(x/a 1\.safetensors, "
+                                             r"x/z\.safetensors\), here 0 come before it\); pass"):
+        check_stack(model, [missing])
     with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, as .*a\.safetensors was: they are two edits of one "
                                              r"model, not a stack; to apply both, re-pin them as one with `crfedit edits rebase"):
         apply_edit_files(model, [a, c])
