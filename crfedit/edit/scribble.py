@@ -242,10 +242,17 @@ def check_masks(scribble, keep, width: int, height: int) -> tuple[np.ndarray, np
         return scribble, None
     if keep.all():
         raise CrfError("the keep mask covers the whole view (an all-white mask?): scribble only what must not change")
+    return scribble, keep_outside(scribble, keep)
+
+
+def keep_outside(scribble: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The keep mask minus the scribble (the scribble wins); one that keeps no pixel is an error
+    (an empty PNG given as --keep is a slip, not a request for no keep strokes: that is none)."""
     keep = keep & ~scribble
     if not keep.any():
-        raise CrfError("the keep mask has no pixel outside the scribble (empty, or all under the scribble)")
-    return scribble, keep
+        raise CrfError("the keep mask has no pixel outside the scribble (empty, or all under the scribble; "
+                       "--keep none gives a view without keep strokes)")
+    return keep
 
 
 def pick_pixels(
