@@ -15,7 +15,6 @@ For a twin and the source's test views (the same poses):
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -28,6 +27,8 @@ from .data.format import resize_nearest
 from .data.loading import View
 from .edit.scribble import parse_color
 from .edit.selection import Selection, surface_points
+from .errors import CrfError
+from .io import read_json
 from .model import CategoryModel
 
 CHANGED = 2.0 / 255.0
@@ -70,7 +71,10 @@ def part_of(instance_dir: Path, part: str) -> dict | None:
     path = Path(instance_dir) / "parts.json"
     if not path.is_file():
         return None
-    return next((p for p in json.loads(path.read_text()) if p.get("name") == part), None)
+    parts = read_json(path)  # a BOM or malformed JSON: one line naming the file
+    if not isinstance(parts, list) or not all(isinstance(p, dict) for p in parts):
+        raise CrfError(f"{path}: expected a list of parts [{{\"id\", \"name\", \"color\"}}, ...]")
+    return next((p for p in parts if p.get("name") == part), None)
 
 
 def part_map(instance_dir: Path, view: View) -> np.ndarray | None:

@@ -1291,6 +1291,22 @@ def test_twin_score_closed_forms():
     assert gap_closed(25.0, 30.0, 30.0) is None  # no gap to close
 
 
+def test_part_records_read_as_every_json_file(tmp_path):
+    """parts.json saved with a BOM (a Windows editor) reads as the file it is (eval edits crashed
+    on it with an unexpected JSONDecodeError); one that is not a list of parts is one line."""
+    from crfedit.twin_scores import part_of
+
+    record = [{"id": 1, "name": "seat", "color": "#ff0000"}]
+    (tmp_path / "parts.json").write_text(json.dumps(record), encoding="utf-8-sig")
+    assert part_of(tmp_path, "seat") == record[0] and part_of(tmp_path, "back") is None
+    (tmp_path / "parts.json").write_text('{"seat": 1}')
+    with pytest.raises(CrfError, match=r"parts\.json: expected a list of parts"):
+        part_of(tmp_path, "seat")
+    (tmp_path / "parts.json").write_text('[{"id": 1,')
+    with pytest.raises(CrfError, match=r"parts\.json: malformed JSON"):
+        part_of(tmp_path, "seat")
+
+
 def test_local_shape_closed_form():
     """A line, a sheet and a solid block of cells around a point's cell: offsets x ∈ {−1, 0, 1}
     have variance 2/3, so a line's eigenvalues are (2/3 + ε, ε, ε) with ε = 10⁻³, a sheet's
