@@ -1268,12 +1268,21 @@ def test_a_view_with_keep_strokes_alone_holds_back_what_it_marks(trained, tmp_pa
     one = ["select", str(path), "--instance", model.names[k], "--view", f"train:{inst.index(other)}", "--scribble", "none",
            "--keep", str(tmp_path / "kept.png"), "--out", str(tmp_path / "x.safetensors")]
     assert_user_error(CliRunner().invoke(app, one), "no view holds a scribble: keep strokes alone select nothing")
+    # no scribble and no keep: the same line (it asked for keep strokes, then refused them)
+    assert_user_error(CliRunner().invoke(app, one[:-4] + one[-2:]), "no view holds a scribble: keep strokes alone select nothing")
+    # a keep for one of two views: the line says how to give the other none
+    two_views = [w for i, w in enumerate(args) if i not in (args.index("--keep"), args.index("--keep") + 1)]  # view 1's --keep none dropped
+    r = CliRunner().invoke(app, [*two_views, "--keep", str(tmp_path / "kept.png"), "--out", str(tmp_path / "x.safetensors")])
+    assert_user_error(r, "give one --keep per --view, in order (none for a view without keep strokes), or no --keep (2 views, 1 keep masks)")
     # `none` belongs to select's further views: an edit command says so rather than "none: file not found"
     for option, fix in (("--scribble", "needs its scribble"), ("--keep", "takes no --keep when it has no keep strokes")):
         masks = {"--scribble": str(tmp_path / "fg.png"), "--keep": str(tmp_path / "kept.png"), option: "none"}
         r = CliRunner().invoke(app, ["remove", str(path), "--instance", model.names[k], "--view", f"train:{inst.index(view)}",
                                      *(w for o, m in masks.items() for w in (o, m)), "--out", str(tmp_path / "x.safetensors")])
         assert_user_error(r, f"{option} none: `none` is for `crfedit select`'s views without such strokes", fix)
+    r = CliRunner().invoke(app, ["add", str(path), "--instance", model.names[k], "--donor", model.names[1 - k], "--view", f"train:{inst.index(view)}",
+                                 "--copy", "none", "--offset", "0,0", "--out", str(tmp_path / "x.safetensors")])
+    assert_user_error(r, "--copy none: `none` is for `crfedit select`'s views without such strokes; an addition needs the donor's part")
 
 
 def test_twin_score_closed_forms():

@@ -94,14 +94,19 @@ def _view_render(model, instance: int, camera):
     return render
 
 
+def _refuse_none(option: str, path, needs: str) -> None:
+    """``none`` names `select`'s views without such strokes; given to an edit's mask (and no file
+    is called that) it is one line saying so, not 'none: file not found'."""
+    if path is not None and str(path).lower() == NO_MASK and not Path(path).exists():
+        raise CrfError(f"{option} none: `none` is for `crfedit select`'s views without such strokes; {needs}")
+
+
 def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camera, force: bool):
     """(scribble mask, keep mask or None), each image read as drawn (one line says how)."""
     from ..edit.scribble import check_coverage, check_masks, keep_overlap, load_mask
 
-    for option, path in (("--scribble", scribble), ("--keep", keep)):
-        if path is not None and str(path).lower() == NO_MASK and not Path(path).exists():
-            raise CrfError(f"{option} none: `none` is for `crfedit select`'s views without such strokes; an edit's one view "
-                           + ("needs its scribble" if option == "--scribble" else "takes no --keep when it has no keep strokes"))
+    _refuse_none("--scribble", scribble, "an edit's one view needs its scribble")
+    _refuse_none("--keep", keep, "an edit's one view takes no --keep when it has no keep strokes")
     render = _view_render(model, instance, camera)
     fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble", render)
     fraction = check_coverage(fg.mask, force)
@@ -423,6 +428,7 @@ def add_cmd(
     label, camera = _one_view(m, view, k)
     # the copy mask is drawn on the donor's own view: --view's spec read on the donor by default
     donor_camera = _one_view(m, view if donor_view is None else donor_view, j, "--view" if donor_view is None else "--donor-view")[1]
+    _refuse_none("--copy", copy_mask, "an addition needs the donor's part drawn on --copy")
     copied = load_mask(copy_mask, None, donor_camera.width, donor_camera.height, "copy", _view_render(m, j, donor_camera))
     mask = copied.mask
     typer.echo(f"copy: {copied.reading}, {int(mask.sum())} pixels")

@@ -60,10 +60,16 @@ def select_cmd(
     from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
     from ..io import write_png
 
+    def none(path) -> bool:  # the word, unless a file is called that
+        return str(path).lower() == NO_MASK and not Path(path).exists()
+
     if len(scribble) != len(view):
         raise CrfError(f"give one --scribble per --view ({len(view)} views, {len(scribble)} scribbles)")
     if keep and len(keep) != len(view):
-        raise CrfError(f"give no --keep or one per --view ({len(view)} views, {len(keep)} keep masks)")
+        raise CrfError(f"give one --keep per --view, in order (none for a view without keep strokes), or no --keep "
+                       f"({len(view)} views, {len(keep)} keep masks)")
+    if all(none(p) for p in scribble):
+        raise CrfError("no view holds a scribble: keep strokes alone select nothing (scribble the part on at least one view)")
     options = options_for(kind, None if mirror is None else mirror.value, None if join is None else join.value)
     check_out_file(out, {"MODEL": model, "--edit": edit, "--scribble": scribble, "--keep": keep}, "selection", "sel.safetensors", SELECTION_FORMAT)
     m = _load(model, edit, device)
@@ -72,8 +78,8 @@ def select_cmd(
     scribbles = []
     for i, spec in enumerate(view):
         _, camera = _one_view(m, spec, k)
-        bg = _mask(keep[i], m, k, camera, "keep") if keep and str(keep[i]).lower() != NO_MASK else None
-        if str(scribble[i]).lower() == NO_MASK:  # a view that only holds back what it shows
+        bg = _mask(keep[i], m, k, camera, "keep") if keep and not none(keep[i]) else None
+        if none(scribble[i]):  # a view that only holds back what it shows
             if bg is None:
                 raise CrfError(f"--view {spec} --scribble none: a view without a scribble needs its --keep strokes")
             fg = np.zeros_like(bg)
