@@ -655,6 +655,10 @@ def test_a_transfer_says_when_weights_of_an_instance_s_own_do_not_travel(trained
     r = invoke("render", path, "--instance", 0, "--color-from", 1, "--edit", tmp_path / "c.safetensors", "--views", "test:0",
                "--out", tmp_path / "r", "--device", "cpu")
     assert r.exit_code == 0 and r.stderr.splitlines() == [f"note: {weights_not_carried(edited, 0, color_from=1)[0]}"], r.stderr
+    # a transfer made on the bare model, re-pinned after the recolour: rebase says it where it lands
+    assert invoke("transfer", path, "--instance", 0, "--color-from", 1, "--out", tmp_path / "bare.safetensors", "--device", "cpu").exit_code == 0
+    r = invoke("edits", "rebase", path, "--edit", tmp_path / "c.safetensors", "--edit", tmp_path / "bare.safetensors", "--out-dir", tmp_path / "rb")
+    assert r.exit_code == 0 and f"note: bare.safetensors here: {weights_not_carried(edited, 0, color_from=1)[0]}" in r.stderr.splitlines(), r.stderr
 
 
 def test_ctrl_c_in_the_previews_says_the_edit_was_written(trained, tmp_path, monkeypatch):

@@ -617,7 +617,8 @@ def rebase_cmd(
     files pass `crfedit edits check` in the order given. An edit made after one that is now left
     out applies its change without it, not optimized again.
     """
-    from ..delta import read_delta, restack, save_delta
+    from ..delta import apply_deltas, read_delta, restack, save_delta
+    from ..edit.transfer import weights_not_carried
     from ..model import load_model
 
     names = [p.name for p in edit]
@@ -654,6 +655,11 @@ def rebase_cmd(
     stale = sorted(p.name for p in out_dir.glob("*.safetensors") if p.name not in names and _is_edit_file(p))
     if stale:  # an earlier rebase's files: not in this stack, and `edits check` with them fails
         typer.echo(printable(f"note: {out_dir} also holds {', '.join(stale)} from before, which this stack does not include"))
+    for i, (p, before, after) in enumerate(zip(edit, deltas, pinned)):  # as transfer says it where the transfer is made
+        if after is not before and after.kind == "transfer":
+            hyper = json.loads(after.meta.get("hyperparameters") or "{}")
+            for note in weights_not_carried(apply_deltas(m, pinned[:i]), after.instance, hyper.get("shape_from"), hyper.get("color_from")):
+                typer.echo(printable(f"note: {p.name} here: {note}"), err=True)
     if any(after is not before and after.kind != "transfer" for before, after in zip(deltas, pinned)):
         typer.echo("note: a re-pinned edit keeps the change it was optimized for on its old stack; where an edit of the same "
                    "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)")

@@ -216,7 +216,8 @@ def optimize(edit: InstanceEdit, loss_fn: Callable[[], Tensor], options: EditOpt
     """
     started = time.perf_counter()
     opt = FusedAdam(edit.params.values(), lr=options.lr)
-    last = run_adam(opt, loss_fn, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg))
+    last = run_adam(opt, loss_fn, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg),
+                    refuse_rise=True)
     with torch.no_grad():
         last += options.lambda_reg * float(edit.penalty())
     edit.optimize_seconds = time.perf_counter() - started
