@@ -80,3 +80,37 @@ print(json.dumps('torch._dynamo' in sys.modules))
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "false"
+
+
+def test_a_loss_that_ends_far_above_its_start_is_divergence():
+    """check_descent: the last tenth's mean against RISE_LIMIT × the first loss; fewer than 10
+    steps are not judged (one step's random rays may cost more than the first's)."""
+    from crfedit.errors import NonFiniteError
+    from crfedit.optim import RISE_LIMIT, check_descent
+
+    with pytest.raises(NonFiniteError, match=r"^edit diverged: its loss rose from 2 to 50 over 10 steps \(a learning rate too large\?\); nothing"):
+        check_descent([2.0] + [1.0] * 8 + [50.0], "edit", "nothing was written")  # the last tenth: the last step
+    check_descent([2.0] + [9.0] * 8 + [1.0], "edit", "x")  # high in the middle, low at the end: a fit that got there
+    check_descent([2.0] * 9, "edit", "x")  # 9 steps: not judged
+    check_descent([1.0] * 19 + [RISE_LIMIT, RISE_LIMIT], "edit", "x")  # at the limit: kept
+    with pytest.raises(NonFiniteError):
+        check_descent([1.0] * 18 + [RISE_LIMIT + 0.01, RISE_LIMIT + 0.01], "edit", "x")
+
+
+def test_run_adam_refuses_a_rise_only_when_asked():
+    """A quadratic from x = 1 at a learning rate that overshoots keeps its loss finite and rising
+    (Adam's steps are about lr long): refused with refuse_rise, returned without it."""
+    from crfedit.errors import NonFiniteError
+    from crfedit.optim import FusedAdam, run_adam
+
+    for refuse in (False, True):
+        x = torch.tensor([1.0], requires_grad=True)
+        opt = FusedAdam([x], lr=10.0)
+        run = lambda: run_adam(opt, lambda: (x * x).sum(), 20, "fit", refuse_rise=refuse)
+        if refuse:
+            with pytest.raises(NonFiniteError, match="fit diverged: its loss rose from 1 to"):
+                run()
+        else:
+            assert run() > 1.5
+    x = torch.tensor([1.0], requires_grad=True)
+    assert run_adam(FusedAdam([x], lr=0.1), lambda: (x * x).sum(), 20, "fit", refuse_rise=True) < 1.0
