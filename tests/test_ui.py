@@ -672,6 +672,31 @@ def test_ui_command_warns_when_bound_beyond_this_machine(monkeypatch, scene, tmp
     assert seen["host"] == "0.0.0.0" and not (tmp_path / "w").exists()
 
 
+def test_a_page_that_cannot_listen_names_what_to_change(scene, tmp_path):
+    """A port in use is the port's fault; a host that does not resolve or is not this machine's
+    is the host's (it said "pick another --port" for both, with --port 0 too)."""
+    import errno
+    import socket
+
+    from crfedit.ui.server import _listen_fix, serve
+    from crfedit.ui.session import open_session
+
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        session, _ = open_session(scene[0], None, [], tmp_path / "w", "cpu")
+        port = taken.getsockname()[1]
+        with pytest.raises(CrfError, match=rf"^cannot listen on 127\.0\.0\.1:{port} \(.*\); pick another --port \(--port 0 takes a free one\)$"):
+            serve(session, "127.0.0.1", port, lambda url: None)
+    finally:
+        taken.close()
+    host_fix = "--host h is not an address of this machine (127.0.0.1 for this machine alone, 0.0.0.0 for every interface)"
+    assert _listen_fix(socket.gaierror(-2, "Name or service not known"), "h") == host_fix
+    assert _listen_fix(OSError(errno.EADDRNOTAVAIL, "Cannot assign requested address"), "h") == host_fix
+    assert _listen_fix(OSError(errno.EADDRINUSE, "Address already in use"), "h").startswith("pick another --port")
+
+
 SIGNAL_ON_A_WORKER = """
 import signal, sys, threading, time
 from crfedit.ui.server import serve

@@ -44,10 +44,9 @@ def ui_cmd(
     session, warnings = open_page_session(model, data, list(edit or []), workdir, device.value)
     for w in warnings:
         typer.echo(f"warning: {w}", err=True)
-    if host not in LOOPBACK:
-        typer.echo(f"warning: --host {host}: the page is reachable from other machines; anyone with its URL can edit and write files in {workdir}", err=True)
-
     def ready(url: str) -> None:
+        if host not in LOOPBACK:  # said once it listens there: an address it could not take is the error alone
+            typer.echo(f"warning: --host {host}: the page is reachable from other machines; anyone with its URL can edit and write files in {workdir}", err=True)
         threads = torch.get_num_threads()
         typer.echo(f"crfedit ui: {model} with {len(session.entries)} edit(s), work dir {workdir}, "
                    f"{threads} CPU thread{'s' * (threads > 1)} for each of the page's two compute threads")

@@ -423,6 +423,19 @@ class Server:
 # ----------------------------------------------------------------------------- running
 
 
+def _listen_fix(error: OSError, host: str) -> str:
+    """What to change when the page cannot listen: the port when it is taken (or not ours to
+    take), else the host (a name that does not resolve, an address this machine does not have)."""
+    import errno
+    import socket
+
+    if error.errno in (errno.EADDRINUSE, errno.EACCES):
+        return "pick another --port (--port 0 takes a free one)"
+    if isinstance(error, socket.gaierror) or error.errno == errno.EADDRNOTAVAIL:
+        return f"--host {host} is not an address of this machine (127.0.0.1 for this machine alone, 0.0.0.0 for every interface)"
+    return "check --host and --port"
+
+
 async def _start(server: Server, host: str, port: int) -> web.AppRunner:
     runner = web.AppRunner(server.app(), access_log=None, shutdown_timeout=SHUTDOWN_S)
     await runner.setup()
@@ -431,7 +444,7 @@ async def _start(server: Server, host: str, port: int) -> web.AppRunner:
         await site.start()
     except OSError as e:
         await runner.cleanup()
-        raise CrfError(f"cannot listen on {host}:{port} ({e.strerror or e}); pick another --port") from None
+        raise CrfError(f"cannot listen on {host}:{port} ({e.strerror or e}); {_listen_fix(e, host)}") from None
     server.port = site._server.sockets[0].getsockname()[1]
     return runner
 
