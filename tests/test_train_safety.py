@@ -106,14 +106,16 @@ def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
 def test_existing_model_is_not_replaced_silently(tiny_chairs, tmp_path):
     out = tmp_path / "m.safetensors"
     out.write_bytes(b"precious")
-    r = invoke("train", tiny_chairs, "--out", out, *TINY)
-    assert r.exit_code == 2 and "--resume" in r.stderr and "--overwrite" in r.stderr, r.output
+    r = invoke("train", tiny_chairs, "--out", out, *TINY)  # not a model: neither flag would help, so neither is offered
+    assert r.exit_code == 2 and "exists and is not a crfedit model" in r.stderr and "pick another name" in r.stderr, r.output
     assert out.read_bytes() == b"precious"
     r = invoke("train", tiny_chairs, "--out", out, "--overwrite", *TINY)  # --overwrite replaces models only
     assert r.exit_code == 2 and "is not a crfedit model" in r.stderr and out.read_bytes() == b"precious", r.output
     out.unlink()
     assert invoke("train", tiny_chairs, "--out", out, *TINY).exit_code == 0
     first = out.read_bytes()
+    r = invoke("train", tiny_chairs, "--out", out, *TINY)  # a model: continued or replaced only when asked
+    assert r.exit_code == 2 and "exists; continue its training with --resume, or replace it with --overwrite" in r.stderr, r.output
     r = invoke("train", tiny_chairs, "--out", out, "--overwrite", "--seed", 1, *TINY)
     assert r.exit_code == 0 and load_model(out)[1]["step"] == 3 and out.read_bytes() != first, r.output
 

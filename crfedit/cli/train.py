@@ -120,10 +120,10 @@ def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, 
 
     if out.is_dir():
         raise CrfError(f"{what} {out}: is a folder; give a file name such as {out / 'model.safetensors'}")
+    if out.exists() and file_format(out) != MODEL_FORMAT:  # first: --resume and --overwrite would not help
+        raise CrfError(f"{what} {out}: exists and is not a crfedit model; --resume and --overwrite take only models (pick another name)")
     if out.exists() and not (resume or overwrite):
         raise CrfError(f"{what} {out}: exists; continue its training with --resume, or replace it with --overwrite")
-    if out.exists() and file_format(out) != MODEL_FORMAT:
-        raise CrfError(f"{what} {out}: exists and is not a crfedit model; --resume and --overwrite take only models (pick another name)")
     for folder in out.parents:  # the first that exists must be a folder
         if folder.exists():
             if not folder.is_dir():
