@@ -708,6 +708,7 @@ def test_edit_command_errors_write_nothing(trained, tmp_path):
          ["small.png", "20x16", "32x32"]),
         (["--scribble", fg_png, "--color", "blurple"], ["--color 'blurple'"]),
         (["--scribble", fg_png, "--color", "red", "--lr", "1e30"], ["diverged", "nothing was written"]),
+        (["--scribble", fg_png, "--color", "red", "--views", "test"], ["--views test: sets the views of --preview; give --preview DIR too"]),
         (["--color", "red"], ["--scribble"]),
     ]
     for extra, fragments in cases:

@@ -1156,13 +1156,17 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert edge_points > 0 and f"strokes: their centres lifted ({edge_points} edge points left out" in r.output
     assert f"colour join: {join_summary(load_selection(out).meta)}\n" in r.output  # a recolour's selection joins or says why not
     r = runner.invoke(app, [*args, "--keep", str(tmp_path / "fg.png"), "--keep", str(tmp_path / "fg.png"), "--out", str(tmp_path / "x.safetensors")])
-    assert_user_error(r, "one per --view")
+    assert_user_error(r, "one --keep per --view")
     assert not (tmp_path / "x.safetensors").exists()
     # an empty keep PNG (or one under the scribble) is refused as the edit commands refuse it, not taken as none
     Image.fromarray(np.zeros_like(fg, dtype=np.uint8)).save(tmp_path / "empty.png")
     for bad in ("empty.png", "fg.png"):
         r = runner.invoke(app, [*args, "--keep", str(tmp_path / bad), "--out", str(tmp_path / "x.safetensors")])
         assert_user_error(r, f"--view train:{index}: the keep mask has no pixel outside the scribble", "--keep none")
+    assert not (tmp_path / "x.safetensors").exists()
+    # --views without --preview was ignored (and not even checked): refused, naming the fix
+    r = runner.invoke(app, [*args, "--views", "tset", "--out", str(tmp_path / "x.safetensors")])
+    assert_user_error(r, "--views tset: sets the views of --preview; give --preview DIR too")
     assert not (tmp_path / "x.safetensors").exists()
     r = runner.invoke(app, [*args, "--for", "paint", "--out", str(tmp_path / "x.safetensors")])
     assert_user_error(r, "a selection for 'paint'")

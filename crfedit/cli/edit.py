@@ -48,7 +48,9 @@ JoinOpt = Annotated[Optional[JoinMode], typer.Option("--colour-join", help="Whet
 MirrorOpt = Annotated[Optional[MirrorMode], typer.Option("--mirror", help="Mirror symmetry of the selection computed from the scribbles: views (the scribbled view's mirror image lends its strokes; removals' default), values (the selection takes its own mirror image; recolours' default) or off (one side only). Nothing is mirrored where the keep strokes cover the scribble's mirror image.")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
 PreviewOpt = Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG renders of the edited instance from --views.")]
-PreviewViewsOpt = Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")]
+PREVIEW_VIEWS = "orbit:8"
+"""The views of ``--preview`` when ``--views`` is not given."""
+PreviewViewsOpt = Annotated[Optional[str], typer.Option("--views", help=f"Views of --preview (default {PREVIEW_VIEWS}), e.g. test.")]
 ForceOpt = Annotated[bool, typer.Option("--force", help="Accept a scribble that covers more than half the view (and, for remove, a selection of nearly all the object).")]
 
 
@@ -150,8 +152,11 @@ def _selection(path: Path | None, model, instance: int, kind: str, mirror: str |
 
 def _preview_views(model, instance: int, folder: Path | None, spec: str):
     """The preview's (label, camera) list, resolved before any work so that a bad ``--preview``
-    or ``--views`` stops the command before it writes anything (None: no preview)."""
+    or ``--views`` stops the command before it writes anything (None: no preview).  ``--views``
+    without ``--preview`` is refused: it was ignored, so an edit asked for previews wrote none."""
     if folder is None:
+        if spec is not None:
+            raise CrfError(f"--views {spec}: sets the views of --preview; give --preview DIR too")
         return None
     if folder.exists() and not folder.is_dir():
         raise CrfError(f"--preview {folder}: is a file; give a folder for the preview PNGs")
@@ -160,7 +165,7 @@ def _preview_views(model, instance: int, folder: Path | None, spec: str):
 
     check_folder_target(folder, "--preview")
 
-    return resolve_views(spec, model, instance)
+    return resolve_views(spec or PREVIEW_VIEWS, model, instance)
 
 
 @contextlib.contextmanager
@@ -188,7 +193,7 @@ def _preview(model, instance: int, folder: Path | None, views, spec: str, out: P
         folder.mkdir(parents=True, exist_ok=True)
         for i, (_, camera) in enumerate(views):
             write_png(folder / f"{i:04d}.png", _view_render(model, instance, camera)())
-    typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec}) to {folder}/")
+    typer.echo(f"wrote previews of the edited {model.names[instance]} ({spec or PREVIEW_VIEWS}) to {folder}/")
 
 
 class _Scribbled(NamedTuple):
@@ -301,7 +306,7 @@ def edit_color_cmd(
     join: JoinOpt = None,
     force: ForceOpt = False,
     preview: PreviewOpt = None,
-    views: PreviewViewsOpt = "orbit:8",
+    views: PreviewViewsOpt = None,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     penalty: PenaltyOpt = Penalty.element,
@@ -353,7 +358,7 @@ def remove_cmd(
     join: JoinOpt = None,
     force: ForceOpt = False,
     preview: PreviewOpt = None,
-    views: PreviewViewsOpt = "orbit:8",
+    views: PreviewViewsOpt = None,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     penalty: PenaltyOpt = Penalty.element,
@@ -399,7 +404,7 @@ def add_cmd(
     keep: KeepShapeOpt = None,
     keep_json: KeepJsonOpt = None,
     preview: PreviewOpt = None,
-    views: PreviewViewsOpt = "orbit:8",
+    views: PreviewViewsOpt = None,
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     penalty: PenaltyOpt = Penalty.element,
@@ -458,7 +463,7 @@ def transfer_cmd(
     shape_from: Annotated[Optional[str], typer.Option("--shape-from", help="Take the shape code (and occupancy grid) of this instance.")] = None,
     color_from: Annotated[Optional[str], typer.Option("--color-from", help="Take the colour code of this instance.")] = None,
     preview: PreviewOpt = None,
-    views: PreviewViewsOpt = "orbit:8",
+    views: PreviewViewsOpt = None,
     edit: PriorOpt = None,
     as_json: JsonOpt = False,
     device: DeviceOpt = DeviceChoice.auto,

@@ -10,7 +10,7 @@ import typer
 from ..errors import CrfError
 from ..names import NO_MASK, SELECTION_FORMAT
 from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, size_text, user_errors
-from .edit import InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PriorOpt, _load, _one_view, _preview_views, _view_render, previews_of
+from .edit import PREVIEW_VIEWS, InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PreviewViewsOpt, PriorOpt, _load, _one_view, _preview_views, _view_render, previews_of
 
 
 def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
@@ -46,7 +46,7 @@ def select_cmd(
     keep: Annotated[Optional[list[Path]], typer.Option("--keep", help="What is not the part, per view (repeatable: none, or one per --view, none for a view without keep strokes).")] = None,
     edit: PriorOpt = None,
     preview: Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG previews with the selection tinted.")] = None,
-    views: Annotated[str, typer.Option("--views", help="Views of the preview, e.g. orbit:8 or test.")] = "orbit:8",
+    views: PreviewViewsOpt = None,
     kind: Annotated[str, typer.Option("--for", help="The edit the selection is for: color (also takes the cells of the scribble's chromaticity), remove or add.")] = "color",
     mirror: MirrorOpt = None,
     join: JoinOpt = None,
@@ -110,7 +110,7 @@ def select_cmd(
             preview.mkdir(parents=True, exist_ok=True)
             for i, (label, camera) in enumerate(shown):
                 write_png(preview / f"{i:04d}.png", tinted(m, sel, camera))
-        typer.echo(f"wrote previews of {views} to {preview}/")
+        typer.echo(f"wrote previews of {views or PREVIEW_VIEWS} to {preview}/")
 
 
 def print_selection(path: Path, as_json: bool, version: str) -> None:
