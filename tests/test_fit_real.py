@@ -339,6 +339,11 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     assert [ln.split(",")[0] for ln in shown if ln.startswith("stage ")] == [f"stage         stage={s}" for s in ("codes", "joint", "final")]
     as_json = json.loads(invoke("edits", "show", out, "--json").stdout)["metadata"]
     assert isinstance(as_json["stages"], list) and as_json["photo_psnr"] == float(delta.meta["photo_psnr"])
+    # --json: stdout is the written file's record, as every edit command's (the stage lines go to stderr)
+    again = invoke("fit-real", path, photo, "--pose", "train:0", "--out", tmp_path / "j.safetensors", "--steps-codes", 4,
+                   "--steps-joint", 2, "--device", "cpu", "--json")
+    assert again.exit_code == 0 and "adding instance my_chair" in again.stderr, again.output
+    assert json.loads(again.stdout) == json.loads(invoke("edits", "show", tmp_path / "j.safetensors", "--json").stdout)
     rendered = invoke("render", path, "--instance", "my_chair", "--edit", out, "--views", "orbit:2", "--out", tmp_path / "r", "--device", "cpu")
     assert rendered.exit_code == 0, rendered.output
     assert (tmp_path / "r" / "0001.png").is_file()

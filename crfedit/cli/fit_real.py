@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from .common import DeviceChoice, DeviceOpt, SeedOpt, app, check_out_file, command_line, size_text, stderr_progress, user_errors
+from .common import DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, json_record, size_text, stderr_progress, user_errors
 
 
 class JointWeights(str, enum.Enum):
@@ -58,6 +58,7 @@ class FitProgress:
 
 @app.command("fit-real")
 @user_errors
+@json_record
 def fit_real_cmd(
     model: Annotated[Path, typer.Argument(help="Model file (.safetensors).")],
     photo: Annotated[Path, typer.Argument(help="Photo of an object of the category (PNG or JPEG; an alpha channel marks the object).")],
@@ -74,6 +75,7 @@ def fit_real_cmd(
     rays: Annotated[int, typer.Option("--rays", help="Rays per step, drawn from the photo's pixels (all of them at 64x64 by default).")] = 4096,
     distortion: Annotated[float, typer.Option("--distortion", help="Stage 2: weight of the distortion loss that gathers each ray's density into one surface (one photo leaves depth free; 0: off).")] = 0.1,
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")] = None,
+    as_json: JsonOpt = False,
     device: DeviceOpt = DeviceChoice.auto,
     seed: SeedOpt = 0,
 ) -> None:
