@@ -707,6 +707,7 @@ def test_edit_command_errors_write_nothing(trained, tmp_path):
         (["--scribble", write_mask(tmp_path / "small.png", np.ones((16, 20), bool)), "--color", "red"],
          ["small.png", "20x16", "32x32"]),
         (["--scribble", fg_png, "--color", "blurple"], ["--color 'blurple'"]),
+        (["--scribble", fg_png, "--colour", "blurple"], ["--color 'blurple'"]),  # the British spelling is the same option
         (["--scribble", fg_png, "--color", "red", "--lr", "1e30"], ["diverged", "nothing was written"]),
         (["--scribble", fg_png, "--color", "red", "--views", "test"], ["--views test: sets the views of --preview; give --preview DIR too"]),
         (["--color", "red"], ["--scribble"]),

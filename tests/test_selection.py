@@ -1169,8 +1169,10 @@ def test_select_command_and_its_errors(trained, tmp_path):
     assert_user_error(r, "--views tset: sets the views of --preview; give --preview DIR too")
     assert not (tmp_path / "x.safetensors").exists()
     r = runner.invoke(app, [*args, "--for", "paint", "--out", str(tmp_path / "x.safetensors")])
-    assert_user_error(r, "a selection for 'paint'")
+    assert_user_error(r, "--for paint: expected one of color, remove, add")
     assert not (tmp_path / "x.safetensors").exists()
+    r = runner.invoke(app, [*args, "--for", "colour", "--out", str(tmp_path / "c.safetensors")])  # either spelling
+    assert r.exit_code == 0 and load_selection(tmp_path / "c.safetensors").meta["for"] == "color", r.output
     r = runner.invoke(app, [*args, "--for", "add", "--out", str(tmp_path / "a.safetensors")])
     assert r.exit_code == 0 and "chroma_union" not in load_selection(tmp_path / "a.safetensors").meta
     assert "chroma_union" in load_selection(out).meta and load_selection(out).meta["for"] == "color"  # the default

@@ -44,7 +44,7 @@ KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or st
 KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or strokes .json) of what must not change (a random sample of the rest of the view is kept as well).")]
 MethodOpt = Annotated[EditMethod, typer.Option("--method", help="selection: lift the scribbles to a 3-D selection and supervise the edit with it in every view; paper: the paper's losses on the scribbled view's rays alone.")]
 SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles).")]
-JoinOpt = Annotated[Optional[JoinMode], typer.Option("--colour-join", help="Whether the selection computed from the scribbles also takes the cells of the scribbled colour: auto (unless that would be over 4.5× the cells the features chose, 3.5× for a recolour's pale part; additions never), always (a part that is most of the instance) or never.")]
+JoinOpt = Annotated[Optional[JoinMode], typer.Option("--colour-join", "--color-join", help="Whether the selection computed from the scribbles also takes the cells of the scribbled colour: auto (unless that would be over 4.5× the cells the features chose, 3.5× for a recolour's pale part; additions never), always (a part that is most of the instance) or never.")]
 MirrorOpt = Annotated[Optional[MirrorMode], typer.Option("--mirror", help="Mirror symmetry of the selection computed from the scribbles: views (the scribbled view's mirror image lends its strokes; removals' default), values (the selection takes its own mirror image; recolours' default) or off (one side only). Nothing is mirrored where the keep strokes cover the scribble's mirror image.")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
 PreviewOpt = Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG renders of the edited instance from --views.")]
@@ -295,7 +295,7 @@ def edit_color_cmd(
     instance: InstanceOpt,
     view: ViewOpt,
     out: OutOpt,
-    color: Annotated[str, typer.Option("--color", help="Target colour: #rgb, #rrggbb, rgb(R, G, B) or a CSS colour name such as red, navy, darkred; with --method selection, the colour the part should appear under the scribble.")],
+    color: Annotated[str, typer.Option("--color", "--colour", help="Target colour: #rgb, #rrggbb, rgb(R, G, B) or a CSS colour name such as red, navy, darkred; with --method selection, the colour the part should appear under the scribble.")],
     scribble: ScribbleOpt = None,
     scribble_json: ScribbleJsonOpt = None,
     keep: KeepOpt = None,
@@ -310,7 +310,7 @@ def edit_color_cmd(
     edit: PriorOpt = None,
     strategy: StrategyOpt = Strategy.hybrid,
     penalty: PenaltyOpt = Penalty.element,
-    recolor: Annotated[Recolor, typer.Option("--recolor", help="--method selection: the part's new colour × each point's shading along the scribbled pixels' mean colour (shading; default), or each point's colour × new/old per channel (ratio, which also scales the model's colour noise).")] = Recolor.shading,
+    recolor: Annotated[Recolor, typer.Option("--recolor", "--recolour", help="--method selection: the part's new colour × each point's shading along the scribbled pixels' mean colour (shading; default), or each point's colour × new/old per channel (ratio, which also scales the model's colour noise).")] = Recolor.shading,
     steps: StepsOpt = 100,
     lr: LrOpt = 1e-2,
     rays: RaysOpt = 1024,
@@ -461,7 +461,7 @@ def transfer_cmd(
     instance: InstanceOpt,
     out: OutOpt,
     shape_from: Annotated[Optional[str], typer.Option("--shape-from", help="Take the shape code (and occupancy grid) of this instance.")] = None,
-    color_from: Annotated[Optional[str], typer.Option("--color-from", help="Take the colour code of this instance.")] = None,
+    color_from: Annotated[Optional[str], typer.Option("--color-from", "--colour-from", help="Take the colour code of this instance.")] = None,
     preview: PreviewOpt = None,
     views: PreviewViewsOpt = None,
     edit: PriorOpt = None,

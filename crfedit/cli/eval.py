@@ -193,7 +193,7 @@ def edits_cmd(
     rays: Annotated[int, typer.Option("--rays", help="Most rays rendered per edit step.")] = 1024,
     lr: Annotated[float, typer.Option("--lr", help="Adam learning rate of the edits.")] = 1e-2,
     penalty: Annotated[str, typer.Option("--penalty", help="Weight penalty of the edits: element (every trained number weighed alike; default) or tensor (Σ per-tensor means, the earlier rule).")] = "element",
-    recolor: Annotated[str, typer.Option("--recolor", help="Recolour target of the selection edits: shading (default) or ratio (the earlier rule; see crfedit edit-color --help).")] = "shading",
+    recolor: Annotated[str, typer.Option("--recolor", "--recolour", help="Recolour target of the selection edits: shading (default) or ratio (the earlier rule; see crfedit edit-color --help).")] = "shading",
     lpips_weights: LpipsOpt = None,
     as_json: JsonOpt = False,
     strict: StrictOpt = False,

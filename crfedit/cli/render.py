@@ -22,7 +22,7 @@ def render_cmd(
     video: Annotated[Optional[Path], typer.Option("--video", help="Also write the frames as a video: MP4 with the [video] extra, else GIF (a .gif name always gives GIF).")] = None,
     fps: Annotated[float, typer.Option("--fps", help="Frames per second of --video.")] = 12.0,
     shape_from: Annotated[Optional[str], typer.Option("--shape-from", help="Render with the shape code of this instance (name or index).")] = None,
-    color_from: Annotated[Optional[str], typer.Option("--color-from", help="Render with the color code of this instance (name or index).")] = None,
+    color_from: Annotated[Optional[str], typer.Option("--color-from", "--colour-from", help="Render with the colour code of this instance (name or index).")] = None,
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", metavar="EDIT", help="Apply this edit file first (repeatable, applied in order).")] = None,
     chunk: Annotated[int, typer.Option("--chunk", help="Rays rendered at once; lower it to save memory.")] = 16384,
     device: DeviceOpt = DeviceChoice.auto,

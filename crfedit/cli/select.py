@@ -58,6 +58,7 @@ def select_cmd(
 
     from ..edit.scribble import keep_outside, keep_overlap
     from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
+    from ..edit.selection.options import EDIT_KINDS
     from ..io import write_png
 
     def none(path) -> bool:  # the word, unless a file is called that
@@ -70,6 +71,9 @@ def select_cmd(
                        f"({len(view)} views, {len(keep)} keep masks)")
     if all(none(p) for p in scribble):
         raise CrfError("no view holds a scribble: keep strokes alone select nothing (scribble the part on at least one view)")
+    kind = "color" if kind == "colour" else kind
+    if kind not in EDIT_KINDS:  # named by its option here (options_for's line names no flag)
+        raise CrfError(f"--for {kind}: expected one of {', '.join(EDIT_KINDS)}")
     options = options_for(kind, None if mirror is None else mirror.value, None if join is None else join.value)
     check_out_file(out, {"MODEL": model, "--edit": edit, "--scribble": scribble, "--keep": keep}, "selection", "sel.safetensors", SELECTION_FORMAT)
     m = _load(model, edit, device)
