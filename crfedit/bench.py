@@ -35,7 +35,7 @@ from typing import Callable, Sequence
 
 import torch
 
-from .config import Config, make_config
+from .config import PRESETS, Config, make_config
 from .data.loading import Category, load_category
 from .data.synth import SynthConfig, write_synth_category
 from .edit import EditOptions
@@ -108,7 +108,9 @@ class BenchSettings:
             if not ok:
                 raise CrfError(message)
         for preset in self.presets:
-            make_config(preset, sets=list(self.sets))  # unknown presets or keys fail here, before any work
+            if preset not in PRESETS:  # named as bench's option is spelt (make_config's line says --preset)
+                raise CrfError(f"--presets {','.join(self.presets)}: {preset} is not a preset (expected {', '.join(PRESETS)})")
+            make_config(preset, sets=list(self.sets))  # unknown keys fail here, before any work
         return self
 
 

@@ -375,6 +375,9 @@ def test_user_errors_exit_2(data, model_path, tmp_path):
         return invoke("render", model_path, "--out", tmp_path / "r", *extra)
 
     assert_user_error(render("--instance", "chair_999", "--views", "test"), "unknown instance 'chair_999'")
+    # an instance given to another option is named by it (the line named only the value)
+    line = assert_user_error(render("--instance", "0", "--views", "test", "--color-from", "chair_999"), "unknown instance 'chair_999'")
+    assert line.startswith("error: --color-from: "), line
     assert_user_error(render("--instance", "7", "--views", "test"), "instance 7: out of range")
     assert_user_error(render("--instance", "0", "--views", "tset:1"), "'tset:1'")
     assert_user_error(render("--instance", "0", "--views", "test:5"), "'test:5'", "out of range")

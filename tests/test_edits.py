@@ -721,6 +721,10 @@ def test_edit_command_errors_write_nothing(trained, tmp_path):
                              "--color", "red", "--out", out), "names 8 views")
     assert_user_error(invoke("transfer", path, "--instance", 0, "--out", out), "--shape-from or --color-from")
     assert_user_error(invoke("transfer", path, "--instance", 0, "--shape-from", 0, "--out", out), "from itself changes nothing")
+    assert assert_user_error(invoke("transfer", path, "--instance", 0, "--shape-from", "sofa", "--out", out),
+                             "unknown instance 'sofa'").startswith("error: --shape-from: ")
+    assert assert_user_error(invoke("edit-color", path, "--instance", 0, "--view", "train:99", "--scribble", fg_png, "--color", "red",
+                                    "--out", out), "out of range").startswith("error: --view: view spec 'train:99'")
     assert_user_error(invoke("edit-color", path, "--instance", "²", "--view", "train:0", "--scribble", fg_png,
                              "--color", "red", "--out", out), "unknown instance '²'")  # a digit int() refuses
     with pytest.raises(NonFiniteError):

@@ -113,6 +113,15 @@ def printable(text: object) -> str:
     return "".join(c if c.isprintable() or c in "\n\t" else repr(c)[1:-1] for c in str(text))
 
 
+def instance_option(model, value, option: str) -> int:
+    """``model.instance_index(value)`` for an option other than ``--instance``: its error line
+    names the option (``--color-from: unknown instance …``), not just the value."""
+    try:
+        return model.instance_index(value)
+    except CrfError as e:
+        raise CrfError(f"{option}: {e}") from None
+
+
 def size_text(n: float) -> str:
     """A byte count as every command prints it, in decimal units (B, KB, MB, GB) as the docs give
     sizes: ``66 200`` → ``66.2 KB``."""

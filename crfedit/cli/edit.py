@@ -16,7 +16,7 @@ import typer
 
 from ..errors import CrfError
 from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, MODEL_FORMAT, NO_MASK, PENALTIES, RECOLOR_RULES, STRATEGIES
-from .common import printable, DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, edits_app, json_record, size_text, user_errors
+from .common import printable, DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, edits_app, instance_option, json_record, size_text, user_errors
 
 
 Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
@@ -72,7 +72,10 @@ def _load(model: Path, edits: list[Path] | None, device: DeviceChoice):
 def _one_view(model, spec: str, instance: int, option: str = "--view"):
     from ..views import one_view_hint, one_view_label, resolve_views
 
-    views = resolve_views(spec, model, instance)
+    try:
+        views = resolve_views(spec, model, instance)
+    except CrfError as e:  # which option's spec it was: add reads --view and --donor-view
+        raise CrfError(f"{option}: {e}") from None
     if len(views) != 1:
         raise CrfError(f"{option} {spec}: names {len(views)} views; an edit is drawn on exactly one ({one_view_hint(spec)})")
     label, camera = views[0]
@@ -425,7 +428,7 @@ def add_cmd(
     options = _options(strategy, steps, lr, rays, seed, penalty)
     check_out_file(out, {**_scribbled_inputs(model, edit, None, None, keep, keep_json, selection), "--copy": copy_mask})
     m = _load(model, edit, device)
-    k, j = m.instance_index(instance), m.instance_index(donor)
+    k, j = m.instance_index(instance), instance_option(m, donor, "--donor")
     if "occupancy" in m.overrides.get(j, {}):  # a removal (or addition) of the donor earlier in the stack
         typer.echo(f"note: an earlier --edit changed {m.names[j]}'s shape: the part is copied from the donor as edited "
                    "(a part it removed is not there to copy; check the preview)", err=True)
@@ -478,7 +481,8 @@ def transfer_cmd(
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     shown = _preview_views(m, k, preview, views)
-    sources = {key: None if name is None else m.instance_index(name) for key, name in (("shape_from", shape_from), ("color_from", color_from))}
+    sources = {key: None if name is None else instance_option(m, name, option)
+               for key, name, option in (("shape_from", shape_from, "--shape-from"), ("color_from", color_from, "--color-from"))}
     result = transfer(m, k, **sources)
     for note in weights_not_carried(m, k, **sources):
         typer.echo(printable(f"note: {note}"), err=True)

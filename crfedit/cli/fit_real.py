@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from .common import DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, json_record, size_text, stderr_progress, user_errors
+from .common import DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, instance_option, json_record, size_text, stderr_progress, user_errors
 
 
 class JointWeights(str, enum.Enum):
@@ -98,7 +98,7 @@ def fit_real_cmd(
     base, _ = load_model(model, resolve_device(device))
     m = apply_edit_files(base, list(edit or []))
     check_new_name(m, name, name_from)
-    j = m.instance_index(pose_instance)
+    j = instance_option(m, pose_instance, "--pose-instance")
     train = m.views.get("train")
     views = resolve_views(pose, m, j, train.width if train is not None else None)
     if len(views) != 1:

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .common import DeviceChoice, DeviceOpt, app, printable, user_errors
+from .common import DeviceChoice, DeviceOpt, app, instance_option, printable, user_errors
 
 
 @app.command("render")
@@ -52,7 +52,8 @@ def render_cmd(
         m = apply_deltas(m, deltas)
     k = m.instance_index(instance)
     # an instance's own code is what it renders with already: nothing to swap in
-    shape_from, color_from = (None if j is None or m.instance_index(j) == k else m.instance_index(j) for j in (shape_from, color_from))
+    shape_from, color_from = (None if j is None or instance_option(m, j, option) == k else m.instance_index(j)
+                              for j, option in ((shape_from, "--shape-from"), (color_from, "--color-from")))
     if shape_from is not None or color_from is not None:
         from ..edit.transfer import swap_codes, weights_not_carried
 
