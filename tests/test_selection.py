@@ -556,9 +556,16 @@ def test_recolor_targets_keep_shading():
     appear = (new * shade.mean()).tolist()
     for rule in ("shading", "ratio"):
         assert torch.allclose(RecolorTarget(appear, pixels, rule)(pixels), new * shade, atol=1e-6), rule
-    # a near-black part: the mean is floored, so the targets stay finite
+    # a near-black part: the mean is floored, so the targets stay finite, and every sample is lifted as
+    # the mean was, so the mean still maps to the colour asked (floored alone, black → white gave 0.4 grey)
+    dark = torch.full((4, 3), 0.02)
+    dark[0] += 0.01  # a little noise: one sample brighter, one darker
+    dark[1] -= 0.01
     for rule in ("shading", "ratio"):
         assert torch.isfinite(RecolorTarget([1.0, 0.0, 0.0], torch.zeros(4, 3), rule)(torch.rand(4, 3))).all()
+        target = RecolorTarget([1.0, 1.0, 1.0], dark, rule)
+        assert torch.allclose(target(dark.mean(0, keepdim=True)), torch.ones(1, 3)), rule
+        assert torch.allclose(target(dark).mean(0), torch.ones(3), atol=0.11) and target(dark)[1].min() > 0.75, rule
     with pytest.raises(ValueError, match="rule='tint'"):
         RecolorTarget([1.0, 0.0, 0.0], pixels, "tint")
 

@@ -53,7 +53,10 @@ from .selection.refine import surrounded_by
 TURNS = (0.0, 90.0, 180.0, 270.0)
 """Supervision views: each scribbled camera turned about the world's up (Z) axis by these angles."""
 MIN_MEAN_COLOR = 0.05
-"""c̄ is floored per channel at this, so a near-black part still gets a finite ratio."""
+"""c̄ is floored per channel at this, so a near-black part still gets a finite ratio; every
+sample is lifted by what the floor added to the mean (:class:`RecolorTarget`), so the scribbled
+mean still maps to the colour asked.  Floored alone, a part recoloured black (rendering ~0.02)
+and then white came out 0.46 grey: its samples read as shaded to 0.4 of a 0.05 mean."""
 HOLD_WEIGHT = 10.0
 """Removal: weight of holding σ and the bottleneck at the teacher's values outside S, against
 σ → 0 inside.  The network's drift outside S is what a removal damages; the occupancy grid
@@ -406,7 +409,9 @@ class RecolorTarget:
         if rule not in RECOLOR_RULES:
             raise ValueError(f"RecolorTarget: rule={rule!r}, expected one of {RECOLOR_RULES}")
         self.rule = rule
-        self.mean = rendered.mean(dim=0).clamp_min(MIN_MEAN_COLOR)
+        mean = rendered.mean(dim=0)
+        self.mean = mean.clamp_min(MIN_MEAN_COLOR)
+        self.lift = self.mean - mean  # what the floor added (0 on channels above it): added to every sample
         self.appear = torch.as_tensor(appear, dtype=self.mean.dtype, device=self.mean.device)
         self.unlike = unlike
         chroma = chromaticity(rendered)
@@ -430,6 +435,7 @@ class RecolorTarget:
         return rgb + share[:, None] * (self(rgb) - rgb)
 
     def __call__(self, rgb: Tensor) -> Tensor:
+        rgb = rgb + self.lift  # on a floored channel the mean itself maps to ``appear`` (not mean/floor of it)
         if self.rule == "ratio":
             return (rgb * (self.appear / self.mean)).clamp(0, 1)
         shade = rgb @ self.mean / (self.mean @ self.mean)
