@@ -195,6 +195,36 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
             shutil.rmtree(old, ignore_errors=True)
 
 
+def carry_into(entries: list[Path], into: Path) -> list[str]:
+    """Link (or copy, where the file system has no links) ``entries`` (files, symbolic links,
+    folders) into the folder ``into`` built to replace theirs, but for names already there; the
+    names carried.  What a folder replaced whole (:func:`atomic_folder`) keeps of the user's."""
+    import shutil
+
+    def link_or_copy(src, dst):
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
+    carried = []
+    for f in entries:
+        target = Path(into) / f.name
+        if os.path.lexists(target):
+            continue
+        try:
+            if f.is_symlink():
+                os.symlink(os.readlink(f), target)
+            elif f.is_dir():
+                shutil.copytree(f, target, symlinks=True, copy_function=link_or_copy)
+            else:
+                link_or_copy(f, target)
+        except FileNotFoundError:  # gone since it was listed (another process)
+            continue
+        carried.append(f.name)
+    return carried
+
+
 SIGNATURES = {
     ".ply": (b"ply",), ".glb": (b"glTF",), ".off": (b"OFF", b"COFF", b"NOFF"), ".gif": (b"GIF87a", b"GIF89a"),
     ".csv": (b"step,", b"group,", b"kind,", b"preset,"), ".png": (b"\x89PNG",),

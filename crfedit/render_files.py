@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import CrfError
-from .io import atomic_folder, check_folder_target, check_replaceable, write_exr, write_json, write_png
+from .io import atomic_folder, carry_into, check_folder_target, check_replaceable, write_exr, write_json, write_png
 from .preview import depth_preview
 from .renderer import ray_distance, render_camera
 from .video import check_fps, video_path, write_video
@@ -54,25 +53,6 @@ def check_out_folder(out: Path) -> list[Path]:
         raise CrfError(f"--out {out}: holds a folder ({folders[0]}), which a render would lose as it replaces the folder whole; "
                        "pick a new folder or move it out")
     return keep
-
-
-def _carry(files: list[Path], into: Path) -> None:
-    """Link (or copy, where the file system has no links) ``files`` into ``into``, but for names
-    the new render wrote there."""
-    import shutil
-
-    for f in files:
-        if os.path.lexists(into / f.name):
-            continue
-        if f.is_symlink():
-            os.symlink(os.readlink(f), into / f.name)
-            continue
-        try:
-            os.link(f, into / f.name)
-        except FileNotFoundError:  # gone since the check (another render)
-            pass
-        except OSError:
-            shutil.copy2(f, into / f.name)
 
 
 def _frame_files(i: int, depth: bool) -> list[str]:
@@ -171,7 +151,7 @@ def render_to_folder(
                 inside = video.absolute().parent == out.absolute()
                 video_written = write_video(tmp / video.name if inside else video, [frames[i] for i in sorted(frames)], fps)
                 video_written = out / video_written.name if inside else video_written
-            _carry(keep, tmp)
+            carry_into(keep, tmp)
     first = views[0][1]
     sizes = tuple(dict.fromkeys((c.width, c.height) for _, c in views))
     return RenderResult(len(views), first.width, first.height, seconds, video_written, sizes)

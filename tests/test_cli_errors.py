@@ -133,6 +133,10 @@ def test_synth_over_an_earlier_synth_output_says_it_replaced_it(tmp_path):
     assert first.exit_code == 0 and "replaced" not in first.stdout, first.output
     again = invoke(*SYNTH[:2], out, "--instances", "2", *SYNTH[4:])
     assert again.exit_code == 0 and "(it replaced the dataset that was there)" in again.stdout, again.output
+    (out / "NOTES.md").write_text("mine")  # the user's file beside the dataset is carried over, and said
+    again = invoke(*SYNTH[:2], out, "--instances", "2", *SYNTH[4:])
+    assert "(it replaced the dataset that was there; kept what was not the dataset's: NOTES.md)" in again.stdout, again.output
+    assert (out / "NOTES.md").read_text() == "mine"
     assert (out / "instances.txt").read_text().split() == ["chair_000", "chair_001"]
 
 

@@ -322,7 +322,14 @@ def test_cli_from_meshes(boxes, tmp_path):
     args = ["dataset", "from-meshes", str(out), str(boxes), "--views", "4", "--res", "16", "--palette", "mtl", "--no-twins"]
     result = invoke(*args)
     assert result.exit_code == 0, result.output
-    assert "wrote 1 meshes (2 parts) x 4 views at 16x16 + 0 twins" in result.stdout
+    assert "wrote 1 mesh (2 parts) x 4 views at 16x16 + 0 twins" in result.stdout and "replaced" not in result.stdout
+    # written again over the first: said, and the user's notes and scribbles beside it are kept (they were deleted)
+    (out / "NOTES.md").write_text("mine")
+    (out / "my_scribbles").mkdir()
+    (out / "my_scribbles" / "seat.png").write_bytes(b"x")
+    again = invoke(*args)
+    assert again.exit_code == 0 and "(it replaced the dataset that was there; kept what was not the dataset's: NOTES.md, my_scribbles)" in again.stdout, again.output
+    assert (out / "NOTES.md").read_text() == "mine" and (out / "my_scribbles" / "seat.png").read_bytes() == b"x"
     assert (out / "instances.txt").read_text() == "two_boxes\n"
 
 
@@ -444,6 +451,7 @@ def test_a_dataset_written_again_is_replaced_whole(boxes, tmp_path):
     cushion = write_cushion_on_seat(tmp_path)
     write_mesh_category(out, [boxes, cushion], MeshDatasetConfig(views=4, res=16, seed=0, twins=False))
     assert (out / cushion.stem).is_dir()
-    write_mesh_category(out, [boxes], MeshDatasetConfig(views=4, res=16, seed=0, twins=False))
-    assert sorted(p.name for p in out.iterdir()) == sorted([boxes.stem, "instances.txt"])
+    (out / "notes.txt").write_text("mine")  # not the dataset's: carried over
+    result = write_mesh_category(out, [boxes], MeshDatasetConfig(views=4, res=16, seed=0, twins=False))
+    assert sorted(p.name for p in out.iterdir()) == sorted([boxes.stem, "instances.txt", "notes.txt"]) and result.kept == ["notes.txt"]
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no hidden build folder left

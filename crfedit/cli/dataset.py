@@ -50,9 +50,16 @@ def synth(
         result = write_synth_category(out, config, lambda label: bar.update(task, advance=1, description=label))
     typer.echo(
         f"wrote {len(result.names)} chairs x {views} views at {res}x{res}"
-        f" + {len(result.twins)} twins to {out} in {result.seconds:.1f} s"
-        + (" (it replaced the dataset that was there)" if replaced else "")
+        f" + {len(result.twins)} twins to {out} in {result.seconds:.1f} s" + replaced_note(replaced, result.kept)
     )
+
+
+def replaced_note(replaced: bool, kept: list[str]) -> str:
+    """What a dataset build says of the folder it replaced: that it did, and the user's entries
+    it carried over (notes, scribbles: everything that was not the dataset's)."""
+    if not replaced:
+        return ""
+    return " (it replaced the dataset that was there" + (f"; kept what was not the dataset's: {', '.join(kept)})" if kept else ")")
 
 
 def _vec(values: list[float]) -> str:

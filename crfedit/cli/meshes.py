@@ -45,14 +45,16 @@ def from_meshes(
     from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
     from ..data.meshes import MeshDatasetConfig, mesh_steps, write_mesh_category
-    from .dataset import _rate_column
+    from .dataset import _rate_column, replaced_note
 
+    replaced = (out / "instances.txt").is_file()  # the build's check let it through: an earlier dataset
     config = MeshDatasetConfig(views=views, res=res, seed=seed, palette=palette.value, up=up.value, twins=twins, aa=aa, twin_sources=twin_sources)
     columns = (TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
     with stderr_progress(*columns) as bar:
         task = bar.add_task("loading meshes", total=mesh_steps(len(meshes), config))
         result = write_mesh_category(out, meshes, config, lambda label: bar.update(task, advance=1, description=label))
+    n = len(result.names)
     typer.echo(
-        f"wrote {len(result.names)} meshes ({sum(result.parts)} parts) x {views} views at {res}x{res}"
-        f" + {len(result.twins)} twins to {out} in {result.seconds:.1f} s"
+        f"wrote {n} mesh{'es' * (n != 1)} ({sum(result.parts)} parts) x {views} views at {res}x{res}"
+        f" + {len(result.twins)} twins to {out} in {result.seconds:.1f} s" + replaced_note(replaced, result.kept)
     )

@@ -159,6 +159,21 @@ def write_parts(instance_dir: Path, parts: list[dict]) -> None:
     write_json(Path(instance_dir) / "parts.json", list(parts))
 
 
+DATASET_ENTRIES = ("instances.txt", "twins.json", "twins", "ATTRIBUTION.txt")
+"""What a dataset build writes at its root beside the instance folders."""
+
+
+def dataset_extras(root: Path) -> list[Path]:
+    """The entries of a dataset folder no dataset build wrote (a user's notes or scribbles): not
+    its instance folders (those holding ``transforms_train.json``), twins, instance list or
+    attribution, nor hidden ones.  A build that replaces the folder carries them over."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if not p.name.startswith(".") and p.name not in DATASET_ENTRIES
+                  and not (p.is_dir() and (p / "transforms_train.json").is_file()))
+
+
 def write_instances_txt(root: Path, names: list[str]) -> None:
     atomic_write_text(Path(root) / "instances.txt", "".join(f"{n}\n" for n in names))
 
