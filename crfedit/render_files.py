@@ -13,7 +13,7 @@ from pathlib import Path
 from .errors import CrfError
 from .io import atomic_folder, carry_into, check_folder_target, check_replaceable, write_exr, write_json, write_png
 from .preview import depth_preview
-from .renderer import ray_distance, render_camera
+from .renderer import camera_problem, ray_distance, render_camera
 from .video import check_fps, video_path, write_video
 from .views import resolve_views
 
@@ -112,6 +112,9 @@ def render_to_folder(
             raise CrfError(f"--video {video}: needs a file name in an existing folder (or in --out's)")
     keep = check_out_folder(out) if ranks.main else []
     field = model.field_for(instance)
+    for label, camera in views:  # before the first view is rendered, naming the view (render_camera's line names none)
+        if problem := camera_problem(camera, field.aabb):
+            raise CrfError(f"view {label}: {problem}")
     frames, records, seconds = {}, {}, 0.0
     columns = (TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     console = Console(stderr=True)

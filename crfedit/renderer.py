@@ -329,6 +329,17 @@ def camera_far_problem(camera: Camera, aabb: Tensor) -> str | None:
     return None
 
 
+def camera_problem(camera: Camera, aabb: Tensor) -> str | None:
+    """Why ``camera`` cannot render the scene in box ``aabb`` (too far for float32, a field of
+    view too narrow), for an error line; None when it can.  Checked by :func:`render_camera`, and
+    by a render of many views before the first (so the line names the view)."""
+    far = camera_far_problem(camera, aabb)
+    if far:
+        return far
+    narrow = narrow_view(camera.camera_angle_x)
+    return f"{narrow}; camera_angle_x is in radians" if narrow else None
+
+
 @torch.no_grad()
 def render_camera(
     field: ConditionalRadianceField, camera: Camera, instance: int, chunk: int = 16384, background: float = 1.0,
@@ -349,12 +360,9 @@ def render_camera(
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise CrfError(f"render: chunk {chunk!r} must be a whole number of rays, at least 1")
     device = field.aabb.device
-    far = camera_far_problem(camera, field.aabb)
-    if far:
-        raise CrfError(f"camera: {far}")
-    narrow = narrow_view(camera.camera_angle_x)
-    if narrow:
-        raise CrfError(f"camera: {narrow}; camera_angle_x is in radians")
+    problem = camera_problem(camera, field.aabb)
+    if problem:
+        raise CrfError(f"camera: {problem}")
     rays = rays_from_camera(camera, device)
     outs = [
         render_rays(

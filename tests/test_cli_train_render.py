@@ -234,6 +234,13 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
     for i in range(3):
         assert (replay / f"{i:04d}.png").read_bytes() == (out / f"{i:04d}.png").read_bytes()
     assert [v["view"] for v in json.loads((replay / "views.json").read_text())["views"]] == [f"views.json:{i}" for i in range(3)]
+    # a camera of the file too far to render: refused before the first view, naming the view (the line named none)
+    far = json.loads((out / "views.json").read_text())
+    far["views"][1]["transform_matrix"][0][3] = 1e7
+    (tmp_path / "far.json").write_text(json.dumps(far))
+    line = assert_user_error(invoke("render", model_path, "--instance", "1", "--views", tmp_path / "far.json", "--out", tmp_path / "far",
+                                    "--device", "cpu"), "scene-box diagonals from the scene")
+    assert line.startswith("error: view far.json:1: it lies ") and not (tmp_path / "far").exists(), line
     # wider than the model was trained at: said, since the render holds no finer detail
     wide = model.views["train"].width + 4
     result = invoke("render", model_path, "--instance", "1", "--views", "test:0", "--res", wide, "--out", tmp_path / "wide", "--device", "cpu")
