@@ -26,6 +26,7 @@ class RenderResult:
     seconds: float  # rendering only, file writes excluded
     video: Path | None
     sizes: tuple[tuple[int, int], ...] = ()  # every (width, height) the views come in, in order
+    blank: tuple[str, ...] = ()  # the views that show nothing of the instance (no pixel half opaque)
 
     @property
     def size_text(self) -> str:
@@ -139,6 +140,7 @@ def render_to_folder(
                 records[i] = {
                     "file": files[0].name, "view": label, "width": camera.width, "height": camera.height,
                     "camera_angle_x": camera.camera_angle_x, "transform_matrix": camera.c2w.tolist(),
+                    "blank": bool(output.opacity.max() < 0.5),
                 }
                 bar.update(task, advance=1, description=label)
         if ranks.world > 1:
@@ -149,7 +151,7 @@ def render_to_folder(
         video_written = None
         if ranks.main:
             write_json(tmp / "views.json", {"instance": model.names[instance], "spec": spec, **(source or {}),
-                                            "views": [records[i] for i in sorted(records)]})
+                                            "views": [{k: v for k, v in records[i].items() if k != "blank"} for i in sorted(records)]})
             if video is not None:  # one in --out goes into the new folder with the frames
                 inside = video.absolute().parent == out.absolute()
                 video_written = write_video(tmp / video.name if inside else video, [frames[i] for i in sorted(frames)], fps)
@@ -157,4 +159,5 @@ def render_to_folder(
             carry_into(keep, tmp)
     first = views[0][1]
     sizes = tuple(dict.fromkeys((c.width, c.height) for _, c in views))
-    return RenderResult(len(views), first.width, first.height, seconds, video_written, sizes)
+    blank = tuple(records[i]["view"] for i in sorted(records) if records[i]["blank"])
+    return RenderResult(len(views), first.width, first.height, seconds, video_written, sizes, blank)

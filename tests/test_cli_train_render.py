@@ -241,6 +241,17 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
     line = assert_user_error(invoke("render", model_path, "--instance", "1", "--views", tmp_path / "far.json", "--out", tmp_path / "far",
                                     "--device", "cpu"), "scene-box diagonals from the scene")
     assert line.startswith("error: view far.json:1: it lies ") and not (tmp_path / "far").exists(), line
+    # a camera turned away from the chair renders blank: said, naming the view (a 3.1-radian view did it silently)
+    away = json.loads((out / "views.json").read_text())
+    m = np.array(away["views"][2]["transform_matrix"])
+    m[:3, :3] = m[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # half a turn about its up axis: still rigid
+    away["views"][2]["transform_matrix"] = m.tolist()
+    (tmp_path / "away.json").write_text(json.dumps(away))
+    result = invoke("render", model_path, "--instance", "1", "--views", tmp_path / "away.json", "--out", tmp_path / "away", "--device", "cpu")
+    assert result.exit_code == 0 and result.stderr.splitlines() == [
+        "note: 1 of the 3 views show nothing of chair_001 (away.json:2): a camera looking away from it, inside it, or with so "
+        "wide a field of view that it covers no pixel"], result.stderr
+    assert "blank" not in (tmp_path / "away" / "views.json").read_text()
     # wider than the model was trained at: said, since the render holds no finer detail
     wide = model.views["train"].width + 4
     result = invoke("render", model_path, "--instance", "1", "--views", "test:0", "--res", wide, "--out", tmp_path / "wide", "--device", "cpu")
