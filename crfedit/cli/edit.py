@@ -336,7 +336,8 @@ def edit_color_cmd(
     widened = hyper.get("widened")
     if widened:  # the held points that F_rad alone could not tell from the part
         how = "kept that fit" if widened["kept"] else "kept the first fit"
-        typer.echo(f"colour hold: with F_rad alone {100 * hyper['bleed']:.1f} % of the points outside the selection took the new colour "
+        typer.echo(f"colour hold: with F_rad alone {100 * hyper['bleed']:.1f} % of the 3-D points held outside the selection "
+                   "(opacity-weighted, hidden faces too, so more than a view shows) changed colour by over 0.1 "
                    f"(they look like the part to it); fitted again training the bottleneck layer too: {100 * widened['bleed']:.1f} %, {how}")
     _write(result, out, p.label, p.inputs())
     _preview(result.model, p.instance, preview, p.shown, views, out)
