@@ -89,6 +89,19 @@ def test_coloured_strokes_on_a_transparent_png(view, tmp_path):
     assert got.reading.startswith("opaque pixels") and np.array_equal(got.mask, mask)
 
 
+def test_coloured_strokes_on_black(view, tmp_path):
+    """Red strokes on black (the README's scribble colour on a mask's ground) were refused; a
+    softened edge below half brightness is not a stroke, as white on black reads it."""
+    mask = view[3]
+    rgb = np.zeros(mask.shape + (3,), np.uint8)
+    rgb[mask] = (255, 0, 0)
+    edge = np.roll(mask, 1, axis=1) & ~mask
+    rgb[edge] = (90, 0, 0)
+    write_png(tmp_path / "rb.png", rgb)
+    got = read(tmp_path / "rb.png", view, with_render=False)
+    assert got.reading == "coloured strokes on black" and np.array_equal(got.mask, mask)
+
+
 def test_strokes_painted_over_the_render(view, tmp_path):
     """The strokes, not the white background: the old reading counted ~84 % of the pixels."""
     _, _, render, mask = view

@@ -145,10 +145,12 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
 
     1. some pixels transparent: the opaque pixels (coloured or white strokes on a transparent PNG);
     2. every pixel gray: white on black (brightness ≥ 0.5);
-    3. ``render()`` (the view's render, float [H, W, 3]) matches at least half the pixels:
+    3. at least half the pixels black (every channel ≤ 0.1): coloured strokes on black, the
+       pixels whose brightest channel is ≥ 0.5 (red strokes on black were refused);
+    4. ``render()`` (the view's render, float [H, W, 3]) matches at least half the pixels:
        strokes painted over the render, i.e. the pixels differing from it by more than
        ``PAINT_TOLERANCE``.
-    Anything else is a :class:`CrfError` naming the three ways.
+    Anything else is a :class:`CrfError` naming the ways.
     """
     image = read_image(path)
     if image.shape[:2] != (height, width):
@@ -166,12 +168,15 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
         if 0.0 < float(gray.max()) <= 1.5 / 255.0:  # numpy's 0/1 mask saved as is (Image.fromarray(mask.astype(np.uint8)))
             return Scribble(gray > 0.0, "0/1 values (a mask saved without scaling to 255)")
         return Scribble(gray >= 0.5, "white on black")
+    brightest = rgb.max(axis=-1)
+    if (brightest <= 0.1).mean() >= 0.5:  # renders are on white: a black ground is a mask's
+        return Scribble(brightest >= 0.5, "coloured strokes on black")
     if render is not None:
         differs = (np.abs(rgb - np.clip(render(), 0.0, 1.0)) > PAINT_TOLERANCE).any(axis=-1)
         if differs.mean() <= 0.5:
             return Scribble(differs, "strokes painted over the render of the view (pixels that differ from it)")
     raise CrfError(
-        f"{path}: cannot tell the {what} strokes from the background: draw white on black, coloured strokes on a "
+        f"{path}: cannot tell the {what} strokes from the background: draw white or coloured strokes on black or on a "
         "transparent PNG, or strokes over a render of this very view (crfedit render ... --views VIEW)"
     )
 
