@@ -36,7 +36,7 @@ import torch
 
 from crfedit.cameras import Camera
 from crfedit.data.loading import Category, InstanceData, instance_names, load_category, load_instance_dir
-from crfedit.fit_real import JOINT, FitOptions, fit_real, prepare_photo
+from crfedit.fit_real import JOINT, STARTS, FitOptions, fit_real, prepare_photo
 from crfedit.errors import CrfError
 from crfedit.io import write_json
 from crfedit.metrics import score_images
@@ -60,6 +60,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--steps-joint", type=int, default=FitOptions.steps_joint)
     p.add_argument("--weights", choices=tuple(JOINT), default=FitOptions.weights)
     p.add_argument("--distortion", type=float, default=FitOptions.distortion, help="Weight of fit-real's distortion loss (0: off).")
+    p.add_argument("--start", default=FitOptions.start, choices=STARTS, help="Where the fits start (fit-real --start).")
     p.add_argument("--rays", type=int, default=FitOptions.rays)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--seed", type=int, default=0)
@@ -141,11 +142,12 @@ def run(args: argparse.Namespace) -> dict:
     train = model.views.get("train")
     res = train.width if train is not None else None
     configs = {
-        "mean code": FitOptions(steps_codes=0, steps_joint=0),
-        "codes only": FitOptions(steps_codes=args.steps_codes, steps_joint=0, rays=args.rays, distortion=args.distortion, seed=args.seed),
+        "start": FitOptions(steps_codes=0, steps_joint=0, start=args.start),
+        "codes only": FitOptions(steps_codes=args.steps_codes, steps_joint=0, rays=args.rays, distortion=args.distortion, seed=args.seed,
+                                 start=args.start),
         "codes + weights": FitOptions(
             steps_codes=args.steps_codes, steps_joint=args.steps_joint, weights=args.weights, rays=args.rays,
-            distortion=args.distortion, seed=args.seed,
+            distortion=args.distortion, seed=args.seed, start=args.start,
         ),
     }
     per_instance: dict[str, dict] = {}
@@ -181,7 +183,7 @@ def run(args: argparse.Namespace) -> dict:
         "pose": args.pose,
         "options": {
             "steps_codes": args.steps_codes, "steps_joint": args.steps_joint, "weights": args.weights, "distortion": args.distortion,
-            "rays": args.rays, "seed": args.seed,
+            "rays": args.rays, "seed": args.seed, "start": args.start,
         },
         "device": str(device),
         "machine": {

@@ -278,6 +278,11 @@ class FitOptions:
     0.47 dB (docs/benchmarks.md, sixty-second session)."""
     seed: int = 0
     """Seeds the rays, the sample jitter and the occupancy probes."""
+    start: str = "mean"
+    """Where the fit starts: ``mean`` (the mean code, every training grid's union carved by the
+    photo's outline, as the paper), ``nearest`` (the codes of the training instance whose render
+    from the pose best matches the photo's outline, and the union of the :data:`NEAREST_GRIDS`
+    best-matching instances' grids, carved), or ``nearest-codes`` (those codes, the union grid)."""
 
     def validated(self) -> "FitOptions":
         checks = [
@@ -289,6 +294,7 @@ class FitOptions:
             (self.rays >= 2, f"--rays {self.rays}: need at least 2"),
             (math.isfinite(self.lambda_reg) and self.lambda_reg >= 0, f"lambda_reg {self.lambda_reg}: must be ≥ 0"),
             (math.isfinite(self.distortion) and self.distortion >= 0, f"--distortion {self.distortion}: must be 0 or more"),
+            (self.start in STARTS, f"--start {self.start}: expected one of {', '.join(STARTS)}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -346,12 +352,28 @@ def mean_codes(field: ConditionalRadianceField, tables: list[str]) -> dict[str, 
     return {t: getattr(field, t).detach().mean(dim=0) for t in tables}
 
 
-def photo_hull(model: CategoryModel, camera: Camera, mask: np.ndarray) -> Tensor:
+STARTS = ("mean", "nearest", "nearest-codes")
+NEAREST_GRIDS = 3
+
+
+def outline_ranking(model: CategoryModel, camera: Camera, mask: np.ndarray) -> list[tuple[float, int]]:
+    """(IoU, instance) of every instance, best first: the IoU of its opacity > 0.5 rendered from
+    ``camera`` with the photo's object ``mask`` [H, W]."""
+    want = torch.from_numpy(np.asarray(mask, dtype=bool))
+    out = []
+    for j in range(len(model.names)):
+        seen = render_camera(model.field_for(j), camera, j, colour=False).opacity.cpu() > 0.5
+        union = int((seen | want).sum())
+        out.append((int((seen & want).sum()) / union if union else 0.0, j))
+    return sorted(out, key=lambda t: -t[0])
+
+
+def photo_hull(model: CategoryModel, camera: Camera, mask: np.ndarray, grids: list[int] | None = None) -> Tensor:
     """The new instance's starting grid [R, R, R]: the union of the training instances' grids,
     carved by the photo's silhouette seen from ``camera`` (cells outside the view or off the
     object go), dilated by one cell."""
     field = model.field
-    union = field.occupancy.any(dim=0).cpu()
+    union = (field.occupancy if grids is None else field.occupancy[grids]).any(dim=0).cpu()
     carved = occupancy.carve_visual_hull([camera], [mask], field.aabb.detach().cpu(), field.cfg.occ_res, margin=0)
     hull = occupancy.dilate(union & carved, 1)
     if not hull.any():
@@ -449,12 +471,15 @@ def fit_real(
     if not tables:
         raise CrfError(f"fit-real: a model of arch {model.field.arch!r} has no per-instance codes to fit")
     grid_sampler = model.cfg.sampler == "grid"
-    hull = photo_hull(model, camera, photo.mask) if grid_sampler else None
+    ranking = outline_ranking(model, camera, photo.mask) if options.start != "mean" else None
+    grids = [j for _, j in ranking[:NEAREST_GRIDS]] if options.start == "nearest" else None
+    hull = photo_hull(model, camera, photo.mask, grids) if grid_sampler else None
     grown = grow(model, name)
     k = len(model.names)
     field = grown.field
     with torch.no_grad():
-        for table, row in mean_codes(model.field, tables).items():
+        start_rows = mean_codes(model.field, tables) if ranking is None else {t: getattr(model.field, t).detach()[ranking[0][1]] for t in tables}
+        for table, row in start_rows.items():
             getattr(field, table)[k] = row
         if hull is not None:
             field.occupancy[k] = hull
@@ -505,7 +530,9 @@ def fit_real(
     hyper = {
         "steps_codes": options.steps_codes, "steps_joint": options.steps_joint, "weights": options.weights,
         "lr_codes": options.lr_codes, "lr_weights": options.lr_weights, "rays": options.rays,
-        "lambda_reg": options.lambda_reg, "distortion": distortion, "seed": options.seed, "init": "mean code", "camera": camera_meta(camera),
+        "lambda_reg": options.lambda_reg, "distortion": distortion, "seed": options.seed,
+        "init": "mean code" if ranking is None else f"{model.names[ranking[0][1]]}'s codes (outline IoU {ranking[0][0]:.3f})",
+        "start": options.start, **({"grids": [model.names[j] for j in grids]} if grids else {}), "camera": camera_meta(camera),
         "hull_cells": int(hull.sum()) if hull is not None else None,
     }
     after = dataclasses.replace(grown, field=field)

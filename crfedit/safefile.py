@@ -60,7 +60,9 @@ def read_header(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
     if not path.is_file():
         from .io import not_a_file
 
-        raise ModelFileError(f"{path}: {not_a_file(path)}")
+        dataset = path.is_dir() and any((path / n).is_file() for n in ("instances.txt", "transforms_train.json", "transforms.json"))
+        hint = "; it is a dataset: the model file (.safetensors) comes first (crfedit COMMAND MODEL DATA)" if dataset else ""
+        raise ModelFileError(f"{path}: {not_a_file(path)}{hint}")
     size = path.stat().st_size
     if size < 8:
         raise ModelFileError(f"{path}: not a safetensors file (only {size} bytes)")

@@ -393,6 +393,8 @@ def test_user_errors_exit_2(data, model_path, tmp_path):
         return invoke("render", model_path, "--out", tmp_path / "r", *extra)
 
     assert_user_error(render("--instance", "chair_999", "--views", "test"), "unknown instance 'chair_999'")
+    # the dataset where the model goes (arguments swapped): the line says which comes first
+    assert_user_error(invoke("eval", "recon", data, model_path), "is a folder, not a file; it is a dataset: the model file (.safetensors) comes first")
     # an instance given to another option is named by it (the line named only the value)
     line = assert_user_error(render("--instance", "0", "--views", "test", "--color-from", "chair_999"), "unknown instance 'chair_999'")
     assert line.startswith("error: --color-from: "), line
