@@ -8,6 +8,7 @@ safetensors — no pickle anywhere.
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
 import stat
@@ -20,11 +21,59 @@ import numpy as np
 from .errors import CrfError
 
 
+MAX_PIPED_BYTES = 1 << 28
+"""At most this much is read from a pipe (256 MB: a scribble, strokes or a photo)."""
+_PIPED: dict[tuple[int, int], bytes] = {}  # by the pipe's (device, inode): /dev/fd/N names another pipe once N is reused
+
+
+def piped_input(path: str | os.PathLike) -> bytes | None:
+    """The whole content of ``path`` when it is a pipe (a shell's ``<(…)``, ``/dev/stdin`` fed
+    by ``|``), read once per process and kept, since a command may read an input twice; None for
+    anything else.  Opened without blocking: a named pipe nothing writes to reads as empty
+    instead of waiting for ever.  Images and JSON inputs (scribbles, strokes, photos, camera
+    files) read pipes; models and edits, which are read in parts, do not."""
+    import select
+
+    try:
+        st = os.stat(path)
+        if not stat.S_ISFIFO(st.st_mode):
+            return None
+        key = (st.st_dev, st.st_ino)
+        if key in _PIPED:
+            return _PIPED[key]
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError:
+        return None
+    chunks, total = [], 0
+    try:
+        while True:
+            try:
+                chunk = os.read(fd, 1 << 16)
+            except BlockingIOError:  # a writer that has not written yet
+                select.select([fd], [], [], 1.0)
+                continue
+            if not chunk:
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > MAX_PIPED_BYTES:
+                raise CrfError(f"{path}: the pipe gives more than {MAX_PIPED_BYTES >> 20} MB")
+    finally:
+        os.close(fd)
+    data = b"".join(chunks)
+    if not data:
+        raise CrfError(f"{path}: the pipe gave nothing (nothing wrote to it)")
+    _PIPED[key] = data
+    return data
+
+
 def not_a_file(path: Path, missing: str = "file not found") -> str:
     """Why ``path`` (not a regular file) cannot be read, for an error line: a folder, a device
     or pipe, a symbolic link that leads nowhere, or ``missing``."""
     if path.is_dir():
         return "is a folder, not a file"
+    if path.is_fifo():
+        return "is a pipe, which crfedit reads only for images and JSON (write it to a file first)"
     if path.exists():
         return "is not a regular file (a device or pipe)"
     if path.is_symlink():
@@ -309,10 +358,11 @@ def write_json(path: str | os.PathLike, obj) -> None:
 def read_json(path: str | os.PathLike):
     """Parse a JSON file; a missing or malformed file is a one-line :class:`CrfError`."""
     path = Path(path)
-    if not path.is_file():  # a pipe would block the read for ever
+    piped = piped_input(path)
+    if piped is None and not path.is_file():  # a device would block the read for ever
         raise CrfError(f"{path}: {not_a_file(path)}")
     try:
-        text = path.read_text(encoding="utf-8-sig")  # a leading BOM (Windows editors) is not JSON
+        text = piped.decode("utf-8-sig") if piped is not None else path.read_text(encoding="utf-8-sig")  # a leading BOM (Windows editors) is not JSON
     except FileNotFoundError:
         raise CrfError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -351,10 +401,11 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
-    if not path.is_file():  # a pipe would block the read for ever
+    piped = piped_input(path)
+    if piped is None and not path.is_file():  # a device would block the read for ever
         raise CrfError(f"{path}: {not_a_file(path)}")
     try:
-        with Image.open(path) as im:
+        with Image.open(io.BytesIO(piped) if piped is not None else path) as im:
             im.load()
             if im.mode == "F":  # floats: no range to read them by (NaN, 0/1, 0/255 all occur)
                 raise CrfError(f"{path}: image mode F (32-bit float) is not supported: save it as an 8- or 16-bit PNG")

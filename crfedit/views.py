@@ -228,7 +228,7 @@ def _size(spec: str, data: dict, keys: tuple[str, str], model) -> tuple[int, int
 
 def _file_views(spec: str, model) -> list[tuple[str, Camera]]:
     path = Path(spec)
-    if not path.is_file():
+    if not (path.is_file() or path.is_fifo()):  # a pipe (<(…)) is read whole by read_json
         raise CrfError(f"view spec {spec!r}: camera file {not_a_file(path, 'not found')}")
     data = read_json(path)  # a malformed file is an error that names it
     if not isinstance(data, dict):

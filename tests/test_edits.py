@@ -806,3 +806,28 @@ def test_a_removal_of_nearly_all_the_object_needs_force(trained, tmp_path):
     r = invoke(*args, "--force")
     assert r.exit_code == 0 and out.is_file(), r.output
     assert any(line.startswith("coverage: ") for line in r.stdout.splitlines()), r.stdout
+
+
+def test_scribbles_and_strokes_given_through_pipes(trained, tmp_path):
+    """A script makes strokes on the fly: `--scribble <(…)` and `--scribble-json <(…)` (pipes)
+    were refused as not regular files; they are read whole, and the edit is the one the same
+    bytes in files give (its fingerprint)."""
+    import shutil
+    import subprocess
+
+    if shutil.which("bash") is None:
+        pytest.skip("no bash for process substitution")
+    path, model, category = trained
+    i, view, fg, keep, _ = scribbles(category, 0, "seat")
+    fg_png = write_mask(tmp_path / "fg.png", fg)
+    ys, xs = np.nonzero(fg)
+    strokes = {"strokes": [[[int(xs[0]), int(ys[0])], [int(xs[-1]), int(ys[-1])]]], "radius": 1}
+    (tmp_path / "s.json").write_text(json.dumps(strokes))
+    common = f"{sys.executable} -m crfedit edit-color {path} --instance 0 --view train:{i} --color red --steps 3 --device cpu"
+    files = f"{common} --scribble {fg_png} --keep-json {tmp_path / 's.json'} --out {tmp_path / 'a.safetensors'}"
+    piped = f"{common} --scribble <(cat {fg_png}) --keep-json <(cat {tmp_path / 's.json'}) --out {tmp_path / 'b.safetensors'}"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    for cmd in (files, piped):
+        r = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, env=env, timeout=300)
+        assert r.returncode == 0, r.stderr
+    assert read_delta(tmp_path / "a.safetensors").fingerprint == read_delta(tmp_path / "b.safetensors").fingerprint

@@ -455,3 +455,31 @@ def test_an_output_of_another_kind_replaces_only_its_own_kind(tmp_path):
         check_replaceable(tmp_path / "model.safetensors", "--csv", (".csv",))
     with pytest.raises(CrfError, match="folder .*nodir does not exist"):
         check_replaceable(tmp_path / "nodir" / "b.csv", "--csv", (".csv",))
+
+
+def test_images_and_json_read_from_a_pipe(tmp_path):
+    """A shell's <(…) or /dev/stdin fed by | is a pipe: read whole once (a second read gets the
+    same bytes), not refused as 'not a regular file'; a named pipe nothing writes to reads as
+    empty rather than blocking."""
+    import threading
+
+    from crfedit.io import piped_input, read_image, read_json
+
+    write_png(tmp_path / "s.png", np.eye(4)[..., None].repeat(3, axis=2))
+    for data, reader, expected in ((b'\xef\xbb\xbf{"a": [1, 2]}', read_json, {"a": [1, 2]}),
+                                   ((tmp_path / "s.png").read_bytes(), read_image, read_image(tmp_path / "s.png"))):
+        r, w = os.pipe()
+        feeder = threading.Thread(target=lambda: (os.write(w, data), os.close(w)))
+        feeder.start()
+        path = f"/dev/fd/{r}"
+        try:
+            got = reader(path)
+            assert (got == expected) if isinstance(expected, dict) else np.array_equal(got, expected)
+            assert piped_input(path) == data  # kept: the pipe itself is empty now
+        finally:
+            feeder.join()
+            os.close(r)
+    assert piped_input(tmp_path / "s.png") is None  # a regular file is read as one
+    os.mkfifo(tmp_path / "fifo")
+    with pytest.raises(CrfError, match=r"fifo: the pipe gave nothing \(nothing wrote to it\)$"):
+        read_image(tmp_path / "fifo")
