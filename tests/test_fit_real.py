@@ -80,7 +80,7 @@ def test_fit_beats_the_mean_code_at_other_views(setup, fitted):
     _, model, held = setup
     view = held.splits["train"][0]
     others = held.splits["val"] + held.splits["test"]  # views the fit never saw
-    start = fit_real(model, photo_of(view), view.camera, "mean", FitOptions(steps_codes=0, steps_joint=0))
+    start = fit_real(model, photo_of(view), view.camera, "mean", FitOptions(steps_codes=0, steps_joint=0, start="mean"))
     k = fitted.instance
     assert k == len(model.names) and fitted.model.names[k] == "real"
     mean_score, fit_score = mean_psnr(start.model, k, others), mean_psnr(fitted.model, k, others)
@@ -153,8 +153,8 @@ def test_codes_only_stores_no_weights(setup):
     result = fit_real(model, photo_of(view), view.camera, "codes_only", FitOptions(steps_codes=5, steps_joint=0))
     assert set(result.tensors) == {"shape_code", "color_code", "occupancy"}
     assert [s.stage for s in result.stages] == ["codes", "final"]
-    # started from the mean code of the training instances
-    start = fit_real(model, photo_of(view), view.camera, "mean", FitOptions(steps_codes=0, steps_joint=0))
+    # --start mean: from the mean code of the training instances
+    start = fit_real(model, photo_of(view), view.camera, "mean", FitOptions(steps_codes=0, steps_joint=0, start="mean"))
     torch.testing.assert_close(start.tensors["shape_code"], model.field.shape_codes.detach().mean(0), rtol=0, atol=1e-6)
 
 
@@ -434,3 +434,29 @@ def test_fit_real_command_errors_write_nothing(setup, tmp_path):
     for args, fragments in cases:
         assert_user_error(invoke(*base, *args, "--out", out, "--device", "cpu"), *fragments)
         assert not out.exists() and not list(tmp_path.glob(".e.safetensors*"))
+
+
+def test_a_nearest_start_takes_the_best_matching_instance(setup):
+    """``start="nearest"``: a photo of a training chair (its own view) ranks that chair first by
+    outline IoU, and the fit starts from its codes inside the grids of the best matches (not
+    every training grid); a start it does not know is one line."""
+    from crfedit.fit_real import NEAREST_GRIDS, outline_ranking
+
+    _, model, _ = setup
+    k = 1
+    view = model.views["train"].cameras(k)[0]
+    photo_mask = render_camera(model.field_for(k), view, k).opacity.numpy() > 0.5
+    ranking = outline_ranking(model, view, photo_mask)
+    assert ranking[0] == (1.0, k) and len(ranking) == len(model.names)
+    rgb = render_camera(model.field_for(k), view, k).rgb.numpy()
+    photo = prepare_photo(np.concatenate([rgb, photo_mask[..., None].astype(np.float32)], axis=-1), None, view.width, view.height)
+    start = fit_real(model, photo, view, "again", FitOptions(steps_codes=0, steps_joint=0, start="nearest"))
+    j = start.instance
+    hyper = json.loads(start.meta["hyperparameters"])
+    assert hyper["start"] == "nearest" and hyper["init"] == f"{model.names[k]}'s codes (outline IoU 1.000)"
+    assert hyper["grids"] == [model.names[i] for _, i in ranking[:NEAREST_GRIDS]]
+    assert torch.equal(start.model.field_for(j).shape_codes[j], model.field.shape_codes[k])  # no steps: the chair's own code
+    mean = fit_real(model, photo, view, "again", FitOptions(steps_codes=0, steps_joint=0, start="mean"))
+    assert start.stages[-1].psnr > mean.stages[-1].psnr + 1.0, (start.stages[-1].psnr, mean.stages[-1].psnr)
+    with pytest.raises(CrfError, match="--start middle: expected one of mean, nearest, nearest-codes"):
+        FitOptions(start="middle").validated()

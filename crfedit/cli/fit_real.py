@@ -73,6 +73,7 @@ def fit_real_cmd(
     lr_codes: Annotated[float, typer.Option("--lr-codes", help="Adam learning rate of the codes.")] = 1e-2,
     lr_weights: Annotated[float, typer.Option("--lr-weights", help="Adam learning rate of the weights (stage 2).")] = 1e-3,
     rays: Annotated[int, typer.Option("--rays", help="Rays per step, drawn from the photo's pixels (all of them at 64x64 by default).")] = 4096,
+    start: Annotated[str, typer.Option("--start", help="Where the fit starts: nearest (the codes of the training instance whose render from --pose best matches the photo's outline, in the 3 best-matching grids), mean (the mean code in every training grid, as the paper), nearest-codes (those codes, every grid).")] = "nearest",
     distortion: Annotated[float, typer.Option("--distortion", help="Stage 2: weight of the distortion loss that gathers each ray's density into one surface (one photo leaves depth free; 0: off).")] = 0.1,
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")] = None,
     as_json: JsonOpt = False,
@@ -89,7 +90,7 @@ def fit_real_cmd(
 
     options = FitOptions(
         steps_codes=steps_codes, steps_joint=steps_joint, weights=weights.value, lr_codes=lr_codes,
-        lr_weights=lr_weights, rays=rays, distortion=distortion, seed=seed,
+        lr_weights=lr_weights, rays=rays, distortion=distortion, seed=seed, start=start,
     ).validated()
     check_out_file(out, {"MODEL": model, "PHOTO": photo, "--mask": mask, "--edit": edit}, "edit", "real.safetensors")
     name_from = "--name" if name is not None else "instance name (the photo's file name)"
