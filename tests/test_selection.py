@@ -1570,3 +1570,23 @@ def test_a_stroke_beside_a_thin_part_snaps_onto_it(trained):
     assert options_for("add").stroke_snap == 0
     with pytest.raises(CrfError, match="background only"):
         select(model, k, [ScribbleView(view.camera, beside)], options_for("add"))
+
+
+def test_a_scribble_over_the_whole_instance_selects_all_of_it(trained):
+    """WHOLE_SCRIBBLE: a removal scribbled over the whole chair (no keep stroke) left its legs and
+    stretchers, the sheet rules reading the scribble as a seat's; it now takes every occupied
+    cell and says so.  A keep stroke anywhere means a part was meant: the rules read it as before."""
+    from crfedit.edit.selection.base import coverage_summary
+    from crfedit.edit.selection.pipeline import WHOLE_SCRIBBLE
+
+    _, model, category = trained
+    view, _, keep, _ = part_view(category, 1, "back")
+    seen = render_camera(model.field_for(1), view.camera, 1).opacity.numpy() > 0.05
+    everything = dilate(seen, 1)
+    sel = select(model, 1, [ScribbleView(view.camera, everything, None)], options_for("remove"))
+    occupied = model.field.occupancy[1]
+    assert torch.equal(sel.mask, occupied) and sel.meta["whole"] >= WHOLE_SCRIBBLE
+    assert coverage_summary(sel.meta).startswith(f"the scribble covers {sel.meta['whole']:.0%} of what the view shows")
+    kept = erode(keep, 1)  # keep strokes inside the other parts
+    held = select(model, 1, [ScribbleView(view.camera, everything & ~kept, kept)], options_for("remove"))
+    assert "whole" not in held.meta and not torch.equal(held.mask, occupied)

@@ -208,6 +208,9 @@ def coverage_summary(meta: dict) -> str | None:
     """A line when the selection takes nearly every occupied cell of the instance (None
     otherwise): usually a scribble that belongs to another view or instance."""
     selected, occupied = meta.get("selected_cells"), meta.get("occupied_cells")
+    if isinstance(meta.get("whole"), float):  # pipeline.WHOLE_SCRIBBLE
+        return (f"the scribble covers {meta['whole']:.0%} of what the view shows of the instance, and no keep stroke "
+                "holds anything back: the whole instance is selected")
     if type(selected) is not int or type(occupied) is not int or occupied <= 0 or selected < NEARLY_ALL * occupied:
         return None
     return (f"{selected} of the instance's {occupied} occupied cells, nearly all of it: unless the part is most of "

@@ -36,6 +36,13 @@ def _strokes(v: ScribbleView, device) -> tuple[Tensor, Tensor]:
     return scribbled, kept
 
 
+WHOLE_SCRIBBLE = 0.95
+"""A view whose scribble covers at least this share of the pixels that show the instance, with
+no keep stroke in any view, selects the whole instance: it was asked for all of it.  Taken part
+by part, a scribble over a whole chair (removal) lay on sheets, so the sheet rules left its legs
+and stretchers standing and half the chair stayed."""
+
+
 def _on_object(field, k, v: ScribbleView, render: RenderOutput, min_opacity: float) -> np.ndarray:
     """[H, W] bool: the pixels of view ``v`` that show the object (and lift to a surface point)."""
     return surface_points(field, v.camera, k, min_opacity, render)[1].view(v.camera.height, v.camera.width).cpu().numpy()
@@ -269,6 +276,10 @@ def select(
     if options.stroke_centres or options.stroke_snap > 0:  # both read each view's on-object pixels
         renders = [render_camera(field, v.camera, k, colour=False) for v in views] if renders is None else renders
         on_object = [_on_object(field, k, v, r, options.min_opacity) for v, r in zip(views, renders)]
+    whole = None  # see WHOLE_SCRIBBLE
+    if (options.stroke_centres or options.stroke_snap > 0) and not any(v.keep is not None and v.keep.any() for v in views):
+        share = max(float((v.scribble & on).sum()) / max(1, int(on.sum())) for v, on in zip(views, on_object))
+        whole = round(share, 3) if share >= WHOLE_SCRIBBLE else None
     if options.stroke_snap > 0:  # see SelectOptions.stroke_snap
         views, added = _snapped_strokes(views, on_object, options.stroke_snap)
         snap_meta = {"added_pixels": added}
@@ -467,12 +478,16 @@ def select(
     if mirror is not None and options.mirror == "values":  # see SelectOptions.mirror
         both = occupied & mirror.grid(occupied)
         values = torch.where(both & ~kept, torch.maximum(values, mirror.grid(values)), values)
+    if whole is not None:
+        values = torch.where(occupied, torch.ones_like(values), values)
     values = quantized(values, (at, options.threshold, GROW_LOW))
     meta = {
         "positives": int(pos_pts.shape[0]), "keep_points": int(neg_pts.shape[0]), "view_points": int(cand_pts.shape[0]),
         "views": len(views), "features": list(groups), "occupied_cells": int(cells.numel()),
         "selected_cells": int((values >= at).sum()), "seconds": round(time.perf_counter() - started, 4),
     }
+    if whole is not None:
+        meta["whole"] = whole
     if veto is not None:
         meta["keep_wins_cells"] = int(veto.sum())
     if bars_meta is not None:
