@@ -196,16 +196,31 @@ def _read_json(path: Path):
         raise _data_error(e) from None
 
 
+def srgb_from_linear(x: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function (IEC 61966-2-1) of linear values in [0, 1]: what a PNG of the
+    same render stores."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
 def _read_rgba(path: Path) -> np.ndarray:
-    """Image as float32 [H, W, 3|4] in [0, 1]; EXR images are read as linear R, G, B(, A)."""
+    """Image as float32 [H, W, 3|4] in [0, 1], straight alpha, sRGB like every PNG: an EXR image
+    holds linear light with its colour premultiplied by alpha (the OpenEXR convention, which
+    Blender writes), so its colour is divided by alpha and encoded as sRGB.  Read as they were,
+    an EXR dataset trained 17.05 dB against its own PNG twin's 30.24 (a chair rendered dark)."""
     if path.suffix.lower() == ".exr":
         channels = _read_exr(path)
         if not {"R", "G", "B"} <= channels.keys():
             raise DataError(f"{path}: EXR image needs R, G, B channels (has {', '.join(sorted(channels))})")
-        arr = np.stack([channels[c] for c in ("R", "G", "B", "A") if c in channels], axis=-1)
+        arr = np.stack([channels[c] for c in ("R", "G", "B", "A") if c in channels], axis=-1).astype(np.float64)
         if not np.isfinite(arr).all():
             raise DataError(f"{path}: image has NaN or infinite pixels")
-        return np.clip(arr, 0.0, 1.0).astype(np.float32)
+        if arr.shape[-1] == 4:
+            alpha = np.clip(arr[..., 3:], 0.0, 1.0)
+            arr[..., :3] = np.where(alpha > 0, arr[..., :3] / np.maximum(alpha, 1e-12), 0.0)  # premultiplied → straight
+            arr[..., 3:] = alpha
+        arr[..., :3] = srgb_from_linear(arr[..., :3])
+        return arr.astype(np.float32)
     from PIL import Image, UnidentifiedImageError
 
     if not path.is_file():
