@@ -89,3 +89,30 @@ def test_random_background_learns_the_coverage(two_models):
             scores[rb, bg] = float(np.mean(s))
     assert scores[True, 0.0] > scores[False, 0.0] + 2.0, scores
     assert abs(scores[True, 1.0] - scores[False, 1.0]) < 2.5, scores
+
+
+def test_instances_far_apart_in_rays_are_drawn_equally():
+    """BALANCE_RATIO: instance 1 with 8× instance 0's rays (3 training views among 40) got 1/9
+    of the batch, and its chair fitted its own views 11 dB worse; drawn instance first, each
+    gets half.  Within the ratio the draw is the plain one, bit for bit."""
+    from crfedit.data.loading import TrainingRays
+    from crfedit.train import BALANCE_RATIO
+
+    def rays(counts):
+        n = sum(counts)
+        inst = torch.cat([torch.full((c,), k) for k, c in enumerate(counts)])
+        alpha = (torch.arange(n) % 4 != 0).float()  # a quarter background, in every instance
+        return TrainingRays(torch.zeros(n, 3), torch.ones(n, 3) / 3**0.5, torch.rand(n, 3), alpha, inst)
+
+    uneven = BatchSampler(rays([100, 800]), torch.device("cpu"))
+    assert uneven.balanced and 800 > BALANCE_RATIO * 100
+    batch = uneven(4000, torch.Generator().manual_seed(0))
+    share = float((batch.instance == 0).float().mean())
+    assert 0.45 < share < 0.55, share  # uniform over rays it would be 1/9
+    even = rays([300, 400])
+    sampler = BatchSampler(even, torch.device("cpu"))
+    assert not sampler.balanced
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    fg, bg = (even.alpha > 0).nonzero().squeeze(-1), (even.alpha <= 0).nonzero().squeeze(-1)
+    plain = torch.cat([fg[torch.randint(len(fg), (48,), generator=g2)], bg[torch.randint(len(bg), (16,), generator=g2)]])
+    assert torch.equal(sampler(64, g1).instance, even.instance[plain])  # the plain draw, as before

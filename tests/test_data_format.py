@@ -329,3 +329,26 @@ def test_exr_images_are_linear_and_premultiplied(tiny_chairs, tmp_path):
     from_exr = load_category(root).instances[0].splits["train"][0]
     from_png = load_category(tiny_chairs / "chair_000").instances[0].splits["train"][0]
     assert np.abs(from_exr.rgb - from_png.rgb).max() < 2e-3 and np.abs(from_exr.alpha - from_png.alpha).max() < 1e-6
+
+
+def test_dataset_info_says_what_train_would(tmp_path):
+    """`dataset info` is what a user runs first: it says what train warns of or refuses (an
+    instance with far fewer views, poses in OpenCV axes, no alpha), which it printed as a
+    clean summary."""
+    from crfedit.data.synth import SynthConfig, write_synth_category
+
+    root = tmp_path / "c"
+    write_synth_category(root, SynthConfig(instances=2, views=20, res=8, seed=0, twins=False))
+    clean = invoke("dataset", "info", root)
+    assert clean.exit_code == 0 and clean.stderr == "", clean.stderr
+    doc = json.loads((root / "chair_001" / "transforms_train.json").read_text())
+    doc["frames"] = doc["frames"][:2]  # 2 training views against 16
+    (root / "chair_001" / "transforms_train.json").write_text(json.dumps(doc))
+    few = invoke("dataset", "info", root)
+    assert few.exit_code == 0 and few.stderr.startswith(f"note: chair_001 (2 views) of {root}: far fewer training views than the others"), few.stderr
+    doc = json.loads((root / "chair_000" / "transforms_train.json").read_text())
+    for f in doc["frames"]:  # OpenCV/COLMAP axes: Y down, Z forward
+        f["transform_matrix"] = (np.array(f["transform_matrix"]) * [1, -1, -1, 1]).tolist()
+    (root / "chair_000" / "transforms_train.json").write_text(json.dumps(doc))
+    flipped = invoke("dataset", "info", root)
+    assert flipped.exit_code == 0 and "flip the Y and Z axes of OpenCV/COLMAP poses (train refuses the dataset)" in flipped.stderr, flipped.stderr

@@ -8,7 +8,8 @@ from typing import Annotated
 
 import typer
 
-from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, echo_notes, stderr_progress, user_errors
+from ..errors import CrfError
+from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, echo_notes, printable, stderr_progress, user_errors
 
 
 def _rate_column():
@@ -74,6 +75,7 @@ def info(
 ) -> None:
     """Summarize a dataset: instances, views, size, bbox, fingerprint."""
     from ..data.loading import dataset_info, load_category
+    from ..train import check_hulls, dataset_notes, scene_box, visual_hulls
 
     category = load_category(data, with_depth=True)
     echo_notes(category)
@@ -100,6 +102,12 @@ def info(
     ]
     for key, value in rows:
         typer.echo(f"{key:<12} {value}")
+    for note in dataset_notes(category):  # what train would say, said first
+        typer.echo(printable(f"note: {note}"), err=True)
+    try:
+        check_hulls(category, visual_hulls(category, scene_box(category), 32, 0))  # an empty hull: OpenCV poses
+    except CrfError as e:
+        typer.echo(printable(f"warning: {e} (train refuses the dataset)"), err=True)
     bare = meta["without_train_views"]
     if bare:
         typer.echo(f"warning: {len(bare)} instance{'s' * (len(bare) != 1)} without train views ({', '.join(bare[:4])}"
