@@ -615,7 +615,7 @@ CATALOGUE: list[Case] = [
     Case("out/under-a-file/train", lambda e, t: train_cmd(e, t, out=under_a_file(t, "m.safetensors")), ("plain.txt", "is a file, not a folder")),
     Case("out/under-a-file/render", lambda e, t: render(e, t, out=under_a_file(t, "frames")),
          ("plain.txt", "is a file, not a folder")),
-    Case("out/under-a-file/transfer", lambda e, t: transfer_cmd(e, t, out=under_a_file(t, "d.safetensors")), ("plain.txt", "does not exist")),
+    Case("out/under-a-file/transfer", lambda e, t: transfer_cmd(e, t, out=under_a_file(t, "d.safetensors")), ("plain.txt", "is a file, not a folder")),
     Case("out/missing-folder/fit-real", lambda e, t: fit_real(e, t, out=t / "missing" / "r.safetensors"), ("missing", "does not exist")),
     Case("out/missing-folder/edits-bake", lambda e, t: bake(t, e.model, e.delta, out=t / "missing" / "b.safetensors"), ("missing", "does not exist")),
     Case("out/the-model-itself/transfer", lambda e, t: (transfer_cmd(e, t, out=e.model)[0], []), ("is the model file",)),

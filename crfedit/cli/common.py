@@ -189,6 +189,9 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
             raise CrfError(f"{label}: is a crfedit model already; replace it with --overwrite, or pick another name")
     folder = out.parent if str(out.parent) else Path(".")
     if not folder.is_dir():
+        under = next((p for p in (folder, *folder.parents) if p.exists()), None)
+        if under is not None and not under.is_dir():  # a file where a folder should be
+            raise CrfError(f"{label}: {under} is a file, not a folder")
         # refused, not made: a typo's folder would hold the one file nobody looks for
         raise CrfError(f"{label}: folder {folder} does not exist (make it first: mkdir -p {folder})")
     if not os.access(folder, os.W_OK):
