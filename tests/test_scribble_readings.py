@@ -248,3 +248,14 @@ def test_keep_strokes_over_the_scribble_are_warned_of():
     half = np.zeros_like(fg)
     half[2:4, 2:4] = True
     assert "cover 50%" in keep_overlap(fg, half)
+
+
+def test_a_scribble_of_a_few_pixels_gets_a_note():
+    from crfedit.edit.scribble import FEW_SCRIBBLED, few_pixels_note
+
+    mask = np.zeros((8, 8), bool)
+    assert few_pixels_note(mask) is None  # empty: the edit's own error says so
+    mask[3, 3] = True
+    assert few_pixels_note(mask).startswith("a scribble of 1 pixel says little about the part")
+    mask[4, 3:3 + FEW_SCRIBBLED] = True
+    assert few_pixels_note(mask) is None

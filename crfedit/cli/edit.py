@@ -108,7 +108,7 @@ def _refuse_none(option: str, path, needs: str) -> None:
 
 def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camera, force: bool):
     """(scribble mask, keep mask or None), each image read as drawn (one line says how)."""
-    from ..edit.scribble import check_coverage, check_masks, keep_overlap, load_mask
+    from ..edit.scribble import check_coverage, check_masks, few_pixels_note, keep_overlap, load_mask
 
     _refuse_none("--scribble", scribble, "an edit's one view needs its scribble")
     _refuse_none("--keep", keep, "an edit's one view takes no --keep when it has no keep strokes")
@@ -116,6 +116,8 @@ def _masks(scribble, scribble_json, keep, keep_json, model, instance: int, camer
     fg = load_mask(scribble, scribble_json, camera.width, camera.height, "scribble", render)
     fraction = check_coverage(fg.mask, force)
     typer.echo(f"scribble: {fg.reading}, {int(fg.mask.sum())} pixels ({100 * fraction:.1f} % of the view)")
+    if few := few_pixels_note(fg.mask):
+        typer.echo(f"note: {few}", err=True)
     bg = load_mask(keep, keep_json, camera.width, camera.height, "keep", render)
     if bg is not None:
         typer.echo(f"keep: {bg.reading}, {int(bg.mask.sum())} pixels")

@@ -56,7 +56,7 @@ def select_cmd(
     """Lift scribbles on one or more views to a 3-D selection of the instance's part (no weight changes)."""
     import numpy as np
 
-    from ..edit.scribble import keep_outside, keep_overlap
+    from ..edit.scribble import few_pixels_note, keep_outside, keep_overlap
     from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
     from ..edit.selection.options import EDIT_KINDS
     from ..io import write_png
@@ -89,6 +89,8 @@ def select_cmd(
             fg = np.zeros_like(bg)
         else:
             fg = _mask(scribble[i], m, k, camera, "scribble")
+            if few := few_pixels_note(fg):
+                typer.echo(f"note: {spec}: {few}", err=True)
         if bg is not None:  # refused as the edit commands refuse it (select took an empty keep PNG as none)
             try:
                 keep_outside(fg, bg)

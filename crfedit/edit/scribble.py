@@ -200,6 +200,20 @@ def load_mask(
     return None if mask is None else Scribble(mask, " + ".join(readings))
 
 
+FEW_SCRIBBLED = 4
+"""A scribble of fewer pixels gets a note: one pixel on a seat recoloured a third of it and
+tinted the arms (the selection has almost nothing to learn the part from)."""
+
+
+def few_pixels_note(scribble: np.ndarray) -> str | None:
+    """The note for a scribble of fewer than :data:`FEW_SCRIBBLED` pixels (None otherwise)."""
+    n = int(np.sum(scribble))
+    if n >= FEW_SCRIBBLED or n == 0:
+        return None
+    return (f"a scribble of {n} pixel{'s' * (n != 1)} says little about the part: the selection may take too little or "
+            "too much of it (draw along the part, and check it with select --preview)")
+
+
 def check_coverage(scribble: np.ndarray, force: bool = False) -> float:
     """The scribbled fraction of the view; above ``MAX_COVERAGE`` a :class:`CrfError` unless ``force``
     (a scribble over most of the view is usually a misread image, e.g. the whole render)."""
