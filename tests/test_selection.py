@@ -32,6 +32,7 @@ from crfedit.edit.supervised import (
     sample_share, surface_selected,
 )
 from crfedit import occupancy
+from crfedit.delta import read_delta
 from crfedit.errors import CrfError
 from crfedit.masks import dilate, erode
 from crfedit.renderer import render_camera
@@ -1229,6 +1230,16 @@ def test_select_command_and_its_errors(trained, tmp_path):
                             "--scribble", str(tmp_path / "fg.png"), "--selection", str(tmp_path / "a.safetensors"),
                             "--out", str(tmp_path / "e2.safetensors")])
     assert r.exit_code == 0 and "made with crfedit select --for add" in r.output, r.output
+    # a selection file alone says what a removal takes: no scribble needed (it asked for one), the same edit
+    r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--steps", "5",
+                            "--selection", str(out), "--out", str(tmp_path / "alone.safetensors")])
+    assert r.exit_code == 0, r.output
+    assert read_delta(tmp_path / "alone.safetensors").fingerprint == read_delta(edit_out).fingerprint
+    r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--selection", str(out),
+                            "--keep", str(tmp_path / "fg.png"), "--out", str(tmp_path / "x.safetensors")])
+    assert_user_error(r, "--keep goes with a scribble; a --selection file alone already says what goes")
+    r = runner.invoke(app, ["remove", str(path), "--instance", model.names[1], "--view", f"train:{index}", "--out", str(tmp_path / "x.safetensors")])
+    assert_user_error(r, "give the part to remove (or a --selection file) as --scribble")
 
     def interrupted(*args):
         raise KeyboardInterrupt

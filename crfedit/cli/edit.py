@@ -43,7 +43,7 @@ ScribbleJsonOpt = Annotated[Optional[Path], typer.Option("--scribble-json", help
 KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or strokes .json) of what must not change (default: a random sample of the rest of the view).")]
 KeepShapeOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or strokes .json) of what must not change (a random sample of the rest of the view is kept as well).")]
 MethodOpt = Annotated[EditMethod, typer.Option("--method", help="selection: lift the scribbles to a 3-D selection and supervise the edit with it in every view; paper: the paper's losses on the scribbled view's rays alone.")]
-SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles).")]
+SelectionOpt = Annotated[Optional[Path], typer.Option("--selection", help="A selection file from `crfedit select` to edit (default: computed from the scribbles); remove takes it without a scribble, edit-color still reads the part's colour under its scribble.")]
 JoinOpt = Annotated[Optional[JoinMode], typer.Option("--colour-join", "--color-join", help="Whether the selection computed from the scribbles also takes the cells of the scribbled colour: auto (unless that would be over 4.5× the cells the features chose, 3.5× for a recolour's pale part; additions never), always (a part that is most of the instance) or never.")]
 MirrorOpt = Annotated[Optional[MirrorMode], typer.Option("--mirror", help="Mirror symmetry of the selection computed from the scribbles: views (the scribbled view's mirror image lends its strokes; removals' default), values (the selection takes its own mirror image; recolours' default) or off (one side only). Nothing is mirrored where the keep strokes cover the scribble's mirror image.")]
 KeepJsonOpt = Annotated[Optional[Path], typer.Option("--keep-json", help="Strokes JSON of what must not change.")]
@@ -238,7 +238,10 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
     k = m.instance_index(instance)
     shown = _preview_views(m, k, preview, views)
     label, camera = _one_view(m, view, k)
-    fg, bg = _masks(*masks, m, k, camera, force)
+    given = masks[0] is not None or masks[1] is not None
+    if not given and (masks[2] is not None or masks[3] is not None):
+        raise CrfError("--keep goes with a scribble; a --selection file alone already says what goes")
+    fg, bg = _masks(*masks, m, k, camera, force) if given else (None, None)  # remove --selection alone
     mode, join_mode = _mode(mirror, method, "--mirror"), _mode(join, method, "--colour-join")
     sel = _selection(selection, m, k, kind, mode, join_mode)
     if sel is None and method == EditMethod.selection:
@@ -378,7 +381,8 @@ def remove_cmd(
     """Remove the scribbled part of one instance (trains F_fuse and F_dens, updates its occupancy grid)."""
     from ..edit import remove
 
-    _require_scribble(scribble, scribble_json, "part to remove")
+    if selection is None:  # a selection file says what goes by itself
+        _require_scribble(scribble, scribble_json, "part to remove (or a --selection file)")
     options = _options(strategy, steps, lr, rays, seed, penalty)
     check_out_file(out, _scribbled_inputs(model, edit, scribble, scribble_json, keep, keep_json, selection))
     p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "remove", preview, views,

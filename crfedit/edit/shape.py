@@ -112,13 +112,16 @@ def remove(
     started = time.perf_counter()
     options = options.validated()
     k = model.instance_index(instance)
-    scribble, keep = check_masks(scribble, keep, camera.width, camera.height)
     if method not in EDIT_METHODS:
         raise CrfError(f"--method {method}: expected one of {', '.join(EDIT_METHODS)}")
+    if scribble is None and (method != "selection" or selection is None):
+        raise CrfError("a removal needs its scribble, or a selection to remove (with --method selection)")
+    if scribble is not None:
+        scribble, keep = check_masks(scribble, keep, camera.width, camera.height)
     if method == "selection":
         if occluded:
             raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
-        if selection is not None:
+        if selection is not None:  # the selection says what goes: the scribble, if any, only named it
             return remove_selected(model, k, selection, [camera], options)
         return since(remove_selected(model, k, select_for(model, k, camera, scribble, keep, "remove", mirror), [camera], options), started)
     generator = torch.Generator().manual_seed(options.seed)
