@@ -154,6 +154,23 @@ def test_scribble_recolour_and_toggle_in_a_real_browser(page, edit_category, tmp
     p.wait("return S.job === null && !document.getElementById('apply').disabled", 10)
     assert len(p.driver.find_elements("css selector", "#stack li")) == 1  # nothing was added
     p.js("marks().fg.splice(0, marks().fg.length, ...window.kept); redraw(); clearError()")
+    # the canvas follows the view's size when compare side by side is turned off (it stayed small)
+    p.set_input("#compare", "side")
+    p.wait("return !document.getElementById('sidebox').hidden", 30)
+    p.set_input("#compare", "off")
+    p.wait("const c = document.getElementById('strokes'), v = document.getElementById('view'); "
+           "return Math.abs(c.width - Math.round(v.clientWidth * (window.devicePixelRatio || 1))) <= 1", 30)
+    # drawing on the donor updates the paste hint at once (it kept asking for the strokes just drawn)
+    p.set_input("#edit-kind", "add")
+    p.js("toggleDonor()")
+    assert p.js("return document.getElementById('paste-info').textContent").startswith("Scribble the part on the donor first")
+    p.js("""const r = document.getElementById('strokes').getBoundingClientRect();
+            const at = (x, y) => ({clientX: r.left + (x + 0.5) * r.width / S.info.width, clientY: r.top + (y + 0.5) * r.height / S.info.height,
+                                   pointerId: 1, preventDefault() {}});
+            S.tool = 'fg'; onDown(at(10, 12)); onMove(at(16, 12)); onUp();""")
+    assert p.js("return document.getElementById('paste-info').textContent").startswith("Now click where to paste it")
+    p.js("toggleDonor(); S.copy = null; S.paste = null")
+    p.set_input("#edit-kind", "color")
 
     # a reload of the tab keeps the strokes, the instance and the view (sessionStorage)
     p.driver.refresh()

@@ -251,7 +251,7 @@ function canvasScale() {
 function redraw() {
   const c = $("strokes"), img = $("view");
   const w = img.clientWidth, dpr = window.devicePixelRatio || 1;
-  if (c.width !== Math.round(w * dpr)) {
+  if (c.width !== Math.round(w * dpr) || c.height !== Math.round(img.clientHeight * dpr)) {
     c.width = Math.round(w * dpr);
     c.height = Math.round(img.clientHeight * dpr);
   }
@@ -261,6 +261,7 @@ function redraw() {
   const scale = canvasScale();
   if (S.donorMode) {
     Strokes.draw(ctx, S.copy ? S.copy.strokes : [], "copy", scale);
+    pasteInfo();  // the hint follows the copy strokes as they are drawn, erased or undone
     return;
   }
   const m = marks();
@@ -553,6 +554,9 @@ function wire() {
   $("shell").addEventListener("click", () => attempt(copyShell));
   $("error-close").addEventListener("click", clearError);
   window.addEventListener("resize", redraw);
+  // the view's size changes without the window's too (compare side by side on and off): the
+  // canvas follows it, or strokes were drawn stretched until the window was resized
+  if (window.ResizeObserver) new ResizeObserver(() => { if (S.info) redraw(); }).observe($("view"));
 }
 
 document.addEventListener("DOMContentLoaded", () => { wire(); attempt(start); });
