@@ -61,6 +61,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--weights", choices=tuple(JOINT), default=FitOptions.weights)
     p.add_argument("--distortion", type=float, default=FitOptions.distortion, help="Weight of fit-real's distortion loss (0: off).")
     p.add_argument("--start", default=FitOptions.start, choices=STARTS, help="Where the fits start (fit-real --start).")
+    p.add_argument("--grids", type=int, default=FitOptions.grids, help="With --start nearest: the best-matching grids united.")
     p.add_argument("--rays", type=int, default=FitOptions.rays)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--seed", type=int, default=0)
@@ -142,12 +143,12 @@ def run(args: argparse.Namespace) -> dict:
     train = model.views.get("train")
     res = train.width if train is not None else None
     configs = {
-        "start": FitOptions(steps_codes=0, steps_joint=0, start=args.start),
+        "start": FitOptions(steps_codes=0, steps_joint=0, start=args.start, grids=args.grids),
         "codes only": FitOptions(steps_codes=args.steps_codes, steps_joint=0, rays=args.rays, distortion=args.distortion, seed=args.seed,
-                                 start=args.start),
+                                 start=args.start, grids=args.grids),
         "codes + weights": FitOptions(
             steps_codes=args.steps_codes, steps_joint=args.steps_joint, weights=args.weights, rays=args.rays,
-            distortion=args.distortion, seed=args.seed, start=args.start,
+            distortion=args.distortion, seed=args.seed, start=args.start, grids=args.grids,
         ),
     }
     per_instance: dict[str, dict] = {}
@@ -183,7 +184,7 @@ def run(args: argparse.Namespace) -> dict:
         "pose": args.pose,
         "options": {
             "steps_codes": args.steps_codes, "steps_joint": args.steps_joint, "weights": args.weights, "distortion": args.distortion,
-            "rays": args.rays, "seed": args.seed, "start": args.start,
+            "rays": args.rays, "seed": args.seed, "start": args.start, "grids": args.grids,
         },
         "device": str(device),
         "machine": {

@@ -250,6 +250,10 @@ def read_photo(path: str | Path, mask_path: str | Path | None = None) -> tuple[n
 # ----------------------------------------------------------------------------- options
 
 
+STARTS = ("nearest", "mean", "nearest-codes")
+NEAREST_GRIDS = 3
+
+
 @dataclass(frozen=True)
 class FitOptions:
     """How ``fit-real`` optimizes."""
@@ -278,6 +282,9 @@ class FitOptions:
     0.47 dB (docs/benchmarks.md, sixty-second session)."""
     seed: int = 0
     """Seeds the rays, the sample jitter and the occupancy probes."""
+    grids: int = NEAREST_GRIDS
+    """With ``start="nearest"``: how many of the best-matching instances' grids the start's grid
+    unites."""
     start: str = "nearest"
     """Where the fit starts: ``nearest`` (the codes of the training instance whose render from
     the pose best matches the photo's outline, in the union of the :data:`NEAREST_GRIDS`
@@ -300,6 +307,7 @@ class FitOptions:
             (math.isfinite(self.lambda_reg) and self.lambda_reg >= 0, f"lambda_reg {self.lambda_reg}: must be ≥ 0"),
             (math.isfinite(self.distortion) and self.distortion >= 0, f"--distortion {self.distortion}: must be 0 or more"),
             (self.start in STARTS, f"--start {self.start}: expected one of {', '.join(STARTS)}"),
+            (self.grids >= 1, f"--grids {self.grids}: must be 1 or more"),
         ]
         for ok, message in checks:
             if not ok:
@@ -355,10 +363,6 @@ def joint_prefixes(field: ConditionalRadianceField, weights: str) -> tuple[str, 
 def mean_codes(field: ConditionalRadianceField, tables: list[str]) -> dict[str, Tensor]:
     """The mean row [D] of each code table in ``tables`` (the start of a fit)."""
     return {t: getattr(field, t).detach().mean(dim=0) for t in tables}
-
-
-STARTS = ("mean", "nearest", "nearest-codes")
-NEAREST_GRIDS = 3
 
 
 def outline_ranking(model: CategoryModel, camera: Camera, mask: np.ndarray) -> list[tuple[float, int]]:
@@ -477,7 +481,7 @@ def fit_real(
         raise CrfError(f"fit-real: a model of arch {model.field.arch!r} has no per-instance codes to fit")
     grid_sampler = model.cfg.sampler == "grid"
     ranking = outline_ranking(model, camera, photo.mask) if options.start != "mean" else None
-    grids = [j for _, j in ranking[:NEAREST_GRIDS]] if options.start == "nearest" else None
+    grids = [j for _, j in ranking[:options.grids]] if options.start == "nearest" else None
     hull = photo_hull(model, camera, photo.mask, grids) if grid_sampler else None
     grown = grow(model, name)
     k = len(model.names)

@@ -133,10 +133,20 @@ def test_synth_over_an_earlier_synth_output_says_it_replaced_it(tmp_path):
     assert first.exit_code == 0 and "replaced" not in first.stdout, first.output
     again = invoke(*SYNTH[:2], out, "--instances", "2", *SYNTH[4:])
     assert again.exit_code == 0 and "(it replaced the dataset that was there)" in again.stdout, again.output
-    (out / "NOTES.md").write_text("mine")  # the user's file beside the dataset is carried over, and said
+    # the user's files beside the dataset and inside its instance folders are carried over, and said
+    assert invoke("dataset", "synth", out, "--instances", "2", "--views", "10", "--res", "8", "--no-twins").exit_code == 0
+    frames = {p.name for p in (out / "chair_000" / "train").iterdir()}
+    (out / "NOTES.md").write_text("mine")
+    (out / "chair_000" / "my_scribbles").mkdir()
+    (out / "chair_000" / "my_scribbles" / "seat.png").write_bytes(b"s")
+    (out / "chair_000" / "train" / "my_extra.png").write_bytes(b"x")
     again = invoke(*SYNTH[:2], out, "--instances", "2", *SYNTH[4:])
-    assert "(it replaced the dataset that was there; kept what was not the dataset's: NOTES.md)" in again.stdout, again.output
-    assert (out / "NOTES.md").read_text() == "mine"
+    assert ("(it replaced the dataset that was there; kept what was not the dataset's: NOTES.md, chair_000/my_scribbles, "
+            "chair_000/train/my_extra.png)") in again.stdout, again.output
+    assert (out / "NOTES.md").read_text() == "mine" and (out / "chair_000" / "my_scribbles" / "seat.png").read_bytes() == b"s"
+    assert (out / "chair_000" / "train" / "my_extra.png").read_bytes() == b"x"
+    left = {p.name for p in (out / "chair_000" / "train").iterdir()}
+    assert left < frames | {"my_extra.png"} and len(left) < len(frames)  # the earlier build's own frames do not stay (3 views now)
     assert (out / "instances.txt").read_text().split() == ["chair_000", "chair_001"]
 
 

@@ -17,6 +17,7 @@ a one-line :class:`~crfedit.errors.DataError` that names the file.
 
 from __future__ import annotations
 
+import json
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -27,7 +28,7 @@ import numpy as np
 
 from ..cameras import Camera, subpixel_offsets
 from ..errors import CrfError, DataError
-from ..io import atomic_write_text, not_a_file, read_exr, read_image, read_json, write_exr, write_json, write_png
+from ..io import atomic_write_text, carry_into, not_a_file, read_exr, read_image, read_json, write_exr, write_json, write_png
 
 SPLITS = ("train", "val", "test")
 IMAGE_MODES = ("RGB", "RGBA", "L", "LA", "P", "PA", "1", "I", "I;16", "I;16L", "I;16B")
@@ -163,15 +164,75 @@ DATASET_ENTRIES = ("instances.txt", "twins.json", "twins", "ATTRIBUTION.txt")
 """What a dataset build writes at its root beside the instance folders."""
 
 
+SCENE_FILES = ("parts.json", "scribble.png", "keep.png")
+"""What a dataset build writes in an instance's or a twin's folder beside its transforms and frames."""
+
+
+def _scene_owned(folder: Path) -> set[Path]:
+    """The files of an instance's or a twin's folder that a build wrote: its transforms, each
+    frame's image, depth and part map, and :data:`SCENE_FILES`."""
+    owned = {folder / n for n in SCENE_FILES}
+    for transforms in folder.glob("transforms_*.json"):
+        owned.add(transforms)
+        try:
+            frames = json.loads(transforms.read_text()).get("frames", [])
+        except (OSError, ValueError, AttributeError):
+            continue
+        for frame in frames if isinstance(frames, list) else []:
+            path = frame.get("file_path") if isinstance(frame, dict) else None
+            if isinstance(path, str):
+                base = folder / path
+                owned.update({base, base.with_name(base.name + ".png"), base.with_name(base.name + "_depth.exr"),
+                              base.with_name(base.name + "_parts.png")})
+    return owned
+
+
 def dataset_extras(root: Path) -> list[Path]:
-    """The entries of a dataset folder no dataset build wrote (a user's notes or scribbles): not
-    its instance folders (those holding ``transforms_train.json``), twins, instance list or
-    attribution, nor hidden ones.  A build that replaces the folder carries them over."""
+    """The entries of a dataset folder no dataset build wrote (a user's notes or scribbles),
+    relative to ``root``: at the top, anything but the instance folders (those holding
+    ``transforms_train.json``), twins, instance list and attribution; inside an instance's or a
+    twin's folder, any file its transforms, frames and :data:`SCENE_FILES` do not account for
+    (a folder of them as one entry).  Hidden entries are skipped.  A build that replaces the
+    folder carries them over (:func:`carry_extras`)."""
     root = Path(root)
     if not root.is_dir():
         return []
-    return sorted(p for p in root.iterdir() if not p.name.startswith(".") and p.name not in DATASET_ENTRIES
-                  and not (p.is_dir() and (p / "transforms_train.json").is_file()))
+    out: list[Path] = []
+    scenes = [p for p in root.iterdir() if p.is_dir() and not p.is_symlink() and (p / "transforms_train.json").is_file()]
+    scenes += [p for p in sorted((root / "twins").glob("*")) if p.is_dir() and not p.is_symlink() and any(p.glob("transforms_*.json"))]
+    for p in sorted(root.iterdir()):
+        if not p.name.startswith(".") and p.name not in DATASET_ENTRIES and p not in scenes:
+            out.append(p.relative_to(root))
+    if (root / "twins").is_dir():
+        out += [p.relative_to(root) for p in sorted((root / "twins").iterdir()) if not p.name.startswith(".") and p not in scenes]
+    for scene in scenes:
+        owned = _scene_owned(scene)
+
+        def walk(folder: Path) -> None:
+            for p in sorted(folder.iterdir()):
+                if p.name.startswith(".") or p in owned:
+                    continue
+                if p.is_dir() and not p.is_symlink():
+                    if any(q in owned for q in p.rglob("*")):
+                        walk(p)  # a split folder: its frames are the build's, anything else in it is not
+                    else:
+                        out.append(p.relative_to(root))
+                else:
+                    out.append(p.relative_to(root))
+
+        walk(scene)
+    return out
+
+
+def carry_extras(old: Path, new: Path) -> list[str]:
+    """Carry :func:`dataset_extras` of the dataset ``old`` into the folder ``new`` built to
+    replace it, each at its own place (its folders made as needed, names already there left
+    alone); the carried paths, relative, as the line names them."""
+    carried = []
+    for rel in dataset_extras(old):
+        (Path(new) / rel).parent.mkdir(parents=True, exist_ok=True)
+        carried += [str(rel.parent / n) if str(rel.parent) != "." else n for n in carry_into([Path(old) / rel], Path(new) / rel.parent)]
+    return carried
 
 
 def write_instances_txt(root: Path, names: list[str]) -> None:

@@ -36,9 +36,9 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import CrfError, DataError
-from ..io import atomic_folder, atomic_write_text, carry_into, write_png
+from ..io import atomic_folder, atomic_write_text, write_png
 from ..masks import erode
-from .format import Frame, TwinSpec, dataset_extras, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
+from .format import Frame, TwinSpec, carry_extras, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 from .mesh_io import INSTALL_HINT, PartMesh, _trimesh, albedo_table, load_normalized, part_colors
 from .raycast import camera_rays, shade
 from .synth import (
@@ -452,5 +452,5 @@ def write_mesh_category(
         text = attribution_text(names, paths, metas)
         if text is not None:
             atomic_write_text(root / "ATTRIBUTION.txt", text)
-        kept = carry_into(dataset_extras(out), root)  # a user's notes beside an earlier build: not lost with it
+        kept = carry_extras(out, root)  # a user's notes and scribbles in an earlier build: not lost with it
     return MeshDatasetResult(names, twins, [len(m.parts) for m in meshes], time.perf_counter() - start, kept)

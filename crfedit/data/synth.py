@@ -22,9 +22,9 @@ import numpy as np
 
 from ..cameras import Camera, focal_from_angle, look_at, spherical_eye
 from ..errors import CrfError
-from ..io import atomic_folder, carry_into, check_folder_target, write_png
+from ..io import atomic_folder, check_folder_target, write_png
 from ..masks import dilate, erode, strokes_mask
-from .format import Frame, TwinSpec, dataset_extras, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
+from .format import Frame, TwinSpec, carry_extras, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 from .raycast import Primitive, box, camera_rays, cast_rays, cylinder, primitive_bounds, shade
 
 CAMERA_RADIUS = 2.0
@@ -513,5 +513,5 @@ def write_synth_category(
         write_instances_txt(tmp, names)
         if twins:
             write_twins_json(tmp, twins)
-        kept = carry_into(dataset_extras(out), tmp)  # a user's notes beside an earlier build: not lost with it
+        kept = carry_extras(out, tmp)  # a user's notes and scribbles in an earlier build: not lost with it
     return SynthResult(names, twins, time.perf_counter() - start, kept)
