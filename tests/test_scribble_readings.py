@@ -99,7 +99,17 @@ def test_coloured_strokes_on_black(view, tmp_path):
     rgb[edge] = (90, 0, 0)
     write_png(tmp_path / "rb.png", rgb)
     got = read(tmp_path / "rb.png", view, with_render=False)
-    assert got.reading == "coloured strokes on black" and np.array_equal(got.mask, mask)
+    assert got.reading == "coloured strokes on black" and np.array_equal(got.mask, mask | edge)  # every non-black pixel
+    dark = np.zeros(mask.shape + (3,), np.uint8)
+    dark[mask] = (0, 100, 0)  # CSS darkgreen: 0.39, read as no stroke when strokes needed half brightness
+    write_png(tmp_path / "dg.png", dark)
+    assert np.array_equal(read(tmp_path / "dg.png", view, with_render=False).mask, mask)
+    # red and blue in one image: the scribble and the keep strokes of the README's pictures, refused as one mask
+    both = rgb.copy()
+    both[np.roll(mask, 3, axis=0) & ~mask & ~edge] = (0, 0, 255)
+    write_png(tmp_path / "both.png", both)
+    with pytest.raises(CrfError, match=r"both\.png: the scribble holds strokes of two colours \(red and blue\)"):
+        read(tmp_path / "both.png", view, with_render=False)
 
 
 def test_strokes_painted_over_the_render(view, tmp_path):

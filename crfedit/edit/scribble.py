@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from ..errors import CrfError
-from ..io import read_image, read_json
+from ..io import piped_input, read_image, read_json
 from ..masks import as_mask, strokes_mask
 
 
@@ -146,7 +146,9 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
     1. some pixels transparent: the opaque pixels (coloured or white strokes on a transparent PNG);
     2. every pixel gray: white on black (brightness ≥ 0.5);
     3. at least half the pixels black (every channel ≤ 0.1): coloured strokes on black, the
-       pixels whose brightest channel is ≥ 0.5 (red strokes on black were refused);
+       pixels that are not black (red strokes on black were refused; a dark green brush of 0.39
+       read as no stroke); strokes of two saturated colours (red and blue, as edits.png draws
+       the scribble and the keep strokes) are refused: one image is one kind of stroke;
     4. ``render()`` (the view's render, float [H, W, 3]) matches at least half the pixels:
        strokes painted over the render, i.e. the pixels differing from it by more than
        ``PAINT_TOLERANCE``.
@@ -170,7 +172,9 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
         return Scribble(gray >= 0.5, "white on black")
     brightest = rgb.max(axis=-1)
     if (brightest <= 0.1).mean() >= 0.5:  # renders are on white: a black ground is a mask's
-        return Scribble(brightest >= 0.5, "coloured strokes on black")
+        strokes = brightest > 0.1
+        _one_colour(path, what, rgb[strokes])
+        return Scribble(strokes, "coloured strokes on black")
     if render is not None:
         differs = (np.abs(rgb - np.clip(render(), 0.0, 1.0)) > PAINT_TOLERANCE).any(axis=-1)
         if differs.mean() <= 0.5:
@@ -179,6 +183,20 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
         f"{path}: cannot tell the {what} strokes from the background: draw white or coloured strokes on black or on a "
         "transparent PNG, or strokes over a render of this very view (crfedit render ... --views VIEW)"
     )
+
+
+def _one_colour(path: Path, what: str, strokes: np.ndarray) -> None:
+    """Refuse coloured strokes of two saturated hues (``strokes`` [n, 3]): red and blue in one
+    image are the scribble and the keep strokes of the README's pictures, and read as one mask
+    the keep strokes would be edited."""
+    saturated = strokes[(strokes.max(axis=-1) - strokes.min(axis=-1)) > 0.3]
+    if len(saturated) < 2:
+        return
+    dominant = np.bincount(saturated.argmax(axis=-1), minlength=3) / len(saturated)
+    hues = [name for name, share in zip(("red", "green", "blue"), dominant) if share >= 0.1]
+    if len(hues) > 1:
+        raise CrfError(f"{path}: the {what} holds strokes of two colours ({' and '.join(hues)}): one image is one kind of stroke; "
+                       "give the part's strokes as --scribble and what to keep as --keep, each its own image")
 
 
 def load_mask(
@@ -191,7 +209,8 @@ def load_mask(
     for path, is_png in ((png, True), (strokes, False)):
         if path is None:
             continue
-        if is_png and Path(path).suffix.lower() != ".json":
+        piped = piped_input(path) if is_png else None  # a pipe has no suffix: strokes JSON is told by its content
+        if is_png and Path(path).suffix.lower() != ".json" and not (piped is not None and piped.lstrip().startswith(b"{")):
             drawn, reading = read_scribble(Path(path), width, height, what, render)
         else:
             drawn, reading = strokes_json_mask(read_json(Path(path)), width, height, str(path)), "strokes JSON"
