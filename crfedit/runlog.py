@@ -116,11 +116,12 @@ class RunLog:
         if fresh:
             self.csv.writerow(COLUMNS)
         self.tb = _tensorboard_writer(self.paths["tensorboard"])
-        self._last: tuple | None = None  # the last on_step's arguments, and the last step written
+        self._last: tuple | None = None  # the last on_step's arguments with a read-out loss, and the last step written
         self._logged: int | None = None
 
     def on_step(self, step: int, loss: float, psnr: float, rays_per_s: float) -> None:
-        self._last = (step, loss, psnr, rays_per_s)
+        if math.isfinite(loss):  # steps between read-outs carry none
+            self._last = (step, loss, psnr, rays_per_s)
         if step % self.every:
             return
         self._logged = step
@@ -134,11 +135,11 @@ class RunLog:
                 self.tb.add_scalar(f"train/{name}", value, step)
 
     def end(self) -> None:
-        """A finished run's last step as a row too, when ``every`` did not land on it (a run
-        shorter than ``--log-every`` would otherwise leave the header alone).  Its loss and
-        PSNR are the last read-out's, a few steps before where the step is not a read step."""
+        """A finished (or stopped, with its checkpoint) run's last read-out as a row too, when
+        ``every`` did not land on it (a run shorter than ``--log-every`` would otherwise leave
+        the header alone): the last step whose loss was read, a few steps before the last."""
         last = self._last
-        if last is not None and self._logged != last[0] and math.isfinite(last[1]):
+        if last is not None and self._logged != last[0]:
             every, self.every = self.every, 1
             try:
                 self.on_step(*last)

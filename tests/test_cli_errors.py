@@ -188,3 +188,19 @@ def test_a_bad_choice_reads_without_the_validators_wording(monkeypatch, capsys, 
                             "--out", str(tmp_path / "r"), "--device", "gpu")
     assert code == 2 and len(err.splitlines()) == 1, err
     assert err.startswith("error: Invalid value for '--device': 'gpu' is not one of 'auto', 'cpu', 'cuda'. (see "), err
+
+
+def test_sigterm_that_typer_takes_for_ctrl_c_exits_143(monkeypatch, capsys):
+    """SIGTERM while Typer builds the command: Typer catches the KeyboardInterrupt and exits 130
+    silently; the command line says it was terminated and exits 143, as for any SIGTERM."""
+    import crfedit.cli as cli
+    from crfedit.cli.common import Session
+
+    def swallowed(*args, **kwargs):
+        Session.terminated = True  # what the SIGTERM handler records before it raises
+        return 130
+
+    monkeypatch.setattr(cli, "app", swallowed)
+    monkeypatch.setattr(Session, "terminated", False)
+    code, out, err = run_main(monkeypatch, capsys, "info", "x")
+    assert (code, out, err) == (143, "", "error: terminated (SIGTERM)\n")

@@ -674,6 +674,15 @@ def test_ctrl_c_in_the_previews_says_the_edit_was_written(trained, tmp_path, mon
     r = invoke("transfer", trained[0], "--instance", 0, "--color-from", 1, "--out", edit, "--device", "cpu", "--preview", prev, "--views", "test:0")
     assert r.exit_code == 130 and r.stderr.splitlines() == [f"interrupted: {edit} was written; the previews in {prev}/ are incomplete"], r.stderr
     assert read_delta(edit).kind == "transfer"
+    # SIGTERM there stays a SIGTERM: exit 143 (it became Ctrl-C's 130)
+    from crfedit.errors import Terminated
+
+    def terminated(path, image):
+        raise Terminated
+
+    monkeypatch.setattr(crfedit.io, "write_png", terminated)
+    r = invoke("transfer", trained[0], "--instance", 0, "--color-from", 1, "--out", edit, "--device", "cpu", "--preview", prev, "--views", "test:0")
+    assert r.exit_code == 143 and r.stderr.splitlines() == [f"terminated (SIGTERM): {edit} was written; the previews in {prev}/ are incomplete"], r.stderr
 
 
 def test_a_preview_that_fails_to_write_says_the_edit_was_written(trained, tmp_path, monkeypatch):

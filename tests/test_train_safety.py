@@ -3,6 +3,8 @@ replaced without --resume or --overwrite, and --out's folder is created like ren
 
 from __future__ import annotations
 
+import csv
+
 import pytest
 import torch
 
@@ -86,6 +88,7 @@ def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
 
     def interrupted(*args, on_step=None, **kwargs):
         def stop(step, *rest):
+            on_step(step, *rest)
             if step == 2:
                 raise KeyboardInterrupt
         return original(*args, on_step=stop, **kwargs)
@@ -101,6 +104,27 @@ def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
     assert r.exit_code == 0 and "nothing to resume" in r.stdout and "ignored: rays 32 (stored 64), steps 5 (stored 3)" in r.stdout, r.output
     r = invoke("train", tiny_chairs, "--out", out, "--resume", "--seed", 9, "--device", "cpu")  # the finished run's seed too
     assert r.exit_code == 0 and "nothing to resume" in r.stdout and "seed 9 (stored" in r.stdout, r.output
+
+
+def test_a_stopped_run_logs_its_last_read_out(tiny_chairs, tmp_path, monkeypatch):
+    """A run stopped (Ctrl-C, SIGTERM) before step --log-every left its log with the header
+    alone, though a checkpoint was written: the last step whose loss was read is a row."""
+    import crfedit.train as train_module
+
+    original = train_module.train
+
+    def interrupted(*args, on_step=None, **kwargs):
+        def stop(step, *rest):
+            on_step(step, *rest)
+            if step == 7:
+                raise KeyboardInterrupt
+        return original(*args, on_step=stop, **kwargs)
+
+    monkeypatch.setattr(train_module, "train", interrupted)
+    r = invoke("train", tiny_chairs, "--out", tmp_path / "m.safetensors", "--steps", 10, "--set", "rays=64", "--device", "cpu")
+    assert r.exit_code == 130 and "checkpoint at step 7" in r.stderr, r.output
+    rows = list(csv.DictReader((tmp_path / "m.log.csv").open()))
+    assert len(rows) == 1 and 1 <= int(rows[0]["step"]) <= 7 and float(rows[0]["loss"]) > 0, rows
 
 
 def test_existing_model_is_not_replaced_silently(tiny_chairs, tmp_path):
@@ -149,7 +173,6 @@ def test_train_out_creates_its_folder(tiny_chairs, tmp_path):
 
 
 def test_run_records_beside_the_model(tiny_chairs, tmp_path):
-    import csv
     import json
 
     out = tmp_path / "m.safetensors"

@@ -115,5 +115,8 @@ def _main() -> None:
             raise
         print(f"error: {_unexpected(e)}", file=sys.stderr)
         raise SystemExit(1) from None
+    if code == 130 and Session.terminated:  # SIGTERM while Typer built the command: it exits 130, silently
+        say("error: terminated (SIGTERM)")
+        raise SystemExit(143)
     if isinstance(code, int) and code != 0:
         raise SystemExit(code)

@@ -73,6 +73,9 @@ class Session:
     """torch CPU threads to set when a command starts (None: leave torch as it is)."""
     threads_why: str = ""
     """What decided :attr:`threads` (:func:`crfedit.threads.threads_choice`), for ``train`` to say."""
+    terminated: bool = False
+    """SIGTERM arrived (:func:`terminate_as_interrupt`): what the command line reads when Typer
+    took the exception for Ctrl-C and exited 130."""
 
 
 def debug_requested() -> bool:
@@ -234,6 +237,7 @@ def terminate_as_interrupt() -> None:
 
     def handler(signum, frame):
         signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM during the clean-up ends it at once
+        Session.terminated = True  # what main reads when Typer took the exception as Ctrl-C (its exit 130)
         raise Terminated()
 
     signal.signal(signal.SIGTERM, handler)

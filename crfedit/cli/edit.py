@@ -179,8 +179,8 @@ def previews_of(out: Path, folder: Path) -> Iterator[None]:
     names the file written and the previews left incomplete (exit 130)."""
     try:
         yield
-    except KeyboardInterrupt:
-        raise KeyboardInterrupt(f"{out} was written; the previews in {folder}/ are incomplete") from None
+    except KeyboardInterrupt as e:  # SIGTERM stays a Terminated: exit 143, not Ctrl-C's 130
+        raise type(e)(f"{out} was written; the previews in {folder}/ are incomplete") from None
     except OSError as e:  # a disk that filled, a folder made read-only since the check
         from .common import os_error_message
 

@@ -205,6 +205,8 @@ def run_training(
             log.end()
             return result
     finally:
+        if not finished and stamp() != model_before:  # stopped (Ctrl-C, SIGTERM) with a checkpoint written: its step is a row
+            log.end()
         log.close()
         if not finished and stamp() == model_before:
             log.take_back()
