@@ -251,7 +251,11 @@ def read_photo(path: str | Path, mask_path: str | Path | None = None) -> tuple[n
 
 
 STARTS = ("nearest", "mean", "nearest-codes")
-NEAREST_GRIDS = 3
+OUTLINE_WARN = 0.5
+"""``fit-real`` warns when no training instance's outline from the pose matches the photo's
+this well (IoU): a pose that does not see the object as the photo does, an object off the
+photo's centre (a tester's shifted chair matched at 0.25, its own pose at 0.70)."""
+NEAREST_GRIDS = 1
 
 
 @dataclass(frozen=True)
@@ -284,17 +288,18 @@ class FitOptions:
     """Seeds the rays, the sample jitter and the occupancy probes."""
     grids: int = NEAREST_GRIDS
     """With ``start="nearest"``: how many of the best-matching instances' grids the start's grid
-    unites."""
+    unites (1: the best match's alone; 3 gave 0.3–0.4 dB less, each other grid's haze with it)."""
     start: str = "nearest"
     """Where the fit starts: ``nearest`` (the codes of the training instance whose render from
-    the pose best matches the photo's outline, in the union of the :data:`NEAREST_GRIDS`
-    best-matching instances' grids carved by that outline), ``mean`` (the mean code in every
-    training grid's union, carved: the paper's start), or ``nearest-codes`` (those codes in the
-    union of every grid).  The model's density is trained only inside each chair's own grid, so
-    every grid's union shows the other chairs' haze, which the codes cannot clear: a photo of a
-    training chair with its own codes scored 17.2 dB there against 28.3 in its own grid.
-    Measured (docs/benchmarks.md, sixty-fifth session): procedural chairs the model never saw,
-    other views 19.35 → 19.93 dB; a real chair's photo 18.58 → 23.51 dB, its recolour twin 16.81 → 21.17 dB."""
+    the pose best matches the photo's outline, in its grid (:attr:`grids`) carved by that
+    outline), ``mean`` (the mean code in every training grid's union, carved: the paper's
+    start), or ``nearest-codes`` (those codes in the union of every grid).  The model's density
+    is trained only inside each chair's own grid, so every grid's union shows the other chairs'
+    haze, which the codes cannot clear: a photo of a training chair with its own codes scored
+    17.2 dB there against 28.3 in its own grid.  Measured (docs/benchmarks.md, sixty-fifth
+    session) on procedural chairs the model never saw, other views: 19.35 → 20.24 dB with
+    their true camera, 18.67 → 19.39 dB with the nearest training camera as a user would pick;
+    on the real chairs' photos see there."""
 
     def validated(self) -> "FitOptions":
         checks = [
@@ -541,6 +546,7 @@ def fit_real(
         "lr_codes": options.lr_codes, "lr_weights": options.lr_weights, "rays": options.rays,
         "lambda_reg": options.lambda_reg, "distortion": distortion, "seed": options.seed,
         "init": "mean code" if ranking is None else f"{model.names[ranking[0][1]]}'s codes (outline IoU {ranking[0][0]:.3f})",
+        **({"outline_iou": round(ranking[0][0], 3), "nearest": model.names[ranking[0][1]]} if ranking else {}),
         "start": options.start, **({"grids": [model.names[j] for j in grids]} if grids else {}), "camera": camera_meta(camera),
         "hull_cells": int(hull.sum()) if hull is not None else None,
     }

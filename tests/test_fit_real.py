@@ -460,3 +460,23 @@ def test_a_nearest_start_takes_the_best_matching_instance(setup):
     assert start.stages[-1].psnr > mean.stages[-1].psnr + 1.0, (start.stages[-1].psnr, mean.stages[-1].psnr)
     with pytest.raises(CrfError, match="--start middle: expected one of mean, nearest, nearest-codes"):
         FitOptions(start="middle").validated()
+
+
+def test_an_outline_no_training_chair_matches_is_warned_of(setup, tmp_path):
+    """The nearest start ranks the training chairs by how well their outline from --pose matches
+    the photo's; a best IoU under OUTLINE_WARN (a chair off the photo's centre, a wrong pose) is
+    said, since the fit then starts from a poor match."""
+    from crfedit.fit_real import OUTLINE_WARN
+
+    path, _, held = setup
+    rgba = np.asarray(Image.open(held.path / "train" / "r_000.png").convert("RGBA"))
+    base = ("fit-real", path)
+    for name, image in (("centred", rgba), ("shifted", np.roll(rgba, (RES // 4, RES // 4), axis=(0, 1)))):
+        Image.fromarray(image).save(tmp_path / f"{name}.png")
+        r = invoke(*base, tmp_path / f"{name}.png", "--pose", "train:0", "--pose-instance", "0", "--steps-codes", 1, "--steps-joint", 0,
+                   "--out", tmp_path / f"{name}.safetensors", "--device", "cpu")
+        assert r.exit_code == 0, r.output
+        iou = json.loads(read_delta(tmp_path / f"{name}.safetensors").meta["hyperparameters"])["outline_iou"]
+        assert ("no training instance's outline from --pose matches the photo's well" in r.stderr) == (iou < OUTLINE_WARN), (name, iou, r.stderr)
+        if name == "shifted":
+            assert iou < OUTLINE_WARN, iou

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import json
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -15,6 +16,12 @@ from .common import DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_fi
 class JointWeights(str, enum.Enum):
     heads = "heads"
     all = "all"
+
+
+class Start(str, enum.Enum):  # fit_real.STARTS, listed in --help as the other choices are
+    nearest = "nearest"
+    mean = "mean"
+    nearest_codes = "nearest-codes"
 
 
 class FitProgress:
@@ -73,7 +80,7 @@ def fit_real_cmd(
     lr_codes: Annotated[float, typer.Option("--lr-codes", help="Adam learning rate of the codes.")] = 1e-2,
     lr_weights: Annotated[float, typer.Option("--lr-weights", help="Adam learning rate of the weights (stage 2).")] = 1e-3,
     rays: Annotated[int, typer.Option("--rays", help="Rays per step, drawn from the photo's pixels (all of them at 64x64 by default).")] = 4096,
-    start: Annotated[str, typer.Option("--start", help="Where the fit starts: nearest (the codes of the training instance whose render from --pose best matches the photo's outline, in the 3 best-matching grids), mean (the mean code in every training grid, as the paper), nearest-codes (those codes, every grid).")] = "nearest",
+    start: Annotated[Start, typer.Option("--start", help="Where the fit starts: nearest (the codes of the training instance whose render from --pose best matches the photo's outline, in its grid), mean (the mean code in every training grid, as the paper), nearest-codes (those codes, every grid).")] = Start.nearest,
     distortion: Annotated[float, typer.Option("--distortion", help="Stage 2: weight of the distortion loss that gathers each ray's density into one surface (one photo leaves depth free; 0: off).")] = 0.1,
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", help="An earlier edit to apply first (repeatable, in the order they were made).")] = None,
     as_json: JsonOpt = False,
@@ -83,14 +90,14 @@ def fit_real_cmd(
     """Fit a new instance to a photo of a real object: its codes first, then codes and a copy of
     the weights; writes a fit-real edit that adds the instance (the model file is untouched)."""
     from ..delta import apply_edit_files
-    from ..fit_real import FitOptions, check_new_name, fit_real, photo_warnings, prepare_photo, read_photo
+    from ..fit_real import OUTLINE_WARN, FitOptions, check_new_name, fit_real, photo_warnings, prepare_photo, read_photo
     from ..model import load_model
     from ..runtime import resolve_device
     from ..views import SPLITS, one_view_hint, one_view_label, resolve_views
 
     options = FitOptions(
         steps_codes=steps_codes, steps_joint=steps_joint, weights=weights.value, lr_codes=lr_codes,
-        lr_weights=lr_weights, rays=rays, distortion=distortion, seed=seed, start=start,
+        lr_weights=lr_weights, rays=rays, distortion=distortion, seed=seed, start=start.value,
     ).validated()
     check_out_file(out, {"MODEL": model, "PHOTO": photo, "--mask": mask, "--edit": edit}, "edit", "real.safetensors")
     name_from = "--name" if name is not None else "instance name (the photo's file name)"
@@ -114,6 +121,11 @@ def fit_real_cmd(
                    f"({prepared.mask.mean():.0%} of the view); give --mask to outline it yourself", err=True)
     with FitProgress(options.steps_codes + options.steps_joint) as progress:
         result = fit_real(m, prepared, camera, name, options, progress.on_step, progress.on_stage)
+    hyper = json.loads(result.meta.get("hyperparameters", "{}"))
+    if hyper.get("outline_iou") is not None and hyper["outline_iou"] < OUTLINE_WARN:
+        typer.echo(f"warning: no training instance's outline from --pose matches the photo's well (best: {hyper['nearest']}, "
+                   f"IoU {hyper['outline_iou']:.2f}): check that --pose sees the object as the photo does and that the "
+                   "object is centred in the photo", err=True)
     split_view = label.partition(":")[0] in SPLITS  # a stored view is a view of one instance
     result.save(out, command=command_line(), photo=str(photo), pose=f"{label} of {m.names[j]}" if split_view else label,
                 **({"mask": str(mask)} if mask else {}))
