@@ -249,8 +249,8 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
     (tmp_path / "away.json").write_text(json.dumps(away))
     result = invoke("render", model_path, "--instance", "1", "--views", tmp_path / "away.json", "--out", tmp_path / "away", "--device", "cpu")
     assert result.exit_code == 0 and result.stderr.splitlines() == [
-        "note: 1 of the 3 views show nothing of chair_001 (away.json:2): a camera looking away from it, inside it, or with so "
-        "wide a field of view that it covers no pixel"], result.stderr
+        "note: 1 of the 3 views show nothing of chair_001 (away.json:2): a camera looking away from it, inside it, too far from it, "
+        "or with so wide a field of view that it covers no pixel"], result.stderr
     assert "blank" not in (tmp_path / "away" / "views.json").read_text()
     # wider than the model was trained at: said, since the render holds no finer detail
     wide = model.views["train"].width + 4

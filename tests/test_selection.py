@@ -1598,6 +1598,12 @@ def test_a_scribble_over_the_whole_instance_selects_all_of_it(trained):
     occupied = model.field.occupancy[1]
     assert torch.equal(sel.mask, occupied) and sel.meta["whole"] >= WHOLE_SCRIBBLE
     assert coverage_summary(sel.meta).startswith(f"the scribble covers {sel.meta['whole']:.0%} of what the view shows")
+    from crfedit.edit.selection.base import keep_summary
+
+    assert keep_summary(sel.meta) is None  # no line asking for keep strokes under the whole-instance one
+    off = np.zeros_like(everything)
+    off[0, :3] = True  # a keep stroke in the view's corner, on the background: holds nothing back
+    assert "whole" in select(model, 1, [ScribbleView(view.camera, everything & ~off, off)], options_for("remove")).meta
     kept = erode(keep, 1)  # keep strokes inside the other parts
     held = select(model, 1, [ScribbleView(view.camera, everything & ~kept, kept)], options_for("remove"))
     assert "whole" not in held.meta and not torch.equal(held.mask, occupied)

@@ -224,6 +224,8 @@ def keep_summary(meta: dict) -> str | None:
     recolours' selection IoU fell 0.046 on the benchmark's and 0.067 / 0.083 on held-out chairs
     (docs/benchmarks.md, fifty-ninth session), most where a neighbour has the scribble's colour;
     on the real chairs' twins it did not move."""
+    if meta.get("whole") is not None:  # the whole instance is selected: nothing was there to hold back
+        return None
     if meta.get("keep_points") != 0 or type(meta.get("positives")) is not int:
         return None
     line = "none on the object, so nothing marks what to leave: a neighbouring part of the scribble's colour may be taken with it"

@@ -277,7 +277,8 @@ def select(
         renders = [render_camera(field, v.camera, k, colour=False) for v in views] if renders is None else renders
         on_object = [_on_object(field, k, v, r, options.min_opacity) for v, r in zip(views, renders)]
     whole = None  # see WHOLE_SCRIBBLE
-    if (options.stroke_centres or options.stroke_snap > 0) and not any(v.keep is not None and v.keep.any() for v in views):
+    # keep strokes on the background hold nothing back: only those on the object say a part was meant
+    if (options.stroke_centres or options.stroke_snap > 0) and not any(v.keep is not None and (v.keep & on).any() for v, on in zip(views, on_object)):
         share = max(float((v.scribble & on).sum()) / max(1, int(on.sum())) for v, on in zip(views, on_object))
         whole = round(share, 3) if share >= WHOLE_SCRIBBLE else None
     if options.stroke_snap > 0:  # see SelectOptions.stroke_snap
