@@ -14,7 +14,8 @@ A SPEC names cameras of one instance of a trained model:
                        ``render_width``/``render_height``), a single camera
                        ``{"transform_matrix", "camera_angle_x", "width", "height"}``, or a
                        NeRF ``transforms_*.json`` (``camera_angle_x`` + ``frames[].transform_matrix``),
-                       or a render's ``views.json`` (its cameras again, each at its own size)
+                       or a render's ``views.json`` (its cameras again, each at its own size);
+                       ``FILE.json:2`` (or ``:0-4``) picks views of a file, as their labels name them
 =====================  ==========================================================================
 
 Split views come from the camera tables stored in the model file (``model.views``), so a SPEC
@@ -86,6 +87,9 @@ def resolve_views(spec: str, model, instance: int, res: int | None = None) -> li
         views = _split_views(spec, name, rest, model, instance)
     elif name == "orbit":
         views = _orbit_views(spec, model, instance)
+    elif (m := re.fullmatch(r"(.+\.json):([0-9,\- ]+)", spec, re.IGNORECASE)) and not Path(spec).exists():
+        views = _file_views(m.group(1), model)  # FILE.json:2, one of a file's views, as its label names it
+        views = [views[i] for i in parse_indices(spec, m.group(2), len(views))]
     elif Path(spec).is_file() or spec.lower().endswith(".json") or "/" in spec:
         views = _file_views(spec, model)
     else:

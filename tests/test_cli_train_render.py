@@ -234,6 +234,10 @@ def test_render_files_sizes_depth_and_determinism(model_path, tmp_path):
     for i in range(3):
         assert (replay / f"{i:04d}.png").read_bytes() == (out / f"{i:04d}.png").read_bytes()
     assert [v["view"] for v in json.loads((replay / "views.json").read_text())["views"]] == [f"views.json:{i}" for i in range(3)]
+    # a label is a spec of its view: views.json:2 picks that one (its frame, byte for byte)
+    assert invoke("render", model_path, "--instance", "1", "--views", f"{out / 'views.json'}:2", "--out", tmp_path / "one", "--device", "cpu").exit_code == 0
+    assert (tmp_path / "one" / "0000.png").read_bytes() == (out / "0002.png").read_bytes()
+    assert_user_error(invoke("render", model_path, "--instance", "1", "--views", f"{out / 'views.json'}:5", "--out", tmp_path / "x"), "index 5 out of range (0-2)")
     # a camera of the file too far to render: refused before the first view, naming the view (the line named none)
     far = json.loads((out / "views.json").read_text())
     far["views"][1]["transform_matrix"][0][3] = 1e7
