@@ -104,11 +104,12 @@ def info(
         typer.echo(f"{key:<12} {value}")
     for note in dataset_notes(category):  # what train would say, said first
         typer.echo(printable(f"note: {note}"), err=True)
-    try:
-        check_hulls(category, visual_hulls(category, scene_box(category), 32, 0))  # an empty hull: OpenCV poses
-    except CrfError as e:
-        typer.echo(printable(f"warning: {e} (train refuses the dataset)"), err=True)
     bare = meta["without_train_views"]
+    if not bare:  # (an instance without train views is said below: train refuses that first)
+        try:
+            check_hulls(category, visual_hulls(category, scene_box(category), 32, 0))  # an empty hull: OpenCV poses
+        except CrfError as e:
+            typer.echo(printable(f"warning: {e} (train refuses the dataset)"), err=True)
     if bare:
         typer.echo(f"warning: {len(bare)} instance{'s' * (len(bare) != 1)} without train views ({', '.join(bare[:4])}"
                    f"{', ...' if len(bare) > 4 else ''}): train refuses the dataset until each has some", err=True)
