@@ -99,10 +99,16 @@ def _view_render(model, instance: int, camera):
     return render
 
 
+def is_none(path) -> bool:
+    """Whether a mask option names ``none`` (a view without such strokes), not a file: the word,
+    unless a file is called that."""
+    return path is not None and str(path).lower() == NO_MASK and not Path(path).exists()
+
+
 def _refuse_none(option: str, path, needs: str) -> None:
     """``none`` names `select`'s views without such strokes; given to an edit's mask (and no file
     is called that) it is one line saying so, not 'none: file not found'."""
-    if path is not None and str(path).lower() == NO_MASK and not Path(path).exists():
+    if is_none(path):
         raise CrfError(f"{option} none: `none` is for `crfedit select`'s views without such strokes; {needs}")
 
 

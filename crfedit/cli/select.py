@@ -8,9 +8,9 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
-from ..names import NO_MASK, SELECTION_FORMAT
+from ..names import SELECTION_FORMAT
 from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, size_text, user_errors
-from .edit import PREVIEW_VIEWS, InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PreviewViewsOpt, PriorOpt, _load, _one_view, _preview_views, _view_render, previews_of
+from .edit import PREVIEW_VIEWS, InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PreviewViewsOpt, PriorOpt, _load, _one_view, _preview_views, _view_render, is_none, previews_of
 
 
 def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
@@ -61,15 +61,12 @@ def select_cmd(
     from ..edit.selection.options import EDIT_KINDS
     from ..io import write_png
 
-    def none(path) -> bool:  # the word, unless a file is called that
-        return str(path).lower() == NO_MASK and not Path(path).exists()
-
     if len(scribble) != len(view):
         raise CrfError(f"give one --scribble per --view ({len(view)} views, {len(scribble)} scribbles)")
     if keep and len(keep) != len(view):
         raise CrfError(f"give one --keep per --view, in order (none for a view without keep strokes), or no --keep "
                        f"({len(view)} views, {len(keep)} keep masks)")
-    if all(none(p) for p in scribble):
+    if all(is_none(p) for p in scribble):
         raise CrfError("no view holds a scribble: keep strokes alone select nothing (scribble the part on at least one view)")
     kind = "color" if kind == "colour" else kind
     if kind not in EDIT_KINDS:  # named by its option here (options_for's line names no flag)
@@ -82,8 +79,8 @@ def select_cmd(
     scribbles = []
     for i, spec in enumerate(view):
         _, camera = _one_view(m, spec, k)
-        bg = _mask(keep[i], m, k, camera, "keep") if keep and not none(keep[i]) else None
-        if none(scribble[i]):  # a view that only holds back what it shows
+        bg = _mask(keep[i], m, k, camera, "keep") if keep and not is_none(keep[i]) else None
+        if is_none(scribble[i]):  # a view that only holds back what it shows
             if bg is None:
                 raise CrfError(f"--view {spec} --scribble none: a view without a scribble needs its --keep strokes")
             fg = np.zeros_like(bg)
