@@ -458,7 +458,7 @@ def test_a_nearest_start_takes_the_best_matching_instance(setup):
     assert torch.equal(start.model.field_for(j).shape_codes[j], model.field.shape_codes[k])  # no steps: the chair's own code
     mean = fit_real(model, photo, view, "again", FitOptions(steps_codes=0, steps_joint=0, start="mean"))
     assert start.stages[-1].psnr > mean.stages[-1].psnr + 1.0, (start.stages[-1].psnr, mean.stages[-1].psnr)
-    with pytest.raises(CrfError, match="--start middle: expected one of mean, nearest, nearest-codes"):
+    with pytest.raises(CrfError, match="--start middle: expected one of nearest, mean, nearest-codes"):
         FitOptions(start="middle").validated()
 
 

@@ -257,12 +257,14 @@ def remove_selected(
             targets.append(composite_dense(p.t_starts, p.t_ends, out.sigmas * (1 - in_s), out.rgbs, p.background))
 
     outside = (~inside).nonzero().squeeze(-1)  # once: a mask index inside the loss is a host read per step
+    holds = outside.numel() > 0  # a removal of the whole instance holds no point (a mean over none is NaN)
 
     def loss_fn():
         raw, feat = field.density_from_fuse_inputs(inputs)
         log_sigma = torch.log1p(field.sigma(raw))
         total = torch.where(inside, log_sigma**2, HOLD_WEIGHT * (log_sigma - log0) ** 2).mean()
-        total = total + HOLD_WEIGHT * ((feat[outside] - feat0[outside]) ** 2).sum(dim=-1).mean()
+        if holds:
+            total = total + HOLD_WEIGHT * ((feat[outside] - feat0[outside]) ** 2).sum(dim=-1).mean()
         for p, target in zip(passes, targets):
             out = p.forward()
             total = total + mse(out.rgb, target.rgb) + mse(out.opacity, target.opacity)
