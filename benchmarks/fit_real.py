@@ -63,6 +63,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--start", default=FitOptions.start, choices=STARTS, help="Where the fits start (fit-real --start).")
     p.add_argument("--grids", type=int, default=FitOptions.grids, help="With --start nearest: the best-matching grids united.")
     p.add_argument("--rays", type=int, default=FitOptions.rays)
+    p.add_argument("--lr-codes", type=float, default=FitOptions.lr_codes)
+    p.add_argument("--lr-weights", type=float, default=FitOptions.lr_weights)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice).")
@@ -145,10 +147,11 @@ def run(args: argparse.Namespace) -> dict:
     configs = {
         "start": FitOptions(steps_codes=0, steps_joint=0, start=args.start, grids=args.grids),
         "codes only": FitOptions(steps_codes=args.steps_codes, steps_joint=0, rays=args.rays, distortion=args.distortion, seed=args.seed,
-                                 start=args.start, grids=args.grids),
+                                 start=args.start, grids=args.grids, lr_codes=args.lr_codes),
         "codes + weights": FitOptions(
             steps_codes=args.steps_codes, steps_joint=args.steps_joint, weights=args.weights, rays=args.rays,
             distortion=args.distortion, seed=args.seed, start=args.start, grids=args.grids,
+            lr_codes=args.lr_codes, lr_weights=args.lr_weights,
         ),
     }
     per_instance: dict[str, dict] = {}
@@ -184,7 +187,7 @@ def run(args: argparse.Namespace) -> dict:
         "pose": args.pose,
         "options": {
             "steps_codes": args.steps_codes, "steps_joint": args.steps_joint, "weights": args.weights, "distortion": args.distortion,
-            "rays": args.rays, "seed": args.seed, "start": args.start, "grids": args.grids,
+            "rays": args.rays, "seed": args.seed, "start": args.start, "grids": args.grids, "lr_codes": args.lr_codes, "lr_weights": args.lr_weights,
         },
         "device": str(device),
         "machine": {
