@@ -110,6 +110,25 @@ def test_coloured_strokes_on_black(view, tmp_path):
     write_png(tmp_path / "both.png", both)
     with pytest.raises(CrfError, match=r"both\.png: the scribble holds strokes of two colours \(red and blue\)"):
         read(tmp_path / "both.png", view, with_render=False)
+    # whatever the ground (transparent here), and whichever two hues (red and yellow; a few blue pixels)
+    rgba = np.zeros(mask.shape + (4,), np.uint8)
+    rgba[mask] = (255, 0, 0, 255)
+    rgba[np.roll(mask, 3, axis=0) & ~mask] = (255, 255, 0, 255)
+    write_png(tmp_path / "ry.png", rgba)
+    with pytest.raises(CrfError, match=r"two colours \(red and yellow\)"):
+        read(tmp_path / "ry.png", view, with_render=False)
+    few = rgb.copy()
+    ys, xs = np.nonzero(np.roll(mask, 3, axis=0) & ~mask & ~edge)
+    k = max(1, int(0.08 * (mask | edge).sum()))  # 7 % of the strokes blue slipped through a 10 % rule
+    few[ys[:k], xs[:k]] = (0, 0, 255)
+    write_png(tmp_path / "few.png", few)
+    with pytest.raises(CrfError, match=r"two colours \(red and blue\)"):
+        read(tmp_path / "few.png", view, with_render=False)
+    grey = np.zeros(mask.shape + (3,), np.uint8)
+    grey[mask] = 100  # a dark grey brush: strokes, as a dark coloured one is
+    write_png(tmp_path / "grey.png", grey)
+    got = read(tmp_path / "grey.png", view, with_render=False)
+    assert got.reading == "grey strokes on black" and np.array_equal(got.mask, mask)
 
 
 def test_strokes_painted_over_the_render(view, tmp_path):
@@ -269,3 +288,14 @@ def test_a_scribble_of_a_few_pixels_gets_a_note():
     assert few_pixels_note(mask).startswith("a scribble of 1 pixel says little about the part")
     mask[4, 3:3 + FEW_SCRIBBLED] = True
     assert few_pixels_note(mask) is None
+
+
+def test_strokes_json_is_told_by_its_content(tmp_path):
+    """A pipe (<(…)) has no suffix, nor does every file: strokes JSON that starts with { or [
+    (after a BOM) is read as strokes wherever an image is expected, not 'not a readable image'."""
+    from crfedit.edit.scribble import load_mask
+
+    for name, text in (("list", '[[[3, 4], [9, 4]]]'), ("bom", '\ufeff{"strokes": [[[3, 4], [9, 4]]], "radius": 1}')):
+        (tmp_path / name).write_text(text, encoding="utf-8")
+        got = load_mask(tmp_path / name, None, 16, 16, "scribble")
+        assert got.reading == "strokes JSON" and got.mask[4, 3:10].all() and not got.mask[12].any(), name

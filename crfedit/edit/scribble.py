@@ -164,11 +164,14 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
         alpha = image[..., 3]
         if 0.0 < float(alpha.max()) <= 1.5 / 255.0:  # a 0/1 mask saved as the alpha channel without scaling
             return Scribble(alpha > 0.0, "0/1 alpha values (a mask saved without scaling to 255)")
+        _one_colour(path, what, rgb[alpha >= 0.5])
         return Scribble(alpha >= 0.5, "opaque pixels of a transparent PNG")
     if (rgb.max(axis=-1) - rgb.min(axis=-1) <= GRAY_TOLERANCE).all():
         gray = rgb.mean(axis=-1)
         if 0.0 < float(gray.max()) <= 1.5 / 255.0:  # numpy's 0/1 mask saved as is (Image.fromarray(mask.astype(np.uint8)))
             return Scribble(gray > 0.0, "0/1 values (a mask saved without scaling to 255)")
+        if not (gray >= 0.5).any() and (gray <= 0.1).mean() >= 0.5:  # a dark grey brush on black, as a dark coloured one
+            return Scribble(gray > 0.1, "grey strokes on black")
         return Scribble(gray >= 0.5, "white on black")
     brightest = rgb.max(axis=-1)
     if (brightest <= 0.1).mean() >= 0.5:  # renders are on white: a black ground is a mask's
@@ -178,6 +181,7 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
     if render is not None:
         differs = (np.abs(rgb - np.clip(render(), 0.0, 1.0)) > PAINT_TOLERANCE).any(axis=-1)
         if differs.mean() <= 0.5:
+            _one_colour(path, what, rgb[differs])
             return Scribble(differs, "strokes painted over the render of the view (pixels that differ from it)")
     raise CrfError(
         f"{path}: cannot tell the {what} strokes from the background: draw white or coloured strokes on black or on a "
@@ -186,17 +190,35 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
 
 
 def _one_colour(path: Path, what: str, strokes: np.ndarray) -> None:
-    """Refuse coloured strokes of two saturated hues (``strokes`` [n, 3]): red and blue in one
-    image are the scribble and the keep strokes of the README's pictures, and read as one mask
-    the keep strokes would be edited."""
+    """Refuse strokes of two saturated hues (``strokes`` [n, 3], whatever the ground: black,
+    transparent or the render): red and blue in one image are the scribble and the keep strokes
+    of the README's pictures, and read as one mask the keep strokes would be edited.  Hues are
+    six 60° sectors; a second one refuses from 5 % of the saturated stroke pixels."""
     saturated = strokes[(strokes.max(axis=-1) - strokes.min(axis=-1)) > 0.3]
     if len(saturated) < 2:
         return
-    dominant = np.bincount(saturated.argmax(axis=-1), minlength=3) / len(saturated)
-    hues = [name for name, share in zip(("red", "green", "blue"), dominant) if share >= 0.1]
+    r, g, b = saturated[:, 0], saturated[:, 1], saturated[:, 2]
+    hue = np.degrees(np.arctan2(np.sqrt(3.0) * (g - b), 2.0 * r - g - b)) % 360.0
+    sectors = np.bincount(((hue + 30.0) // 60.0).astype(int) % 6, minlength=6) / len(saturated)
+    hues = [name for name, share in zip(("red", "yellow", "green", "cyan", "blue", "magenta"), sectors) if share >= 0.05]
     if len(hues) > 1:
         raise CrfError(f"{path}: the {what} holds strokes of two colours ({' and '.join(hues)}): one image is one kind of stroke; "
                        "give the part's strokes as --scribble and what to keep as --keep, each its own image")
+
+
+def _json_content(path: Path) -> bool:
+    """Whether ``path`` holds JSON rather than an image, by its first bytes (a pipe has no suffix,
+    nor does every file): ``{`` or ``[`` after a BOM and white space."""
+    piped = piped_input(path)
+    if piped is not None:
+        head = piped[:64]
+    else:
+        try:
+            with open(path, "rb") as f:
+                head = f.read(64)
+        except OSError:
+            return False  # the image reader names the problem
+    return head.lstrip(b"\xef\xbb\xbf").lstrip().startswith((b"{", b"["))
 
 
 def load_mask(
@@ -209,8 +231,7 @@ def load_mask(
     for path, is_png in ((png, True), (strokes, False)):
         if path is None:
             continue
-        piped = piped_input(path) if is_png else None  # a pipe has no suffix: strokes JSON is told by its content
-        if is_png and Path(path).suffix.lower() != ".json" and not (piped is not None and piped.lstrip().startswith(b"{")):
+        if is_png and Path(path).suffix.lower() != ".json" and not _json_content(Path(path)):
             drawn, reading = read_scribble(Path(path), width, height, what, render)
         else:
             drawn, reading = strokes_json_mask(read_json(Path(path)), width, height, str(path)), "strokes JSON"
