@@ -210,12 +210,12 @@ def check_camera_reach(category: Category, aabb: torch.Tensor) -> None:
 def check_hulls(category: Category, hulls: torch.Tensor) -> None:
     """A one-line error naming the first instance whose training silhouettes carve nothing
     (``hulls`` [K, R, R, R]): a model of it would train blank."""
-    for inst, hull in zip(category.instances, hulls):
-        if hull.any():
-            continue
+    empty = [inst for inst, hull in zip(category.instances, hulls) if not hull.any()]
+    others = f" (and {len(empty) - 1} of the other {len(category.instances) - 1} instances)" if len(empty) > 1 else ""
+    for inst in empty[:1]:  # the first, and how many more: all of them says the dataset's axes are OpenCV's
         if not any(v.alpha.any() for v in inst.splits["train"]):
-            raise CrfError(f"{inst.path}: instance {inst.name}: every training view's alpha (or mask) is 0, so there is no object to train")
-        raise CrfError(f"{inst.path}: instance {inst.name}: its training silhouettes carve an empty visual hull (no point projects onto the "
+            raise CrfError(f"{inst.path}: instance {inst.name}{others}: every training view's alpha (or mask) is 0, so there is no object to train")
+        raise CrfError(f"{inst.path}: instance {inst.name}{others}: its training silhouettes carve an empty visual hull (no point projects onto the "
                        "object in every view); poses must use OpenGL/NeRF camera axes (the camera looks down -Z, +Y up): "
                        "flip the Y and Z axes of OpenCV/COLMAP poses")
 

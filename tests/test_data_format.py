@@ -346,9 +346,11 @@ def test_dataset_info_says_what_train_would(tmp_path):
     (root / "chair_001" / "transforms_train.json").write_text(json.dumps(doc))
     few = invoke("dataset", "info", root)
     assert few.exit_code == 0 and few.stderr.startswith(f"note: chair_001 (2 views) of {root}: far fewer training views than the others"), few.stderr
-    doc = json.loads((root / "chair_000" / "transforms_train.json").read_text())
-    for f in doc["frames"]:  # OpenCV/COLMAP axes: Y down, Z forward
-        f["transform_matrix"] = (np.array(f["transform_matrix"]) * [1, -1, -1, 1]).tolist()
-    (root / "chair_000" / "transforms_train.json").write_text(json.dumps(doc))
+    for name in ("chair_000", "chair_001"):  # every instance in OpenCV/COLMAP axes: Y down, Z forward
+        doc = json.loads((root / name / "transforms_train.json").read_text())
+        for f in doc["frames"]:
+            f["transform_matrix"] = (np.array(f["transform_matrix"]) * [1, -1, -1, 1]).tolist()
+        (root / name / "transforms_train.json").write_text(json.dumps(doc))
     flipped = invoke("dataset", "info", root)
     assert flipped.exit_code == 0 and "flip the Y and Z axes of OpenCV/COLMAP poses (train refuses the dataset)" in flipped.stderr, flipped.stderr
+    assert "instance chair_000 (and 1 of the other 1 instances): its training silhouettes carve an empty visual hull" in flipped.stderr

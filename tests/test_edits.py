@@ -815,6 +815,10 @@ def test_a_removal_of_nearly_all_the_object_needs_force(trained, tmp_path):
     r = invoke(*args, "--force")
     assert r.exit_code == 0 and out.is_file(), r.output
     assert any(line.startswith("coverage: ") for line in r.stdout.splitlines()), r.stdout
+    assert "loose pieces:" not in r.stdout  # nothing was left out of a whole-instance selection
+    # rendered, nothing shows: the note says the edits removed it all, not that the camera looks away
+    r = invoke("render", path, "--instance", 1, "--edit", out, "--views", "test:0", "--out", tmp_path / "r", "--device", "cpu")
+    assert r.exit_code == 0 and "show nothing of" in r.stderr and "its edits leave no occupied cell (it was removed whole)" in r.stderr, r.stderr
 
 
 def test_scribbles_and_strokes_given_through_pipes(trained, tmp_path):

@@ -75,8 +75,10 @@ def render_cmd(
                    "the rays are denser, but the field holds no finer detail than it learned", err=True)
     if result.blank:  # a camera looking away, inside the object, or so wide the object is a speck
         shown = ", ".join(result.blank[:3]) + (f" and {len(result.blank) - 3} more" if len(result.blank) > 3 else "")
-        typer.echo(f"note: {len(result.blank)} of the {result.count} views show nothing of {m.names[k]} ({shown}): "
-                   "a camera looking away from it, inside it, too far from it, or with so wide a field of view that it covers no pixel", err=True)
+        grid = m.field_for(k).occupancy
+        why = ("its edits leave no occupied cell (it was removed whole)" if m.cfg.sampler == "grid" and not bool(grid[k].any()) else
+               "a camera looking away from it, inside it, too far from it, or with so wide a field of view that it covers no pixel")
+        typer.echo(f"note: {len(result.blank)} of the {result.count} views show nothing of {m.names[k]} ({shown}): {why}", err=True)
     per_view = result.seconds / max(result.count, 1)
     typer.echo(
         f"rendered {result.count} view{'s' if result.count != 1 else ''} of {m.names[k]} at {result.size_text} "

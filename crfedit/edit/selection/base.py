@@ -268,7 +268,7 @@ def pieces_summary(meta: dict) -> str | None:
     """What a selection's metadata says of :attr:`~.options.SelectOptions.free_pieces`, in a
     line (None: not on, or every selected cell connected to the scribble)."""
     info = meta.get("free_pieces")
-    if not info or info["kept_cells"] + info["left_cells"] == 0:
+    if not info or info["kept_cells"] + info["left_cells"] == 0 or meta.get("whole") is not None:  # whole: none was left out
         return None
     cells = lambda n: f"{n} cell{'' if n == 1 else 's'}"
     least = f"{info['share']:.0%} of the {cells(info['reached'])} it reaches"
