@@ -465,6 +465,7 @@ def fit_real(
     options: FitOptions = FitOptions(),
     on_step: StepCallback | None = None,
     on_stage: Callable[[StageReport], None] | None = None,
+    on_note: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Fit a new instance ``name`` to ``photo`` seen from ``camera`` (same size as the photo).
 
@@ -486,6 +487,10 @@ def fit_real(
         raise CrfError(f"fit-real: a model of arch {model.field.arch!r} has no per-instance codes to fit")
     grid_sampler = model.cfg.sampler == "grid"
     ranking = outline_ranking(model, camera, photo.mask) if options.start != "mean" else None
+    if ranking and ranking[0][0] < OUTLINE_WARN and on_note is not None:  # said before the fit, which it bodes ill for
+        on_note(f"no training instance's outline from the pose matches the photo's well (best: {model.names[ranking[0][1]]}, "
+                f"IoU {ranking[0][0]:.2f}): check that the pose sees the object as the photo does and that the object is "
+                "centred in the photo")
     grids = [j for _, j in ranking[:options.grids]] if options.start == "nearest" else None
     hull = photo_hull(model, camera, photo.mask, grids) if grid_sampler else None
     grown = grow(model, name)

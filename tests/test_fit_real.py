@@ -477,6 +477,6 @@ def test_an_outline_no_training_chair_matches_is_warned_of(setup, tmp_path):
                    "--out", tmp_path / f"{name}.safetensors", "--device", "cpu")
         assert r.exit_code == 0, r.output
         iou = json.loads(read_delta(tmp_path / f"{name}.safetensors").meta["hyperparameters"])["outline_iou"]
-        assert ("no training instance's outline from --pose matches the photo's well" in r.stderr) == (iou < OUTLINE_WARN), (name, iou, r.stderr)
+        assert ("no training instance's outline from the pose matches the photo's well" in r.stderr) == (iou < OUTLINE_WARN), (name, iou, r.stderr)
         if name == "shifted":
             assert iou < OUTLINE_WARN, iou

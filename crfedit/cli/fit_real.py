@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import enum
-import json
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -49,6 +48,13 @@ class FitProgress:
     def __exit__(self, *exc) -> None:
         self.bar.stop()
 
+    def note(self, line: str) -> None:
+        """A line on stderr above the bar (a warning met while fitting)."""
+        if self.bar.live.is_started:
+            self.bar.console.print(line, highlight=False, markup=False)
+        else:
+            typer.echo(line, err=True)
+
     def on_step(self, stage: str, step: int, steps: int, loss: float, psnr: float) -> None:
         self.bar.update(self.task, advance=1, description=stage, loss=f"{loss:.4f}", psnr=f"{psnr:5.2f}")
 
@@ -90,7 +96,7 @@ def fit_real_cmd(
     """Fit a new instance to a photo of a real object: its codes first, then codes and a copy of
     the weights; writes a fit-real edit that adds the instance (the model file is untouched)."""
     from ..delta import apply_edit_files
-    from ..fit_real import OUTLINE_WARN, FitOptions, check_new_name, fit_real, photo_warnings, prepare_photo, read_photo
+    from ..fit_real import FitOptions, check_new_name, fit_real, photo_warnings, prepare_photo, read_photo
     from ..model import load_model
     from ..runtime import resolve_device
     from ..views import SPLITS, one_view_hint, one_view_label, resolve_views
@@ -120,12 +126,8 @@ def fit_real_cmd(
         typer.echo(f"note: no alpha channel and no --mask: the object is what the photo's white background surrounds "
                    f"({prepared.mask.mean():.0%} of the view); give --mask to outline it yourself", err=True)
     with FitProgress(options.steps_codes + options.steps_joint) as progress:
-        result = fit_real(m, prepared, camera, name, options, progress.on_step, progress.on_stage)
-    hyper = json.loads(result.meta.get("hyperparameters", "{}"))
-    if hyper.get("outline_iou") is not None and hyper["outline_iou"] < OUTLINE_WARN:
-        typer.echo(f"warning: no training instance's outline from --pose matches the photo's well (best: {hyper['nearest']}, "
-                   f"IoU {hyper['outline_iou']:.2f}): check that --pose sees the object as the photo does and that the "
-                   "object is centred in the photo", err=True)
+        result = fit_real(m, prepared, camera, name, options, progress.on_step, progress.on_stage,
+                          lambda text: progress.note(f"warning: {text}"))
     split_view = label.partition(":")[0] in SPLITS  # a stored view is a view of one instance
     result.save(out, command=command_line(), photo=str(photo), pose=f"{label} of {m.names[j]}" if split_view else label,
                 **({"mask": str(mask)} if mask else {}))
