@@ -80,20 +80,29 @@ def test_a_ctrl_c_mid_step_stops_at_the_step_boundary_and_resume_is_bit_identica
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
-def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
+def interrupt_training_at(monkeypatch, at: int):
+    """``crfedit train`` as Ctrl-C after step ``at`` leaves it (the step's progress and log seen);
+    returns the real ``train`` to put back."""
     import crfedit.train as train_module
 
-    out = tmp_path / "m.safetensors"
     original = train_module.train
 
     def interrupted(*args, on_step=None, **kwargs):
         def stop(step, *rest):
             on_step(step, *rest)
-            if step == 2:
+            if step == at:
                 raise KeyboardInterrupt
         return original(*args, on_step=stop, **kwargs)
 
     monkeypatch.setattr(train_module, "train", interrupted)
+    return original
+
+
+def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
+    import crfedit.train as train_module
+
+    out = tmp_path / "m.safetensors"
+    original = interrupt_training_at(monkeypatch, 2)
     r = invoke("train", tiny_chairs, "--out", out, *TINY)
     assert r.exit_code == 130 and "checkpoint at step 2" in r.stderr and "--resume" in r.stderr, r.output
     monkeypatch.setattr(train_module, "train", original)
@@ -109,18 +118,7 @@ def test_cli_interrupt_message_and_resume(tiny_chairs, tmp_path, monkeypatch):
 def test_a_stopped_run_logs_its_last_read_out(tiny_chairs, tmp_path, monkeypatch):
     """A run stopped (Ctrl-C, SIGTERM) before step --log-every left its log with the header
     alone, though a checkpoint was written: the last step whose loss was read is a row."""
-    import crfedit.train as train_module
-
-    original = train_module.train
-
-    def interrupted(*args, on_step=None, **kwargs):
-        def stop(step, *rest):
-            on_step(step, *rest)
-            if step == 7:
-                raise KeyboardInterrupt
-        return original(*args, on_step=stop, **kwargs)
-
-    monkeypatch.setattr(train_module, "train", interrupted)
+    interrupt_training_at(monkeypatch, 7)
     r = invoke("train", tiny_chairs, "--out", tmp_path / "m.safetensors", "--steps", 10, "--set", "rays=64", "--device", "cpu")
     assert r.exit_code == 130 and "checkpoint at step 7" in r.stderr, r.output
     rows = list(csv.DictReader((tmp_path / "m.log.csv").open()))
