@@ -383,8 +383,8 @@ def outline_ranking(model: CategoryModel, camera: Camera, mask: np.ndarray) -> l
 
 
 def photo_hull(model: CategoryModel, camera: Camera, mask: np.ndarray, grids: list[int] | None = None) -> Tensor:
-    """The new instance's starting grid [R, R, R]: the union of the training instances' grids,
-    carved by the photo's silhouette seen from ``camera`` (cells outside the view or off the
+    """The new instance's starting grid [R, R, R]: the union of the training instances' grids
+    (``grids``: of those instances alone, the nearest start's best match), carved by the photo's silhouette seen from ``camera`` (cells outside the view or off the
     object go), dilated by one cell."""
     field = model.field
     union = (field.occupancy if grids is None else field.occupancy[grids]).any(dim=0).cpu()

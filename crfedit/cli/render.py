@@ -52,8 +52,8 @@ def render_cmd(
         m = apply_deltas(m, deltas)
     k = m.instance_index(instance)
     # an instance's own code is what it renders with already: nothing to swap in
-    shape_from, color_from = (None if j is None or instance_option(m, j, option) == k else m.instance_index(j)
-                              for j, option in ((shape_from, "--shape-from"), (color_from, "--color-from")))
+    picked = (None if j is None else instance_option(m, j, option) for j, option in ((shape_from, "--shape-from"), (color_from, "--color-from")))
+    shape_from, color_from = (None if j == k else j for j in picked)
     if shape_from is not None or color_from is not None:
         from ..edit.transfer import swap_codes, weights_not_carried
 

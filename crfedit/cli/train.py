@@ -369,8 +369,7 @@ def train_cmd(
         return
     split = held_out_split(category, "val")
     if any(inst.splits.get(split) for inst in category.instances):
-        cap = model.cfg.eval_views
-        n = sum(len(inst.splits.get(split, [])) if cap is None else min(cap, len(inst.splits.get(split, []))) for inst in category.instances)
+        n = sum(min(model.cfg.eval_views, len(inst.splits.get(split, []))) for inst in category.instances)
         # said first: at the paper preset on a CPU each 64x64 view takes ~20 s, and the run looked hung after its last step
         typer.echo(f"scoring {n} held-out {split} view{'s' * (n != 1)} (--set eval_views=N scores fewer)", err=True)
         score = score_model(model, category, split, max_views=model.cfg.eval_views)
