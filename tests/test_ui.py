@@ -16,6 +16,7 @@ import shlex
 import signal
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -719,6 +720,29 @@ def test_ui_stops_when_the_signal_lands_on_another_thread(scene, tmp_path):
     proc = subprocess.run([sys.executable, "-c", SIGNAL_ON_A_WORKER, str(scene[0]), str(tmp_path / "w")],
                           capture_output=True, text=True, env=env, timeout=30)
     assert proc.returncode == 0 and "stopped" in proc.stdout, proc.stderr
+
+
+def test_a_request_in_flight_when_the_server_stops_is_answered(scene, tmp_path):
+    """A view the page asks for just as the server stops reaches the render pool only after the
+    stop began: the pools were shut first and it came back a 500 'unexpected RuntimeError:
+    cannot schedule new futures after shutdown' (CI, once); the runner's cleanup now lets
+    requests in flight finish before the pools go."""
+    session, _ = open_session(scene[0], None, [], tmp_path / "w", "cpu")
+    running = run_in_thread(session)
+    client, run = Client(running, session, tmp_path / "w"), running.server._run
+
+    async def late(*args, **kw):  # the request is in flight; the pool call comes after stop()
+        await asyncio.sleep(0.5)
+        return await run(*args, **kw)
+
+    running.server._run = late
+    answers = []
+    asker = threading.Thread(target=lambda: answers.append(client.call("GET", "/api/view?instance=0&view=train:0")))
+    asker.start()
+    time.sleep(0.2)
+    running.stop()
+    asker.join(timeout=30)
+    assert answers and answers[0][0] == 200, answers[0][2][:200] if answers else "no answer"
 
 
 def test_ui_command_serves_until_interrupted(scene, tmp_path):

@@ -414,6 +414,9 @@ class Server:
             await ws.close()
 
     def shutdown_pools(self) -> None:
+        """Stop the worker pools; after the runner's cleanup, which lets requests in flight
+        finish (shut first, a render the page asked for in the last moment failed as an
+        unexpected RuntimeError instead of the page losing the server)."""
         if self.job is not None:
             self.job.cancel.set()
         self.render_pool.shutdown(wait=False, cancel_futures=True)
@@ -480,8 +483,8 @@ def serve(session: UiSession, host: str, port: int, on_ready) -> None:
         finally:
             for sig in handled:
                 loop.remove_signal_handler(sig)
+            await runner.cleanup()  # stops listening, closes the sockets, lets requests finish
             server.shutdown_pools()
-            await runner.cleanup()
 
     try:
         asyncio.run(main())
@@ -517,8 +520,8 @@ def run_in_thread(session: UiSession, host: str = "127.0.0.1", port: int = 0) ->
             return
         ready.set()
         loop.run_forever()
-        server.shutdown_pools()
         loop.run_until_complete(holder["runner"].cleanup())
+        server.shutdown_pools()
         loop.close()
 
     thread = threading.Thread(target=run, name="crfedit-ui", daemon=True)
