@@ -126,6 +126,21 @@ class Ranks:
             torch.distributed.all_gather_object(out, obj)
         return out
 
+    def agree(self, settings: dict, what: str) -> None:
+        """Refuse, on every rank, to go on when this rank's ``settings`` (JSON-like values by
+        name) differ from rank 0's: ranks started with other arguments (a learning rate, a
+        seed, a width, a step count, another dataset) trained silently to a worse model, or
+        stalled in a collective until the timeout and blamed a lost rank."""
+        if self.world == 1:
+            return
+        every = self.gather(settings, what)
+        for rank, theirs in enumerate(every[1:], start=1):
+            differ = [name for name in every[0] if theirs.get(name) != every[0][name]]
+            if differ:
+                said = "; ".join(f"{name} {_clipped(str(theirs.get(name)), 60)} (rank 0: {_clipped(str(every[0][name]), 60)})" for name in differ[:3])
+                raise DistributedError(f"rank {rank} of {self.world} was started with other settings than rank 0: {said}; "
+                                       "start every rank with the same arguments and data")
+
     def barrier(self, what: str) -> None:
         if self.world == 1:
             return

@@ -524,6 +524,8 @@ def train(
         step, elapsed, next_instance = 0, 0.0, 0
         state = {}
     rank_generator = rank_generator_for(state, seed, ranks, step, device) or generator
+    ranks.agree({"dataset": category.fingerprint, "seed": seed, "step": step, "minutes": minutes, **json.loads(cfg.to_json())},
+                "comparing the ranks' settings")
     ranks.broadcast_(list(field.parameters()), "sharing the initial weights")
     opt = make_optimizer(field, cfg)
     restore_optimizer(opt, state)

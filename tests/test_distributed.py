@@ -10,7 +10,8 @@ each rank writing what it saw into files the tests then compare:
   with a :class:`DistributedError` and leave the step-8 file loadable;
 * ``render``/``recon``: the ``full`` model's 5-view orbit (with a GIF) rendered and its views
   scored with the work shared out over the two ranks;
-* ``repair``: rank 1's copy of a tensor differs, :meth:`Ranks.same_on_all` restores rank 0's.
+* ``repair``: rank 1's copy of a tensor differs, :meth:`Ranks.same_on_all` restores rank 0's;
+* ``mismatch``: rank 1 is started with another seed, both refuse (:meth:`Ranks.agree`).
 """
 
 from __future__ import annotations
@@ -103,6 +104,13 @@ def _worker(rank: int, port: int, data: str, out: str) -> None:
         probe = torch.arange(6.0) + 10 * rank
         same = ranks.same_on_all([probe], "a probe")
         (out_dir / f"repair.rank{rank}.json").write_text(json.dumps({"same": same, "probe": probe.tolist()}))
+
+        try:  # rank 1 started with another seed: both refuse before the first step, naming it
+            train(category, make_config("fast", overrides=FULL), out_dir / "mismatch.safetensors", CPU, seed=rank, ranks=ranks)
+            outcome = "finished"
+        except DistributedError as e:
+            outcome = str(e)
+        (out_dir / f"mismatch.rank{rank}.txt").write_text(outcome)
 
         def die(step, *_):
             if rank == 1 and step == 12:
@@ -210,6 +218,16 @@ def test_sharded_render_and_scores_equal_one_process(two_ranks, tiny_chairs, tmp
     assert one == r0 == r1 and list(one["instances"]) == ["chair_000", "chair_001"]
 
 
+def test_ranks_started_with_other_settings_refuse_to_train(two_ranks):
+    """A rank started with other arguments than rank 0 (here its seed) trained silently to a
+    worse model, or stalled in a collective (another step count): every rank now refuses before
+    the first step, with one line naming the setting, and no file is written."""
+    said = {(two_ranks / f"mismatch.rank{r}.txt").read_text() for r in (0, 1)}
+    assert said == {"rank 1 of 2 was started with other settings than rank 0: seed 1 (rank 0: 0); "
+                    "start every rank with the same arguments and data"}, said
+    assert not (two_ranks / "mismatch.safetensors").exists()
+
+
 def test_same_on_all_restores_rank_0s_tensor(two_ranks):
     r0, r1 = (json.loads((two_ranks / f"repair.rank{r}.json").read_text()) for r in (0, 1))
     assert r0 == r1 == {"same": False, "probe": [float(i) for i in range(6)]}
@@ -273,7 +291,7 @@ def test_a_broken_job_exits_without_teardown():
 
 def test_under_torchrun_one_line_per_job_and_unshared_commands_refused(tiny_model, tmp_path, monkeypatch):
     """Under torchrun (``RANK``/``WORLD_SIZE`` set) a user error found before the process group
-    is printed by rank 0 alone (every rank read the same arguments and files); a command that
+    is printed by each node's first process alone (its ranks read the same arguments and files); a command that
     does not share its work over ranks is refused instead of running once per rank."""
     from cli_helpers import assert_user_error, invoke
 
@@ -289,6 +307,9 @@ def test_under_torchrun_one_line_per_job_and_unshared_commands_refused(tiny_mode
             assert_user_error(s, "does not share its work over torchrun's ranks", "without torchrun")
         else:
             assert (r.exit_code, r.stderr, s.exit_code, s.stderr) == (2, "", 2, "")
+    # another node's first process says it (its files may differ from rank 0's: a dataset missing there)
+    monkeypatch.setenv("LOCAL_RANK", "0")
+    assert_user_error(invoke(*render), "rank 1 of 2: unknown instance 'nope'")
     assert not (tmp_path / "s.safetensors").exists() and not (tmp_path / "r").exists()
     monkeypatch.setenv("WORLD_SIZE", "1")  # torchrun --nproc-per-node 1: nothing to share, the command runs
     monkeypatch.setenv("RANK", "0")

@@ -245,14 +245,19 @@ def terminate_as_interrupt() -> None:
 
 def _says_it(error: BaseException) -> bool:
     """Whether this process prints ``error``.  Under torchrun a rank other than 0 keeps quiet
-    about a user error met before its process group formed, and about Ctrl-C: it read the same
-    arguments and files as rank 0, whose line says it (one line, not one per rank).  Errors of
-    its own (a collective, its device, its disk) it prints, its rank named."""
+    about Ctrl-C, and so does one other than its node's first (``LOCAL_RANK`` 0) about a user
+    error met before its process group formed: it read the same arguments and files as that
+    one, whose line says it (one line per node, not one per rank).  Each node's first process
+    says it: another node's files may differ (a dataset missing there printed nothing, and rank
+    0 waited out the join's timeout).  Errors of its own (a collective, its device, its disk)
+    every rank prints, its rank named."""
     ranks = torchrun_ranks()
     if ranks is None or ranks.main:
         return True
     if isinstance(error, KeyboardInterrupt):
         return False
+    if ranks.local_rank == 0:
+        return True
     import torch.distributed as dist
 
     from ..distributed import DistributedError
