@@ -363,3 +363,25 @@ def test_usage_errors_under_torchrun_are_rank_0_s_line(monkeypatch, capsys):
             main()
         err = capsys.readouterr().err
         assert e.value.code == 2 and err.count("No such option: --bogus") == expected, err
+
+
+def test_sigterm_under_torchrun_says_where_it_may_come_from(monkeypatch, capsys):
+    """torchrun passes Ctrl-C on as SIGTERM, as it does when another rank stops first: the
+    line says so (it read as a plain SIGTERM, the lost rank never named)."""
+    import typer
+
+    from crfedit.cli.common import user_errors
+    from crfedit.errors import Terminated
+
+    @user_errors(ranked=True)
+    def command():
+        raise Terminated("m.safetensors keeps its checkpoint at step 80")
+
+    for world, said in (("2", "terminated (SIGTERM from torchrun: Ctrl-C, or another rank stopped; torchrun's summary names it)"),
+                        ("1", "terminated (SIGTERM)")):
+        monkeypatch.setenv("RANK", "0")
+        monkeypatch.setenv("WORLD_SIZE", world)
+        with pytest.raises(typer.Exit) as e:
+            command()
+        assert e.value.exit_code == 143
+        assert capsys.readouterr().err == f"{said}: m.safetensors keeps its checkpoint at step 80\n"

@@ -350,6 +350,9 @@ def user_errors(fn=None, *, ranked: bool = False):
         except KeyboardInterrupt as e:
             if _says_it(e):
                 word = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+                ranks = torchrun_ranks()
+                if isinstance(e, Terminated) and ranks is not None and ranks.world > 1:  # torchrun's SIGTERM: its summary says why
+                    word = "terminated (SIGTERM from torchrun: Ctrl-C, or another rank stopped; torchrun's summary names it)"
                 typer.echo(f"{word}{': ' + str(e) if str(e) else ''}", err=True)
             raise typer.Exit(143 if isinstance(e, Terminated) else 130) from None
         except MemoryError as e:
