@@ -19,7 +19,7 @@ from crfedit.edit.selection import (
 from crfedit.edit.selection.classify import appearance_gate, chroma_alike, chromaticity, classifier, fit_logistic
 from crfedit.edit.selection.features import MEMO_RENDERS, CellPoints, FrameTable, denser_points, group_width, local_frames, local_shape
 from crfedit.edit.selection.options import (
-    CENTRE_SHARE, CHROMA_OFFSET, JOIN_ALWAYS, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_PALE_UNION, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
+    CENTRE_SHARE, CHROMA_OFFSET, JOIN_ALWAYS, KEEP_STRAYS, STROKE_SNAP, CHROMA_UNION, COLOR_CHROMA_OFFSET, COLOR_PALE_UNION, COLOR_FILL_SHARE, COLOR_SATURATION, COLOR_THRESHOLD, PALE_SATURATION,
 )
 from crfedit.edit.selection.refine import (
     bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
@@ -1516,6 +1516,31 @@ def test_keep_strokes_drawn_onto_the_part_lift_their_centres(trained):
     assert iou(onto, dataclasses.replace(options, stroke_centres=False)) < careful - 0.1
 
 
+def test_scribbled_points_that_look_like_the_keep_strokes_are_strays(monkeypatch):
+    """A 1-px stroke on a navy seat that strays onto the white pillow kept above it: the white
+    points are strays; a scribble of one colour with its keep strokes, or one that means both
+    colours (more than a third of it), loses none."""
+    from crfedit.edit.selection import pipeline
+
+    colours = {}
+    monkeypatch.setattr(pipeline, "point_features", lambda field, k, pts, eye, groups: colours["c"])
+    camera = SimpleNamespace(c2w=np.eye(4))
+    navy, white = torch.tensor([0.1, 0.2, 0.3]), torch.tensor([0.7, 0.68, 0.65])
+
+    def strays(pos, keep):
+        colours["c"] = torch.cat([pos, keep])
+        return pipeline._strays(None, 0, torch.zeros(len(pos), 3), torch.zeros(len(keep), 3), camera, KEEP_STRAYS).tolist()
+
+    shaded = navy * torch.linspace(0.8, 1.2, 12)[:, None]
+    edge = torch.stack([white, 0.5 * (white + navy), 0.8 * white, 0.2 * white + 0.8 * navy])  # the pillow, pixels half and a fifth on it, its shade
+    assert strays(torch.cat([shaded, edge]), white[None].repeat(3, 1)) == [False] * 12 + [True, True, True, False]
+    assert strays(torch.cat([shaded, edge]), navy[None] * 0.5) == [False] * 16  # kept part unlike the strays
+    assert strays(shaded, shaded[:2]) == [False] * 12  # keep strokes of the scribble's own colour (within the floor)
+    assert strays(torch.cat([shaded[:4], white[None].repeat(3, 1)]), white[None]) == [False] * 7  # 3 of 7: meant
+    grey = torch.tensor([0.4, 0.4, 0.41]) * torch.linspace(0.6, 1.6, 10)[:, None]  # a grey back, shaded and lit
+    assert strays(grey, torch.tensor([[0.69, 0.63, 0.54]])) == [False] * 10  # as bright as the beige seat kept: not strays
+
+
 def test_the_strokes_line_says_what_each_rule_left_out():
     assert stroke_summary({}) is None
     lost = "left out: a brush strays off a thin part)"
@@ -1528,6 +1553,9 @@ def test_the_strokes_line_says_what_each_rule_left_out():
     assert stroke_summary({"stroke_snap": {"added_pixels": 7}}) == snapped
     assert stroke_summary({"stroke_snap": {"added_pixels": 7}, "stroke_centres": {"edge_points": 3}}) == f"{snapped}; their centres lifted (3 edge points {lost}"
     assert stroke_summary({"stroke_snap": {"added_pixels": 0}, "stroke_centres": {"edge_points": 3}}) == f"their centres lifted (3 edge points {lost}"
+    strays = "2 scribbled points that look like the keep strokes, not like the rest of the scribble, left out (a stroke that strayed onto a kept part)"
+    assert stroke_summary({"stroke_centres": {"edge_points": 3}, "keep_strays": 2}) == f"their centres lifted (3 edge points {lost}; {strays}"
+    assert stroke_summary({"keep_strays": 1}).startswith("1 scribbled point that looks like") and stroke_summary({"keep_strays": 0}) is None
 
 
 def test_the_keep_line_speaks_only_when_no_keep_stroke_lies_on_the_object():

@@ -180,13 +180,15 @@ def stroke_summary(meta: dict) -> str | None:
     """What a selection's metadata says of :attr:`~.options.SelectOptions.stroke_snap` and
     :attr:`~.options.SelectOptions.stroke_centres`, in a line (None: it lifted every scribbled
     pixel, as asked)."""
-    info, snap = meta.get("stroke_centres"), meta.get("stroke_snap")
+    info, snap, strays = meta.get("stroke_centres"), meta.get("stroke_snap"), meta.get("keep_strays") or 0
     n = snap["added_pixels"] if snap else 0
-    snapped = f"{n} pixel{'' if n == 1 else 's'} beside the scribble snapped onto the object (it lay mostly off it)" if n else None
-    if info is None:
-        return snapped
-    said = _centres_summary(info)
-    return f"{snapped}; {said}" if snapped else said
+    said = [f"{n} pixel{'' if n == 1 else 's'} beside the scribble snapped onto the object (it lay mostly off it)"] if n else []
+    if info is not None:
+        said.append(_centres_summary(info))
+    if strays:
+        said.append(f"{strays} scribbled point{' that looks' if strays == 1 else 's that look'} like the keep strokes, "
+                    "not like the rest of the scribble, left out (a stroke that strayed onto a kept part)")
+    return "; ".join(said) if said else None
 
 
 def _centres_summary(info: dict) -> str:

@@ -34,6 +34,17 @@ point or two); every other brush change and the procedural twins within 0.003
 (docs/benchmarks.md, forty-fourth session).  Additions keep 0: moved 2 px off a thin armrest,
 their copy strokes snapped onto the chair beside it, and the addition copied that too (the
 rest of the target 1.5–3.1 dB worse on three of four runs; forty-fifth session)."""
+KEEP_STRAYS = 0.5
+"""Recolours' and removals' :attr:`SelectOptions.keep_strays`: a scribbled point is a stray when
+its chromaticity lies within this × its distance to the scribble's median of a kept point's.
+A tester's 1-px stroke on a navy sofa's seat strayed 1 px onto the white pillow above it (9
+of its 70 pixels) and the pillow under a keep stroke turned pink (PSNR 11.7 dB on held-out
+views); without those 9 pixels it stayed white (31.5 dB) (docs/benchmarks.md, sixty-sixth
+session)."""
+STRAY_FLOOR = 0.08
+"""A stray's chromaticity lies farther than this from the scribble's median."""
+STRAY_SHARE = 1 / 3
+"""No stray is dropped when more than this share of a view's scribble would be."""
 FEATURES = ("bottleneck", "color", "chroma", "position")
 """The feature groups a selection uses by default."""
 GROW_LOW = 0.3
@@ -330,6 +341,13 @@ class SelectOptions:
     stroke aimed a pixel beside a 1-px tube lies on the background, which is not lifted, and
     leaves the selection a point or two to grow from.  Recolours and removals use it
     (:data:`STROKE_SNAP`)."""
+    keep_strays: float = 0.0
+    """When > 0, a view's scribbled points whose colour looks like its keep strokes' and not
+    like the rest of the scribble are left out (:func:`.pipeline._strays`; this is its ratio):
+    a stroke drawn up to a part's edge strays onto the neighbour the user kept, and a few
+    positives there pull the classifier onto it.  The scribble's centres
+    (:attr:`stroke_centres`) cannot tell them apart where the strokes are one or two pixels
+    wide.  Recolours and removals use it (:data:`KEEP_STRAYS`)."""
     cell_ascent: float = CELL_ASCENT
     """A cell is described at its centre moved this many half cells up the density gradient,
     where the density is higher there (:func:`denser_points`; 0: at the centre)."""
@@ -762,7 +780,7 @@ def _kind_options(kind: str) -> SelectOptions:
                              select_threshold=COLOR_THRESHOLD, fill_share=COLOR_FILL_SHARE,
                              appearance_gate=COLOR_APPEARANCE_GATE, keep_ratio=COLOR_KEEP_RATIO,
                              keep_position_weight=COLOR_KEEP_POSITION_WEIGHT, mirror=COLOR_MIRROR, stroke_centres=STROKE_CENTRES,
-                             stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES,
+                             stroke_snap=STROKE_SNAP, keep_strays=KEEP_STRAYS, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES,
                              on_bars=COLOR_ON_BARS, pale_union=COLOR_PALE_UNION, part_join_sure=PART_JOIN_SURE)
     if kind == "remove":
         return SelectOptions(features=REMOVE_FEATURES, geometry_weight=REMOVE_GEOMETRY_WEIGHT, position_weight=REMOVE_POSITION_WEIGHT,
@@ -771,6 +789,6 @@ def _kind_options(kind: str) -> SelectOptions:
                              smooth_bandwidth=REMOVE_SMOOTH_BANDWIDTH, veto_chroma=REMOVE_VETO_CHROMA,
                              pale_veto=REMOVE_PALE_VETO, pale_veto_saturation=PALE_SATURATION,
                              keep_ratio=REMOVE_KEEP_RATIO, mirror=REMOVE_MIRROR, stroke_centres=STROKE_CENTRES,
-                             stroke_snap=STROKE_SNAP, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES,
+                             stroke_snap=STROKE_SNAP, keep_strays=KEEP_STRAYS, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES,
                              free_pieces=REMOVE_FREE_PIECES)
     return SelectOptions(stroke_centres=STROKE_CENTRES)

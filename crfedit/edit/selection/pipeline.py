@@ -21,9 +21,9 @@ from ...renderer import RenderOutput, render_camera
 from ..scribble import require_on_object
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 from .base import ScribbleView, Selection
-from .classify import appearance_gate, chroma_spread, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
+from .classify import appearance_gate, chroma_spread, chromaticity, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
 from .features import SHAPE_SOURCES, CellPoints, FrameTable, cell_opacity, cell_points, group_width, local_frames, local_shape, point_features, surface_points
-from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, SelectOptions, WIDTHS, options_for
+from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, STRAY_FLOOR, STRAY_SHARE, SelectOptions, WIDTHS, options_for
 from .refine import bilateral_smooth, connected_to, fill_rims, large_pieces, neighbour_table, raised, smooth_over_occupied
 from .shapes import BARS_RADIUS, JOIN_LINES, RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
@@ -90,19 +90,44 @@ def _centre(strokes: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, int]:
     return centre, n_all - n_centre
 
 
-def _lift_views(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: Sequence[RenderOutput] | None):
+def _lift_views(field, k, views: Sequence[ScribbleView], min_opacity: float, renders: Sequence[RenderOutput] | None,
+                strays: float = 0.0):
     """Positive and negative surface points of all views, plus each view's other surface points
-    (negatives too, until self-training drops those that look like the part); and each view's
-    (surface points, on-object mask), which :func:`_lift_mirrors` reads."""
-    pos, neg, implied, surfaces = [], [], [], []
+    (negatives too, until self-training drops those that look like the part); each view's
+    (surface points, on-object mask), which :func:`_lift_mirrors` reads; and how many
+    scribbled points were left out as strays (:func:`_strays`, when ``strays`` > 0)."""
+    pos, neg, implied, surfaces, dropped = [], [], [], [], 0
     for i, v in enumerate(views):
         pts, on = surface_points(field, v.camera, k, min_opacity, None if renders is None else renders[i])
         scribbled, kept = _strokes(v, on.device)
-        pos.append(pts[scribbled & on])
-        neg.append(pts[kept & on])
+        p, n = pts[scribbled & on], pts[kept & on]
+        if strays > 0 and n.shape[0] > 0:
+            stray = _strays(field, k, p, n, v.camera, strays)
+            p, dropped = p[~stray], dropped + int(stray.sum())
+        pos.append(p)
+        neg.append(n)
         implied.append(pts[on & ~scribbled & ~kept])
         surfaces.append((pts, on))
-    return _cat_points(field, pos), _cat_points(field, neg), _cat_points(field, implied), surfaces
+    return _cat_points(field, pos), _cat_points(field, neg), _cat_points(field, implied), surfaces, dropped
+
+
+def _strays(field, k, pos: Tensor, keep: Tensor, camera, ratio: float) -> Tensor:
+    """[n] bool: the scribbled points ``pos`` [n, 3] of one view that look like its keep
+    strokes' points ``keep`` [m, 3], not like the rest of the scribble
+    (:attr:`SelectOptions.keep_strays`): their chromaticity, seen from the camera, lies within
+    ``ratio`` × its distance to the scribble's median chromaticity of some kept point's, and
+    more than :data:`STRAY_FLOOR` from that median.  Chromaticity, not colour: the lit face of a
+    grey back is as bright as the beige seat kept beside it, and is not a stray.  None are
+    strays when more than :data:`STRAY_SHARE` of the scribble would be: it then means both."""
+    eye = torch.as_tensor(np.asarray(camera.c2w)[:3, 3], dtype=torch.float32, device=pos.device)
+    colour = chromaticity(point_features(field, k, torch.cat([pos, keep]), eye, ("color",)))
+    c_pos, c_keep = colour[: pos.shape[0]], colour[pos.shape[0]:]
+    to_median = (c_pos - c_pos.median(dim=0).values).norm(dim=-1)
+    to_keep = torch.cdist(c_pos, c_keep).amin(dim=-1)
+    stray = (to_keep < ratio * to_median) & (to_median > STRAY_FLOOR)
+    if float(stray.float().mean()) > STRAY_SHARE:
+        return torch.zeros_like(stray)
+    return stray
 
 
 def _cat_points(field, xs: Sequence[Tensor]) -> Tensor:
@@ -287,7 +312,7 @@ def select(
     if options.stroke_centres:  # see SelectOptions.stroke_centres
         views, dropped, dropped_keep = _stroke_centres(views, on_object)
         centre_meta = {"edge_points": dropped, "keep_edge_points": dropped_keep}
-    pos_pts, neg_pts, cand_pts, surfaces = _lift_views(field, k, views, options.min_opacity, renders)
+    pos_pts, neg_pts, cand_pts, surfaces, strays = _lift_views(field, k, views, options.min_opacity, renders, options.keep_strays)
     require_on_object(pos_pts.shape[0])
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
     if points is None or not points.fits(cells, options.cell_ascent):
@@ -499,6 +524,8 @@ def select(
         meta["stroke_centres"] = centre_meta
     if snap_meta is not None:
         meta["stroke_snap"] = snap_meta
+    if options.keep_strays > 0:
+        meta["keep_strays"] = strays
     if union is not None:
         meta["chroma_union"] = union
     if mirror_meta is not None:
