@@ -101,7 +101,7 @@ def _lift_views(field, k, views: Sequence[ScribbleView], min_opacity: float, ren
         pts, on = surface_points(field, v.camera, k, min_opacity, None if renders is None else renders[i])
         scribbled, kept = _strokes(v, on.device)
         p, n = pts[scribbled & on], pts[kept & on]
-        if strays > 0 and n.shape[0] > 0:
+        if strays > 0 and n.shape[0] > 0 and p.shape[0] > 0:  # a view of keep strokes alone has no scribble to compare
             stray = _strays(field, k, p, n, v.camera, strays)
             p, dropped = p[~stray], dropped + int(stray.sum())
         pos.append(p)
