@@ -392,6 +392,19 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
     _write_with(path, lambda tmp: Image.fromarray(np.ascontiguousarray(arr)).save(tmp, format="PNG"))
 
 
+def _integer_range(path: Path, im, arr: np.ndarray) -> float:
+    """The full-scale value of a 16- or 32-bit integer image: 65535 for 16-bit modes (and a
+    PNG's ``I``, which older Pillows give 16-bit PNGs); a 32-bit ``I`` image (TIFF) is judged
+    by its values, 255 when none exceeds it (an 8-bit image saved as 32-bit integers read
+    250× too dark as 16-bit), 65535 up to that, else refused."""
+    if im.mode != "I" or im.format == "PNG":
+        return 65535.0
+    low, top = (float(arr.min()), float(arr.max())) if arr.size else (0.0, 0.0)
+    if low < 0 or top > 65535:
+        raise CrfError(f"{path}: 32-bit integer values outside 0–65535 have no range to read them by: save it as an 8- or 16-bit PNG")
+    return 255.0 if top <= 255 else 65535.0
+
+
 def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read an 8-bit image as float32 [H, W, C] in [0, 1] with C = 3 (RGB) or 4 (RGBA).
 
@@ -410,7 +423,8 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
             if im.mode == "F":  # floats: no range to read them by (NaN, 0/1, 0/255 all occur)
                 raise CrfError(f"{path}: image mode F (32-bit float) is not supported: save it as an 8- or 16-bit PNG")
             if im.mode in ("I;16", "I;16B", "I;16L", "I"):
-                arr = np.asarray(im, dtype=np.float64) / 65535.0
+                arr = np.asarray(im, dtype=np.float64)
+                arr = arr / _integer_range(path, im, arr)
                 return np.repeat(arr[..., None], 3, axis=2).astype(np.float32)
             has_alpha = im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info)
             im = im.convert("RGBA" if has_alpha else "RGB")

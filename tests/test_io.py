@@ -356,6 +356,21 @@ def test_read_image_dark_16_bit_gray(tmp_path):
     assert np.allclose(read_image(tmp_path / "dark16.png"), 200 / 65535.0, atol=1e-7)
 
 
+def test_read_image_32_bit_integers_by_their_values(tmp_path):
+    """A 32-bit integer image (mode I, a TIFF) has no bit depth to read it by: 0–255 values are
+    8-bit (they read 250× too dark as 16-bit, silently), up to 65535 16-bit, others refused."""
+    eight = np.array([[0, 51], [204, 255]], np.int32)
+    Image.fromarray(eight).save(tmp_path / "i8.tiff")
+    assert np.allclose(read_image(tmp_path / "i8.tiff")[..., 0], eight / 255.0, atol=1e-7)
+    sixteen = np.array([[0, 300], [40000, 65535]], np.int32)
+    Image.fromarray(sixteen).save(tmp_path / "i16.tiff")
+    assert np.allclose(read_image(tmp_path / "i16.tiff")[..., 0], sixteen / 65535.0, atol=1e-7)
+    for bad in (70000, -1):
+        Image.fromarray(np.array([[0, bad]], np.int32)).save(tmp_path / "bad.tiff")
+        with pytest.raises(CrfError, match=r"bad\.tiff: 32-bit integer values outside 0–65535 have no range to read them by"):
+            read_image(tmp_path / "bad.tiff")
+
+
 @pytest.mark.parametrize("color_type, channels, out_channels", [(2, 3, 3), (6, 4, 4), (4, 2, 4)])
 def test_read_image_16_bit_color(tmp_path, color_type, channels, out_channels):
     values = np.random.default_rng(7).integers(0, 65536, (3, 4, channels)).astype(np.uint16)
