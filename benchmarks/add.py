@@ -50,6 +50,7 @@ from crfedit.model import load_model
 from crfedit.names import ADD_METHODS
 from crfedit.renderer import render_camera
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 
 
 def part_id(instance, name: str) -> int:
@@ -158,4 +159,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -37,6 +37,7 @@ from crfedit.edit.selection import ScribbleView, options_for, select, surface_po
 from crfedit.masks import dilate, erode
 from crfedit.twin_scores import part_map, part_of
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -196,4 +197,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from crfedit.twin_scores import part_of
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -42,4 +43,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -23,6 +23,7 @@ from crfedit.edit import EditOptions
 from crfedit.evaluation import below_unedited, evaluate_edits, load_category_for, load_twin_cases
 from crfedit.model import load_model
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 
 COLUMNS = ("gap_closed", "psnr_outside", "selection_iou")
 
@@ -73,4 +74,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -26,6 +26,7 @@ import torch
 from crfedit.edit import EditOptions
 from crfedit.evaluation import apply_twin_edit, twin_appearance, twin_selection
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -68,4 +69,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -26,6 +26,7 @@ from crfedit.data.synth import rgb_to_hex
 from crfedit.demo import tiled
 from crfedit.io import read_image, write_png
 from crfedit.model import load_model
+from crfedit.errors import run_script
 
 
 def crfedit(*args: str) -> None:
@@ -89,4 +90,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -44,6 +44,7 @@ import numpy as np
 
 from crfedit.data.format import TwinSpec, write_twins_json
 from crfedit.data.synth import SynthConfig, contrasting_color, sample_cameras, twin_sources
+from crfedit.errors import run_script
 from edit_models import hybrid_rows
 
 SUFFIX = "_frame_color"
@@ -219,4 +220,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -36,6 +36,7 @@ from crfedit.masks import dilate, erode
 from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, surface_iou
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 
 _spec = importlib.util.spec_from_file_location("bench_edit_models", Path(__file__).with_name("edit_models.py"))
 edit_models = importlib.util.module_from_spec(_spec)
@@ -110,4 +111,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rays", default="1024,8192", help="rays per step of each training curve, comma-separated")
     parser.add_argument("--minutes", type=float, default=1.0, help="training time per curve")
     parser.add_argument("--steps", type=int, help="step cap per curve (default: the time alone)")
-    parser.add_argument("--checkpoints", type=int, default=4, help="points scored along each curve, plus the end")
+    parser.add_argument("--checkpoints", type=int, default=4, help="points scored along each curve, the last at its end")
     parser.add_argument("--profile-rays", type=int, default=1024, help="rays per step of the profiled steps")
     parser.add_argument("--compile", action="store_true", help="also count the compiled step")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every run")

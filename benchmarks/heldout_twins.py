@@ -40,6 +40,7 @@ from pathlib import Path
 from crfedit.data.loading import read_twin_specs
 from crfedit.evaluation import below_unedited
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 from edit_models import hybrid_rows
 
 
@@ -128,4 +129,4 @@ def pool(summaries: list[dict | None]) -> dict | None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

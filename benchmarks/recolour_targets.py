@@ -50,6 +50,7 @@ from crfedit.metrics import score_images
 from crfedit.renderer import render_camera
 from crfedit.twin_scores import changed_regions, gap_closed, masked_psnr, part_map, part_of
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -167,4 +168,4 @@ def outside_errors(images, twin_views, outside, background) -> tuple[float, floa
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -80,7 +80,8 @@ def measure(model_path: Path, data: Path, res: int, threads: list[int], repeats:
             })
             print(f"threads {n} view {i}: scratch {scratch:.1f} ms, uncached {uncached:.1f} ms, cached {cached:.2f} ms "
                   f"(build {build:.0f} ms), max |diff| {diff:.1e}", file=sys.stderr)
-    meta = {"model": str(model_path), "data": str(data), "twin": case.spec.name, "res": res, "repeats": repeats}
+    meta = {"model": str(model_path), "data": str(data), "twin": case.spec.name, "res": res, "repeats": repeats,
+            "threads": ",".join(str(n) for n in threads)}
     return rows, meta
 
 
@@ -88,7 +89,8 @@ def markdown(rows: list[dict], meta: dict, machine: dict) -> str:
     res = meta["res"]
     lines = [
         BEGIN,
-        f"Measured by `python benchmarks/render_cache.py {meta['model']} {meta['data']} --res {res}` on "
+        f"Measured by `python benchmarks/render_cache.py {meta['model']} {meta['data']} --res {res} --threads {meta['threads']} "
+        f"--repeats {meta['repeats']}` on "
         f"{machine['cpu']} ({machine['cores']} cores), torch {machine['torch']}, {machine['date']}, revision "
         f"{machine['revision']}. Colour twin `{meta['twin']}` edited with the default options; its "
         f"{len({r['view'] for r in rows})} test poses rendered at {res}×{res}; medians of {meta['repeats']} renders.",

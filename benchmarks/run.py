@@ -2,7 +2,7 @@
 
     python benchmarks/run.py                  # the full sweep: about 25 minutes on 2 CPU cores
     python benchmarks/run.py --minutes 2      # shorter training curves
-    python benchmarks/run.py --tiny           # seconds: a smoke test of the pipeline
+    python benchmarks/run.py --tiny           # seconds: a smoke test of the pipeline (writes runs/bench/tiny/)
 
 Measures with :func:`crfedit.bench.run_bench` (the library behind ``crfedit bench``) and writes
 ``docs/benchmarks/bench.csv``, ``docs/benchmarks/bench_{train,render,edit}.png`` and the bench
@@ -34,14 +34,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, help="category dataset with twins (default: runs/bench/chairs, generated if missing)")
     parser.add_argument("--minutes", type=float, help="training time per curve (default 5)")
     parser.add_argument("--presets", help="training curves, comma-separated (default fast,paper)")
-    parser.add_argument("--csv", type=Path, default=ROOT / "docs" / "benchmarks" / "bench.csv", help="CSV to write (plots go beside it)")
-    parser.add_argument("--md", type=Path, default=ROOT / "docs" / "benchmarks.md", help="markdown page with the bench section")
+    parser.add_argument("--csv", type=Path, help="CSV to write, plots beside it (default docs/benchmarks/bench.csv; "
+                        "with --tiny runs/bench/tiny/bench.csv: a smoke test does not replace the published tables)")
+    parser.add_argument("--md", type=Path, help="markdown page with the bench section (default docs/benchmarks.md; "
+                        "with --tiny runs/bench/tiny/bench.md)")
     parser.add_argument("--work", type=Path, help="keep the trained models here")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--tiny", action="store_true", help="a seconds-long sweep on a generated 2-chair category")
     args = parser.parse_args(argv)
+    out = ROOT / "runs" / "bench" / "tiny" if args.tiny else ROOT / "docs"
+    args.csv = args.csv or out / ("bench.csv" if args.tiny else "benchmarks/bench.csv")
+    args.md = args.md or out / ("bench.md" if args.tiny else "benchmarks.md")
+    if args.tiny:
+        args.csv.parent.mkdir(parents=True, exist_ok=True)
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)

@@ -16,6 +16,7 @@ import torch
 from crfedit.edit.selection import select_for
 from crfedit.evaluation import load_category_for, load_twin_cases
 from crfedit.model import load_model
+from crfedit.errors import run_script
 
 
 def main() -> None:
@@ -42,4 +43,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

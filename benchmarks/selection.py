@@ -31,6 +31,7 @@ from crfedit.evaluation import evaluate_edits, load_twin_cases, model_width
 from crfedit.model import load_model
 from crfedit.twin_scores import part_map, part_of, selection_iou, surface_iou
 from crfedit.report import emit_table
+from crfedit.errors import run_script
 
 VARIANTS = {  # name: (overrides of the edit kind's SelectOptions (options_for), keep strokes given, recolour grows the selection)
     "default (bottleneck + colour + chromaticity + position at each cell's centre moved a half cell up the density gradient; logistic, 3 self-training rounds with the appearance fit, appearance gate, smoothing (bilateral for removals), connectivity; recolours and removals join the chromaticity-only selection; recolours fill the rims; both veto other colours)": ({}, True, False),
@@ -220,4 +221,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -33,6 +33,7 @@ from crfedit.errors import CrfError
 from crfedit.masks import dilate
 from crfedit.report import emit_table
 from crfedit.twin_scores import part_map, part_of, selection_iou
+from crfedit.errors import run_script
 
 
 def landing(category, case, scribble: np.ndarray) -> tuple[int, int, int] | None:
@@ -141,4 +142,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -13,8 +13,9 @@ Three groups of measurements, each a set of curves of PSNR against seconds:
 * ``render`` — PSNR of a trained model against seconds per rendered view, varying the samples
   per ray: ``steps_per_cell`` (grid sampler) or coarse + fine samples (hierarchical sampler).
 * ``edit`` — PSNR against a ground-truth twin (the dataset's ``twins.json``) against the edit's
-  optimization time, one curve per number of edit rays (and one with feature caching off),
-  points over the number of edit steps.
+  time (its selection made once per twin beforehand and not timed, as ``crfedit eval edits``
+  times it), one curve per number of edit rays (and one with feature caching off), points
+  over the number of edit steps.
 
 :func:`run_bench` measures and returns a :class:`BenchReport` stamped with the machine
 (:func:`crfedit.machine.machine_info`); :func:`crfedit.report.write_outputs` writes it as CSV,
@@ -39,9 +40,11 @@ from .config import PRESETS, Config, make_config
 from .data.loading import Category, load_category
 from .data.synth import SynthConfig, write_synth_category
 from .edit import EditOptions
-from .errors import CrfError
+from .errors import CrfError, NonFiniteError
 from .ablation import warm_up_training
-from .evaluation import apply_twin_edit, held_out_split, load_twin_cases, render_views, score_instance, score_model
+from .evaluation import (
+    apply_twin_edit, held_out_split, load_twin_cases, render_views, score_instance, score_model, twin_appearance, twin_selection,
+)
 from .machine import machine_info
 from .metrics import score_images
 from .model import CategoryModel, load_model
@@ -64,7 +67,7 @@ class BenchSettings:
     steps: int | None = None
     """Optional step cap of each training curve (whichever of steps and minutes ends first)."""
     checkpoints: int = 6
-    """Points scored along each training curve (plus the end of training)."""
+    """Points scored along each training curve, at equal fractions of it, the last at its end."""
     train_steps_per_cell: tuple[float, ...] = (2.0,)
     """Extra fast-preset training curves at these marching densities (the preset has 1)."""
     render_steps_per_cell: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0, 8.0)
@@ -122,7 +125,7 @@ class BenchRow:
     curve: str  # the plotted curve it belongs to, e.g. "fast", "paper", "color, 1024 rays"
     knob: str  # what varies along the curve: step | steps_per_cell | samples | edit_steps
     value: str  # the knob's value at this point
-    seconds: float  # training time so far | seconds per rendered view | edit optimization time
+    seconds: float  # training time so far | seconds per rendered view | edit time (its selection made beforehand)
     psnr: float
     ssim: float
     views: int  # images scored
@@ -259,8 +262,14 @@ def render_variants(cfg: Config, settings: BenchSettings) -> tuple[str, list[tup
 # ----------------------------------------------------------------------------- edit curves
 
 
-def edit_curves(model: CategoryModel, category: Category, settings: BenchSettings, progress: Progress) -> list[BenchRow]:
-    """PSNR against the first colour twin and the first removal twin over edit steps × rays."""
+def edit_curves(model: CategoryModel, category: Category, settings: BenchSettings, progress: Progress,
+                notes: list[str] | None = None) -> list[BenchRow]:
+    """PSNR against the first colour twin and the first removal twin over edit steps × rays.
+
+    Each twin's edit is made as ``crfedit eval edits`` makes it: from its selection, made once
+    and not timed (the curves show what steps and rays cost), a recolour targeting the colour
+    the part should appear (:func:`~crfedit.evaluation.twin_appearance`).  A point whose edit
+    diverges is left out, with a line in ``notes``, and the sweep goes on."""
 
     if not settings.edit_steps or not settings.edit_rays:
         return []
@@ -273,11 +282,18 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
     plain = 1024 if 1024 in settings.edit_rays else settings.edit_rays[0]
     runs = [(rays, True) for rays in settings.edit_rays] + ([(plain, False)] if settings.edit_uncached else [])
     for case in chosen:
+        appear, selection = twin_appearance(category, case), twin_selection(model, case)
         for rays, cache in runs:
             label = f"{case.spec.kind}, {rays} rays" + ("" if cache else ", no cache")
             for steps in settings.edit_steps:
                 options = EditOptions(strategy="hybrid", steps=steps, rays=rays, seed=settings.seed, cache=cache)
-                result = apply_twin_edit(model, case, options)
+                try:
+                    result = apply_twin_edit(model, case, options, appear=appear, selection=selection)
+                except NonFiniteError as e:
+                    if notes is not None:
+                        notes.append(f"edit {label}, {steps} steps left out: {e}")
+                    progress(f"edit {label} {steps} steps: left out ({e})")
+                    continue
                 score = score_instance(result.model, case.instance, case.views)
                 rows.append(BenchRow("edit", label, "edit_steps", str(steps), result.seconds, score["psnr"], score["ssim"], score["n"]))
                 progress(f"edit {label} {steps} steps: {result.seconds:.2f} s, PSNR {score['psnr']:.2f} dB")
@@ -339,7 +355,7 @@ def run_bench(
             rows += render_curve(model, category, f"{preset}: samples per ray", knob, variants, settings, say)
         first = finals[settings.presets[0]]
         if (category.root / "twins.json").is_file():
-            rows += edit_curves(first, category, settings, say)
+            rows += edit_curves(first, category, settings, say, notes)
         else:
             notes.append(f"no edit curves: {category.root} has no ground-truth twins (twins.json)")
     resolution = category.instances[0].splits["train"][0].camera.width if "train" in category.instances[0].splits else 0

@@ -33,3 +33,17 @@ class NonFiniteError(CrfError):
 class Terminated(KeyboardInterrupt):
     """SIGTERM (``timeout``, ``kill``, a scheduler's stop) taken as Ctrl-C, so that the same
     clean-up runs (no half-written output, run records as they were); the CLI exits 143."""
+
+
+def run_script(main) -> None:
+    """Run a script's ``main()`` (benchmarks/) as the CLI runs a command: a :class:`CrfError`
+    is one line, ``error: <message>``, on stderr and exit :data:`EXIT_USER_ERROR`, not a
+    traceback (a missing model file printed 15 lines); otherwise exit with what it returns."""
+    import sys
+
+    try:
+        code = main()
+    except CrfError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(EXIT_USER_ERROR)
+    sys.exit(code or 0)

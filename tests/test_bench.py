@@ -136,3 +136,36 @@ def test_machine_stamp_names_cpu_cores_torch_threads_date_and_revision():
     assert {"cpu", "cores", "torch", "threads", "device", "date", "revision"} <= set(info)
     assert info["torch"] == torch.__version__ and info["threads"] == str(torch.get_num_threads())
     assert info["cpu"] and info["revision"] and info["date"].endswith("UTC")
+
+
+def test_edit_curves_make_the_edit_eval_makes_and_leave_out_a_diverged_point(monkeypatch):
+    """The edit curves score the edit ``eval edits`` makes (a recolour targets the colour the part
+    should appear, from the twin's selection made once, not timed): they targeted the twin's
+    albedo, so bench and eval disagreed on one model.  A point whose edit diverges is left out
+    with a note; it ended the whole sweep with nothing written."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    import crfedit.bench as bench
+    from crfedit.errors import NonFiniteError
+
+    case = SimpleNamespace(spec=SimpleNamespace(kind="color"), instance=0, views=[])
+    monkeypatch.setattr(bench, "load_twin_cases", lambda model, category: [case])
+    monkeypatch.setattr(bench, "twin_appearance", lambda category, c: (0.5, 0.2, 0.1))
+    monkeypatch.setattr(bench, "twin_selection", lambda model, c: "the selection")
+    calls = []
+
+    def edit(model, c, options, appear=None, selection=None):
+        calls.append((options.steps, appear, selection))
+        if options.steps == 30:
+            raise NonFiniteError("colour edit diverged: its loss rose")
+        return SimpleNamespace(model=model, seconds=0.25)
+
+    monkeypatch.setattr(bench, "apply_twin_edit", edit)
+    monkeypatch.setattr(bench, "score_instance", lambda model, k, views: {"psnr": 20.0, "ssim": 0.9, "n": 1})
+    settings = dataclasses.replace(BenchSettings.tiny(), edit_steps=(10, 30, 100), edit_rays=(64,), edit_uncached=False)
+    notes: list[str] = []
+    rows = bench.edit_curves(None, None, settings, lambda message: None, notes)
+    assert calls[1:] == [(n, (0.5, 0.2, 0.1), "the selection") for n in (10, 30, 100)]  # after the untimed warm-up
+    assert [(r.curve, r.value, r.seconds) for r in rows] == [("color, 64 rays", "10", 0.25), ("color, 64 rays", "100", 0.25)]
+    assert notes == ["edit color, 64 rays, 30 steps left out: colour edit diverged: its loss rose"]
