@@ -164,7 +164,8 @@ def plot_curves(
 
 
 def write_plots(rows: Sequence[BenchRow], stem: str | Path) -> dict[str, Path]:
-    """One PNG per group present in ``rows``: ``<stem>_<group>.png``."""
+    """One PNG per group present in ``rows``: ``<stem>_<group>.png``; an earlier run's plot of a
+    group with nothing to plot now is removed (it stood beside a CSV and page without its rows)."""
     stem = Path(stem)
     out = {}
     for group, (title, xlabel, ylabel) in GROUPS.items():
@@ -172,8 +173,11 @@ def write_plots(rows: Sequence[BenchRow], stem: str | Path) -> dict[str, Path]:
         for r in rows:
             if r.group == group:
                 curves.setdefault(r.curve, []).append((r.seconds, r.psnr))
+        path = stem.with_name(f"{stem.name}_{group}.png")
         if any(math.isfinite(x) and math.isfinite(y) for pts in curves.values() for x, y in pts):
-            out[group] = plot_curves(curves, stem.with_name(f"{stem.name}_{group}.png"), title, xlabel, ylabel)
+            out[group] = plot_curves(curves, path, title, xlabel, ylabel)
+        elif path.is_file():
+            path.unlink()
     return out
 
 

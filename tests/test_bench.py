@@ -123,6 +123,16 @@ def test_log_ticks_show_decades_and_their_2_and_5_multiples():
     assert log_ticks(1e-3, 1e3) == [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1000.0]
 
 
+def test_plots_of_groups_without_rows_are_removed(tmp_path):
+    from crfedit.bench import BenchRow
+    from crfedit.report import write_plots
+
+    stale = tmp_path / "b_edit.png"
+    stale.write_bytes(b"an earlier run's edit plot")
+    plots = write_plots([BenchRow("train", "fast", "step", "10", 1.0, 20.0, 0.9, 1)], tmp_path / "b")
+    assert set(plots) == {"train"} and plots["train"].is_file() and not stale.exists()
+
+
 def test_plot_leaves_out_non_finite_points_and_refuses_an_empty_plot(tmp_path):
     path = plot_curves({"a": [(1.0, 20.0), (2.0, float("nan")), (3.0, 22.0)], "b": [(2.0, float("inf"))]}, tmp_path / "p.png", "t", "x", "y")
     with Image.open(path) as im:
