@@ -204,3 +204,27 @@ def test_sigterm_that_typer_takes_for_ctrl_c_exits_143(monkeypatch, capsys):
     monkeypatch.setattr(Session, "terminated", False)
     code, out, err = run_main(monkeypatch, capsys, "info", "x")
     assert (code, out, err) == (143, "", "error: terminated (SIGTERM)\n")
+
+
+def test_a_failed_allocation_is_out_of_memory_in_one_line(capsys):
+    """torch's CPU allocator fails with a RuntimeError ("not enough memory"), which read as an
+    unexpected error (export mesh --res 1024 under a memory limit); other RuntimeErrors stay."""
+    import typer
+
+    from crfedit.cli.common import user_errors
+
+    @user_errors
+    def allocating():
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:121] data. DefaultCPUAllocator: not enough memory: "
+                           "you tried to allocate 12884901888 bytes.")
+
+    with pytest.raises(typer.Exit) as e:
+        allocating()
+    assert e.value.exit_code == 2 and capsys.readouterr().err == "error: out of memory (try a smaller --res, --rays or --chunk)\n"
+
+    @user_errors
+    def broken():
+        raise RuntimeError("a bug")
+
+    with pytest.raises(RuntimeError, match="a bug"):
+        broken()

@@ -243,6 +243,14 @@ def terminate_as_interrupt() -> None:
     signal.signal(signal.SIGTERM, handler)
 
 
+def out_of_memory(error: BaseException) -> bool:
+    """Whether ``error`` is an allocation that failed: Python's MemoryError, torch's on a CPU (a
+    RuntimeError, "DefaultCPUAllocator: not enough memory: you tried to allocate …", which read
+    as an unexpected error) or on a GPU (``torch.OutOfMemoryError``)."""
+    return (isinstance(error, MemoryError) or type(error).__name__ == "OutOfMemoryError"
+            or (isinstance(error, RuntimeError) and "not enough memory" in str(error)))
+
+
 def _says_it(error: BaseException) -> bool:
     """Whether this process prints ``error``.  Under torchrun a rank other than 0 keeps quiet
     about Ctrl-C, and so does one other than its node's first (``LOCAL_RANK`` 0) about a user
@@ -355,7 +363,9 @@ def user_errors(fn=None, *, ranked: bool = False):
                     word = "terminated (SIGTERM from torchrun: Ctrl-C, or another rank stopped; torchrun's summary names it)"
                 typer.echo(f"{word}{': ' + str(e) if str(e) else ''}", err=True)
             raise typer.Exit(143 if isinstance(e, Terminated) else 130) from None
-        except MemoryError as e:
+        except (MemoryError, RuntimeError) as e:
+            if not out_of_memory(e):
+                raise
             raise stop("out of memory (try a smaller --res, --rays or --chunk)", e) from None
         except BrokenPipeError:
             raise typer.Exit(1) from None
