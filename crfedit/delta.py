@@ -387,7 +387,11 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
         if other is not None:  # two edits of the bare model: alternatives, not a stack
             return ModelFileError(f"{where}made on the bare model, as {other} was: they are two edits of one model, not a stack; "
                                   "to apply both, re-pin them as one with `crfedit edits rebase MODEL --edit … --out-dir DIR`")
-        return ModelFileError(f"{where}made on the bare model, so it must come first (it is edit {position + 1} of the stack)")
+        # no other bare edit before it, so the model it meets stands on edits (baked in, or applied before)
+        n = len(applied)
+        has = f"{n} edit{'s' * (n != 1)} " + ("baked in (crfedit info lists them)" if baked else "applied already")
+        return ModelFileError(f"{where}made on the bare model, but this model has {has}; apply it to the model it was made "
+                              "on, or re-pin it onto this one with `crfedit edits rebase MODEL --edit … --out-dir DIR`")
     names = [d.path for d in deltas]
     fps = [d.fingerprint for d in deltas]
     # Which earlier prefix (in some order of the other given files) was it made after?

@@ -295,8 +295,9 @@ def test_wrong_order_parent_and_base_are_rejected(tmp_path, model):
     with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, as .*a\.safetensors was: they are two edits of one "
                                              r"model, not a stack; to apply both, re-pin them as one with `crfedit edits rebase"):
         apply_edit_files(model, [a, c])
-    with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, so it must come first \(it is edit 1"):
-        apply_edit_files(apply_edit_files(model, [a]), [c])  # the model has an edit applied already
+    with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, but this model has 1 edit applied already; "
+                                             r"apply it to the model it was made on, or re-pin it onto this one with `crfedit edits rebase"):
+        apply_edit_files(apply_edit_files(model, [a]), [c])  # first of the stack, but the model stands on an edit
     with pytest.raises(ModelFileError, match=r"a\.safetensors: is given twice \(edit 2 of the stack"):
         apply_edit_files(model, [a, a])
     other = make_model(seed=1)
@@ -347,6 +348,9 @@ def test_bake_renders_bit_identical_to_the_stack(tmp_path, model):
     for k in range(3):
         assert torch.equal(render(loaded, k), render(stacked, k))
     assert json.loads(loaded.meta["baked_edits"]) == [read_delta(a).fingerprint, read_delta(b).fingerprint]
+    c = delta_file(tmp_path, "c.safetensors", model, 2, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, but this model has 2 edits baked in \(crfedit info"):
+        apply_edit_files(loaded, [c])  # said it must come first, and it was first
     with pytest.raises(ModelFileError, match="a.safetensors: is already baked into this model"):
         apply_edit_files(loaded, [a])
     # the baked model stands where the stack does: an edit made on it continues the unbaked stack
