@@ -67,7 +67,8 @@ class CategoryModel:
         if key in self.names:
             return self.names.index(key)
         shown = ", ".join(self.names[:5]) + (", …" if len(self.names) > 5 else "")
-        raise CrfError(f"unknown instance {key!r} (instances: {shown}){did_you_mean(key, self.names)}")
+        hint = did_you_mean(key, self.names) or "; an instance fit-real added exists with its edit file (--edit) or baked in (edits bake)"
+        raise CrfError(f"unknown instance {key!r} (instances: {shown}){hint}")
 
     def state(self) -> dict[str, Tensor]:
         """Every tensor that defines what the model renders (no training state)."""

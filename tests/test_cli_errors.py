@@ -228,3 +228,20 @@ def test_a_failed_allocation_is_out_of_memory_in_one_line(capsys):
 
     with pytest.raises(RuntimeError, match="a bug"):
         broken()
+
+
+def test_an_unknown_instance_without_a_close_name_points_to_fit_real_edits():
+    """``export mesh --instance photo1`` of an instance fit-real added, without its edit: the
+    line says where such an instance lives (a bare 'unknown instance' before)."""
+    from types import SimpleNamespace
+
+    from crfedit.errors import CrfError
+    from crfedit.model import CategoryModel
+
+    model = SimpleNamespace(names=["chair_000", "chair_001"])
+    with pytest.raises(CrfError, match=r"^unknown instance 'photo1' \(instances: chair_000, chair_001\); an instance fit-real added "
+                                       r"exists with its edit file \(--edit\) or baked in \(edits bake\)$"):
+        CategoryModel.instance_index(model, "photo1")
+    with pytest.raises(CrfError, match=r"did you mean 'chair_001'") as e:
+        CategoryModel.instance_index(model, "chair_01")
+    assert "fit-real" not in str(e.value)
