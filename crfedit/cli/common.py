@@ -157,6 +157,12 @@ def os_error_message(e: OSError) -> str:
     return f"{' -> '.join(paths)}: {what}" if paths else what
 
 
+OTHER_KINDS = frozenset((".ply", ".obj", ".glb", ".gltf", ".off", ".stl", ".png", ".jpg", ".jpeg", ".exr", ".gif", ".mp4", ".webm",
+                         ".json", ".csv", ".md", ".txt"))
+"""Suffixes of the other kinds of files crfedit reads and writes: a model, edit or selection
+written under one (``model strip --out s.ply``) was refused later as "not a PLY file"."""
+
+
 def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", example: str = "edit.safetensors",
                    writes: str = EDIT_FORMAT, overwrite: bool = False, label: str | None = None) -> None:
     """A command's one ``--out`` file, checked before any work: not one of the files the command
@@ -165,7 +171,8 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
     not a non-empty file that is not crfedit's (a photo or notes, lost to a typo); not a crfedit
     file of another kind than the one it ``writes`` (an edit written over a copy of a model); not
     a model when it writes one, unless ``overwrite`` (a model took training to make, as
-    ``train --overwrite``); in a folder that exists and can be written.  An edit or selection
+    ``train --overwrite``); not named as another kind of file (:data:`OTHER_KINDS`); in a
+    folder that exists and can be written.  An edit or selection
     replaces one of its own kind, or an empty file (``mktemp``): both are seconds to remake.
     ``label`` starts the error lines (default ``--out OUT``)."""
     label = label or f"--out {out}"
@@ -175,6 +182,11 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
                 if Path(path).exists() and os.path.samefile(out, path):
                     name = "the model file" if option == "MODEL" else f"the {option} file"
                     raise CrfError(f"{label}: is {name}; pick another name for the {what}")
+    if out.suffix.lower() in OTHER_KINDS:
+        article = "an" if what[:1] in "aeiou" else "a"
+        raise CrfError(f"{label}: {article} {what} is written as .safetensors, not {out.suffix} (that names another kind of file); "
+                       f"give a name such as {example}")
+    if out.exists():
         if out.is_dir():
             raise CrfError(f"{label}: is a folder; give a file name such as {example}")
         if not out.is_file():
