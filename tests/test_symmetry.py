@@ -124,7 +124,7 @@ def test_a_selection_reads_the_mirror_and_one_sided_strokes_turn_it_off(edit_cat
     assert one.sum() > 10 and other.sum() > 10
     field = model.field_for(k)
     cell = float((field.aabb[3:] - field.aabb[:3]).max()) / res
-    pos, neg, cand, surfaces = S._lift_views(field, k, [ScribbleView(view.camera, one, None)], 0.5, None)
+    pos, neg, cand, surfaces, _ = S._lift_views(field, k, [ScribbleView(view.camera, one, None)], 0.5, None)
     mirrored = S._lift_mirrors(field, k, [ScribbleView(view.camera, one, None)], surfaces, mirror, 0.5)
     assert len(mirrored[0]) >= 0.3 * len(pos)
     assert conflict(mirror.points(field.aabb, mirrored[0]), pos, cell) == 1.0
