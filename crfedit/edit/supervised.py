@@ -415,6 +415,8 @@ class RecolorTarget:
         self.mean = mean.clamp_min(MIN_MEAN_COLOR)
         self.lift = self.mean - mean  # what the floor added (0 on channels above it): added to every sample
         self.appear = torch.as_tensor(appear, dtype=self.mean.dtype, device=self.mean.device)
+        self.gain = torch.ones_like(self.mean)
+        self.gain = clamped_gain(self(rendered), self.appear)
         self.unlike = unlike
         chroma = chromaticity(rendered)
         _, spread, self.chroma = chroma_spread(chroma, chroma)
@@ -439,9 +441,28 @@ class RecolorTarget:
     def __call__(self, rgb: Tensor) -> Tensor:
         rgb = rgb + self.lift  # on a floored channel the mean itself maps to ``appear`` (not mean/floor of it)
         if self.rule == "ratio":
-            return (rgb * (self.appear / self.mean)).clamp(0, 1)
+            return (rgb * (self.appear * self.gain / self.mean)).clamp(0, 1)
         shade = rgb @ self.mean / (self.mean @ self.mean)
-        return (shade[:, None] * self.appear).clamp(0, 1)
+        return (shade[:, None] * (self.appear * self.gain)).clamp(0, 1)
+
+
+def clamped_gain(targets: Tensor, appear: Tensor, rounds: int = 30) -> Tensor:
+    """[3] The gain g ≥ 1 per channel for which the scribbled pixels' targets ``targets`` [n, 3]
+    (their shading × ``appear``, clamped to 1) times g, clamped again, average ``appear``: the
+    clamp takes from the bright pixels what nothing gives back, so a dark navy part recoloured
+    white averaged 0.86 under its scribble, not the 1 asked.  1 where nothing clamps (most
+    colours); a bisection, at most 1 / the darkest target's value (every pixel at 1)."""
+    gain = torch.ones_like(appear)
+    for c in range(appear.shape[0]):
+        t, want = targets[:, c], float(appear[c])
+        if t.numel() == 0 or want <= 0 or float(t.clamp(0, 1).mean()) >= want - 1e-4:
+            continue
+        low, high = 1.0, 1.0 / max(float(t.clamp_min(0).min()), 1e-3)
+        for _ in range(rounds):
+            mid = 0.5 * (low + high)
+            low, high = (mid, high) if float((t * mid).clamp(0, 1).mean()) < want else (low, mid)
+        gain[c] = high
+    return gain
 
 
 def recolor_selected(
