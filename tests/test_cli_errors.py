@@ -16,7 +16,7 @@ import crfedit.data.synth as synth
 from crfedit.cli import main
 from crfedit.data.synth import SynthConfig, write_synth_category
 
-from cli_helpers import invoke
+from cli_helpers import assert_user_error, invoke
 
 SYNTH = ["dataset", "synth", "--instances", "1", "--views", "3", "--res", "8", "--no-twins"]
 
@@ -245,3 +245,18 @@ def test_an_unknown_instance_without_a_close_name_points_to_fit_real_edits():
     with pytest.raises(CrfError, match=r"did you mean 'chair_001'") as e:
         CategoryModel.instance_index(model, "chair_01")
     assert "fit-real" not in str(e.value)
+
+
+def test_occluded_without_method_paper_is_refused_before_any_work(tiny_model, tmp_path):
+    """``remove --occluded`` belongs to ``--method paper``: it was refused only after the
+    selection had been lifted and its lines printed (a second of work, then a contradiction)."""
+    from PIL import Image
+    import numpy as np
+
+    mask = np.zeros((16, 16), np.uint8)
+    mask[6:10, 6:10] = 255
+    Image.fromarray(mask).save(tmp_path / "s.png")
+    r = invoke("remove", tiny_model, "--instance", "0", "--view", "train:0", "--scribble", tmp_path / "s.png", "--occluded",
+               "--out", tmp_path / "r.safetensors", "--device", "cpu")
+    assert_user_error(r, "--occluded belongs to --method paper")
+    assert "selection:" not in r.stderr and not (tmp_path / "r.safetensors").exists()

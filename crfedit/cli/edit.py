@@ -366,7 +366,7 @@ def remove_cmd(
     scribble_json: ScribbleJsonOpt = None,
     keep: KeepShapeOpt = None,
     keep_json: KeepJsonOpt = None,
-    occluded: Annotated[bool, typer.Option("--occluded", help="Remove only the first surface along each scribbled ray (a part in front of others).")] = False,
+    occluded: Annotated[bool, typer.Option("--occluded", help="With --method paper: remove only the first surface along each scribbled ray (a part in front of others); a selection already says which surfaces go.")] = False,
     method: MethodOpt = EditMethod.selection,
     selection: SelectionOpt = None,
     mirror: MirrorOpt = None,
@@ -387,6 +387,8 @@ def remove_cmd(
     """Remove the scribbled part of one instance (trains F_fuse and F_dens, updates its occupancy grid)."""
     from ..edit import remove
 
+    if occluded and method != EditMethod.paper:  # before the selection is lifted and said, not after
+        raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
     if selection is None:  # a selection file says what goes by itself
         _require_scribble(scribble, scribble_json, "part to remove (or a --selection file)")
     options = _options(strategy, steps, lr, rays, seed, penalty)
