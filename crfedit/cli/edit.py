@@ -398,8 +398,12 @@ def remove_cmd(
     result = remove(p.model, p.instance, p.camera, p.scribble, p.keep, occluded, options, method.value, p.selection, p.mirror)
     hyper = json.loads(result.meta.get("hyperparameters", "{}"))
     if "removed_cells" in hyper:  # why the grid loses another count of cells than the selection holds
-        taken, junction = hyper["removed_cells"], hyper["junction_cells"]
-        typer.echo(f"removal: {taken} cells, the selection with the skin around it; {junction} of them touch a kept part and "
+        taken, junction, selected = hyper["removed_cells"], hyper["junction_cells"], hyper.get("selected_cells")
+        skin = ("the selection with the skin around it" if selected is None else
+                f"the selection's {selected} and a skin of {taken - selected} around it" if taken > selected else
+                f"the selection's {selected}, no skin (made --for {p.selection.meta['for']}, it holds no cell of a removal's lower values)"
+                if p.selection is not None and p.selection.meta.get("for", "remove") != "remove" else f"the selection's {selected}, no skin")
+        typer.echo(f"removal: {taken} cells, {skin}; {junction} of them touch a kept part and "
                    f"lose only their side toward the selection, so {taken - junction} leave the occupancy grid")
     _write(result, out, p.label, p.inputs())
     _preview(result.model, p.instance, preview, p.shown, views, out)

@@ -275,6 +275,7 @@ def remove_selected(
     hyper = {
         "method": "selection", "rays": int(rays.origins.shape[0]), "points": int(pts.shape[0]),
         "removed_cells": int((core | junction).sum()),  # the selection with its skin (removal_cells)
+        "selected_cells": int((selection.mask.to(grid.device) & grid).sum()),
         "junction_cells": int(junction.sum()), "stage": passes[-1].stage,
         "cameras": [camera_meta(c) for c in cameras],
     }
