@@ -453,8 +453,10 @@ def test_a_removal_downloads_as_saved_and_nothing_is_overwritten(ui, scene, edit
     job = ui.edit({"kind": "remove", "instance": 0, "view": "train:0", "views": [{"view": "train:0", "fg": strokes(scene)}], "steps": 2})
     assert job["state"] == "done", job
     entry = job["result"]["entry"]
-    saved = Path(ui.post("/api/stack/save", {"id": entry})["path"])
-    assert Path(ui.post("/api/stack/save", {"id": entry})["path"]) == saved and ui.files() == [saved.name]
+    first = ui.post("/api/stack/save", {"id": entry})
+    saved, again = Path(first["path"]), ui.post("/api/stack/save", {"id": entry})
+    assert Path(again["path"]) == saved and ui.files() == [saved.name]
+    assert (first["again"], again["again"]) == (False, True)  # the page says "already holds this edit", not "saved"
     _, _, data = ui.call("GET", f"/api/stack/download?id={entry}")
     assert len(data) == saved.stat().st_size == json.loads(ui.get("/api/state"))["stack"][0]["bytes"]
     (tmp_path / "downloaded.safetensors").write_bytes(data)

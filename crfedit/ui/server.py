@@ -369,8 +369,8 @@ class Server:
 
     async def save(self, request):
         body = await self._json(request)
-        path = await self._run(self.session.save, body.get("id"), body.get("name"))
-        return web.json_response({"path": str(path)})
+        path, written = await self._run(self.session.save, body.get("id"), body.get("name"))
+        return web.json_response({"path": str(path), "again": not written})
 
     async def download(self, request):
         raw = request.query.get("id", "")

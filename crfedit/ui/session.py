@@ -449,18 +449,19 @@ class UiSession:
             d = self.pinned.get(e.id, e.delta)
             return self._default_name(self.entries.index(e), d), delta_bytes(d.tensors, d.meta)
 
-    def save(self, entry_id, name=None) -> Path:
+    def save(self, entry_id, name=None) -> tuple[Path, bool]:
         """Write an edit into the work dir (atomically) as it applies in the stack now, under a
         name no other file there has (:meth:`free_target`); a file that holds it already is
-        left as it is."""
+        left as it is.  (The path, whether it was written now.)"""
         with self._lock:
             e = self._entry(entry_id)
             d = self.pinned.get(e.id, e.delta)
             path = self.free_target(name, self._default_name(self.entries.index(e), d), d)
         self.workdir.mkdir(parents=True, exist_ok=True)
-        if not path.exists():  # free_target gives an existing file only when it holds the edit already
-            save_delta(path, d.tensors, d.meta)
-        return path
+        if path.exists():  # free_target gives an existing file only when it holds the edit already
+            return path, False
+        save_delta(path, d.tensors, d.meta)
+        return path, True
 
     def bake(self, name=None) -> dict:
         """Save every enabled edit into the work dir and fold them into a new model file there."""

@@ -228,7 +228,7 @@ function renderStack(rows) {
     down.title = row.down ? "move down" : row.position === rows.length ? "last in the stack" : held;
     const save = button("Save", false, async () => {
       const r = await postJson("/api/stack/save", { id: row.id });
-      $("saved").textContent = `saved ${r.path}`;
+      $("saved").textContent = r.again ? `${r.path} already holds this edit (nothing written again)` : `saved ${r.path}`;
     });
     const dl = document.createElement("a");
     dl.textContent = "Download";
