@@ -1654,3 +1654,23 @@ def test_a_scribble_over_the_whole_instance_selects_all_of_it(trained):
     kept = erode(keep, 1)  # keep strokes inside the other parts
     held = select(model, 1, [ScribbleView(view.camera, everything & ~kept, kept)], options_for("remove"))
     assert "whole" not in held.meta and not torch.equal(held.mask, occupied)
+
+
+def test_a_removal_scribbled_over_the_whole_instance_asks_for_force(trained, tmp_path):
+    """The CLI's refusal of a removal of (nearly) every cell said "check that the scribble was
+    drawn on view … of this instance", after printing the shape gate's rim cells, for a scribble
+    the coverage line had just read as a deliberate whole-instance one: it now says that, and
+    only the coverage and strokes lines are printed; --force removes it all."""
+    from PIL import Image
+
+    path, model, category = trained
+    view, *_ = part_view(category, 1, "back")
+    index = category.instances[1].splits["train"].index(view)
+    seen = dilate(render_camera(model.field_for(1), view.camera, 1).opacity.numpy() > 0.05, 1)
+    Image.fromarray((seen * 255).astype(np.uint8)).save(tmp_path / "all.png")
+    args = ["remove", str(path), "--instance", "1", "--view", f"train:{index}", "--scribble", str(tmp_path / "all.png"), "--steps", "2",
+            "--out", str(tmp_path / "r.safetensors"), "--device", "cpu"]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 2 and "pass --force to remove the whole instance" in r.stderr, r.output
+    assert "coverage: the scribble covers" in r.stdout and "shape gate:" not in r.stdout and not (tmp_path / "r.safetensors").exists()
+    assert CliRunner().invoke(app, [*args, "--force"]).exit_code == 0

@@ -254,6 +254,10 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
         sel = _lifted(m, k, camera, fg, bg, kind, mode, join_mode)
         from ..edit.selection import coverage_summary
 
+        if kind == "remove" and not force and sel.meta.get("whole") is not None:  # asked for, not a slip of view
+            raise CrfError(f"the scribble covers {sel.meta['whole']:.0%} of what view {label} shows of the instance and no keep stroke "
+                           "holds anything back, so the removal would take all of it: pass --force to remove the whole instance, "
+                           "or keep strokes on what must stay")
         if kind == "remove" and not force and coverage_summary(sel.meta) is not None:
             raise CrfError(f"the removal's selection takes {sel.meta['selected_cells']} of the instance's {sel.meta['occupied_cells']} "
                            f"occupied cells, nearly all of it: check that the scribble was drawn on view {label} of this instance "

@@ -15,11 +15,14 @@ from .edit import PREVIEW_VIEWS, InstanceOpt, JoinOpt, MirrorOpt, ModelArg, Prev
 
 def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
     """Print a fresh selection's summary lines (``label: line``), the ones that apply and are
-    not labelled in ``skip``."""
+    not labelled in ``skip``.  A scribble over the whole instance (``whole``) selects every
+    occupied cell whatever the rules found: their lines (a shape gate's rim cells) would say
+    what did not happen, so only the coverage and strokes lines are printed."""
     from ..edit.selection import SUMMARIES
 
+    whole = info.get("whole") is not None
     for label, summary in SUMMARIES:
-        line = None if label in skip else summary(info)
+        line = None if label in skip or (whole and label not in ("coverage", "strokes")) else summary(info)
         if line is not None:
             typer.echo(f"{label}: {line}")
 
