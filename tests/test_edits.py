@@ -516,8 +516,10 @@ def test_parse_color():
     assert parse_color("gold") == (1.0, 215 / 255, 0.0) and parse_color("grey") == parse_color("gray")
     assert parse_color("rgb(255, 0, 10)") == parse_color("RGB(255,0,10)") == (1.0, 0.0, 10 / 255)
     for bad in ("#12", "#ggg", "chartreuse-ish", "", "#1234567", "#ff000080", "rgb(256, 0, 0)", "rgb(1, 2)", "255,0,0"):
-        with pytest.raises(CrfError, match=r"expected #rgb, #rrggbb, rgb\(R, G, B\) .* or a CSS colour name"):
-            parse_color(bad)
+        with pytest.raises(CrfError, match=r"^colour .*: expected #rgb, #rrggbb, rgb\(R, G, B\) .* or a CSS colour name"):
+            parse_color(bad)  # a library call names no option (it said --color)
+    with pytest.raises(CrfError, match=r"^--color 'x': expected #rgb"):
+        parse_color("x", "--color")
 
 
 def test_strokes_rasterize_at_the_view_resolution():

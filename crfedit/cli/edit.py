@@ -340,7 +340,7 @@ def edit_color_cmd(
     from ..edit import edit_color
     from ..edit.scribble import parse_color
 
-    rgb = parse_color(color)
+    rgb = parse_color(color, "--color")
     _require_scribble(scribble, scribble_json, "part to recolour")
     options = _options(strategy, steps, lr, rays, seed, penalty, recolor)
     check_out_file(out, _scribbled_inputs(model, edit, scribble, scribble_json, keep, keep_json, selection))

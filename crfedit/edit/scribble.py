@@ -37,11 +37,12 @@ CSS_COLORS = _css_colors()
 """The CSS named colours (red, navy, orange, darkred, gold, ...; grey and gray alike)."""
 
 
-def parse_color(text: str) -> tuple[float, float, float]:
+def parse_color(text: str, label: str = "colour") -> tuple[float, float, float]:
     """``#rgb``, ``#rrggbb``, ``rgb(R, G, B)`` (0–255) or a CSS colour name → RGB in [0, 1].
 
     ``parse_color("#f80") == parse_color("#ff8800") == (1.0, 0.533…, 0.0)``; ``"red"`` → (1, 0, 0);
-    a name may carry spaces, hyphens or capitals (``"Dark Red"`` is ``darkred``).
+    a name may carry spaces, hyphens or capitals (``"Dark Red"`` is ``darkred``).  ``label``
+    starts the error line: the CLI passes its option (``--color``), a library caller named none.
     """
     value = str(text).strip().lower()
     value = CSS_COLORS.get(re.sub(r"[\s_-]+", "", value), value)
@@ -50,7 +51,7 @@ def parse_color(text: str) -> tuple[float, float, float]:
         return tuple(int(c) / 255.0 for c in m.groups())  # type: ignore[return-value]
     m = re.fullmatch(r"#([0-9a-f]{3}|[0-9a-f]{6})", value)
     if not m:
-        raise CrfError(f"--color {text!r}: expected #rgb, #rrggbb, rgb(R, G, B) with R, G, B from 0 to 255, "
+        raise CrfError(f"{label} {text!r}: expected #rgb, #rrggbb, rgb(R, G, B) with R, G, B from 0 to 255, "
                        "or a CSS colour name (red, navy, darkred, gold, ...)")
     digits = m.group(1)
     if len(digits) == 3:
