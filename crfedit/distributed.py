@@ -37,7 +37,13 @@ MAX_TIMEOUT_S = 7 * 24 * 3600.0
 
 
 class DistributedError(CrfError):
-    """Another rank died or a collective timed out; the job stops, the last checkpoint stays."""
+    """Another rank died or a collective timed out; the job stops, the last checkpoint stays.
+    ``echoed``: rank 0 prints the same line, so the other ranks keep quiet (one line, not one
+    per rank)."""
+
+    def __init__(self, message: str, echoed: bool = False):
+        super().__init__(message)
+        self.echoed = echoed
 
 
 @dataclass(frozen=True)
@@ -139,7 +145,7 @@ class Ranks:
             if differ:
                 said = "; ".join(f"{name} {_clipped(str(theirs.get(name)), 60)} (rank 0: {_clipped(str(every[0][name]), 60)})" for name in differ[:3])
                 raise DistributedError(f"rank {rank} of {self.world} was started with other settings than rank 0: {said}; "
-                                       "start every rank with the same arguments and data")
+                                       "start every rank with the same arguments and data", echoed=not self.main)
 
     def barrier(self, what: str) -> None:
         if self.world == 1:

@@ -45,7 +45,7 @@ import torch
 from . import occupancy
 from .cameras import Rays, off_centre_target, rays_from_camera
 from .config import Config
-from .data.loading import Category, TrainingRays, training_rays
+from .data.loading import Category, TrainingRays, pixels_digest, training_rays
 from .distributed import SINGLE, Ranks, rank_seed
 from .errors import CrfError, Terminated
 from .field import ConditionalRadianceField
@@ -524,8 +524,9 @@ def train(
         step, elapsed, next_instance = 0, 0.0, 0
         state = {}
     rank_generator = rank_generator_for(state, seed, ranks, step, device) or generator
-    ranks.agree({"dataset": category.fingerprint, "seed": seed, "step": step, "minutes": minutes, **json.loads(cfg.to_json())},
-                "comparing the ranks' settings")
+    if ranks.world > 1:  # the pixels' digest costs a pass over the images: for ranks only
+        ranks.agree({"dataset": category.fingerprint, "images": pixels_digest(category), "seed": seed, "step": step, "minutes": minutes,
+                     **json.loads(cfg.to_json())}, "comparing the ranks' settings")
     ranks.broadcast_(list(field.parameters()), "sharing the initial weights")
     opt = make_optimizer(field, cfg)
     restore_optimizer(opt, state)

@@ -105,12 +105,15 @@ def _worker(rank: int, port: int, data: str, out: str) -> None:
         same = ranks.same_on_all([probe], "a probe")
         (out_dir / f"repair.rank{rank}.json").write_text(json.dumps({"same": same, "probe": probe.tolist()}))
 
-        try:  # rank 1 started with another seed: both refuse before the first step, naming it
-            train(category, make_config("fast", overrides=FULL), out_dir / "mismatch.safetensors", CPU, seed=rank, ranks=ranks)
-            outcome = "finished"
-        except DistributedError as e:
-            outcome = str(e)
-        (out_dir / f"mismatch.rank{rank}.txt").write_text(outcome)
+        # rank 1 started with another seed, then with its images at another size (--res, or
+        # another node's copy of the data): both refuse before the first step, naming it
+        for name, data_k, seed_k in (("seed", category, rank), ("images", load_category(Path(data), res=8) if rank else category, 0)):
+            try:
+                train(data_k, make_config("fast", overrides=FULL), out_dir / "mismatch.safetensors", CPU, seed=seed_k, ranks=ranks)
+                outcome = ["finished", None]
+            except DistributedError as e:
+                outcome = [str(e), e.echoed]
+            (out_dir / f"mismatch-{name}.rank{rank}.json").write_text(json.dumps(outcome))
 
         def die(step, *_):
             if rank == 1 and step == 12:
@@ -222,9 +225,11 @@ def test_ranks_started_with_other_settings_refuse_to_train(two_ranks):
     """A rank started with other arguments than rank 0 (here its seed) trained silently to a
     worse model, or stalled in a collective (another step count): every rank now refuses before
     the first step, with one line naming the setting, and no file is written."""
-    said = {(two_ranks / f"mismatch.rank{r}.txt").read_text() for r in (0, 1)}
-    assert said == {"rank 1 of 2 was started with other settings than rank 0: seed 1 (rank 0: 0); "
-                    "start every rank with the same arguments and data"}, said
+    seed = [json.loads((two_ranks / f"mismatch-seed.rank{r}.json").read_text()) for r in (0, 1)]
+    line = "rank 1 of 2 was started with other settings than rank 0: seed 1 (rank 0: 0); start every rank with the same arguments and data"
+    assert seed == [[line, False], [line, True]], seed  # rank 1 keeps quiet: rank 0 prints the line
+    images = [json.loads((two_ranks / f"mismatch-images.rank{r}.json").read_text()) for r in (0, 1)]
+    assert images[0][0] == images[1][0] and images[0][0].startswith("rank 1 of 2 was started with other settings than rank 0: images "), images
     assert not (two_ranks / "mismatch.safetensors").exists()
 
 

@@ -282,6 +282,8 @@ def _says_it(error: BaseException) -> bool:
 
     from ..distributed import DistributedError
 
+    if getattr(error, "echoed", False):  # rank 0 says the same line
+        return False
     joined = dist.is_available() and dist.is_initialized()
     return not isinstance(error, CrfError) or isinstance(error, DistributedError) or joined
 

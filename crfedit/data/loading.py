@@ -260,6 +260,19 @@ def category_fingerprint(root: Path, names: list[str]) -> str:
     return h.hexdigest()[:16]
 
 
+def pixels_digest(category: "Category", split: str = "train") -> str:
+    """sha256 (16 hex) over the loaded views' pixels (colour and alpha, at the size loaded) of
+    ``split``: what :func:`category_fingerprint` leaves out (it reads the camera files, not the
+    images), for ranks to prove they train on the same data (another node's copy, ``--res``)."""
+    h = hashlib.sha256()
+    for inst in category.instances:
+        for view in inst.splits.get(split, []):
+            h.update(f"{inst.name}:{view.rgb.shape}".encode())
+            h.update(np.ascontiguousarray(view.rgb).tobytes())
+            h.update(np.ascontiguousarray(view.alpha).tobytes())
+    return h.hexdigest()[:16]
+
+
 def load_category(
     root: Path,
     res: int | None = None,
