@@ -445,7 +445,8 @@ def evaluate_edits(
         {"runs": [{"twin", "kind", "source", "method", "n", "psnr", "ssim", "lpips", "seconds"}],
          "tables": {"color": [rows], "remove": [rows]}, "skipped": [{"method", "kind", "reason"}],
          "nerf_train_seconds": {source: s}, "ssim_note", "lpips_note",
-         "part_labels_seen": the twins' sources whose part maps trained F_part (None: unknown)}
+         "part_labels_seen": the twins' sources whose part maps trained F_part (None: unknown),
+         "settings": the seed and the edits' options the scores depend on}
 
     ``seconds`` is the edit's optimization time (0 for ``unedited``), measured after a one-step
     warm-up edit that absorbs the process's one-off costs.  A strategy the model's
@@ -571,4 +572,6 @@ def evaluate_edits(
         "ssim_note": SSIM_NOTE,
         "lpips_note": note,
         "part_labels_seen": part_labels_seen(model, cases),
+        "settings": {"seed": seed, "strategies": list(strategies), **{k: getattr(options, k) for k in ("steps", "lr", "rays", "penalty", "recolor")},
+                     "nerf_baseline": dataclasses.asdict(nerf) if nerf else None},
     }
