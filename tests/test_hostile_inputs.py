@@ -626,6 +626,8 @@ CATALOGUE: list[Case] = [
     Case("out/not-crfedit/edit-color", lambda e, t: (edit_color(e, t, out=write(t / "notes", "keep me"))[0], []), ("notes", "not crfedit's")),
     Case("out/another-kind/edit-color", lambda e, t: (edit_color(e, t, out=write(t / "notes.txt", "keep me"))[0], []),
          ("notes.txt", "an edit is written as .safetensors, not .txt")),
+    Case("out/another-kind/train", lambda e, t: (train_cmd(e, t, out=t / "m.tif")[0], [t / "m.tif"]),
+         ("m.tif", "a model is written as .safetensors, not .tif")),
     Case("out/another-kind/model-strip", lambda e, t: (["model", "strip", e.model, "--out", t / "s.ply"], [t / "s.ply"]),
          ("s.ply", "a stripped model is written as .safetensors, not .ply", "small.safetensors")),
     Case("out/a-model/edits-bake", lambda e, t: (bake(t, e.model, e.delta, out=write_bytes(t / "m2.safetensors", e.model.read_bytes()))[0], []),

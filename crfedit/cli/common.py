@@ -157,10 +157,20 @@ def os_error_message(e: OSError) -> str:
     return f"{' -> '.join(paths)}: {what}" if paths else what
 
 
-OTHER_KINDS = frozenset((".ply", ".obj", ".glb", ".gltf", ".off", ".stl", ".png", ".jpg", ".jpeg", ".exr", ".gif", ".mp4", ".webm",
-                         ".json", ".csv", ".md", ".txt"))
-"""Suffixes of the other kinds of files crfedit reads and writes: a model, edit or selection
-written under one (``model strip --out s.ply``) was refused later as "not a PLY file"."""
+OTHER_KINDS = frozenset((".ply", ".obj", ".glb", ".gltf", ".off", ".stl", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".bmp",
+                         ".exr", ".hdr", ".gif", ".mp4", ".webm", ".json", ".csv", ".md", ".txt", ".npy", ".npz", ".pt", ".pth", ".ckpt"))
+"""Suffixes of the other kinds of files (meshes, images, videos, tables, arrays, pickles): a
+model, edit or selection written under one (``model strip --out s.ply``) was refused later as
+"not a PLY file"."""
+
+
+def check_kind_suffix(out: Path, what: str, example: str, label: str) -> None:
+    """Refuse an output ``out`` named as another kind of file (:data:`OTHER_KINDS`) for a
+    ``what`` (model, edit, selection), which crfedit writes as safetensors."""
+    if out.suffix.lower() in OTHER_KINDS:
+        article = "an" if what[:1] in "aeiou" else "a"
+        raise CrfError(f"{label}: {article} {what} is written as .safetensors, not {out.suffix} (that names another kind of file); "
+                       f"give a name such as {example}")
 
 
 def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", example: str = "edit.safetensors",
@@ -182,10 +192,7 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
                 if Path(path).exists() and os.path.samefile(out, path):
                     name = "the model file" if option == "MODEL" else f"the {option} file"
                     raise CrfError(f"{label}: is {name}; pick another name for the {what}")
-    if out.suffix.lower() in OTHER_KINDS:
-        article = "an" if what[:1] in "aeiou" else "a"
-        raise CrfError(f"{label}: {article} {what} is written as .safetensors, not {out.suffix} (that names another kind of file); "
-                       f"give a name such as {example}")
+    check_kind_suffix(out, what, example, label)
     if out.exists():
         if out.is_dir():
             raise CrfError(f"{label}: is a folder; give a file name such as {example}")

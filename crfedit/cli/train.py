@@ -15,7 +15,7 @@ from ..io import check_folder_target, writer_lock
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from ..names import MODEL_FORMAT
-from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, command_line, size_text, user_errors
+from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, check_kind_suffix, command_line, size_text, user_errors
 
 
 PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
@@ -120,6 +120,8 @@ def check_output_file(out: Path, resume: bool = False, overwrite: bool = False, 
 
     if out.is_dir():
         raise CrfError(f"{what} {out}: is a folder; give a file name such as {out / 'model.safetensors'}")
+    if not (out.exists() and file_format(out) == MODEL_FORMAT):  # an existing model is resumed by whatever name it has
+        check_kind_suffix(out, "model", "model.safetensors", f"{what} {out}")
     if out.exists() and file_format(out) != MODEL_FORMAT:  # first: --resume and --overwrite would not help
         raise CrfError(f"{what} {out}: exists and is not a crfedit model; --resume and --overwrite take only models (pick another name)")
     if out.exists() and not (resume or overwrite):
