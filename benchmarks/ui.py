@@ -390,4 +390,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from crfedit.errors import run_script
+
+    run_script(main)

@@ -40,7 +40,7 @@ from .config import PRESETS, Config, make_config
 from .data.loading import Category, load_category
 from .data.synth import SynthConfig, write_synth_category
 from .edit import EditOptions
-from .errors import CrfError, NonFiniteError
+from .errors import CrfError
 from .ablation import warm_up_training
 from .evaluation import (
     apply_twin_edit, held_out_split, load_twin_cases, render_views, score_instance, score_model, twin_appearance, twin_selection,
@@ -269,7 +269,7 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
     Each twin's edit is made as ``crfedit eval edits`` makes it: from its selection, made once
     and not timed (the curves show what steps and rays cost), a recolour targeting the colour
     the part should appear (:func:`~crfedit.evaluation.twin_appearance`).  A point whose edit
-    diverges is left out, with a line in ``notes``, and the sweep goes on."""
+    diverges or is refused is left out, with a line in ``notes``, and the sweep goes on."""
 
     if not settings.edit_steps or not settings.edit_rays:
         return []
@@ -282,14 +282,20 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
     plain = 1024 if 1024 in settings.edit_rays else settings.edit_rays[0]
     runs = [(rays, True) for rays in settings.edit_rays] + ([(plain, False)] if settings.edit_uncached else [])
     for case in chosen:
-        appear, selection = twin_appearance(category, case), twin_selection(model, case)
+        try:
+            appear, selection = twin_appearance(category, case), twin_selection(model, case)
+        except CrfError as e:  # e.g. a collapsed model no longer shows the scribbled part
+            if notes is not None:
+                notes.append(f"edit curves of {case.spec.name} left out: {e}")
+            progress(f"edit curves of {case.spec.name}: left out ({e})")
+            continue
         for rays, cache in runs:
             label = f"{case.spec.kind}, {rays} rays" + ("" if cache else ", no cache")
             for steps in settings.edit_steps:
                 options = EditOptions(strategy="hybrid", steps=steps, rays=rays, seed=settings.seed, cache=cache)
                 try:
                     result = apply_twin_edit(model, case, options, appear=appear, selection=selection)
-                except NonFiniteError as e:
+                except CrfError as e:  # diverged, or refused (a scribble a collapsed model no longer shows): that point only
                     if notes is not None:
                         notes.append(f"edit {label}, {steps} steps left out: {e}")
                     progress(f"edit {label} {steps} steps: left out ({e})")

@@ -37,13 +37,17 @@ class Terminated(KeyboardInterrupt):
 
 def run_script(main) -> None:
     """Run a script's ``main()`` (benchmarks/) as the CLI runs a command: a :class:`CrfError`
-    is one line, ``error: <message>``, on stderr and exit :data:`EXIT_USER_ERROR`, not a
-    traceback (a missing model file printed 15 lines); otherwise exit with what it returns."""
+    (or a missing file it reads itself) is one line, ``error: <message>``, on stderr and exit
+    :data:`EXIT_USER_ERROR`, not a traceback (a missing model file printed 15 lines); otherwise
+    exit with what it returns."""
     import sys
 
     try:
         code = main()
     except CrfError as e:
         print(f"error: {e}", file=sys.stderr)
+        sys.exit(EXIT_USER_ERROR)
+    except FileNotFoundError as e:  # a path given on its command line, read by a script directly
+        print(f"error: {e.filename or e}: not found", file=sys.stderr)
         sys.exit(EXIT_USER_ERROR)
     sys.exit(code or 0)

@@ -159,7 +159,7 @@ def test_edit_curves_make_the_edit_eval_makes_and_leave_out_a_diverged_point(mon
     import crfedit.bench as bench
     from crfedit.errors import NonFiniteError
 
-    case = SimpleNamespace(spec=SimpleNamespace(kind="color"), instance=0, views=[])
+    case = SimpleNamespace(spec=SimpleNamespace(kind="color", name="chair_000_color"), instance=0, views=[])
     monkeypatch.setattr(bench, "load_twin_cases", lambda model, category: [case])
     monkeypatch.setattr(bench, "twin_appearance", lambda category, c: (0.5, 0.2, 0.1))
     monkeypatch.setattr(bench, "twin_selection", lambda model, c: "the selection")
@@ -179,3 +179,11 @@ def test_edit_curves_make_the_edit_eval_makes_and_leave_out_a_diverged_point(mon
     assert calls[1:] == [(n, (0.5, 0.2, 0.1), "the selection") for n in (10, 30, 100)]  # after the untimed warm-up
     assert [(r.curve, r.value, r.seconds) for r in rows] == [("color, 64 rays", "10", 0.25), ("color, 64 rays", "100", 0.25)]
     assert notes == ["edit color, 64 rays, 30 steps left out: colour edit diverged: its loss rose"]
+
+    def refused(model, c):
+        raise CrfError("the scribble lies on the background only")
+
+    monkeypatch.setattr(bench, "twin_selection", refused)  # a model that collapsed no longer shows the part
+    notes.clear()
+    assert bench.edit_curves(None, None, settings, lambda message: None, notes) == []
+    assert notes == [f"edit curves of {case.spec.name} left out: the scribble lies on the background only"]
