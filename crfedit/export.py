@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -66,11 +67,12 @@ def outward(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return faces if signed >= 0 else np.ascontiguousarray(faces[:, ::-1])
 
 
-def density_lattice(field, instance: int, res: int, chunk: int = 65536) -> np.ndarray:
+def density_lattice(field, instance: int, res: int, chunk: int = 65536, on_planes: Callable[[int], None] | None = None) -> np.ndarray:
     """σ [res, res, res] at the lattice points (corners included) of the scene box, 0 outside
     the instance's occupied cells.  Built a slab of x-planes at a time, so that only the
     volume itself is res³ (the points of the whole lattice were 12 bytes each: 12.9 GB at
-    ``--res 1024``, refused by the allocator before any density was read)."""
+    ``--res 1024``, refused by the allocator before any density was read).  ``on_planes(n)``
+    after each slab: n planes of ``res`` done (a progress bar)."""
     device = field.aabb.device
     axis = torch.linspace(-1.0, 1.0, res, device=device)
     grid = occupancy.dilate(field.occupancy[instance], 1)[None]
@@ -86,6 +88,8 @@ def density_lattice(field, instance: int, res: int, chunk: int = 65536) -> np.nd
                 idx = keep[i : i + chunk]
                 sigma[idx] = field.density(xn[idx], instance)
             volume[x0 : x0 + planes] = sigma.view(-1, res, res).cpu().numpy()
+            if on_planes is not None:
+                on_planes(min(planes, res - x0))
     return volume
 
 
@@ -146,15 +150,17 @@ def drop_small_pieces(mesh: Mesh, share: float) -> tuple[Mesh, int]:
     return Mesh(mesh.vertices[used], index[faces], mesh.colors[used], mesh.level), int(small.size)
 
 
-def extract_mesh(model: CategoryModel, instance: int, res: int = 256, level: float | None = None) -> Mesh:
-    """The ``level`` set of σ of ``instance`` (edits included) on a ``res``³ lattice, coloured."""
+def extract_mesh(model: CategoryModel, instance: int, res: int = 256, level: float | None = None,
+                 on_planes: Callable[[int], None] | None = None) -> Mesh:
+    """The ``level`` set of σ of ``instance`` (edits included) on a ``res``³ lattice, coloured;
+    ``on_planes`` as :func:`density_lattice` takes it."""
     if not 8 <= res <= 1024:
         raise CrfError(f"--res {res}: must be between 8 and 1024")
     field = model.field_for(instance)
     level = default_level(field) if level is None else float(level)
     if not (level > 0 and math.isfinite(level)):
         raise CrfError(f"--level {level:g}: must be a positive density")
-    volume = density_lattice(field, instance, res)
+    volume = density_lattice(field, instance, res, on_planes=on_planes)
     for axis in range(3):  # σ = 0 on the box's faces: the surface closes inside the box
         np.moveaxis(volume, axis, 0)[[0, -1]] = 0.0
     if not (volume > level).any():

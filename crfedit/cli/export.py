@@ -10,7 +10,7 @@ import typer
 from ..errors import CrfError
 from ..io import check_replaceable
 from ..names import MIN_PIECE
-from .common import DeviceChoice, DeviceOpt, app, user_errors
+from .common import DeviceChoice, DeviceOpt, app, stderr_progress, user_errors
 
 export_app = typer.Typer(help="Export an instance as a mesh.", no_args_is_help=True)
 app.add_typer(export_app, name="export")
@@ -23,7 +23,7 @@ def mesh_cmd(
     instance: Annotated[str, typer.Option("--instance", help="Instance to export: a name or an index.")],
     out: Annotated[Path, typer.Option("--out", metavar="MESH", help="Mesh file: .ply or .obj (vertex colours), .glb, .off, .stl.")],
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", metavar="EDIT", help="Apply this edit file first (repeatable, in order).")] = None,
-    res: Annotated[int, typer.Option("--res", help="Marching-cubes lattice points per side of the scene box, 8–1024 (the density volume is 4·N³ bytes: 67 MB at 256, 4.3 GB at 1024).")] = 256,
+    res: Annotated[int, typer.Option("--res", help="Marching-cubes lattice points per side of the scene box, 8–1024 (the density volume is 4·N³ bytes: 67 MB at 256, 4.3 GB at 1024; time grows as N³ too).")] = 256,
     level: Annotated[Optional[float], typer.Option("--level", help="Density σ of the surface (default: ln 2 / render step, where one step is half opaque).")] = None,
     min_piece: Annotated[float, typer.Option("--min-piece", metavar="SHARE", help="Drop pieces (connected components) with fewer faces than this share of the largest piece's: floaters (0 keeps every piece).")] = MIN_PIECE,
     device: DeviceOpt = DeviceChoice.auto,
@@ -45,7 +45,15 @@ def mesh_cmd(
     k = m.instance_index(instance)
     if edit and k not in m.overrides:  # as render says it: likely a slip
         typer.echo(f"note: the --edit files edit other instances than {m.names[k]}: they leave this mesh unchanged", err=True)
-    mesh, dropped = drop_small_pieces(extract_mesh(m, k, res, level), min_piece)
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+
+    from .dataset import _rate_column
+
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), _rate_column(), TimeRemainingColumn())
+    with stderr_progress(*columns) as bar:  # the density lattice is most of the time: minutes at --res 512 on a CPU
+        task = bar.add_task(f"σ on the {res}³ lattice (planes)", total=res)
+        mesh = extract_mesh(m, k, res, level, on_planes=lambda n: bar.update(task, advance=n))
+    mesh, dropped = drop_small_pieces(mesh, min_piece)
     write_mesh(mesh, out)
     lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
     typer.echo(
