@@ -405,7 +405,8 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
             return ModelFileError(f"{where}was made after {after}; pass the --edit files in the order they were made")
     made_on = _command_edits(delta.meta.get("command", ""))  # the stack it was made on, as its command named it
     told = (f"; it was made on {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}), here {position} come before it"
-            if made_on else "")
+            if made_on else "; or it was re-pinned onto a model with edits baked in: apply it to that one" if position == 0 and not applied
+            else "")
     return ModelFileError(
         f"{where}was made after other edits than the ones before it here (parent {parent}, "
         f"expected {chain_fingerprint(base, list(applied) + fps[:position]) or 'none'}{told}); "

@@ -801,8 +801,8 @@ def test_paper_preset_edits_train_both_networks():
 
 
 def test_a_removal_of_nearly_all_the_object_needs_force(trained, tmp_path):
-    """A scribble over the whole object (e.g. drawn on another view than --view names) selects
-    every cell: the removal is refused, naming the view, unless --force; nothing is written."""
+    """A scribble over the whole object selects every cell: the removal is refused, naming the
+    view and what the scribble covers, unless --force; nothing is written."""
     path, model, category = trained
     view = category.instances[1].view("train:1")
     opacity = render_camera(model.field_for(1), view.camera, 1).opacity.numpy().reshape(view.camera.height, view.camera.width)
@@ -812,7 +812,7 @@ def test_a_removal_of_nearly_all_the_object_needs_force(trained, tmp_path):
     Image.fromarray((whole * 255).astype(np.uint8)).save(png)
     out = tmp_path / "gone.safetensors"
     args = ["remove", path, "--instance", 1, "--view", "train:1", "--scribble", png, "--out", out, "--device", "cpu", "--steps", 3]
-    assert_user_error(invoke(*args), "nearly all of it", "view train:1", "--force")
+    assert_user_error(invoke(*args), "the scribble covers", "view train:1", "pass --force to remove the whole instance")
     assert not out.exists()
     r = invoke(*args, "--force")
     assert r.exit_code == 0 and out.is_file(), r.output
