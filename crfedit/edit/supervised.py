@@ -405,6 +405,9 @@ class RecolorTarget:
       multiplies the model's colour noise by up to max(r) in one channel (a dark red part turned
       light green scales its green noise by ~9), the projection keeps only its component along c̄.
 
+    Where the clamp at 1 bites (white on a part whose shading spreads), a gain per channel
+    (:func:`clamped_gain`) brings the scribbled pixels' targets back to ``appear`` on average.
+
     ``unlike``: :data:`UNLIKE_FACTOR`, the chromaticity test of :meth:`likeness`.
     """
 
@@ -416,7 +419,7 @@ class RecolorTarget:
         self.mean = mean.clamp_min(MIN_MEAN_COLOR)
         self.lift = self.mean - mean  # what the floor added (0 on channels above it): added to every sample
         self.appear = torch.as_tensor(appear, dtype=self.mean.dtype, device=self.mean.device)
-        self.gain = torch.ones_like(self.mean)
+        self.gain = torch.ones_like(self.mean)  # the targets at gain 1 first, then the gain they need (clamped_gain)
         self.gain = clamped_gain(self(rendered), self.appear)
         self.unlike = unlike
         chroma = chromaticity(rendered)
