@@ -37,7 +37,7 @@ StrategyOpt = Annotated[Strategy, typer.Option("--strategy", help="What to train
 PenaltyOpt = Annotated[Penalty, typer.Option("--penalty", help="Weight penalty: element (every trained number weighed alike, so strategies are penalised alike; default) or tensor (Σ per-tensor means, the earlier rule).")]
 StepsOpt = Annotated[int, typer.Option("--steps", help="Optimization steps.")]
 LrOpt = Annotated[float, typer.Option("--lr", help="Adam learning rate.")]
-RaysOpt = Annotated[int, typer.Option("--rays", help="Most rays rendered per step (scribbled + kept).")]
+RaysOpt = Annotated[int, typer.Option("--rays", help="Most rays rendered per step (the supervising views' rays: scribbled, kept, turned views).")]
 ScribbleOpt = Annotated[Optional[Path], typer.Option("--scribble", metavar="PNG", help="The part to edit, at the view's size: white on black, strokes on a transparent PNG, strokes painted over the view's render, or a strokes JSON (.json).")]
 ScribbleJsonOpt = Annotated[Optional[Path], typer.Option("--scribble-json", help='Strokes JSON: {"strokes": [[[x, y], ...], ...], "radius": r} or a list of strokes.')]
 KeepOpt = Annotated[Optional[Path], typer.Option("--keep", help="Mask PNG (or strokes .json) of what must not change (default: a random sample of the rest of the view).")]

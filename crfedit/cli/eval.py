@@ -29,7 +29,9 @@ class SplitChoice(str, enum.Enum):
 
 
 ModelArg = Annotated[Path, typer.Argument(help="Model file (.safetensors) written by crfedit train.")]
-DataArg = Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt), the one the model was trained on.")]
+DataArg = Annotated[Path, typer.Argument(help="Dataset the model was trained on: a category folder (instances.txt), or one NeRF-synthetic or nerfstudio scene.")]
+TwinsDataArg = Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt, and twins.json with the twins) the model was trained on.")]
+AblationDataArg = Annotated[Path, typer.Argument(help="Category dataset folder (instances.txt) the variants train and are scored on.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print JSON only (progress and warnings go to stderr).")]
 LpipsOpt = Annotated[
     Optional[Path],
@@ -184,7 +186,7 @@ TABLE_TITLES = {"color": "Table 2 (colour edits)", "remove": "Table 3 (shape edi
 @user_errors(ranked=True)
 def edits_cmd(
     model: ModelArg,
-    data: DataArg,
+    data: TwinsDataArg,
     strategies: Annotated[str, typer.Option("--strategies", help="Update strategies to compare, comma-separated: hybrid, codes, all.")] = "hybrid,codes,all",
     nerf_baseline: Annotated[bool, typer.Option("--nerf-baseline/--no-nerf-baseline", help="Also train a single-instance NeRF per source and fine-tune it (slow).")] = False,
     nerf_steps: Annotated[Optional[int], typer.Option("--nerf-steps", help="Training steps of each single-instance NeRF (with --nerf-baseline).", show_default="1000")] = None,
@@ -204,8 +206,9 @@ def edits_cmd(
 
     Each colour and removal twin is edited from its scribbles with each strategy; every test
     view of the source is rendered with the edit and scored against the twin's test views.
-    Rows: strategies (mean over twins), the unedited model as a reference, and optionally a
-    single-instance NeRF fine-tuned with the same edit.
+    Rows: strategies (mean over twins), the unedited model as a reference, the paper's losses
+    (hybrid, --method paper: one more edit per twin), and optionally a single-instance NeRF
+    fine-tuned with the same edit.
     """
     from ..distributed import SINGLE, process_group, rank_device, ranks_from_env
     from ..edit import EditOptions
@@ -274,9 +277,9 @@ def edits_cmd(
 @eval_app.command("ablation")
 @user_errors
 def ablation_cmd(
-    data: DataArg,
-    minutes: Annotated[Optional[float], typer.Option("--minutes", help="Training time of each variant.")] = None,
-    steps: Annotated[Optional[int], typer.Option("--steps", help="Training steps of each variant (with --minutes: whichever ends first).")] = None,
+    data: AblationDataArg,
+    minutes: Annotated[Optional[float], typer.Option("--minutes", help="Training time of each variant (this or --steps is required).")] = None,
+    steps: Annotated[Optional[int], typer.Option("--steps", help="Training steps of each variant (this or --minutes is required; with both, whichever ends first).")] = None,
     preset: Annotated[PresetChoice, typer.Option("--preset", help="Preset the variants are built from.")] = PresetChoice.fast,
     sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override a config field of every variant, KEY=VALUE (repeatable).")] = None,
     res: Annotated[Optional[int], typer.Option("--res", help="Train and score at this image width (default: as stored).")] = None,

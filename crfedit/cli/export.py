@@ -21,7 +21,7 @@ app.add_typer(export_app, name="export")
 def mesh_cmd(
     model: Annotated[Path, typer.Argument(metavar="MODEL", help="Model file (.safetensors).")],
     instance: Annotated[str, typer.Option("--instance", help="Instance to export: a name or an index.")],
-    out: Annotated[Path, typer.Option("--out", metavar="MESH", help="Mesh file: .ply or .obj (vertex colours), .glb, .off, .stl.")],
+    out: Annotated[Path, typer.Option("--out", metavar="MESH", help="Mesh file: .ply, .obj or .glb (with vertex colours; .glb turned Y-up, as glTF is), .off or .stl.")],
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", metavar="EDIT", help="Apply this edit file first (repeatable, in order).")] = None,
     res: Annotated[int, typer.Option("--res", help="Marching-cubes lattice points per side of the scene box, 8–1024 (the density volume is 4·N³ bytes: 67 MB at 256, 4.3 GB at 1024; time grows as N³ too).")] = 256,
     level: Annotated[Optional[float], typer.Option("--level", help="Density σ of the surface (default: ln 2 / render step, where one step is half opaque).")] = None,
@@ -59,6 +59,7 @@ def mesh_cmd(
     typer.echo(
         f"wrote {out}: {m.names[k]}, {len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces at σ = {mesh.level:.4g}, "
         f"extent [{', '.join(f'{x:.3f}' for x in lo)}] .. [{', '.join(f'{x:.3f}' for x in hi)}]"
+        + (" in crfedit's Z-up world (the .glb holds it turned Y-up)" if out.suffix.lower() == ".glb" else "")
         + (f"; dropped {dropped} floater{'s' if dropped != 1 else ''} (pieces under {min_piece:g} of the largest's faces; --min-piece 0 keeps them)"
            if dropped else "")
     )

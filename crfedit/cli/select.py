@@ -10,7 +10,7 @@ import typer
 from ..errors import CrfError
 from ..names import SELECTION_FORMAT
 from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, size_text, user_errors
-from .edit import PREVIEW_VIEWS, InstanceOpt, JoinOpt, MirrorOpt, ModelArg, PreviewViewsOpt, PriorOpt, _load, _one_view, _preview_views, _view_render, is_none, previews_of
+from .edit import PREVIEW_VIEWS, JoinOpt, MirrorOpt, ModelArg, PreviewViewsOpt, PriorOpt, _load, _one_view, _preview_views, _view_render, is_none, previews_of
 
 
 def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
@@ -42,11 +42,11 @@ def _mask(path: Path, model, instance: int, camera, what: str):
 @json_record
 def select_cmd(
     model: ModelArg,
-    instance: InstanceOpt,
+    instance: Annotated[str, typer.Option("--instance", help="Instance whose part is selected: a name or an index.")],
     view: Annotated[list[str], typer.Option("--view", help="A view the scribbles belong to (repeatable: one --scribble per --view).")],
-    scribble: Annotated[list[Path], typer.Option("--scribble", help="The part, on that view: mask PNG (white on black) or strokes JSON (repeatable); none for a further view that only holds keep strokes.")],
+    scribble: Annotated[list[Path], typer.Option("--scribble", help="The part, on that view (repeatable): white on black, strokes on a transparent PNG, strokes painted over the view's render, or a strokes JSON; the word none for a further view that only holds keep strokes.")],
     out: Annotated[Path, typer.Option("--out", help="Selection file to write (.safetensors).")],
-    keep: Annotated[Optional[list[Path]], typer.Option("--keep", help="What is not the part, per view (repeatable: none, or one per --view, none for a view without keep strokes).")] = None,
+    keep: Annotated[Optional[list[Path]], typer.Option("--keep", help="What is not the part, per view: leave --keep out, or give one per --view in order (the word none for a view without keep strokes).")] = None,
     edit: PriorOpt = None,
     preview: Annotated[Optional[Path], typer.Option("--preview", help="Folder for PNG previews with the selection tinted.")] = None,
     views: PreviewViewsOpt = None,

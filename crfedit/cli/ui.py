@@ -21,7 +21,7 @@ def ui_cmd(
     edit: Annotated[Optional[list[Path]], typer.Option("--edit", help="An edit file to start the stack with (repeatable, in the order they were made).")] = None,
     port: Annotated[int, typer.Option("--port", help="Port to listen on (0: any free port).")] = 8765,
     workdir: Annotated[Path, typer.Option("--workdir", help="Folder the page saves edits and baked models into (made when first needed).")] = Path("crfedit-ui"),
-    host: Annotated[str, typer.Option("--host", help="Address to bind (default 127.0.0.1, this machine only; anything else is reachable from the network).")] = "127.0.0.1",
+    host: Annotated[str, typer.Option("--host", help="Address to bind: 127.0.0.1 is this machine only; anything else is reachable from the network.")] = "127.0.0.1",
     open_browser: Annotated[bool, typer.Option("--open", help="Open the page in the default web browser.")] = False,
     device: DeviceOpt = DeviceChoice.auto,
 ) -> None:
