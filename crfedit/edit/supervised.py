@@ -450,15 +450,22 @@ class RecolorTarget:
         return (shade[:, None] * (self.appear * self.gain)).clamp(0, 1)
 
 
+GAIN_MEAN_CAP = 0.97
+""":func:`clamped_gain` aims the scribbled pixels' mean at most this high: a mean of 1 is flat
+white, every pixel at 1 and the shading gone (a tester's navy seat asked #ffffff merged seat,
+back and cushion edge into one patch, where #fcfcfc kept them: 25 levels apart held out)."""
+
+
 def clamped_gain(targets: Tensor, appear: Tensor, rounds: int = 30) -> Tensor:
     """[3] The gain g ≥ 1 per channel for which the scribbled pixels' targets ``targets`` [n, 3]
     (their shading × ``appear``, clamped to 1) times g, clamped again, average ``appear``: the
     clamp takes from the bright pixels what nothing gives back, so a dark navy part recoloured
-    white averaged 0.86 under its scribble, not the 1 asked.  1 where nothing clamps (most
-    colours); a bisection, at most 1 / the darkest target's value (every pixel at 1)."""
+    white averaged 0.86 under its scribble, not the 1 asked.  The mean aimed at is capped at
+    :data:`GAIN_MEAN_CAP`.  1 where nothing clamps (most colours); a bisection, at most 1 / the
+    darkest target's value (every pixel at 1)."""
     gain = torch.ones_like(appear)
     for c in range(appear.shape[0]):
-        t, want = targets[:, c], float(appear[c])
+        t, want = targets[:, c], min(float(appear[c]), GAIN_MEAN_CAP)
         if t.numel() == 0 or want <= 0 or float(t.clamp(0, 1).mean()) >= want - 1e-4:
             continue
         low, high = 1.0, 1.0 / max(float(t.clamp_min(0).min()), 1e-3)
