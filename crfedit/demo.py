@@ -28,6 +28,33 @@ SCRIBBLE_RGB, KEEP_RGB = (1.0, 0.15, 0.1), (0.2, 0.35, 1.0)
 EDITED = {"color": "recoloured", "remove": "part removed"}
 
 
+def clear_stale_demo(out: str | Path, model: CategoryModel) -> list[str]:
+    """Remove from ``out`` (a quickstart's ``edits/`` folder) the edit files made for another
+    model than ``model`` and the picture of them: a quickstart run again into its folder
+    trains a new model, and the earlier run's edits (and ``edits.png``, which shows them) stood
+    beside it, stale, when this run made none (``--no-edits``, or a twin it could not edit).
+    Other files stay.  Returns the names removed."""
+    from .delta import read_delta
+    from .names import EDIT_FORMAT
+    from .safefile import file_format
+
+    out, removed = Path(out), []
+    if not out.is_dir():
+        return removed
+    for path in sorted(out.glob("*.safetensors")):
+        try:
+            stale = file_format(path) == EDIT_FORMAT and read_delta(path).meta.get("base") != model.fingerprint()
+        except CrfError:  # a damaged file: not one this tool can tell is its own; it stays
+            continue
+        if stale:
+            path.unlink()
+            removed.append(path.name)
+    if removed and (out / "edits.png").is_file():
+        (out / "edits.png").unlink()
+        removed.append("edits.png")
+    return removed
+
+
 def demo_edits(
     model: CategoryModel, category: Category, out: str | Path, seed: int = 0, views: Sequence[int] = DEMO_VIEWS,
     command: str = "", progress: Progress | None = None,

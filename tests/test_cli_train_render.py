@@ -456,6 +456,12 @@ def test_quickstart_end_to_end(tmp_path):
     assert ("needs pip install -e '.[ui]'" in result.stdout) == (importlib.util.find_spec("aiohttp") is None)
     # two rows (recolour, removal) of the scribbled view + two test views × (before, after, twin), 16 px × 3
     assert read_image(out / "edits" / "edits.png").shape[:2] == (2 * (48 + 16 + 6) + 6, 6 + 6 * 54 + 2 * 18 + 48 + 6)
+    # run again into the folder, without edits: the earlier run's edits (made for the model it
+    # replaced) and their picture go, with a note; a file of the user's stays
+    (out / "edits" / "mine.txt").write_text("notes")
+    again = invoke("quickstart", "--out", out, "--minutes", 0.01, "--instances", 1, "--res", 16, "--no-edits", "--device", "cpu")
+    assert again.exit_code == 0 and "an earlier quickstart's, made for another model" in again.stderr, again.output
+    assert sorted(p.name for p in (out / "edits").iterdir()) == ["mine.txt"]
     plain = tmp_path / "plain"
     result = invoke("quickstart", "--out", plain, "--minutes", 0.01, "--instances", 1, "--res", 8, "--no-edits", "--device", "cpu")
     assert result.exit_code == 0, result.output

@@ -508,7 +508,7 @@ def quickstart_cmd(
     from ..config import make_config
     from ..data.loading import load_category
     from ..data.synth import SynthConfig, check_synth_args, write_synth_category
-    from ..demo import demo_edits
+    from ..demo import clear_stale_demo, demo_edits
     from ..evaluation import score_model
     from ..io import write_json
     from ..render_files import render_to_folder
@@ -541,6 +541,9 @@ def quickstart_cmd(
     typer.echo(f"4/{steps} scoring every held-out test view")
     score = score_model(model, category, "test")
     typer.echo(f"held-out test ({score['n']} view{'s' * (score['n'] != 1)}): {format_score(score)}")  # under its own step, not the next one's
+    stale = clear_stale_demo(out / "edits", model)  # an earlier run's, made for another model
+    if stale:
+        typer.echo(f"note: removed {', '.join(stale)} from {out / 'edits'}: an earlier quickstart's, made for another model", err=True)
     demo, skipped = None, None
     if edits:
         typer.echo(f"5/{steps} editing chair 0 from the dataset's scribbles: a recolour and a removal")
