@@ -278,7 +278,10 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
     chosen = [c for c in firsts if c is not None]
     rows = []
     if chosen:  # the first edit of a process pays one-off costs; keep them out of the timings
-        apply_twin_edit(model, chosen[0], EditOptions(steps=1, rays=settings.edit_rays[0], seed=settings.seed))
+        try:
+            apply_twin_edit(model, chosen[0], EditOptions(steps=1, rays=settings.edit_rays[0], seed=settings.seed))
+        except CrfError:  # refused (a collapsed model): each point below says so for itself
+            pass
     plain = 1024 if 1024 in settings.edit_rays else settings.edit_rays[0]
     runs = [(rays, True) for rays in settings.edit_rays] + ([(plain, False)] if settings.edit_uncached else [])
     for case in chosen:

@@ -1676,3 +1676,13 @@ def test_a_removal_scribbled_over_the_whole_instance_asks_for_force(trained, tmp
     assert r.exit_code == 2 and "pass --force to remove the whole instance" in r.stderr, r.output
     assert "coverage: the scribble covers" in r.stdout and "shape gate:" not in r.stdout and not (tmp_path / "r.safetensors").exists()
     assert CliRunner().invoke(app, [*args, "--force"]).exit_code == 0
+    # the same selection saved by `select` and given to `remove --selection`: the same guard
+    sel = tmp_path / "all.sel.safetensors"
+    r = CliRunner().invoke(app, ["select", str(path), "--instance", "1", "--view", f"train:{index}", "--scribble", str(tmp_path / "all.png"),
+                                 "--for", "remove", "--out", str(sel), "--device", "cpu"])
+    assert r.exit_code == 0, r.output
+    given = ["remove", str(path), "--instance", "1", "--view", f"train:{index}", "--selection", str(sel), "--steps", "2",
+             "--out", str(tmp_path / "r2.safetensors"), "--device", "cpu"]
+    r = CliRunner().invoke(app, given)
+    assert r.exit_code == 2 and "nearly all of it: pass --force to remove that much" in r.stderr and not (tmp_path / "r2.safetensors").exists()
+    assert CliRunner().invoke(app, [*given, "--force"]).exit_code == 0

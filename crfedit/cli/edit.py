@@ -250,6 +250,14 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
     fg, bg = _masks(*masks, m, k, camera, force) if given else (None, None)  # remove --selection alone
     mode, join_mode = _mode(mirror, method, "--mirror"), _mode(join, method, "--colour-join")
     sel = _selection(selection, m, k, kind, mode, join_mode)
+    if sel is not None and kind == "remove" and not force:  # a saved selection of (nearly) the whole instance, as one lifted here
+        from ..edit.selection.base import NEARLY_ALL
+
+        occupied = m.field_for(k).occupancy[k]
+        taken, total = int((sel.mask.to(occupied.device) & occupied).sum()), int(occupied.sum())
+        if taken >= NEARLY_ALL * total:
+            raise CrfError(f"--selection {selection}: takes {taken} of the instance's {total} occupied cells, nearly all of it: "
+                           "pass --force to remove that much")
     if sel is None and method == EditMethod.selection:
         sel = _lifted(m, k, camera, fg, bg, kind, mode, join_mode)
         from ..edit.selection import coverage_summary
