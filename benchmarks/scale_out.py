@@ -171,13 +171,17 @@ def _launch(task: str, world: int, threads: int, args, out: Path) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=ROOT / "runs" / "scale" / "chairs")
+    default_data = ROOT / "runs" / "scale" / "chairs"
+    parser.add_argument("--data", type=Path, default=default_data, help="category to train on (default: 8 procedural chairs, made once into runs/scale/chairs)")
     parser.add_argument("--seconds", type=float, default=60.0, help="training time of each run")
     parser.add_argument("--steps", type=int, default=40, help="timed steps per mode of the sync comparison")
     parser.add_argument("--only", default="one,threads,procs,sync,eight")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "benchmarks" / "scale_out.json")
     args = parser.parse_args(argv)
     if not (args.data / "instances.txt").is_file():
+        if args.data != default_data:  # a typo'd --data made a dataset where it pointed, then trained on it
+            print(f"error: --data {args.data}: no category there (instances.txt); leave --data out for the default one", file=sys.stderr)
+            return 2
         write_synth_category(args.data, SynthConfig(instances=8, views=20, res=64, seed=0, twins=False))
     plan = {"one": (1, 1), "threads": (1, 2), "procs": (2, 1), "sync": (2, 1), "eight": (8, 1), "memory1": (1, 1), "memory2": (2, 1)}
     report = json.loads(args.json.read_text()) if args.json.is_file() else {}  # --only updates its runs

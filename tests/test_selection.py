@@ -1506,7 +1506,7 @@ def test_a_stroke_wider_than_its_part_lifts_its_centre(trained):
         sel = select(model, k, [ScribbleView(view.camera, wide, keep & ~wide)], options)
         aimed = select(model, k, [ScribbleView(view.camera, erode(wide, 1), centre(keep & ~wide))], whole)
         assert torch.equal(sel.values, aimed.values)
-        assert sel.meta["stroke_centres"] == {"edge_points": edge(wide), "keep_edge_points": edge(keep & ~wide)}
+        assert sel.meta["stroke_centres"] == {"edge_points": edge(wide), "keep_edge_points": edge(keep & ~wide), "whole_views": 0}
         assert sel.meta["stroke_centres"]["edge_points"] > 0
         assert sel.meta["positives"] == aimed.meta["positives"] and "stroke_centres" not in aimed.meta
     line = np.zeros_like(fg)
@@ -1514,7 +1514,7 @@ def test_a_stroke_wider_than_its_part_lifts_its_centre(trained):
     line[rows[0], cols.min():cols.max() + 1] = True  # one row across the seat: erosion leaves nothing
     sel = select(model, k, [ScribbleView(view.camera, line, None)], options_for("remove"))
     same = select(model, k, [ScribbleView(view.camera, line, None)], dataclasses.replace(options_for("remove"), stroke_centres=False))
-    assert torch.equal(sel.values, same.values) and sel.meta["stroke_centres"] == {"edge_points": 0, "keep_edge_points": 0}
+    assert torch.equal(sel.values, same.values) and sel.meta["stroke_centres"] == {"edge_points": 0, "keep_edge_points": 0, "whole_views": 1}
 
 
 def test_keep_strokes_drawn_onto_the_part_lift_their_centres(trained):
@@ -1570,6 +1570,10 @@ def test_the_strokes_line_says_what_each_rule_left_out():
         f"their centres lifted (1 edge point {lost}; 5 edge points of the keep strokes left out")
     whole = stroke_summary({"stroke_centres": {"edge_points": 0, "keep_edge_points": 1}})
     assert whole.startswith("lifted whole (") and whole.endswith("; 1 edge point of the keep strokes left out")
+    assert stroke_summary({"stroke_centres": {"edge_points": 0, "keep_edge_points": 0, "whole_views": 1}}).startswith("lifted whole (")
+    # a solid mask wider than the object (drawn over the whole chair): centres lifted, no point lost, not "one or two pixels wide"
+    assert stroke_summary({"stroke_centres": {"edge_points": 0, "keep_edge_points": 0, "whole_views": 0}}) == (
+        "their centres lifted (the strokes' edges lie off the object: no scribbled point left out)")
     snapped = "7 pixels beside the scribble snapped onto the object (it lay mostly off it)"
     assert stroke_summary({"stroke_snap": {"added_pixels": 7}}) == snapped
     assert stroke_summary({"stroke_snap": {"added_pixels": 7}, "stroke_centres": {"edge_points": 3}}) == f"{snapped}; their centres lifted (3 edge points {lost}"

@@ -195,7 +195,9 @@ def _centres_summary(info: dict) -> str:
     n, n_keep = info["edge_points"], info.get("keep_edge_points", 0)  # selections before 2026-11-26 cut only the scribble
     points = lambda m: f"{m} edge point{'' if m == 1 else 's'}"
     keep = f"; {points(n_keep)} of the keep strokes left out" if n_keep else ""
-    if n == 0:
+    if n == 0 and info.get("whole_views", 1) == 0:  # centres lifted, and every scribbled point on the object lay in one
+        return f"their centres lifted (the strokes' edges lie off the object: no scribbled point left out){keep}"
+    if n == 0:  # (a selection file before the sixty-sixth session does not say which)
         return f"lifted whole (strokes one or two pixels wide: every scribbled pixel is lifted){keep}"
     return f"their centres lifted ({points(n)} left out: a brush strays off a thin part){keep}"
 

@@ -66,23 +66,25 @@ def _snapped_strokes(views: Sequence[ScribbleView], on_object: Sequence[np.ndarr
     return out, added
 
 
-def _stroke_centres(views: Sequence[ScribbleView], on_object: Sequence[np.ndarray]) -> tuple[list[ScribbleView], int, int]:
+def _stroke_centres(views: Sequence[ScribbleView], on_object: Sequence[np.ndarray]) -> tuple[list[ScribbleView], int, int, int]:
     """(``views`` with each scribble and each view's keep strokes cut to their centres
     (:func:`_centre`; ``on_object``: each view's :func:`_on_object`), the scribbled and the keep
-    surface points left out), :attr:`SelectOptions.stroke_centres`."""
-    out, dropped, dropped_keep = [], 0, 0
+    surface points left out, the views whose scribble was lifted whole),
+    :attr:`SelectOptions.stroke_centres`."""
+    out, dropped, dropped_keep, whole = [], 0, 0, 0
     for v, on in zip(views, on_object):
         scribble, n = _centre(v.scribble, on)
         keep, n_keep = (None, 0) if v.keep is None else _centre(v.keep & ~v.scribble, on)
         out.append(ScribbleView(v.camera, scribble, keep))
         dropped, dropped_keep = dropped + n, dropped_keep + n_keep
-    return out, dropped, dropped_keep
+        whole += int(scribble is v.scribble and bool(v.scribble.any()))
+    return out, dropped, dropped_keep, whole
 
 
 def _centre(strokes: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, int]:
     """(``strokes`` [H, W] cut to their 1-px erosion where that keeps at least
     :data:`CENTRE_SHARE` of their surface points (``on``: the view's on-object mask) and 4,
-    else as they are; the surface points left out)."""
+    else the very array given; the surface points left out)."""
     centre = erode(strokes, 1)
     n_all, n_centre = int((strokes & on).sum()), int((centre & on).sum())
     if n_centre < max(4, CENTRE_SHARE * n_all):
@@ -310,8 +312,8 @@ def select(
         views, added = _snapped_strokes(views, on_object, options.stroke_snap)
         snap_meta = {"added_pixels": added}
     if options.stroke_centres:  # see SelectOptions.stroke_centres
-        views, dropped, dropped_keep = _stroke_centres(views, on_object)
-        centre_meta = {"edge_points": dropped, "keep_edge_points": dropped_keep}
+        views, dropped, dropped_keep, lifted_whole = _stroke_centres(views, on_object)
+        centre_meta = {"edge_points": dropped, "keep_edge_points": dropped_keep, "whole_views": lifted_whole}
     pos_pts, neg_pts, cand_pts, surfaces, strays = _lift_views(field, k, views, options.min_opacity, renders, options.keep_strays)
     require_on_object(pos_pts.shape[0])
     cells = occupied.reshape(-1).nonzero().squeeze(-1)
