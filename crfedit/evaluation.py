@@ -573,5 +573,6 @@ def evaluate_edits(
         "lpips_note": note,
         "part_labels_seen": part_labels_seen(model, cases),
         "settings": {"seed": seed, "strategies": list(strategies), **{k: getattr(options, k) for k in ("steps", "lr", "rays", "penalty", "recolor")},
-                     "nerf_baseline": dataclasses.asdict(nerf) if nerf else None},
+                     "nerf_baseline": dataclasses.asdict(nerf) if nerf else None, "device": str(model.device),
+                     "threads": torch.get_num_threads(), "world_size": ranks.world, "lpips": lpips_weights is not None},
     }

@@ -49,26 +49,26 @@ LOG_EVERY = 100
 """Steps between the CSV log's rows, unless ``--log-every`` says otherwise."""
 
 
-def last_started_with(model_path: Path, key: str) -> int | None:
-    """The positive whole number ``key`` (``log_every``, ``threads``) of the run's last start or
-    resume that recorded one (its ``run.json``); None when the record does not say."""
+def started_with(model_path: Path, key: str) -> list[int]:
+    """The positive whole numbers ``key`` (``log_every``, ``threads``) that the run's start and
+    resumes recorded, in order (its ``run.json``); [] when the record does not say."""
     try:
         first = json.loads(record_paths(model_path)["run"].read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return None
+        return []
     if not isinstance(first, dict):
-        return None
+        return []
     resumes = first.get("resumes")
     starts = [first, *(r for r in resumes if isinstance(r, dict))] if isinstance(resumes, list) else [first]
-    said = [n for n in (r.get(key) for r in starts) if isinstance(n, int) and not isinstance(n, bool) and n >= 1]
-    return said[-1] if said else None
+    return [n for n in (r.get(key) for r in starts) if isinstance(n, int) and not isinstance(n, bool) and n >= 1]
 
 
 def stored_log_every(model_path: Path) -> int:
     """The ``--log-every`` a run was last started or resumed with, so that ``--resume`` keeps
     the log's cadence (it fell back to 100: rows at 20, 40, … 100, then 200); :data:`LOG_EVERY`
     when the record does not say."""
-    return last_started_with(model_path, "log_every") or LOG_EVERY
+    said = started_with(model_path, "log_every")
+    return said[-1] if said else LOG_EVERY
 
 
 def run_record(path: Path, run: dict, cfg: Config, resume: bool) -> dict:

@@ -145,8 +145,13 @@ def test_resume_keeps_the_first_start_in_the_run_record(data, tmp_path):
     with interrupted_at(6):
         assert invoke("train", data, "--out", out, "--steps", 12, "--log-every", 2, *TINY).exit_code == 130
     first = json.loads((tmp_path / "m.run.json").read_text())
+    now = torch.get_num_threads()
+    first["threads"] = now + 1  # as if the run had begun at another thread count: the resume says what that costs
+    (tmp_path / "m.run.json").write_text(json.dumps(first))
     result = invoke("train", data, "--out", out, "--resume", "--device", "cpu")
     assert result.exit_code == 0, result.output
+    assert (f"note: this run trained with {now + 1} CPU threads and goes on with {now}: the same seed gives the same model only "
+            f"at one thread count throughout (CRFEDIT_THREADS={now + 1} keeps it)") in result.stderr, result.stderr
     record = json.loads((tmp_path / "m.run.json").read_text())
     assert record["command"] == first["command"] and record["config"] == first["config"]
     assert [r["resumed_at"] for r in record["resumes"]] == [6]  # (the command is sys.argv: pytest's here)

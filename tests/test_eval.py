@@ -189,7 +189,8 @@ def test_edits_with_one_strategy_runs_end_to_end(model_path, data):
     report = json.loads(invoke(*args, "--json").stdout)
     assert set(report["tables"]) == {"color", "remove"}
     assert report["settings"] == {"seed": 0, "strategies": ["hybrid"], "steps": 3, "lr": 0.01, "rays": 64, "penalty": "element",
-                                  "recolor": "shading", "nerf_baseline": None}  # what the scores depend on
+                                  "recolor": "shading", "nerf_baseline": None, "device": "cpu", "threads": torch.get_num_threads(),
+                                  "world_size": 1, "lpips": False}  # what the scores depend on
     for kind, rows in report["tables"].items():
         assert [r["method"] for r in rows] == [UNEDITED, "hybrid", PAPER_METHOD]
         assert all(r["n"] == 2 and r["psnr"] is not None and r["seconds"] >= 0 for r in rows)

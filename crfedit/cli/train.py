@@ -152,7 +152,7 @@ def run_training(
     from ..distributed import SINGLE
     from ..modelfile import stored_training
     from ..parts import has_labels, part_config
-    from ..runlog import LOG_EVERY, RunLog, config_block, last_started_with, record_paths, stored_log_every
+    from ..runlog import LOG_EVERY, RunLog, config_block, record_paths, started_with, stored_log_every
     from ..train import READ_EVERY, train
 
     if log_every is None:  # a resumed run keeps its cadence
@@ -188,10 +188,12 @@ def run_training(
     # an error during training is then still the one line on stderr
     typer.echo(f"config (also in {paths['run']}; log every {log_every} steps in {paths['log']}):\n{config_block(cfg)}")
     typer.echo(f"CPU threads: {threads}" + (f" ({Session.threads_why})" if Session.threads == threads and Session.threads_why else ""))
-    before = last_started_with(out, "threads") if resume and torch.device(device).type == "cpu" else None
-    if before is not None and before != threads:  # the sums split otherwise: same seed, another model
-        typer.echo(f"note: this run trained with {before} CPU threads and goes on with {threads}: the same seed gives the same "
-                   f"model only at the same thread count (CRFEDIT_THREADS={before} keeps it)", err=True)
+    before = sorted(set(started_with(out, "threads"))) if resume and torch.device(device).type == "cpu" else []
+    if before and before != [threads]:  # the sums split otherwise: same seed, another model
+        counts = " and ".join(map(str, before))
+        typer.echo(f"note: this run trained with {counts} CPU thread{'s' * (before != [1])} and goes on with {threads}: the same seed "
+                   f"gives the same model only at one thread count throughout" + (f" (CRFEDIT_THREADS={before[0]} keeps it)" if len(before) == 1 else ""),
+                   err=True)
     # a run that fails before its first checkpoint takes its records back (RunLog.take_back)
     stamp = lambda: (out.stat().st_mtime_ns, out.stat().st_size) if out.is_file() else None
     model_before, finished = stamp(), False
