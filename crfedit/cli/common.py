@@ -405,7 +405,15 @@ class DeviceChoice(str, enum.Enum):
 
 
 DeviceOpt = Annotated[DeviceChoice, typer.Option("--device", help="Where to compute: auto picks cuda when available.")]
-SeedOpt = Annotated[int, typer.Option("--seed", min=0, max=2**63 - 1, help="Random seed; the same seed gives the same result.")]
+def seed_in_range(value: int | None) -> int | None:
+    """A ``--seed`` torch's generators take: 0 to 2⁶³ − 1 (checked here, not by a Click range,
+    whose help printed ``0<=x<=9223372036854775807`` under every command)."""
+    if value is not None and not 0 <= value <= 2**63 - 1:
+        raise typer.BadParameter(f"{value} is not a seed from 0 to 2^63 - 1")
+    return value
+
+
+SeedOpt = Annotated[int, typer.Option("--seed", callback=seed_in_range, help="Random seed from 0; the same seed gives the same result.")]
 """Seeds torch's generators take: 0 to 2⁶³ − 1."""
 AaOpt = Annotated[
     int, typer.Option("--aa", help="Antialiasing: aa×aa rays per pixel, box-filtered (1 = one ray per pixel center, aliased).")

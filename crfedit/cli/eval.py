@@ -189,7 +189,7 @@ def edits_cmd(
     data: TwinsDataArg,
     strategies: Annotated[str, typer.Option("--strategies", help="Update strategies to compare, comma-separated: hybrid, codes, all.")] = "hybrid,codes,all",
     nerf_baseline: Annotated[bool, typer.Option("--nerf-baseline/--no-nerf-baseline", help="Also train a single-instance NeRF per source and fine-tune it (slow).")] = False,
-    nerf_steps: Annotated[Optional[int], typer.Option("--nerf-steps", help="Training steps of each single-instance NeRF (with --nerf-baseline).", show_default="1000")] = None,
+    nerf_steps: Annotated[Optional[int], typer.Option("--nerf-steps", help="Training steps of each single-instance NeRF (with --nerf-baseline; default 1000).", show_default=False)] = None,
     nerf_minutes: Annotated[Optional[float], typer.Option("--nerf-minutes", help="Optional time budget of each single-instance NeRF.")] = None,
     steps: Annotated[int, typer.Option("--steps", help="Optimization steps of each edit.")] = 100,
     rays: Annotated[int, typer.Option("--rays", help="Most rays rendered per edit step.")] = 1024,

@@ -15,7 +15,7 @@ from ..io import check_folder_target, writer_lock
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from ..names import MODEL_FORMAT
-from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, check_kind_suffix, command_line, size_text, user_errors
+from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, check_kind_suffix, command_line, seed_in_range, size_text, user_errors
 
 
 PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
@@ -302,7 +302,7 @@ def train_cmd(
     steps: Annotated[Optional[int], typer.Option("--steps", help="Training steps (default: the preset's).")] = None,
     minutes: Annotated[Optional[float], typer.Option("--minutes", help="Stop after this much training time; the learning-rate schedule ends there.")] = None,
     res: Annotated[Optional[int], typer.Option("--res", help="Train at this image width (images are area-resized); default: as stored.")] = None,
-    seed: Annotated[Optional[int], typer.Option("--seed", min=0, max=2**63 - 1, help="Random seed; the same seed gives the same result (--resume goes on with the run's own).", show_default="0")] = None,
+    seed: Annotated[Optional[int], typer.Option("--seed", callback=seed_in_range, show_default=False, help="Random seed from 0 (default 0); the same seed gives the same result (--resume goes on with the run's own).")] = None,
     device: DeviceOpt = DeviceChoice.auto,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run stored in --out from its last checkpoint (stored config and resolution).")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out model instead of refusing.")] = False,
