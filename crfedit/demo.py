@@ -28,12 +28,18 @@ SCRIBBLE_RGB, KEEP_RGB = (1.0, 0.15, 0.1), (0.2, 0.35, 1.0)
 EDITED = {"color": "recoloured", "remove": "part removed"}
 
 
+MADE_BY = "quickstart"
+"""The ``made_by`` metadata of the edits :func:`demo_edits` writes (provenance: not in the
+fingerprint), by which :func:`clear_stale_demo` knows them from a user's."""
+
+
 def clear_stale_demo(out: str | Path, model: CategoryModel) -> list[str]:
-    """Remove from ``out`` (a quickstart's ``edits/`` folder) the edit files made for another
-    model than ``model`` and the picture of them: a quickstart run again into its folder
-    trains a new model, and the earlier run's edits (and ``edits.png``, which shows them) stood
-    beside it, stale, when this run made none (``--no-edits``, or a twin it could not edit).
-    Other files stay.  Returns the names removed."""
+    """Remove from ``out`` (a quickstart's ``edits/`` folder) the edit files an earlier
+    quickstart made (their metadata's ``made_by`` is :data:`MADE_BY`) for another model
+    than ``model``, and the picture of them: a quickstart run again into its folder trains a new
+    model, and the earlier run's edits (and ``edits.png``, which shows them) stood beside it,
+    stale, when this run made none (``--no-edits``, or a twin it could not edit).  Every other
+    file stays, the user's own edits too.  Returns the names removed."""
     from .delta import read_delta
     from .names import EDIT_FORMAT
     from .safefile import file_format
@@ -43,7 +49,8 @@ def clear_stale_demo(out: str | Path, model: CategoryModel) -> list[str]:
         return removed
     for path in sorted(out.glob("*.safetensors")):
         try:
-            stale = file_format(path) == EDIT_FORMAT and read_delta(path).meta.get("base") != model.fingerprint()
+            meta = read_delta(path).meta if file_format(path) == EDIT_FORMAT else {}
+            stale = meta.get("made_by") == MADE_BY and meta.get("base") != model.fingerprint()
         except CrfError:  # a damaged file: not one this tool can tell is its own; it stays
             continue
         if stale:
@@ -75,7 +82,7 @@ def demo_edits(
 
     def keep(case: TwinCase, strategy: str, result: EditResult) -> None:
         path = out / f"{case.spec.name}.safetensors"
-        result.save(path, view=case.spec.view, **({"command": command} if command else {}))
+        result.save(path, view=case.spec.view, made_by=MADE_BY, **({"command": command} if command else {}))
         edited[case.spec.name] = (case, result, path)
 
     rows, skipped, error = [], {}, None

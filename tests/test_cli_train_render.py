@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ import torch
 
 import crfedit.train
 from crfedit.data.loading import load_category
-from crfedit.delta import apply_edit_files
+from crfedit.delta import apply_edit_files, read_delta, save_delta
 from crfedit.errors import CrfError
 from crfedit.evaluation import held_out_split, render_views, score_model
 from crfedit.io import read_exr, read_image
@@ -464,9 +465,13 @@ def test_quickstart_end_to_end(tmp_path):
     # run again into the folder, without edits: the earlier run's edits (made for the model it
     # replaced) and their picture go, with a note; a file of the user's stays
     (out / "edits" / "mine.txt").write_text("notes")
+    mine = out / "edits" / "my_edit.safetensors"  # the user's own edit of the earlier model: it stays
+    shutil.copy(out / "edits" / "chair_000_color.safetensors", mine)
+    delta = read_delta(mine)
+    save_delta(mine, delta.tensors, {k: v for k, v in delta.meta.items() if k != "made_by"})
     again = invoke("quickstart", "--out", out, "--minutes", 0.01, "--instances", 1, "--res", 16, "--no-edits", "--device", "cpu")
     assert again.exit_code == 0 and "an earlier quickstart's, made for another model" in again.stderr, again.output
-    assert sorted(p.name for p in (out / "edits").iterdir()) == ["mine.txt"]
+    assert sorted(p.name for p in (out / "edits").iterdir()) == ["mine.txt", "my_edit.safetensors"]
     plain = tmp_path / "plain"
     result = invoke("quickstart", "--out", plain, "--minutes", 0.01, "--instances", 1, "--res", 8, "--no-edits", "--device", "cpu")
     assert result.exit_code == 0, result.output
