@@ -175,15 +175,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=default_data, help="category to train on (default: 8 procedural chairs, made once into runs/scale/chairs)")
     parser.add_argument("--seconds", type=float, default=60.0, help="training time of each run")
     parser.add_argument("--steps", type=int, default=40, help="timed steps per mode of the sync comparison")
-    parser.add_argument("--only", default="one,threads,procs,sync,eight")
-    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "benchmarks" / "scale_out.json")
+    parser.add_argument("--only", default="one,threads,procs,sync,eight", help="runs to make, comma-separated (of one, threads, "
+                        "procs, sync, eight, memory1, memory2)")
+    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "benchmarks" / "scale_out.json", help="results file (runs not made keep theirs)")
     args = parser.parse_args(argv)
+    plan = {"one": (1, 1), "threads": (1, 2), "procs": (2, 1), "sync": (2, 1), "eight": (8, 1), "memory1": (1, 1), "memory2": (2, 1)}
+    unknown = [t for t in args.only.split(",") if t not in plan]
+    if unknown:
+        print(f"error: --only {args.only}: {unknown[0]!r} is not a run (one of {', '.join(plan)})", file=sys.stderr)
+        return 2
     if not (args.data / "instances.txt").is_file():
         if args.data != default_data:  # a typo'd --data made a dataset where it pointed, then trained on it
             print(f"error: --data {args.data}: no category there (instances.txt); leave --data out for the default one", file=sys.stderr)
             return 2
         write_synth_category(args.data, SynthConfig(instances=8, views=20, res=64, seed=0, twins=False))
-    plan = {"one": (1, 1), "threads": (1, 2), "procs": (2, 1), "sync": (2, 1), "eight": (8, 1), "memory1": (1, 1), "memory2": (2, 1)}
     report = json.loads(args.json.read_text()) if args.json.is_file() else {}  # --only updates its runs
     with tempfile.TemporaryDirectory() as tmp:
         for task in args.only.split(","):

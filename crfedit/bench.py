@@ -288,9 +288,11 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
         try:
             appear, selection = twin_appearance(category, case), twin_selection(model, case)
         except CrfError as e:  # e.g. a collapsed model no longer shows the scribbled part
+            why = f"{e}" + ("; does the model render the chair? its training may have collapsed (see the train curve)"
+                            if "background only" in str(e) else "")
             if notes is not None:
-                notes.append(f"edit curves of {case.spec.name} left out: {e}")
-            progress(f"edit curves of {case.spec.name}: left out ({e})")
+                notes.append(f"edit curves of {case.spec.name} left out: {why}")
+            progress(f"edit curves of {case.spec.name}: left out ({why})")
             continue
         for rays, cache in runs:
             label = f"{case.spec.kind}, {rays} rays" + ("" if cache else ", no cache")

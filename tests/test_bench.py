@@ -181,9 +181,10 @@ def test_edit_curves_make_the_edit_eval_makes_and_leave_out_a_diverged_point(mon
     assert notes == ["edit color, 64 rays, 30 steps left out: colour edit diverged: its loss rose"]
 
     def refused(model, c):
-        raise CrfError("the scribble lies on the background only")
+        raise CrfError("the scribble lies on the background only: no scribbled pixel covers the object in its view")
 
     monkeypatch.setattr(bench, "twin_selection", refused)  # a model that collapsed no longer shows the part
     notes.clear()
     assert bench.edit_curves(None, None, settings, lambda message: None, notes) == []
-    assert notes == [f"edit curves of {case.spec.name} left out: the scribble lies on the background only"]
+    assert notes == [f"edit curves of {case.spec.name} left out: the scribble lies on the background only: no scribbled pixel covers "
+                     "the object in its view; does the model render the chair? its training may have collapsed (see the train curve)"]

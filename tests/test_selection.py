@@ -1564,7 +1564,7 @@ def test_scribbled_points_that_look_like_the_keep_strokes_are_strays(monkeypatch
 
 def test_the_strokes_line_says_what_each_rule_left_out():
     assert stroke_summary({}) is None
-    lost = "left out: a brush strays off a thin part)"
+    lost = "left out: a stroke's edge strays off its part)"
     assert stroke_summary({"stroke_centres": {"edge_points": 3}}) == f"their centres lifted (3 edge points {lost}"  # before keep strokes' centres
     assert stroke_summary({"stroke_centres": {"edge_points": 1, "keep_edge_points": 5}}) == (
         f"their centres lifted (1 edge point {lost}; 5 edge points of the keep strokes left out")
@@ -1680,6 +1680,8 @@ def test_a_removal_scribbled_over_the_whole_instance_asks_for_force(trained, tmp
     assert r.exit_code == 2 and "pass --force to remove the whole instance" in r.stderr, r.output
     assert "coverage: the scribble covers" in r.stdout and "shape gate:" not in r.stdout and not (tmp_path / "r.safetensors").exists()
     assert CliRunner().invoke(app, [*args, "--force"]).exit_code == 0
+    r = CliRunner().invoke(app, [*args, "--method", "paper"])  # the paper's losses emptied the chair without a word
+    assert r.exit_code == 2 and "pass --force to remove the whole instance" in r.stderr, r.output
     # the same selection saved by `select` and given to `remove --selection`: the same guard
     sel = tmp_path / "all.sel.safetensors"
     r = CliRunner().invoke(app, ["select", str(path), "--instance", "1", "--view", f"train:{index}", "--scribble", str(tmp_path / "all.png"),

@@ -250,6 +250,8 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
     fg, bg = _masks(*masks, m, k, camera, force) if given else (None, None)  # remove --selection alone
     mode, join_mode = _mode(mirror, method, "--mirror"), _mode(join, method, "--colour-join")
     sel = _selection(selection, m, k, kind, mode, join_mode)
+    if kind == "remove" and method != EditMethod.selection and not force and fg is not None:
+        _refuse_whole_paper_removal(m, k, camera, fg, bg, label)
     if sel is not None and kind == "remove" and not force:  # a saved selection of (nearly) the whole instance, as one lifted here
         from ..edit.selection.base import NEARLY_ALL
 
@@ -263,14 +265,34 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
         from ..edit.selection import coverage_summary
 
         if kind == "remove" and not force and sel.meta.get("whole") is not None:  # asked for, not a slip of view
-            raise CrfError(f"the scribble covers {sel.meta['whole']:.0%} of what view {label} shows of the instance and no keep stroke "
-                           "holds anything back, so the removal would take all of it: pass --force to remove the whole instance, "
-                           "or keep strokes on what must stay")
+            raise _whole_removal(sel.meta["whole"], label)
         if kind == "remove" and not force and coverage_summary(sel.meta) is not None:
             raise CrfError(f"the removal's selection takes {sel.meta['selected_cells']} of the instance's {sel.meta['occupied_cells']} "
                            f"occupied cells, nearly all of it: check that the scribble was drawn on view {label} of this instance "
                            "(crfedit select --preview shows it), or pass --force to remove that much")
     return _Scribbled(m, k, shown, label, camera, fg, bg, mode, sel, join_mode)
+
+
+def _refuse_whole_paper_removal(m, k: int, camera, fg, bg, label: str) -> None:
+    """``remove --method paper`` of a scribble over the whole instance (WHOLE_SCRIBBLE of what
+    the view shows, no keep stroke on it) asks for --force, as the default method does: it
+    emptied the chair without a word where the default refused."""
+    from ..edit.selection.pipeline import WHOLE_SCRIBBLE
+    from ..renderer import render_camera
+
+    on = (render_camera(m.field_for(k), camera, k, colour=False).opacity.reshape(camera.height, camera.width) >= 0.5).cpu().numpy()
+    if not on.any() or (bg is not None and (bg & on).any()):
+        return
+    share = float((fg & on).sum()) / float(on.sum())
+    if share >= WHOLE_SCRIBBLE:
+        raise _whole_removal(share, label)
+
+
+def _whole_removal(share: float, label: str) -> CrfError:
+    """The one line refusing a removal scribbled over the whole instance without --force."""
+    return CrfError(f"the scribble covers {share:.0%} of what view {label} shows of the instance and no keep stroke holds "
+                    "anything back, so the removal would take all of it: pass --force to remove the whole instance, or keep "
+                    "strokes on what must stay")
 
 
 def _lifted(m, k: int, camera, fg, bg, kind: str, mirror: str | None, join: str | None = None):

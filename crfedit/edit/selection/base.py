@@ -199,7 +199,7 @@ def _centres_summary(info: dict) -> str:
         return f"their centres lifted (the strokes' edges lie off the object: no scribbled point left out){keep}"
     if n == 0:  # (a selection file before the sixty-sixth session does not say which)
         return f"lifted whole (strokes one or two pixels wide: every scribbled pixel is lifted){keep}"
-    return f"their centres lifted ({points(n)} left out: a brush strays off a thin part){keep}"
+    return f"their centres lifted ({points(n)} left out: a stroke's edge strays off its part){keep}"
 
 
 NEARLY_ALL = 0.97
