@@ -292,7 +292,7 @@ def check_replaceable(out: Path, option: str, suffixes: tuple[str, ...]) -> None
         raise CrfError(f"{option} {out}: expected a file name ending in {', '.join(suffixes)}")
     folder = out.parent if str(out.parent) else Path(".")
     if not folder.is_dir():
-        raise CrfError(f"{option} {out}: folder {folder} does not exist")
+        raise CrfError(f"{option} {out}: folder {folder} does not exist (make it first: mkdir -p {folder})")
     if not out.exists() or (out.is_file() and out.stat().st_size == 0):
         return
     if not out.is_file():

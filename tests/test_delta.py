@@ -634,6 +634,8 @@ def test_edits_show_table_shortens_hyperparameters():
     assert _short([0.5, 1 / 3, 7]) == "[0.5, 0.3333, 7]"
     assert _short([{"c2w": [[1.0]]}]) == "[1 record]" and _short([{}, {}]) == "[2 records]"
     assert _short("selection") == "selection" and _short(True) == "True" and _short([]) == "[]"
+    # a recolour's widened refit: shown, with the fit it kept (the table left it out and showed the discarded fit's bleed alone)
+    assert _short({"modules": ["F_fuse.bottleneck"], "bleed": 0.01612, "kept": True}) == "{modules=[F_fuse.bottleneck], bleed=0.01612, kept=True}"
 
 
 def test_an_edit_with_nan_is_refused_when_written_not_when_read(tmp_path, model):

@@ -80,6 +80,17 @@ def test_recon_prints_a_table_per_instance_with_the_metric_notes(model_path, dat
     assert "(2/2): " in result.stderr and "s left" in result.stderr
 
 
+def test_recon_of_a_baked_model_says_its_edited_instances_score_as_edited(model_path, data, tmp_path):
+    """A model with an edit baked in scored its edited chair against the unedited data without a
+    word (a tester read 20.8 dB as a bad model, and eval edits' 'unedited' rows were the edit)."""
+    edit, baked = tmp_path / "t.safetensors", tmp_path / "baked.safetensors"
+    assert invoke("transfer", model_path, "--instance", 0, "--color-from", 1, "--out", edit, "--device", "cpu").exit_code == 0
+    assert invoke("edits", "bake", model_path, "--edit", edit, "--out", baked).exit_code == 0
+    result = invoke("eval", "recon", baked, data, "--device", "cpu")
+    assert result.exit_code == 0 and "has 1 edit baked in (crfedit info lists them): the instances they edit are scored as edited" in result.stderr
+    assert "baked in" not in invoke("eval", "recon", model_path, data, "--device", "cpu").stderr
+
+
 def test_recon_json_is_valid_json_with_the_expected_keys(model_path, data):
     result = invoke("eval", "recon", model_path, data, "--json", "--max-views", 1, "--device", "cpu")
     assert result.exit_code == 0, result.output

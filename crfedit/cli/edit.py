@@ -555,6 +555,8 @@ def _short(value) -> str:
         return f"[{len(value)} record{'s' * (len(value) != 1)}]"
     if isinstance(value, list):
         return "[" + ", ".join(_short(v) for v in value) + "]"
+    if isinstance(value, dict):  # a small record (a recolour's widened refit: the fit it kept)
+        return "{" + ", ".join(f"{k}={_short(v)}" for k, v in value.items()) + "}"
     return str(value)
 
 
@@ -587,8 +589,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
         except json.JSONDecodeError:
             hyper = None
         if isinstance(hyper, dict):
-            shown = {k: v for k, v in hyper.items() if not isinstance(v, dict)}
-            rows.append(("hyper", ", ".join(f"{k}={_short(v)}" for k, v in shown.items())))
+            rows.append(("hyper", ", ".join(f"{k}={_short(v)}" for k, v in hyper.items())))
     if meta.get("inputs"):  # digests of what it was made from (and the modes asked for; null: the default)
         inputs = _parsed("inputs", meta["inputs"])
         if isinstance(inputs, dict):

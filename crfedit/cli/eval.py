@@ -108,6 +108,14 @@ def _load(model: Path, data: Path, device: DeviceChoice, strict: bool, split: st
         if strict:
             raise CrfError(warning)
         _err(f"warning: {warning}")
+    try:
+        baked = json.loads(m.meta.get("baked_edits", "[]"))
+    except json.JSONDecodeError:
+        baked = []
+    if isinstance(baked, list) and baked:  # scores of an edited chair against the unedited data read as a bad model
+        _err(f"note: {model} has {len(baked)} edit{'s' * (len(baked) != 1)} baked in (crfedit info lists them): the instances "
+             "they edit are scored as edited, against the dataset's unedited views (and eval edits' 'unedited' rows are this "
+             "baked model)")
     return m, category
 
 
