@@ -143,6 +143,24 @@ def test_strokes_painted_over_the_render(view, tmp_path):
         read(tmp_path / "p.png", view, with_render=False)
 
 
+def test_strokes_painted_over_another_render_keep_the_brush_colour(view, tmp_path):
+    """A stroke painted over a render the model does not make (an edited stack given without its
+    --edit, the dataset's own image) differs from the render there too: every such pixel was
+    read as scribbled.  The brush's flat colour stands out among them: its pixels are the
+    strokes, and the line says how many others were left out."""
+    _, _, render, mask = view
+    other = render.copy()
+    region = np.zeros_like(mask)
+    region[: mask.shape[0] // 3] = True
+    region &= ~mask
+    other[region] = other[region] * 0.5 + np.random.default_rng(1).random((int(region.sum()), 3)) * 0.4  # another render: varied colours
+    painted = other.copy()
+    painted[mask] = PAINT
+    write_png(tmp_path / "p.png", painted)
+    got = read(tmp_path / "p.png", view)
+    assert np.array_equal(got.mask, mask) and "pixels of the brush's colour;" in got.reading and "are left out" in got.reading
+
+
 def test_a_coloured_image_that_is_not_the_render_is_refused(view, tmp_path):
     noise = np.random.default_rng(0).random(view[2].shape)
     write_png(tmp_path / "n.png", noise)
