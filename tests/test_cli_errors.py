@@ -260,3 +260,16 @@ def test_occluded_without_method_paper_is_refused_before_any_work(tiny_model, tm
                "--out", tmp_path / "r.safetensors", "--device", "cpu")
     assert_user_error(r, "--occluded belongs to --method paper")
     assert "selection:" not in r.stderr and not (tmp_path / "r.safetensors").exists()
+
+
+def test_the_removal_line_says_the_selection_and_its_skin():
+    """A --for color selection given to remove has no skin: the line said "the selection with
+    the skin around it" for a skin of 0 cells."""
+    from types import SimpleNamespace
+
+    from crfedit.cli.edit import _skin_text
+
+    assert _skin_text(9244, 8127, None) == "the selection's 8127 and a skin of 1117 around it"
+    assert _skin_text(7077, 7077, SimpleNamespace(meta={"for": "color"})) == (
+        "the selection's 7077, no skin (made --for color, it holds no cell of a removal's lower values)")
+    assert _skin_text(50, 50, None) == "the selection's 50, no skin" and _skin_text(50, None, None) == "the selection with the skin around it"

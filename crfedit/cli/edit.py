@@ -420,9 +420,9 @@ def remove_cmd(
 ) -> None:
     """Remove the scribbled part of one instance (trains F_fuse and F_dens, updates its occupancy grid)."""
     from ..edit import remove
+    from ..edit.shape import check_occluded
 
-    if occluded and method != EditMethod.paper:  # before the selection is lifted and said, not after
-        raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
+    check_occluded(occluded, method.value)  # before the selection is lifted and said, not after
     if selection is None:  # a selection file says what goes by itself
         _require_scribble(scribble, scribble_json, "part to remove (or a --selection file)")
     options = _options(strategy, steps, lr, rays, seed, penalty)
@@ -432,15 +432,25 @@ def remove_cmd(
     result = remove(p.model, p.instance, p.camera, p.scribble, p.keep, occluded, options, method.value, p.selection, p.mirror)
     hyper = json.loads(result.meta.get("hyperparameters", "{}"))
     if "removed_cells" in hyper:  # why the grid loses another count of cells than the selection holds
-        taken, junction, selected = hyper["removed_cells"], hyper["junction_cells"], hyper.get("selected_cells")
-        skin = ("the selection with the skin around it" if selected is None else
-                f"the selection's {selected} and a skin of {taken - selected} around it" if taken > selected else
-                f"the selection's {selected}, no skin (made --for {p.selection.meta['for']}, it holds no cell of a removal's lower values)"
-                if p.selection is not None and p.selection.meta.get("for", "remove") != "remove" else f"the selection's {selected}, no skin")
-        typer.echo(f"removal: {taken} cells, {skin}; {junction} of them touch a kept part and "
-                   f"lose only their side toward the selection, so {taken - junction} leave the occupancy grid")
+        taken, junction = hyper["removed_cells"], hyper["junction_cells"]
+        typer.echo(f"removal: {taken} cells, {_skin_text(taken, hyper.get('selected_cells'), p.selection)}; {junction} of them touch "
+                   f"a kept part and lose only their side toward the selection, so {taken - junction} leave the occupancy grid")
     _write(result, out, p.label, p.inputs())
     _preview(result.model, p.instance, preview, p.shown, views, out)
+
+
+def _skin_text(taken: int, selected: int | None, given) -> str:
+    """What a removal took besides its selection (``selected`` cells; ``given``: a --selection
+    file's, or None): a skin of cells around it, or none, and why when the file was made for
+    another kind of edit."""
+    if selected is None:  # an edit file before the count was recorded
+        return "the selection with the skin around it"
+    if taken > selected:
+        return f"the selection's {selected} and a skin of {taken - selected} around it"
+    made_for = given.meta.get("for", "remove") if given is not None else "remove"
+    if made_for != "remove":
+        return f"the selection's {selected}, no skin (made --for {made_for}, it holds no cell of a removal's lower values)"
+    return f"the selection's {selected}, no skin"
 
 
 @app.command("add")

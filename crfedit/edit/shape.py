@@ -94,6 +94,12 @@ def first_mode(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor) -> Tensor:
     return (idx >= first) & (idx < end) & active.any(dim=-1, keepdim=True)
 
 
+def check_occluded(occluded: bool, method: str) -> None:
+    """``occluded`` belongs to the paper's losses: a selection already says which surfaces go."""
+    if occluded and method != "paper":
+        raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
+
+
 def remove(
     model: CategoryModel,
     instance: int | str,
@@ -119,8 +125,7 @@ def remove(
     if scribble is not None:
         scribble, keep = check_masks(scribble, keep, camera.width, camera.height)
     if method == "selection":
-        if occluded:
-            raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
+        check_occluded(occluded, method)
         if selection is not None:  # the selection says what goes: the scribble, if any, only named it
             return remove_selected(model, k, selection, [camera], options)
         return since(remove_selected(model, k, select_for(model, k, camera, scribble, keep, "remove", mirror), [camera], options), started)
