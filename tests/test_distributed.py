@@ -390,3 +390,18 @@ def test_sigterm_under_torchrun_says_where_it_may_come_from(monkeypatch, capsys)
             command()
         assert e.value.exit_code == 143
         assert capsys.readouterr().err == f"{said}: m.safetensors keeps its checkpoint at step 80\n"
+
+
+def test_a_line_rank_0_prints_too_is_not_printed_again_on_another_node(monkeypatch):
+    """The ranks' settings check raises on every rank; rank 0 prints its line and the others,
+    another node's first process too, keep quiet (it was printed once per node)."""
+    from crfedit.cli.common import _says_it
+    from crfedit.distributed import DistributedError
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("LOCAL_RANK", "0")
+    assert not _says_it(DistributedError("rank 1 of 2 was started with other settings", echoed=True))
+    assert _says_it(DistributedError("rank 1 of 2: averaging gradients failed"))
+    monkeypatch.setenv("RANK", "0")
+    assert _says_it(DistributedError("rank 1 of 2 was started with other settings", echoed=False))

@@ -281,7 +281,7 @@ def _says_it(error: BaseException) -> bool:
     ranks = torchrun_ranks()
     if ranks is None or ranks.main:
         return True
-    if isinstance(error, KeyboardInterrupt):
+    if isinstance(error, KeyboardInterrupt) or getattr(error, "echoed", False):  # rank 0 says the same line
         return False
     if ranks.local_rank == 0:
         return True
@@ -289,8 +289,6 @@ def _says_it(error: BaseException) -> bool:
 
     from ..distributed import DistributedError
 
-    if getattr(error, "echoed", False):  # rank 0 says the same line
-        return False
     joined = dist.is_available() and dist.is_initialized()
     return not isinstance(error, CrfError) or isinstance(error, DistributedError) or joined
 
