@@ -282,6 +282,11 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
             apply_twin_edit(model, chosen[0], EditOptions(steps=1, rays=settings.edit_rays[0], seed=settings.seed))
         except CrfError:  # refused (a collapsed model): each point below says so for itself
             pass
+    def leave_out(what: str, why: str) -> None:
+        if notes is not None:
+            notes.append(f"{what} left out: {why}")
+        progress(f"{what}: left out ({why})")
+
     plain = 1024 if 1024 in settings.edit_rays else settings.edit_rays[0]
     runs = [(rays, True) for rays in settings.edit_rays] + ([(plain, False)] if settings.edit_uncached else [])
     for case in chosen:
@@ -290,9 +295,7 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
         except CrfError as e:  # e.g. a collapsed model no longer shows the scribbled part
             why = f"{e}" + ("; does the model render the chair? its training may have collapsed (see the train curve)"
                             if "background only" in str(e) else "")
-            if notes is not None:
-                notes.append(f"edit curves of {case.spec.name} left out: {why}")
-            progress(f"edit curves of {case.spec.name}: left out ({why})")
+            leave_out(f"edit curves of {case.spec.name}", why)
             continue
         for rays, cache in runs:
             label = f"{case.spec.kind}, {rays} rays" + ("" if cache else ", no cache")
@@ -301,9 +304,7 @@ def edit_curves(model: CategoryModel, category: Category, settings: BenchSetting
                 try:
                     result = apply_twin_edit(model, case, options, appear=appear, selection=selection)
                 except CrfError as e:  # diverged, or refused (a scribble a collapsed model no longer shows): that point only
-                    if notes is not None:
-                        notes.append(f"edit {label}, {steps} steps left out: {e}")
-                    progress(f"edit {label} {steps} steps: left out ({e})")
+                    leave_out(f"edit {label}, {steps} steps", str(e))
                     continue
                 score = score_instance(result.model, case.instance, case.views)
                 rows.append(BenchRow("edit", label, "edit_steps", str(steps), result.seconds, score["psnr"], score["ssim"], score["n"]))
