@@ -274,17 +274,15 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
 
 
 def _refuse_whole_paper_removal(m, k: int, camera, fg, bg, label: str) -> None:
-    """``remove --method paper`` of a scribble over the whole instance (WHOLE_SCRIBBLE of what
-    the view shows, no keep stroke on it) asks for --force, as the default method does: it
-    emptied the chair without a word where the default refused."""
-    from ..edit.selection.pipeline import WHOLE_SCRIBBLE
-    from ..renderer import render_camera
+    """``remove --method paper`` of a scribble over the whole instance (the selection's own
+    rule, :func:`~crfedit.edit.selection.pipeline.whole_share`) asks for --force, as the default
+    method does: it emptied the chair without a word where the default refused."""
+    from ..edit.selection import ScribbleView
+    from ..edit.selection.pipeline import view_on_object, whole_share
 
-    on = (render_camera(m.field_for(k), camera, k, colour=False).opacity.reshape(camera.height, camera.width) >= 0.5).cpu().numpy()
-    if not on.any() or (bg is not None and (bg & on).any()):
-        return
-    share = float((fg & on).sum()) / float(on.sum())
-    if share >= WHOLE_SCRIBBLE:
+    view = ScribbleView(camera, fg, bg)
+    share = whole_share([view], [view_on_object(m.field_for(k), k, view)])
+    if share is not None:
         raise _whole_removal(share, label)
 
 

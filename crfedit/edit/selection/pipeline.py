@@ -23,7 +23,7 @@ from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror
 from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, chromaticity, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
 from .features import SHAPE_SOURCES, CellPoints, FrameTable, cell_opacity, cell_points, group_width, local_frames, local_shape, point_features, surface_points
-from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, STRAY_FLOOR, STRAY_SHARE, SelectOptions, WIDTHS, options_for
+from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, MIN_OPACITY, STRAY_FLOOR, STRAY_SHARE, SelectOptions, WIDTHS, options_for
 from .refine import bilateral_smooth, connected_to, fill_rims, large_pieces, neighbour_table, raised, smooth_over_occupied
 from .shapes import BARS_RADIUS, JOIN_LINES, RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
@@ -46,6 +46,22 @@ and stretchers standing and half the chair stayed."""
 def _on_object(field, k, v: ScribbleView, render: RenderOutput, min_opacity: float) -> np.ndarray:
     """[H, W] bool: the pixels of view ``v`` that show the object (and lift to a surface point)."""
     return surface_points(field, v.camera, k, min_opacity, render)[1].view(v.camera.height, v.camera.width).cpu().numpy()
+
+
+def whole_share(views: Sequence[ScribbleView], on_object: Sequence[np.ndarray]) -> float | None:
+    """The share of what a view shows of the instance its scribble covers, the largest over
+    ``views`` (``on_object``: each view's :func:`_on_object`), when it reaches
+    :data:`WHOLE_SCRIBBLE` and no keep stroke lies on the object in any view (keep strokes on the
+    background hold nothing back); None otherwise."""
+    if any(v.keep is not None and (v.keep & on).any() for v, on in zip(views, on_object)):
+        return None
+    share = max(float((v.scribble & on).sum()) / max(1, int(on.sum())) for v, on in zip(views, on_object))
+    return round(share, 3) if share >= WHOLE_SCRIBBLE else None
+
+
+def view_on_object(field, k, view: ScribbleView, min_opacity: float = MIN_OPACITY) -> np.ndarray:
+    """[H, W] bool: the pixels of ``view`` that show the object, rendered here (opacity only)."""
+    return _on_object(field, k, view, render_camera(field, view.camera, k, colour=False), min_opacity)
 
 
 def _snapped_strokes(views: Sequence[ScribbleView], on_object: Sequence[np.ndarray], share: float) -> tuple[list[ScribbleView], int]:
@@ -303,11 +319,7 @@ def select(
     if options.stroke_centres or options.stroke_snap > 0:  # both read each view's on-object pixels
         renders = [render_camera(field, v.camera, k, colour=False) for v in views] if renders is None else renders
         on_object = [_on_object(field, k, v, r, options.min_opacity) for v, r in zip(views, renders)]
-    whole = None  # see WHOLE_SCRIBBLE
-    # keep strokes on the background hold nothing back: only those on the object say a part was meant
-    if (options.stroke_centres or options.stroke_snap > 0) and not any(v.keep is not None and (v.keep & on).any() for v, on in zip(views, on_object)):
-        share = max(float((v.scribble & on).sum()) / max(1, int(on.sum())) for v, on in zip(views, on_object))
-        whole = round(share, 3) if share >= WHOLE_SCRIBBLE else None
+    whole = whole_share(views, on_object) if options.stroke_centres or options.stroke_snap > 0 else None  # see WHOLE_SCRIBBLE
     if options.stroke_snap > 0:  # see SelectOptions.stroke_snap
         views, added = _snapped_strokes(views, on_object, options.stroke_snap)
         snap_meta = {"added_pixels": added}
