@@ -25,6 +25,7 @@ from crfedit.edit.selection.refine import (
     bilateral_smooth, connected_to, fill_rims, hysteresis, neighbour_table, smooth_over_occupied,
 )
 from crfedit.edit.selection.base import JOIN_WARN, join_summary, stroke_summary
+from crfedit.edit.selection.pipeline import _centre, thin_pieces
 from crfedit.edit.selection.store import quantized
 from crfedit.edit.core import InstanceEdit
 from crfedit.edit.supervised import (
@@ -1494,9 +1495,9 @@ def test_a_stroke_wider_than_its_part_lifts_its_centre(trained):
     _, on = surface_points(model.field_for(k), view.camera, k)
     on = on.view(wide.shape).numpy()
 
-    def centre(m):  # the 1-px erosion where it keeps a fifth of the strokes' surface points and 4
+    def centre(m):  # the 1-px erosion and the thin pieces where it keeps a fifth of the strokes' surface points and 4
         c = erode(m, 1)
-        return c if (c & on).sum() >= max(4, CENTRE_SHARE * (m & on).sum()) else m
+        return c | thin_pieces(m, c) if (c & on).sum() >= max(4, CENTRE_SHARE * (m & on).sum()) else m
 
     edge = lambda m: int((m & on).sum() - (centre(m) & on).sum())
     for kind in ("color", "remove"):
@@ -1515,6 +1516,26 @@ def test_a_stroke_wider_than_its_part_lifts_its_centre(trained):
     sel = select(model, k, [ScribbleView(view.camera, line, None)], options_for("remove"))
     same = select(model, k, [ScribbleView(view.camera, line, None)], dataclasses.replace(options_for("remove"), stroke_centres=False))
     assert torch.equal(sel.values, same.values) and sel.meta["stroke_centres"] == {"edge_points": 0, "keep_edge_points": 0, "whole_views": 1}
+
+
+def test_a_thin_piece_of_a_wide_stroke_is_lifted_whole():
+    """A 2-px strip drawn on from a 7×7 stroke (a seat's edge stroked on from the back) has no
+    erosion: the strip's pixels farther than a pixel from the wide stroke stay, the wide
+    stroke's edge goes (the old rule dropped the strip too, and the seat stayed)."""
+    block = np.zeros((20, 20), bool)
+    block[2:9, 2:9] = True
+    strip = np.zeros_like(block)
+    strip[5:7, 9:18] = True
+    on = np.ones_like(block)
+    strokes = block | strip
+    kept, left_out = _centre(strokes, on)
+    expected = erode(block, 1).copy()
+    expected[5:7, 10:18] = True  # the strip but its column beside the block
+    assert (kept == expected).all() and left_out == int(strokes.sum()) - 25 - 16 == 26
+    assert not thin_pieces(dilate(block, 2), erode(dilate(block, 2), 1)).any()  # a wide stroke alone: no thin piece
+    line = np.zeros_like(block)
+    line[10, 2:18] = True  # a thin scribble alone: lifted whole, as before
+    assert _centre(line, on) == (line, 0)
 
 
 def test_keep_strokes_drawn_onto_the_part_lift_their_centres(trained):

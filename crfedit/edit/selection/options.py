@@ -14,7 +14,8 @@ MIN_OPACITY = 0.5
 CENTRE_SHARE = 0.2
 """:attr:`SelectOptions.stroke_centres` keeps a view's whole scribble (or keep strokes) when
 its 1-px erosion holds less than this share of their surface points (or fewer than 4): strokes
-one or two pixels wide have no centre to trust."""
+one or two pixels wide have no centre to trust.  A thin piece of wider strokes is lifted whole
+beside their erosion (:func:`.pipeline.thin_pieces`)."""
 STROKE_CENTRES = True
 """Every edit kind's :attr:`SelectOptions.stroke_centres`.  On the benchmark twins'
 scribbles, which lie inside their parts, the four models' mean IoUs move by at most 0.004;
