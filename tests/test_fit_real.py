@@ -226,6 +226,33 @@ def test_center_crop_and_area_resize():
     np.testing.assert_allclose(masked.rgb[:, 1], [[0, 0, 0]] * 2)
 
 
+def test_a_faint_alpha_halo_is_not_the_object_and_a_crop_that_cuts_most_of_it_is_refused():
+    """A resampled photo's halo of alpha 1–7/255 around the object is not the object (counted,
+    it started a tester's fit from another chair); an alpha of 0.1 still is (a thin leg area-
+    resized).  A centre crop that drops over half of the object is refused, naming the crop."""
+    rgba = np.zeros((8, 8, 4), np.float32)
+    rgba[2:6, 2:6] = (0.2, 0.3, 0.4, 1.0)
+    rgba[1, 1:7, 3] = rgba[6, 1:7, 3] = 3 / 255  # the halo
+    rgba[2:6, 6, 3] = 0.1  # a faint but real edge
+    photo = prepare_photo(rgba, None, 8, 8)
+    expected = np.zeros((8, 8), bool)
+    expected[2:6, 2:7] = True
+    assert (photo.mask == expected).all()
+    halo = rgba.copy()
+    halo[..., 3] = np.minimum(halo[..., 3], 4 / 255)
+    with pytest.raises(CrfError, match="no pixel's alpha is above 0.05: a faint halo"):
+        prepare_photo(halo, None, 8, 8)
+    wide = np.zeros((8, 32, 4), np.float32)
+    wide[2:6, 1:11] = (0.2, 0.3, 0.4, 1.0)  # columns 1..10; the crop keeps 12..19: all of it goes
+    with pytest.raises(CrfError, match="cuts off 100% of the object's pixels: crop the photo around the object first"):
+        prepare_photo(wide, None, 8, 8, "p.png")
+    wide[2:6, 10:16] = 1.0  # now 4 of 15 columns in the crop: 73% goes, still refused
+    with pytest.raises(CrfError, match="cuts off 73%"):
+        prepare_photo(wide, None, 8, 8)
+    wide[2:6, 1:8, 3] = 0.0  # columns 8..15: half in the crop, the warning's case (photo_warnings), not refused
+    assert prepare_photo(wide, None, 8, 8).mask.sum() == 16
+
+
 def test_photo_warnings_name_a_background_fitted_as_the_object_and_an_upscaled_photo():
     from crfedit.fit_real import photo_warnings
 
