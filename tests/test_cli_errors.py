@@ -273,3 +273,29 @@ def test_the_removal_line_says_the_selection_and_its_skin():
     assert _skin_text(7077, 7077, SimpleNamespace(meta={"for": "color"})) == (
         "the selection's 7077, no skin (made --for color, it holds no cell of a removal's lower values)")
     assert _skin_text(50, 50, None) == "the selection's 50, no skin" and _skin_text(50, None, None) == "the selection with the skin around it"
+
+
+def test_an_option_of_one_value_given_twice_is_refused(monkeypatch, capsys, tmp_path):
+    """Click keeps the last of an option given twice: `remove --view A --scribble a --view B
+    --scribble b` removed what B alone selects while its file recorded both views.  Refused
+    before any file is read, naming the option (and `select` for a view's strokes); an option
+    that repeats (`select --view`) and a flag given twice still pass the check."""
+    from crfedit.cli import app
+    from crfedit.cli.common import repeated_option
+    import typer
+
+    m = str(tmp_path / "m.safetensors")
+    code, _, err = run_main(monkeypatch, capsys, "remove", m, "--instance", "0", "--view", "train:1", "--scribble", "a.png",
+                            "--view=train:2", "--scribble", "b.png", "--out", str(tmp_path / "r.safetensors"))
+    assert code == 2 and err == ("error: --view given 2 times; `crfedit remove` takes one: an edit is drawn on one view; to select "
+                                 "a part from several, repeat --view/--scribble/--keep in `crfedit select` and pass its file as --selection\n"), err
+    code, _, err = run_main(monkeypatch, capsys, "edit-color", m, "--instance", "0", "--view", "train:1", "--scribble", "a.png",
+                            "--color", "red", "--colour", "blue", "--out", str(tmp_path / "r.safetensors"))
+    assert code == 2 and err == "error: --color given 2 times; `crfedit edit-color` takes one\n", err
+    code, _, err = run_main(monkeypatch, capsys, "eval", "edits", m, "d", "--steps", "5", "--steps", "6")
+    assert code == 2 and err == "error: --steps given 2 times; `crfedit eval edits` takes one\n", err
+    root = typer.main.get_command(app)
+    assert repeated_option(root, ["select", m, "--instance", "0", "--view", "train:1", "--scribble", "a.png", "--view", "train:2",
+                                  "--scribble", "b.png", "--out", "s.safetensors"]) is None
+    assert repeated_option(root, ["remove", m, "--force", "--force", "--instance", "0"]) is None
+    assert repeated_option(root, ["nonsense", "--view", "a", "--view", "b"]) is None  # click's own error says it

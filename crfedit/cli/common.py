@@ -49,6 +49,43 @@ class ReadableGroup(typer.core.TyperGroup):
         super().__init__(*args, **kwargs)
         _readable_tree(self)
 
+    def parse_args(self, ctx, args):
+        problem = repeated_option(self, args)
+        if problem is not None:
+            raise CrfError(problem)
+        return super().parse_args(ctx, args)
+
+
+SCRIBBLE_OPTIONS = ("view", "scribble", "scribble_json", "keep", "keep_json")
+"""The options of one scribbled view: ``select`` repeats them, the edits take one set."""
+
+
+def repeated_option(group, args: list[str]) -> str | None:
+    """Why ``args`` (the command line after ``crfedit``) is refused, or None: an option that takes
+    one value given more than once.  Click keeps the last silently, so ``remove --view train:23
+    --scribble a.png --view train:22 --scribble b.png`` removed what the second view alone
+    selects while its file recorded both views."""
+    command, rest, path = group, list(args), []
+    while hasattr(command, "commands"):  # down to the command the words name
+        words = [i for i, a in enumerate(rest) if not a.startswith("-")]
+        if not words or rest[: words[0]].count("--") or rest[words[0]] not in command.commands:
+            return None  # click says what is wrong with it
+        command, path, rest = command.commands[rest[words[0]]], path + [rest[words[0]]], rest[words[0] + 1 :]
+    single = {o: p for p in command.params if p.param_type_name == "option" and not (p.multiple or p.count or p.is_flag) for o in p.opts}
+    seen: dict[str, list[str]] = {}
+    for a in rest[: rest.index("--")] if "--" in rest else rest:
+        p = single.get(a.split("=", 1)[0])
+        if p is not None:
+            seen.setdefault(p.name, []).append(a.split("=", 1)[0])
+    for name, given in seen.items():
+        if len(given) > 1:
+            hint = ""
+            if name in SCRIBBLE_OPTIONS and "select" in group.commands:
+                hint = (": an edit is drawn on one view; to select a part from several, repeat --view/--scribble/--keep in "
+                        "`crfedit select` and pass its file as --selection")
+            return f"{given[0]} given {len(given)} times; `crfedit {' '.join(path)}` takes one{hint}"
+    return None
+
 
 app = typer.Typer(
     name="crfedit",
