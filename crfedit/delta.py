@@ -402,9 +402,14 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
         prefix.append(fp)
         if chain_fingerprint(base, prefix) == parent:
             after = ", ".join(n for j, n in enumerate(names) if j != position and j <= i)
+            if i < position:  # its stack is a shorter run of the files before it: the rest do not belong there
+                extra = [str(n) for n in names[i + 1 : position]]
+                return ModelFileError(f"{where}was made after {after} alone, not after {', '.join(extra)}: leave "
+                                      f"{'it' if len(extra) == 1 else 'them'} out before it, or re-pin with `crfedit edits rebase`")
             return ModelFileError(f"{where}was made after {after}; pass the --edit files in the order they were made")
-    made_on = _command_edits(delta.meta.get("command", ""))  # the stack it was made on, as its command named it
-    told = (f"; it was made on {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}), here {position} come before it"
+    made_on = _made_on(delta)
+    made = "re-pinned onto" if delta.meta.get("rebased") else "made on"
+    told = (f"; it was {made} {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}), here {position} come before it"
             if made_on else "; or it was re-pinned onto a model with edits baked in: apply it to that one" if position == 0 and not applied
             else "")
     return ModelFileError(
@@ -412,6 +417,19 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
         f"expected {chain_fingerprint(base, list(applied) + fps[:position]) or 'none'}{told}); "
         "pass the --edit files in the order they were made, or re-pin them with `crfedit edits rebase`"
     )
+
+
+def _made_on(delta: Delta) -> list[str]:
+    """The ``--edit`` files ``delta`` was made on as its command line named them, or, for a file
+    re-pinned by ``crfedit edits rebase``, the files given before it in the last rebase (its
+    ``command`` still names the stack it was first made on)."""
+    rebased = delta.meta.get("rebased")
+    if not rebased:
+        return _command_edits(delta.meta.get("command", ""))
+    given = _command_edits(rebased.split("; then ")[-1])
+    own = os.path.basename(str(delta.path))
+    at = next((i for i, e in enumerate(given) if os.path.basename(e) == own), None)
+    return given[:at] if at is not None else []
 
 
 def _command_edits(command: str) -> list[str]:
@@ -508,11 +526,13 @@ def restack(model: CategoryModel, deltas: Sequence[Delta]) -> tuple[CategoryMode
     Each keeps its change; an edit made after one that is now left out was optimized on top of
     it, and applies without it.  Every file must be made for ``model`` (its ``base``); instances
     and tensors are checked as :func:`apply_deltas` checks them."""
-    base, _ = stack_of(model)
+    base, applied = stack_of(model)
     current, out = model, []
-    for d in deltas:
+    for i, d in enumerate(deltas):
         if d.meta["base"] != base:
             raise _base_error(d, model, base)
+        if d.fingerprint in applied or d.fingerprint in [e.fingerprint for e in deltas[:i]]:  # re-pinned, it applied twice
+            raise _order_error(d, i, deltas, base, applied, "baked_edits" in model.meta)
         pinned = rebase(d, current)
         current = apply_deltas(current, [pinned])
         out.append(pinned)

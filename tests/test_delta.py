@@ -614,7 +614,7 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     assert again.exit_code == 0 and "a.safetensors: remove edit of chair_0, unchanged (already in this place), replacing the edit file there" in again.output
     (out / "c.safetensors").write_text("notes, not an edit")  # a file of the same name that is not an edit: refused, kept
     assert_user_error(runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)]),
-                      "c.safetensors", "not crfedit's")
+                      "c.safetensors", "not crfedit's", "pick another folder")
     assert (out / "c.safetensors").read_text() == "notes, not an edit"
     into_inputs = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--out-dir", str(tmp_path)])
     assert_user_error(into_inputs, "holds the input")
@@ -624,6 +624,37 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     wrong = runner.invoke(app, ["edits", "rebase", str(tmp_path / "other.safetensors"), "--edit", str(b), "--out-dir", str(tmp_path / "o")])
     assert_user_error(wrong, "made for model")
     assert not (tmp_path / "o").exists()
+
+
+def test_rebase_refuses_an_edit_baked_in_or_given_twice_and_check_names_the_rebased_stack(tmp_path, model, monkeypatch):
+    """`edits rebase` re-pinned an edit already baked into the model, or one given twice, and
+    the stack then applied it twice (a recolour's red 182 → 231); it refuses both as `check`
+    does.  `check` of a re-pinned file names the stack it was re-pinned onto (it named the one
+    it was first made on), and a file made after fewer of the files before it says which do not
+    belong (it said to pass them in the order they were made, which they were)."""
+    save_model(tmp_path / "m.safetensors", model)
+    m, _ = load_model(tmp_path / "m.safetensors")
+    a = delta_file(tmp_path, "a.safetensors", m, 0, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    b = delta_file(tmp_path, "b.safetensors", apply_edit_files(m, [a]), 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    c = delta_file(tmp_path, "c.safetensors", apply_edit_files(m, [a, b]), 0, "color", {"F_rad.out.bias": 0.3}, ("F_rad.",))
+    runner, bare = CliRunner(), str(tmp_path / "m.safetensors")
+    assert runner.invoke(app, ["edits", "bake", bare, "--edit", str(a), "--out", str(tmp_path / "baked.safetensors")]).exit_code == 0
+    baked = runner.invoke(app, ["edits", "rebase", str(tmp_path / "baked.safetensors"), "--edit", str(a), "--out-dir", str(tmp_path / "x")])
+    assert_user_error(baked, "a.safetensors: is already baked into this model; leave it out")
+    (tmp_path / "cpy").mkdir()
+    again = tmp_path / "cpy" / "a.safetensors"
+    again.write_bytes(a.read_bytes())
+    twice = runner.invoke(app, ["edits", "rebase", bare, "--edit", str(a), "--edit", str(again), "--out-dir", str(tmp_path / "y")])
+    assert_user_error(twice, "is given twice")
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    out = tmp_path / "no_b"
+    args = ["edits", "rebase", bare, "--edit", str(a), "--edit", str(c), "--out-dir", str(out)]
+    monkeypatch.setattr(sys, "argv", ["crfedit", *args])  # the file's record of the rebase (CliRunner leaves pytest's argv)
+    assert runner.invoke(app, args).exit_code == 0
+    alone = runner.invoke(app, ["edits", "check", bare, "--edit", str(out / "c.safetensors")])
+    assert_user_error(alone, f"it was re-pinned onto 1 edit ({a}), here 0 come before it")
+    extra = runner.invoke(app, ["edits", "check", bare, "--edit", str(a), "--edit", str(b), "--edit", str(out / "c.safetensors")])
+    assert_user_error(extra, f"was made after {a} alone, not after {b}: leave it out before it")
 
 
 def test_edits_show_table_shortens_hyperparameters():

@@ -211,7 +211,8 @@ def check_kind_suffix(out: Path, what: str, example: str, label: str) -> None:
 
 
 def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", example: str = "edit.safetensors",
-                   writes: str = EDIT_FORMAT, overwrite: bool = False, label: str | None = None) -> None:
+                   writes: str = EDIT_FORMAT, overwrite: bool = False, label: str | None = None,
+                   instead: str = "pick another name") -> None:
     """A command's one ``--out`` file, checked before any work: not one of the files the command
     reads (``inputs``: the option's name → a path, a list of paths or None; ``MODEL`` for the
     model argument), since the finished write would replace it; not a folder, device or pipe;
@@ -221,7 +222,8 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
     ``train --overwrite``); not named as another kind of file (:data:`OTHER_KINDS`); in a
     folder that exists and can be written.  An edit or selection
     replaces one of its own kind, or an empty file (``mktemp``): both are seconds to remake.
-    ``label`` starts the error lines (default ``--out OUT``)."""
+    ``label`` starts the error lines (default ``--out OUT``); ``instead`` ends them (a folder
+    option's outputs are named after its inputs: "pick another folder")."""
     label = label or f"--out {out}"
     if out.exists():
         for option, given in inputs.items():
@@ -240,12 +242,12 @@ def check_out_file(out: Path, inputs: dict[str, object], what: str = "edit", exa
         held = file_format(out)  # None: not a crfedit file
         kinds = {MODEL_FORMAT: "model", EDIT_FORMAT: "edit", SELECTION_FORMAT: "selection"}
         if held not in kinds and out.stat().st_size > 0:
-            raise CrfError(f"{label}: holds a file that is not crfedit's, which the {what} would replace; pick another name")
+            raise CrfError(f"{label}: holds a file that is not crfedit's, which the {what} would replace; {instead}")
         if held != writes:
             if held in kinds:
-                raise CrfError(f"{label}: is a crfedit {kinds[held]} file, which the {what} would replace; pick another name")
+                raise CrfError(f"{label}: is a crfedit {kinds[held]} file, which the {what} would replace; {instead}")
         elif held == MODEL_FORMAT and not overwrite:
-            raise CrfError(f"{label}: is a crfedit model already; replace it with --overwrite, or pick another name")
+            raise CrfError(f"{label}: is a crfedit model already; replace it with --overwrite, or {instead}")
     folder = out.parent if str(out.parent) else Path(".")
     if not folder.is_dir():
         under = next((p for p in (folder, *folder.parents) if p.exists()), None)

@@ -706,7 +706,7 @@ def rebase_cmd(
             raise CrfError(f"--out-dir {out_dir}: holds the input {p} itself; write the re-pinned files to another folder")
     there = [out_dir / p.name for p in edit if (out_dir / p.name).exists()]
     for target in there:  # an edit may replace an edit, never another kind of file
-        check_out_file(target, {"--edit": edit}, "re-pinned edit", label=f"--out-dir {out_dir}: {target.name}")
+        check_out_file(target, {"--edit": edit}, "re-pinned edit", label=f"--out-dir {out_dir}: {target.name}", instead="pick another folder")
     m, _ = load_model(model, "cpu")
     deltas = [read_delta(p) for p in edit]
     _, pinned = restack(m, deltas)  # everything checked before anything is written
