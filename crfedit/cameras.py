@@ -28,6 +28,12 @@ class Camera:
     width: int
     height: int
 
+    def __post_init__(self):
+        if not isinstance(self.c2w, np.ndarray):  # a nested list from a script: an array, as every reader makes
+            _, problem = c2w_problem(self.c2w)
+            if problem is None:
+                object.__setattr__(self, "c2w", np.array(self.c2w, dtype=np.float64).reshape(4, 4))
+
     @property
     def camera_angle_x(self) -> float:
         """Horizontal field of view in radians (the NeRF-synthetic ``camera_angle_x``)."""
@@ -169,12 +175,19 @@ def camera_problem(camera: Camera) -> str | None:
     return None
 
 
+def require_camera(camera, what: str = "camera") -> Camera:
+    """``camera``, or a one-line :class:`~crfedit.errors.CrfError` naming what
+    :func:`camera_problem` refuses (a view spec string given for a Camera failed deep inside)."""
+    problem = camera_problem(camera)
+    if problem:
+        raise CrfError(f"{what}: {problem}")
+    return camera
+
+
 def rays_from_camera(camera: Camera, device: torch.device | str = "cpu") -> Rays:
     """All rays of ``camera`` in row-major pixel order, float32 on ``device``; a camera
     :func:`camera_problem` refuses is a one-line :class:`~crfedit.errors.CrfError`."""
-    problem = camera_problem(camera)
-    if problem:
-        raise CrfError(f"camera: {problem}")
+    require_camera(camera)
     d_cam = ray_directions_camera(camera.width, camera.height, camera.focal)
     c2w = torch.as_tensor(camera.c2w, dtype=torch.float64)
     d = d_cam @ c2w[:3, :3].T

@@ -39,6 +39,7 @@ from .metrics import lpips_unavailable_reason, score_images
 from .model import CategoryModel
 from .parts import labelled_names
 from .renderer import RenderOutput, render_camera
+from .runtime import resolve_device
 from .train import train
 from .twin_scores import appearance, changed_regions, gap_closed, region_scores, selection_iou
 
@@ -161,7 +162,7 @@ def score_model(
 ) -> dict:
     """PSNR / SSIM (and LPIPS when weights are configured) of the model's renders of ``split``.
 
-    ``instances`` are model indices (default: every model instance that ``category`` holds; a
+    ``instances`` are model indices or names (default: every model instance that ``category`` holds; a
     given one that it lacks is an error); each is matched to the dataset's instance of the same
     name, and its first ``max_views`` views of ``split`` (default: all) are rendered with the
     dataset's cameras and scored against its images (:func:`score_instance`).  Returns::
@@ -183,7 +184,7 @@ def score_model(
             shown = ", ".join(model.names[:4]) + (", …" if len(model.names) > 4 else "")
             raise CrfError(f"none of the model's instances ({shown}) is in {category.root}")
     else:
-        indices = list(instances)
+        indices = [model.instance_index(k) for k in instances]  # names too; an unknown one is one line
         missing = [model.names[k] for k in indices if model.names[k] not in category.names]
         if missing:
             raise CrfError(f"instance {missing[0]!r} of the model is not in the dataset {category.root}")
@@ -448,6 +449,9 @@ def evaluate_edits(
          "part_labels_seen": the twins' sources whose part maps trained F_part (None: unknown),
          "settings": the seed and the edits' options the scores depend on}
 
+    The edits run where ``model`` is (move it with ``model.to``); ``device`` (checked: cuda
+    without one is an error) is where the single-instance NeRFs train.
+
     ``seconds`` is the edit's optimization time (0 for ``unedited``), measured after a one-step
     warm-up edit that absorbs the process's one-off costs.  A strategy the model's
     architecture cannot use for a kind of twin (``codes`` without a separate code of that kind)
@@ -456,6 +460,7 @@ def evaluate_edits(
     """
 
     options = options or EditOptions()
+    device = resolve_device(device)
     unknown = [s for s in strategies if s not in STRATEGIES]
     if unknown:
         raise CrfError(f"--strategies {','.join(strategies)}: {unknown[0]!r} is not one of {', '.join(STRATEGIES)}")

@@ -36,8 +36,22 @@ SSIM_K2 = 0.03
 
 
 def _as_tensor(image, dtype: torch.dtype | None = None) -> Tensor:
-    t = image if isinstance(image, Tensor) else torch.as_tensor(np.asarray(image))
+    if isinstance(image, Tensor):
+        t = image
+    else:
+        a = np.asarray(image)
+        t = torch.as_tensor(a if a.flags.writeable else a.copy())  # an array read from PIL is read-only: torch warned
     return t.to(dtype) if dtype is not None else t
+
+
+def _unit_range(images, what: str) -> None:
+    """Refuse ``images`` that are not floats in [0, 1] (uint8 ones scored −36 dB)."""
+    for i, image in enumerate(images):
+        t = _as_tensor(image)
+        if not (t.is_floating_point() or t.dtype == torch.bool):
+            raise CrfError(f"{what} {i}: values are {str(t.dtype).replace('torch.', '')}; give floats in [0, 1] (8-bit images divided by 255)")
+        if t.numel() and (float(t.min()) < -1e-3 or float(t.max()) > 1 + 1e-3):
+            raise CrfError(f"{what} {i}: values span {float(t.min()):.4g}…{float(t.max()):.4g}; give floats in [0, 1]")
 
 
 def _check_pair(pred: Tensor, target: Tensor) -> None:
@@ -352,7 +366,7 @@ def score_images(
     """Mean PSNR, SSIM and LPIPS over a set of image pairs, for evaluation tables.
 
     preds, targets: sequences of ``[H, W, 3]`` images (sizes may differ between pairs) or
-    stacked ``[N, H, W, 3]`` arrays, values in [0, 1].  Returns::
+    stacked ``[N, H, W, 3]`` arrays, floats in [0, 1] (others are refused: :class:`CrfError`).  Returns::
 
         {"n": N, "psnr": mean dB (inf if any pair is identical), "ssim": mean,
          "lpips": mean or None, "lpips_note": None or why LPIPS was skipped}
@@ -365,6 +379,8 @@ def score_images(
         raise ValueError(f"{len(preds)} predictions for {len(targets)} targets")
     if len(preds) == 0:
         raise ValueError("no images to score")
+    _unit_range(preds, "prediction")
+    _unit_range(targets, "target")
     path = lpips_weights_path(lpips_weights)
     weights, note = None, None
     if path is None:

@@ -80,10 +80,11 @@ class CategoryModel:
     def fingerprint(self) -> str:
         return fingerprint(self.state())
 
-    def field_for(self, instance: int) -> ConditionalRadianceField:
-        """The field that renders ``instance``: the shared one, or a copy carrying the tensors
-        (weights, code tables, occupancy) that edits of this instance replaced."""
-        params = self.overrides.get(instance)
+    def field_for(self, instance: int | str) -> ConditionalRadianceField:
+        """The field that renders ``instance`` (a name or an index, :meth:`instance_index`): the
+        shared one, or a copy carrying the tensors (weights, code tables, occupancy) that edits
+        of this instance replaced.  (A name, looked up by index alone, gave the unedited field.)"""
+        params = self.overrides.get(self.instance_index(instance))
         if not params:
             return self.field
         f = copy.deepcopy(self.field)

@@ -22,11 +22,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from . import occupancy
 from .cameras import Camera, Rays, narrow_view, rays_from_camera
+from .cameras import camera_problem as camera_fault
 from .errors import CrfError
 from .names import whole_number
 from .field import ConditionalRadianceField, FieldNet
@@ -333,6 +335,9 @@ def camera_problem(camera: Camera, aabb: Tensor) -> str | None:
     """Why ``camera`` cannot render the scene in box ``aabb`` (too far for float32, a field of
     view too narrow), for an error line; None when it can.  Checked by :func:`render_camera`, and
     by a render of many views before the first (so the line names the view)."""
+    fault = camera_fault(camera)  # a camera no scene can use (focal 0: the field of view divided by it)
+    if fault:
+        return fault
     far = camera_far_problem(camera, aabb)
     if far:
         return far
@@ -359,6 +364,8 @@ def render_camera(
     instance = k
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise CrfError(f"render: chunk {chunk!r} must be a whole number of rays, at least 1")
+    if isinstance(background, bool) or not isinstance(background, (int, float, np.floating)) or not 0.0 <= background <= 1.0:
+        raise CrfError(f"render: background {background!r} must be a grey level from 0 to 1 (a NaN one rendered every pixel NaN)")
     device = field.aabb.device
     problem = camera_problem(camera, field.aabb)
     if problem:

@@ -74,9 +74,11 @@ def parse_resolution(value: str | int | None, option: str = "--res") -> int | No
     return int(text)
 
 
-def resolve_views(spec: str, model, instance: int, res: int | None = None) -> list[tuple[str, Camera]]:
+def resolve_views(spec: str, model, instance: int | str, res: int | None = None) -> list[tuple[str, Camera]]:
     """(label, camera) for each view ``spec`` names, in order; labels read ``test:3``, ``orbit:36@30:5``,
-    ``camera_path.json:12``.  ``model`` is a :class:`~crfedit.model.CategoryModel`."""
+    ``camera_path.json:12``.  ``model`` is a :class:`~crfedit.model.CategoryModel`; ``instance``
+    a name or an index."""
+    instance = model.instance_index(instance)
     spec = str(spec).strip()
     if not spec:
         raise CrfError("view spec is empty (expected e.g. test, test:0-4, orbit:36 or a camera JSON file)")

@@ -6,6 +6,7 @@ a traceback from deep inside.  Loading leaves torch's global random stream alone
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -126,3 +127,53 @@ def test_an_edit_s_seconds_count_the_selection_it_made(scene, monkeypatch):
     assert result.seconds >= 0.3 and result.meta["seconds"] == f"{result.seconds:.3f}"
     given = remove(model, 0, camera, scribble, options=FAST, selection=slow(model, 0, camera, scribble, None, "remove"))
     assert given.seconds < 0.3 <= result.seconds
+
+
+def test_names_for_instances_and_the_library_s_own_checks(scene, tmp_path):
+    """What a script author met (sixty-seventh session): ``field_for`` of a name gave the
+    unedited field; ``resolve_views`` and ``score_model`` failed deep inside on a name; a view
+    spec string or a focal of 0 given for a camera, a NaN background, uint8 images to score,
+    reserved keys in ``save``'s provenance (a file crfedit then refused) — each one CrfError line,
+    or the right answer.  ``select_for`` records the kind it selected for, as ``select --for``."""
+    from dataclasses import replace
+
+    from crfedit.cameras import Camera
+    from crfedit.delta import read_delta
+    from crfedit.metrics import score_images
+    from crfedit.views import resolve_views
+
+    model, camera, scribble = scene
+    result = edit_color(model, 0, camera, scribble, "red", options=FAST)
+    edited = result.model
+    name = edited.names[0]
+    field = edited.field_for(name)
+    assert field is not edited.field and all(torch.equal(a, b) for a, b in zip(field.parameters(), edited.field_for(0).parameters()))
+    with pytest.raises(CrfError, match="out of range"):
+        edited.field_for(99)
+    assert [c.c2w.tolist() for _, c in resolve_views("train:0", model, name)] == [c.c2w.tolist() for _, c in resolve_views("train:0", model, 0)]
+    listed = Camera(camera.c2w.tolist(), camera.focal, camera.width, camera.height)
+    assert isinstance(listed.c2w, np.ndarray) and torch.equal(render_camera(model.field, listed, 0).rgb, render_camera(model.field, camera, 0).rgb)
+    with pytest.raises(CrfError, match="camera: focal 0.0 must be a positive number"):
+        render_camera(model.field, replace(camera, focal=0.0), 0)
+    with pytest.raises(CrfError, match="background nan must be a grey level from 0 to 1"):
+        render_camera(model.field, camera, 0, background=float("nan"))
+    with pytest.raises(CrfError, match="camera: expected a Camera, not str"):
+        remove(model, 0, "train:0", scribble, options=FAST)
+    image = np.full((8, 8, 3), 128, np.uint8)
+    with pytest.raises(CrfError, match="prediction 0: values are uint8; give floats in"):
+        score_images([image], [image])
+    read_only = np.full((8, 8, 3), 0.5, np.float32)
+    read_only.flags.writeable = False
+    with warnings.catch_warnings():  # an array read from PIL is read-only: torch warned on stderr
+        warnings.simplefilter("error")
+        assert score_images([read_only], [read_only])["psnr"] == float("inf")
+    with pytest.raises(CrfError, match="save: instance, kind are the edit's own metadata"):
+        result.save(tmp_path / "e.safetensors", kind="recolour", instance="other")
+    result.save(tmp_path / "e.safetensors", note="kept")
+    assert read_delta(tmp_path / "e.safetensors").meta["note"] == "kept"
+    assert select_for(model, 0, camera, scribble, None, "remove").meta["for"] == "remove"
+    from crfedit.evaluation import evaluate_edits
+
+    with pytest.raises(CrfError, match="tpu"):  # the baseline's device, checked before any work (it was ignored)
+        evaluate_edits(model, None, [], device="tpu")
+

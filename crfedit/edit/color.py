@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-from ..cameras import Camera
+from ..cameras import Camera, require_camera
 from ..model import CategoryModel
 from ..errors import CrfError
 from ..names import EDIT_METHODS
@@ -55,7 +55,7 @@ def edit_color(
     options = options.validated()
     k = model.instance_index(instance)
     rgb = as_rgb(color)
-    scribble, keep = check_masks(scribble, keep, camera.width, camera.height)
+    scribble, keep = check_masks(scribble, keep, require_camera(camera).width, camera.height)
     if method not in EDIT_METHODS:
         raise CrfError(f"--method {method}: expected one of {', '.join(EDIT_METHODS)}")
     if method == "selection":

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from .. import occupancy
 from ..cameras import Camera, Rays, rays_from_camera
-from ..delta import Delta, apply_deltas, make_delta, save_delta
+from ..delta import RESERVED, Delta, apply_deltas, make_delta, save_delta
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..model import CategoryModel
@@ -77,7 +77,9 @@ class EditOptions:
     runs the whole field on the edit's samples (the same result, slower: a benchmark knob)."""
     on_step: Callable[[int, float], None] | None = None
     """Called after each optimization step with (step, loss), 1-based; an exception it raises
-    ends the edit before anything is returned or written (``crfedit ui``: progress and cancel)."""
+    ends the edit before anything is returned or written (``crfedit ui``: progress and cancel).
+    A recolour fitted a second time (:data:`~crfedit.edit.supervised.BLEED_LIMIT`) counts that
+    fit's steps from 1 again."""
 
     def validated(self) -> "EditOptions":
         checks = [
@@ -111,7 +113,13 @@ class EditResult:
 
     def save(self, path, **extra_meta: str) -> None:
         """Write the delta atomically; ``extra_meta`` (``command``, ``view`` …) is provenance
-        only and does not change the edit's fingerprint."""
+        only and does not change the edit's fingerprint; the keys that make up the edit itself
+        (``kind``, ``instance``, ``fingerprint`` …: :data:`~crfedit.delta.RESERVED`) are refused
+        (overwritten, they wrote a file crfedit then refused to load)."""
+        clash = sorted(set(extra_meta) & set(RESERVED))
+        if clash:
+            raise CrfError(f"save: {', '.join(clash)} {'is' if len(clash) == 1 else 'are'} the edit's own metadata, not provenance; "
+                           "give other keys")
         save_delta(path, self.tensors, {**self.meta, **{k: str(v) for k, v in extra_meta.items()}})
 
 

@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from .. import occupancy
-from ..cameras import Camera, Rays
+from ..cameras import Camera, Rays, require_camera
 from ..errors import CrfError
 from ..masks import as_mask
 from ..field import ConditionalRadianceField
@@ -122,6 +122,7 @@ def remove(
         raise CrfError(f"--method {method}: expected one of {', '.join(EDIT_METHODS)}")
     if scribble is None and (method != "selection" or selection is None):
         raise CrfError("a removal needs its scribble, or a selection to remove (with --method selection)")
+    require_camera(camera)
     if scribble is not None:
         scribble, keep = check_masks(scribble, keep, camera.width, camera.height)
     if method == "selection":
@@ -267,8 +268,8 @@ def add(
     k, j = model.instance_index(instance), model.instance_index(donor)
     if k == j and tuple(offset) == (0, 0):
         raise CrfError(f"add: {model.names[k]} is its own donor at offset 0,0: the part is already there (give another --donor, or an --offset)")
-    donor_camera = donor_camera or camera
-    w, h = camera.width, camera.height
+    donor_camera = require_camera(donor_camera or camera, "donor camera")
+    w, h = require_camera(camera).width, camera.height
     if (donor_camera.width, donor_camera.height) != (w, h):
         raise CrfError(f"--donor-view is {donor_camera.width}x{donor_camera.height} but --view is {w}x{h}; use views of one size")
     if method != "selection" and not same_camera(camera, donor_camera):

@@ -578,6 +578,7 @@ def select_for(
     with the ``mirror`` and ``join`` modes): what ``edit-color``, ``remove`` and ``add`` compute
     when not given one, and what the commands print before they edit."""
     sel = select(model, instance, [ScribbleView(camera, scribble, keep)], options_for(kind, mirror, join), renders=renders)
+    sel.meta["for"] = kind  # as `crfedit select --for` records it: an edit of another kind given the file says so
     if join is not None:
         sel.meta["colour_join"] = join  # the mode asked for, which join_summary names
     return sel
