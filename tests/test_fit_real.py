@@ -349,6 +349,26 @@ def test_check_new_name(setup):
 # ----------------------------------------------------------------------------- the command
 
 
+def test_a_camera_file_of_another_size_is_fitted_at_the_model_s_size_and_says_so(setup, tmp_path):
+    """A --pose camera JSON that declares 2× the model's size: the fit runs at the model's
+    training size (the photo area-resized to it, the focal scaled), as before, and a note says
+    so (the declared size was dropped without a word)."""
+    path, _, held = setup
+    model, _ = load_model(path)
+    cam = model.views["train"].cameras(0)[0]
+    (tmp_path / "cam.json").write_text(json.dumps({"transform_matrix": cam.c2w.tolist(), "camera_angle_x": cam.camera_angle_x,
+                                                   "width": 2 * cam.width, "height": 2 * cam.height}))
+    photo = tmp_path / "p.png"
+    shutil.copy(held.path / "train" / "r_000.png", photo)
+    result = invoke("fit-real", path, photo, "--pose", tmp_path / "cam.json", "--out", tmp_path / "f.safetensors",
+                    "--steps-codes", 1, "--steps-joint", 1, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert (f"note: --pose {tmp_path / 'cam.json'}: a {2 * cam.width}x{2 * cam.height} camera; fit-real fits at the model's "
+            f"training size, {cam.width}x{cam.height} (focal scaled with it)") in result.stderr, result.stderr
+    recorded = json.loads(read_delta(tmp_path / "f.safetensors").meta["hyperparameters"])["camera"]
+    assert (recorded["width"], recorded["height"]) == (cam.width, cam.height) and recorded["focal"] == pytest.approx(cam.focal)
+
+
 def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     path, _, held = setup
     photo = tmp_path / "my_chair.png"

@@ -114,10 +114,15 @@ def fit_real_cmd(
     check_new_name(m, name, name_from)
     j = instance_option(m, pose_instance, "--pose-instance")
     train = m.views.get("train")
-    views = resolve_views(pose, m, j, train.width if train is not None else None)
+    views = resolve_views(pose, m, j)
     if len(views) != 1:
         raise CrfError(f"--pose {pose}: names {len(views)} views; the photo has exactly one ({one_view_hint(pose)})")
     label, camera = views[0]
+    if train is not None and camera.width != train.width:  # a camera file's own size: the fit runs at the model's
+        fitted = camera.resized(train.width)
+        typer.echo(f"note: --pose {pose}: a {camera.width}x{camera.height} camera; fit-real fits at the model's training size, "
+                   f"{fitted.width}x{fitted.height} (focal scaled with it), and the photo is area-resized to that", err=True)
+        camera = fitted
     label = one_view_label(pose, label)
     prepared = prepare_photo(image, object_mask, camera.width, camera.height, str(mask or photo))
     for line in photo_warnings(image, object_mask, camera.width, camera.height):
