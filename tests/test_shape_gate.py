@@ -187,7 +187,16 @@ def test_free_pieces_keep_the_loose_pieces_of_their_share(free, kept_apart, piec
     if pieces is None:
         assert said == {}
         return
+    kept_grid = chosen.clone()
+    kept_grid[:4] = False  # the bar (x = 2, 3) is reached, not a kept piece
+    assert torch.equal(said["pieces"], kept_grid)
+    said = pipeline._kept_pieces(said, chosen)  # counted in the final selection
     assert said == {"share": free, "reached": 20, "kept_pieces": pieces[0], "kept_cells": kept_apart, "left_cells": 12 - kept_apart}
+    if kept_apart:  # a later veto drops the 10-cell piece (x = 10): the line counts what is left (it said the count before)
+        vetoed = chosen.clone()
+        vetoed[10] = False
+        fewer = pipeline._kept_pieces({**said, "pieces": kept_grid}, vetoed)
+        assert fewer["kept_cells"] == kept_apart - 10 and fewer["kept_pieces"] == pieces[0] - 1
     line = pieces_summary({"free_pieces": said})
     assert ("kept" in line) == (pieces[0] > 0) and ("left" in line) == (pieces[1] > 0)
     if free == 0.4:

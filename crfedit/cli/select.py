@@ -8,8 +8,9 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import CrfError
+from ..masks import mask_digest
 from ..names import SELECTION_FORMAT
-from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, json_record, printable, size_text, user_errors
+from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, command_line, json_record, printable, size_text, user_errors
 from .edit import PREVIEW_VIEWS, JoinOpt, MirrorOpt, ModelArg, PreviewViewsOpt, PriorOpt, _load, _one_view, _preview_views, _view_render, is_none, previews_of
 
 
@@ -25,6 +26,18 @@ def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
         line = None if label in skip or (whole and label not in ("coverage", "strokes")) else summary(info)
         if line is not None:
             typer.echo(f"{label}: {line}")
+
+
+def _off_object_warning(model, k: int, spec: str, v) -> None:
+    """Warn when a view's scribble or keep strokes lie on the background only: they lift no
+    point, and the view adds nothing (strokes drawn for another view, say)."""
+    from ..edit.selection.pipeline import view_on_object
+
+    on = view_on_object(model.field_for(k), k, v)
+    for what, mask in (("scribble lies", v.scribble), ("keep strokes lie", v.keep)):
+        if mask is not None and mask.any() and not (mask & on).any():
+            typer.echo(f"warning: --view {spec}: its {what} on the background only (no pixel shows the object there), adding "
+                       "nothing to the selection; drawn for another view?", err=True)
 
 
 def _mask(path: Path, model, instance: int, camera, what: str):
@@ -64,11 +77,12 @@ def select_cmd(
     from ..edit.selection.options import EDIT_KINDS
     from ..io import write_png
 
+    counted = lambda n, word: f"{n} {word}{'' if n == 1 else 's'}"
     if len(scribble) != len(view):
-        raise CrfError(f"give one --scribble per --view ({len(view)} views, {len(scribble)} scribbles)")
+        raise CrfError(f"give one --scribble per --view ({counted(len(view), 'view')}, {counted(len(scribble), 'scribble')})")
     if keep and len(keep) != len(view):
         raise CrfError(f"give one --keep per --view, in order (none for a view without keep strokes), or no --keep "
-                       f"({len(view)} views, {len(keep)} keep masks)")
+                       f"({counted(len(view), 'view')}, {counted(len(keep), 'keep mask')})")
     if all(is_none(p) for p in scribble):
         raise CrfError("no view holds a scribble: keep strokes alone select nothing (scribble the part on at least one view)")
     kind = "color" if kind == "colour" else kind
@@ -100,8 +114,13 @@ def select_cmd(
         if overlap:
             typer.echo(f"warning: {spec}: {overlap}", err=True)
         scribbles.append(ScribbleView(camera, fg, bg))
+        if len(view) > 1:  # one view alone on the background is refused by select itself
+            _off_object_warning(m, k, spec, scribbles[-1])
     sel = select(m, k, scribbles, options)
     sel.meta["for"] = kind
+    sel.meta["made_from"] = [{"view": spec, "scribble": mask_digest(v.scribble) if v.scribble.any() else None, "keep": mask_digest(v.keep)}
+                             for spec, v in zip(view, scribbles)]
+    sel.meta["command"] = command_line()
     if join is not None:
         sel.meta["colour_join"] = join.value  # the mode asked for, which join_summary names
     save_selection(out, sel)
@@ -149,6 +168,11 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
                    else f"{selected} of {res}^3 cells") + f" selected (value >= {sel.threshold:g}; a {res}^3 grid), {nonzero} with a value above 0"),
         ("made from", ", ".join(counts) or "unknown"),
     ]
+    made = info.get("made_from")
+    if isinstance(made, list) and all(isinstance(v, dict) for v in made):  # selections since the sixty-seventh session
+        rows.append(("views", "; ".join(f"{v.get('view')} (scribble {v.get('scribble') or 'none'}, keep {v.get('keep') or 'none'})" for v in made)))
+    if isinstance(info.get("command"), str):
+        rows.append(("command", info["command"]))
     if isinstance(features, list):
         rows.append(("features", ", ".join(map(str, features))))
     for label, summary in SUMMARIES:

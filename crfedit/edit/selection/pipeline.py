@@ -24,7 +24,7 @@ from .base import ScribbleView, Selection
 from .classify import appearance_gate, chroma_spread, chromaticity, classifier, evenly, feature_stats, keep_wins, nearest_cosine, standardizer, within_spread
 from .features import SHAPE_SOURCES, CellPoints, FrameTable, cell_opacity, cell_points, group_width, local_frames, local_shape, point_features, surface_points
 from .options import CENTRE_SHARE, GROW_LOW, KEEP_GROUPS, MIN_OPACITY, STRAY_FLOOR, STRAY_SHARE, SelectOptions, WIDTHS, options_for
-from .refine import bilateral_smooth, connected_to, fill_rims, large_pieces, neighbour_table, raised, smooth_over_occupied
+from .refine import bilateral_smooth, components, connected_to, fill_rims, large_pieces, neighbour_table, raised, smooth_over_occupied
 from .shapes import BARS_RADIUS, JOIN_LINES, RIM_SHEETS, SHAPE_GATE_POINTS, SHAPE_GATE_RADIUS, gate_pieces, lines_of, odd_lines, rim_lines, sheets_of
 from .store import quantized
 
@@ -281,9 +281,19 @@ def _refine(classified: tuple[Tensor, Tensor], cells: Tensor, neighbours: Tensor
             reached = reached | large
             if said is not None:
                 said.update(share=free_pieces, reached=n_reached, kept_pieces=n_large, kept_cells=int(large.sum()),
-                            left_cells=int((apart & ~large).sum()))
+                            left_cells=int((apart & ~large).sum()), pieces=large)  # counted again at the end (_kept_pieces)
         values = raised(values, reached, options.threshold)  # hysteresis at one cut
     return torch.where(kept, torch.zeros_like(values), values)
+
+
+def _kept_pieces(said: dict, selected: Tensor) -> dict:
+    """:func:`_refine`'s record of the loose pieces it kept, with their cells and pieces counted
+    in the final ``selected`` [R, R, R] (the vetoes after it drop some: the count before them
+    said 167 cells kept of a selection of 127)."""
+    pieces = said.pop("pieces")
+    final = pieces & selected
+    labels = components(pieces)[final]
+    return {**said, "kept_cells": int(final.sum()), "kept_pieces": int(torch.unique(labels).numel())}
 
 
 def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tensor):
@@ -411,6 +421,7 @@ def select(
     f_pos, f_keep, f_view, f_cells = feats(pos_pts, fused_pos), feats(neg_pts), feats(cand_pts), feats(cell_pts, fused, geometry)
     widths = [group_width(g, field.cfg) for g in groups]
     scribbled, kept = _cells_of(field, pos_pts, res), _cells_of(field, neg_pts, res)
+    clash = [int((scribbled & kept).sum()), int(scribbled.sum())]  # cells both scribbled and kept: the keep strokes win (keep_summary)
     neighbours = remember(("neighbours",), lambda: neighbour_table(cells, res)) if options.smooth and options.smooth_bandwidth > 0 else None
     stats = feature_stats(f_cells)
     veto = _keep_veto(groups, widths, f_pos, f_keep, f_cells, options, stats)
@@ -541,6 +552,7 @@ def select(
     }
     if whole is not None:
         meta["whole"] = whole
+    meta["clash_cells"] = clash
     if veto is not None:
         meta["keep_wins_cells"] = int(veto.sum())
     if bars_meta is not None:
@@ -562,7 +574,7 @@ def select(
     if shape_gate:
         meta["shape_gate"] = gate_meta
     if pieces_meta:
-        meta["free_pieces"] = pieces_meta
+        meta["free_pieces"] = _kept_pieces(pieces_meta, values >= at)
     if options.sheet_veto > 0 and scribbled_frames is not None:
         meta["sheet_veto"] = sheet_meta
     if options.rim_fill > 0 and shape_grid is not None:
