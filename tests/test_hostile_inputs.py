@@ -276,10 +276,32 @@ Built = tuple[list, list[Path]]
 """(command line, paths that must not exist afterwards)."""
 
 
+REPEATABLE = ("--edit", "--set")
+"""Options a command takes more than once; any other given again is refused (cli.common.repeated_option)."""
+
+
+def merged(args: list, extra) -> list:
+    """``args`` with ``extra`` after them, an option ``extra`` gives again replacing its value in
+    ``args`` (a case's ``--steps 0`` over the base's ``--steps 1``: given twice, it is refused)."""
+    args, extra = list(args), list(extra)
+    rest, i = [], 0
+    while i < len(extra):
+        word = extra[i]
+        if isinstance(word, str) and word.startswith("--") and word not in REPEATABLE and word in args and i + 1 < len(extra):
+            at = args.index(word)
+            if at + 1 < len(args) and not str(args[at + 1]).startswith("--"):
+                args[at + 1] = extra[i + 1]
+                i += 2
+                continue
+        rest.append(word)
+        i += 1
+    return [*args, *rest]
+
+
 def render(env: Env, tmp: Path, *extra, model: Path | None = None, instance: str = "0", views: str = "test:0",
            out: Path | None = None) -> Built:
     out = out or tmp / "frames"
-    return ["render", model or env.model, "--instance", instance, "--views", views, "--out", out, *CPU, *extra], [out]
+    return merged(["render", model or env.model, "--instance", instance, "--views", views, "--out", out, *CPU], extra), [out]
 
 
 def edit_color(env: Env, tmp: Path, *extra, model: Path | None = None, scribble: Path | None = None, with_scribble: bool = True,
@@ -288,36 +310,36 @@ def edit_color(env: Env, tmp: Path, *extra, model: Path | None = None, scribble:
     args = ["edit-color", model or env.model, "--instance", "0", "--view", view, "--color", color, "--out", out]
     if with_scribble:
         args += ["--scribble", scribble or env.scribble]
-    return [*args, *FAST_EDIT, *extra], [out]
+    return merged([*args, *FAST_EDIT], extra), [out]
 
 
 def remove(env: Env, tmp: Path, *extra, model: Path | None = None, scribble: Path | None = None) -> Built:
     out = tmp / "remove.safetensors"
-    return ["remove", model or env.model, "--instance", "0", "--view", "train:0", "--scribble", scribble or env.scribble,
-            "--out", out, *FAST_EDIT, *extra], [out]
+    return merged(["remove", model or env.model, "--instance", "0", "--view", "train:0", "--scribble", scribble or env.scribble,
+                   "--out", out, *FAST_EDIT], extra), [out]
 
 
 def add(env: Env, tmp: Path, *extra, model: Path | None = None, copy: Path | None = None, offset: str = "2,0") -> Built:
     out = tmp / "add.safetensors"
-    return ["add", model or env.model, "--instance", "0", "--view", "train:0", "--donor", "1", "--copy", copy or env.scribble,
-            "--offset", offset, "--out", out, *FAST_EDIT, *extra], [out]
+    return merged(["add", model or env.model, "--instance", "0", "--view", "train:0", "--donor", "1", "--copy", copy or env.scribble,
+                   "--offset", offset, "--out", out, *FAST_EDIT], extra), [out]
 
 
 def transfer_cmd(env: Env, tmp: Path, *extra, model: Path | None = None, out: Path | None = None) -> Built:
     out = out or tmp / "transfer.safetensors"
-    return ["transfer", model or env.model, "--instance", "0", "--color-from", "1", "--out", out, *CPU, *extra], [out]
+    return merged(["transfer", model or env.model, "--instance", "0", "--color-from", "1", "--out", out, *CPU], extra), [out]
 
 
 def fit_real(env: Env, tmp: Path, *extra, model: Path | None = None, photo: Path | None = None,
              pose_spec: str = "train:0", out: Path | None = None) -> Built:
     out = out or tmp / "real.safetensors"
-    return ["fit-real", model or env.model, photo or env.photo, "--pose", pose_spec, "--out", out,
-            "--steps-codes", "1", "--steps-joint", "0", "--rays", "64", *CPU, *extra], [out]
+    return merged(["fit-real", model or env.model, photo or env.photo, "--pose", pose_spec, "--out", out,
+                   "--steps-codes", "1", "--steps-joint", "0", "--rays", "64", *CPU], extra), [out]
 
 
 def train_cmd(env: Env, tmp: Path, *extra, data: Path | None = None, out: Path | None = None) -> Built:
     out = out or tmp / "model.safetensors"
-    return ["train", data or env.data, "--out", out, *TINY_TRAIN, *extra], [out]
+    return merged(["train", data or env.data, "--out", out, *TINY_TRAIN], extra), [out]
 
 
 def check(model: Path, *edits: Path) -> Built:
@@ -564,6 +586,10 @@ CATALOGUE: list[Case] = [
     Case("spec/view-out-of-range/edit-color", lambda e, t: edit_color(e, t, view="train:99"), ("train:99", "index 99 out of range")),
     Case("spec/view-gibberish/render", lambda e, t: render(e, t, views="bogus"), ("view spec 'bogus'",)),
     Case("spec/view-range-backwards/render", lambda e, t: render(e, t, views="train:3-1"), ("range 3-1 runs backwards",)),
+    Case("spec/option-given-twice/edit-color", lambda e, t: (lambda a: ([*a[0], "--color", "blue"], a[1]))(edit_color(e, t)),
+         ("--color given 2 times", "`crfedit edit-color` takes one")),
+    Case("spec/view-given-twice/remove", lambda e, t: (lambda a: ([*a[0], "--view", "train:1"], a[1]))(remove(e, t)),
+         ("--view given 2 times", "`crfedit select`", "--selection")),
     Case("spec/several-views-for-an-edit/remove", lambda e, t: remove(e, t, "--view", "train"), ("--view train", "names 4 views", "e.g. train:0 for its first view")),
     Case("spec/orbit-zero/render", lambda e, t: render(e, t, views="orbit:0"), ("orbit:0", "between 1 and")),
     Case("spec/orbit-pole/render", lambda e, t: render(e, t, views="orbit:3@90"), ("orbit:3@90", "elevation 90")),

@@ -52,8 +52,25 @@ class ReadableGroup(typer.core.TyperGroup):
     def parse_args(self, ctx, args):
         problem = repeated_option(self, args)
         if problem is not None:
-            raise CrfError(problem)
+            raise _one_line_usage_error(problem)
         return super().parse_args(ctx, args)
+
+
+def _one_line_usage_error(message: str) -> Exception:
+    """A click exception that says ``error: message`` in one line and exits 2, from
+    :func:`crfedit.cli.main` and from Typer's own runner (a CliRunner) alike."""
+    try:  # Typer ≥ 0.2x vendors click; older Typer depends on it
+        from typer._click.exceptions import ClickException
+    except ImportError:  # pragma: no cover - depends on the installed Typer
+        from click.exceptions import ClickException
+
+    class OneLine(ClickException):
+        exit_code = EXIT_USER_ERROR
+
+        def show(self, file=None) -> None:
+            print(f"error: {self.format_message()}", file=sys.stderr)
+
+    return OneLine(message)
 
 
 SCRIBBLE_OPTIONS = ("view", "scribble", "scribble_json", "keep", "keep_json")
