@@ -747,7 +747,7 @@ def test_hostile_input(case: Case, env: Env, tmp_path: Path):
     result = invoke(*argv)
     line = assert_user_error(result, *case.expect)
     if os.environ.get("CRFEDIT_CATALOGUE"):  # docs/robustness.md's table: CRFEDIT_CATALOGUE=rows.md pytest this file
-        shown = re.sub(r"(?:/[^\s/'\"]+)+/(?=[^\s/'\"]+)", "", line)  # absolute paths as their file names
+        shown = re.sub(r"(?<![^\s'\"(=])(?:/[^\s/'\"]+)+/(?=[^\s/'\"]+)", "", line)  # absolute paths as their file names (not --a/--b)
         with open(os.environ["CRFEDIT_CATALOGUE"], "a", encoding="utf-8") as rows:
             rows.write(f"| `{case.id}` | {shown.replace('|', chr(92) + '|')} |\n")
     assert digest(inputs) == before, "an input changed"
