@@ -407,7 +407,7 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
                 return ModelFileError(f"{where}was made after {after} alone, not after {', '.join(extra)}: leave "
                                       f"{'it' if len(extra) == 1 else 'them'} out before it, or re-pin with `crfedit edits rebase`")
             return ModelFileError(f"{where}was made after {after}; pass the --edit files in the order they were made")
-    made_on = _made_on(delta)
+    made_on = made_on_files(delta)
     made = "re-pinned onto" if delta.meta.get("rebased") else "made on"
     told = (f"; it was {made} {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}), here {position} come before it"
             if made_on else "; or it was re-pinned onto a model with edits baked in: apply it to that one" if position == 0 and not applied
@@ -419,7 +419,7 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
     )
 
 
-def _made_on(delta: Delta) -> list[str]:
+def made_on_files(delta: Delta) -> list[str]:
     """The ``--edit`` files ``delta`` was made on as its command line named them, or, for a file
     re-pinned by ``crfedit edits rebase``, the files given before it in the last rebase (its
     ``command`` still names the stack it was first made on)."""

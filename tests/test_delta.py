@@ -657,6 +657,31 @@ def test_rebase_refuses_an_edit_baked_in_or_given_twice_and_check_names_the_reba
     assert_user_error(extra, f"was made after {a} alone, not after {b}: leave it out before it")
 
 
+def test_rebase_names_the_left_out_removal_a_recolour_was_optimized_on(tmp_path, model):
+    """A recolour made on a removal, re-pinned without it: the note names the removal it was
+    optimized on (read from the recolour's recorded command) and what may show (the removed
+    part back, in the colour the recolour spread onto it); a stack that leaves nothing out that
+    an edit was made on keeps the general note."""
+    save_model(tmp_path / "m.safetensors", model)
+    m, _ = load_model(tmp_path / "m.safetensors")
+    low = torch.zeros_like(m.field.occupancy[0])
+    low[:, :, :3] = True
+    a = grid_edit(m, 0, low, False, "a.safetensors", tmp_path)
+    tensors, meta = make_delta(apply_edit_files(m, [a]), perturbed(apply_edit_files(m, [a]), 0, {"F_rad.out.bias": 0.2}), 0, "color",
+                               ("F_rad.",), {"command": f"crfedit edit-color m.safetensors --edit {a} --out b.safetensors"})
+    save_delta(tmp_path / "b.safetensors", tensors, meta)
+    runner = CliRunner()
+    done = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(tmp_path / "b.safetensors"),
+                               "--out-dir", str(tmp_path / "out")])
+    assert done.exit_code == 0, done.output
+    assert ("note: b.safetensors was optimized on top of a.safetensors (a remove edit of chair_0), which this stack leaves out; it "
+            "keeps the change it learnt there (a part the left-out removal took comes back") in done.stderr, done.stderr
+    assert "note: a re-pinned edit keeps" not in done.output
+    kept = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(a), "--edit", str(tmp_path / "b.safetensors"),
+                               "--out-dir", str(tmp_path / "same")])
+    assert kept.exit_code == 0 and "optimized on top of" not in kept.output
+
+
 def test_edits_show_table_shortens_hyperparameters():
     """The table rounds floats and counts camera records (``--json`` keeps them whole)."""
     from crfedit.cli.edit import _short

@@ -688,7 +688,7 @@ def rebase_cmd(
     files pass `crfedit edits check` in the order given. An edit made after one that is now left
     out applies its change without it, not optimized again.
     """
-    from ..delta import apply_deltas, read_delta, restack, save_delta
+    from ..delta import apply_deltas, made_on_files, read_delta, restack, save_delta
     from ..edit.transfer import weights_not_carried
     from ..model import load_model
 
@@ -731,9 +731,34 @@ def rebase_cmd(
             hyper = json.loads(after.meta.get("hyperparameters") or "{}")
             for note in weights_not_carried(apply_deltas(m, pinned[:i]), after.instance, hyper.get("shape_from"), hyper.get("color_from")):
                 typer.echo(printable(f"note: {p.name} here: {note}"), err=True)
-    if any(after is not before and after.kind != "transfer" for before, after in zip(deltas, pinned)):
+    given, named = {p.name for p in edit}, False
+    for p, before, after in zip(edit, deltas, pinned):  # the edits each was optimized on that this stack leaves out, by name
+        gone = [_left_out(e, after.instance) for e in made_on_files(before) if Path(e).name not in given]
+        if after is not before and after.kind != "transfer" and gone:
+            named = True
+            why = (" (a part the left-out removal took comes back as it was learnt beside it: a recolour made after it may have "
+                   "spread onto it)" if after.kind == "color" and any(kind == "remove" for _, kind in gone) else "")
+            typer.echo(printable(f"note: {p.name} was optimized on top of {', '.join(text for text, _ in gone)}, which this stack "
+                                 f"leaves out; it keeps the change it learnt there{why}: render the new stack to check it "
+                                 "(crfedit render --edit ...)"), err=True)
+    if not named and any(after is not before and after.kind != "transfer" for before, after in zip(deltas, pinned)):
         typer.echo("note: a re-pinned edit keeps the change it was optimized for on its old stack; where an edit of the same "
                    "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)")
+
+
+def _left_out(path: str, instance: str) -> tuple[str, str | None]:
+    """(an edit file an edit was made on, for a line: its name, and its kind when it can still be
+    read and edits the same instance, ``e3.safetensors (a remove edit of chair_003)``; that kind
+    or None)."""
+    from ..delta import read_delta
+
+    try:
+        d = read_delta(Path(path))
+    except (CrfError, OSError, ValueError):
+        return Path(path).name, None
+    if d.instance != instance:
+        return Path(path).name, None
+    return f"{Path(path).name} (a {d.kind} edit of {d.instance})", d.kind
 
 
 def _transfer_sources(delta) -> str:
