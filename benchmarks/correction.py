@@ -34,6 +34,7 @@ import numpy as np
 
 from crfedit.data.synth import random_strokes
 from crfedit.edit.selection import ScribbleView, options_for, select, surface_points
+from crfedit.edit.selection.base import merge_views
 from crfedit.masks import dilate, erode
 from crfedit.twin_scores import part_map, part_of
 from crfedit.report import emit_table
@@ -133,10 +134,7 @@ def correction_view(model, case, inst, part_id: int, sel, used: dict[str, object
     return name, view.camera, ScribbleView(view.camera, scribble, keep if keep.any() else None)
 
 
-def merged(first: ScribbleView, more: ScribbleView) -> ScribbleView:
-    """``first``'s view with the strokes of ``more`` (drawn on the same view) added to its own."""
-    keeps = [k for k in (first.keep, more.keep) if k is not None]
-    return ScribbleView(first.camera, first.scribble | more.scribble, np.logical_or.reduce(keeps) if keeps else None)
+merged = merge_views  # the library's: ``select`` merges one view given twice the same way
 
 
 def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pick: str = "worst", errors: str = "eroded",

@@ -409,7 +409,8 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
             return ModelFileError(f"{where}was made after {after}; pass the --edit files in the order they were made")
     made_on = made_on_files(delta)
     made = "re-pinned onto" if delta.meta.get("rebased") else "made on"
-    told = (f"; it was {made} {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}), here {position} come before it"
+    told = (f"; it was {made} {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}), "
+            f"here {position} come{'s' * (position == 1)} before it"
             if made_on else "; or it was re-pinned onto a model with edits baked in: apply it to that one" if position == 0 and not applied
             else "")
     return ModelFileError(
@@ -426,23 +427,38 @@ def made_on_files(delta: Delta) -> list[str]:
     rebased = delta.meta.get("rebased")
     if not rebased:
         return _command_edits(delta.meta.get("command", ""))
-    given = _command_edits(rebased.split("; then ")[-1])
+    last = rebased.split("; then ")[-1]
+    given, out_dir = _command_edits(last), _command_option(last, "--out-dir")
     own = os.path.basename(str(delta.path))
     at = next((i for i, e in enumerate(given) if os.path.basename(e) == own), None)
-    return given[:at] if at is not None else []
+    before = given[:at] if at is not None else []
+    # the re-pinned files it sits on are the ones written beside it, not the inputs of the same names
+    return [os.path.join(out_dir, os.path.basename(e)) if out_dir else e for e in before]
 
 
 def _command_edits(command: str) -> list[str]:
     """The ``--edit`` files a recorded command line gave (an edit made on a stack names it there);
     [] when it names none or cannot be split."""
+    return _command_values(command, "--edit")
+
+
+def _command_option(command: str, option: str) -> str | None:
+    """The last value of ``option`` in a recorded command line, or None."""
+    values = _command_values(command, option)
+    return values[-1] if values else None
+
+
+def _command_values(command: str, option: str) -> list[str]:
+    """Every value of ``option`` (``--opt V`` or ``--opt=V``) in a recorded command line; [] when
+    it has none or cannot be split."""
     import shlex
 
     try:
         words = shlex.split(command)
     except ValueError:
         return []
-    return [w.split("=", 1)[1] if w.startswith("--edit=") else words[i + 1] for i, w in enumerate(words)
-            if (w == "--edit" and i + 1 < len(words)) or w.startswith("--edit=")]
+    return [w.split("=", 1)[1] if w.startswith(f"{option}=") else words[i + 1] for i, w in enumerate(words)
+            if (w == option and i + 1 < len(words)) or w.startswith(f"{option}=")]
 
 
 def check_stack(model: CategoryModel, deltas: Sequence[Delta], stack: tuple[str, list[str]] | None = None) -> None:

@@ -50,6 +50,8 @@ def _unit_range(images, what: str) -> None:
         t = _as_tensor(image)
         if not (t.is_floating_point() or t.dtype == torch.bool):
             raise CrfError(f"{what} {i}: values are {str(t.dtype).replace('torch.', '')}; give floats in [0, 1] (8-bit images divided by 255)")
+        if t.numel() and not bool(torch.isfinite(t).all()):
+            raise CrfError(f"{what} {i}: holds NaN or infinite values; give floats in [0, 1]")
         if t.numel() and (float(t.min()) < -1e-3 or float(t.max()) > 1 + 1e-3):
             raise CrfError(f"{what} {i}: values span {float(t.min()):.4g}…{float(t.max()):.4g}; give floats in [0, 1]")
 

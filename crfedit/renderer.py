@@ -365,7 +365,7 @@ def render_camera(
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise CrfError(f"render: chunk {chunk!r} must be a whole number of rays, at least 1")
     if isinstance(background, bool) or not isinstance(background, (int, float, np.floating)) or not 0.0 <= background <= 1.0:
-        raise CrfError(f"render: background {background!r} must be a grey level from 0 to 1 (a NaN one rendered every pixel NaN)")
+        raise CrfError(f"render: background {background!r} must be a grey level from 0 to 1")
     device = field.aabb.device
     problem = camera_problem(camera, field.aabb)
     if problem:

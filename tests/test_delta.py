@@ -652,7 +652,7 @@ def test_rebase_refuses_an_edit_baked_in_or_given_twice_and_check_names_the_reba
     monkeypatch.setattr(sys, "argv", ["crfedit", *args])  # the file's record of the rebase (CliRunner leaves pytest's argv)
     assert runner.invoke(app, args).exit_code == 0
     alone = runner.invoke(app, ["edits", "check", bare, "--edit", str(out / "c.safetensors")])
-    assert_user_error(alone, f"it was re-pinned onto 1 edit ({a}), here 0 come before it")
+    assert_user_error(alone, f"it was re-pinned onto 1 edit ({out / 'a.safetensors'}), here 0 come before it")
     extra = runner.invoke(app, ["edits", "check", bare, "--edit", str(a), "--edit", str(b), "--edit", str(out / "c.safetensors")])
     assert_user_error(extra, f"was made after {a} alone, not after {b}: leave it out before it")
 

@@ -162,6 +162,13 @@ def test_names_for_instances_and_the_library_s_own_checks(scene, tmp_path):
     image = np.full((8, 8, 3), 128, np.uint8)
     with pytest.raises(CrfError, match="prediction 0: values are uint8; give floats in"):
         score_images([image], [image])
+    with pytest.raises(CrfError, match="target 0: holds NaN or infinite values"):
+        score_images([np.full((8, 8, 3), 0.5)], [np.full((8, 8, 3), np.nan)])
+    from crfedit.evaluation import score_model
+
+    for bad in ([], "chair_000"):  # a bare name iterated its letters ("unknown instance 'c'")
+        with pytest.raises(CrfError, match="give a list of instance names or indices"):
+            score_model(model, None, instances=bad)
     read_only = np.full((8, 8, 3), 0.5, np.float32)
     read_only.flags.writeable = False
     with warnings.catch_warnings():  # an array read from PIL is read-only: torch warned on stderr

@@ -1319,8 +1319,15 @@ def test_a_view_with_keep_strokes_alone_holds_back_what_it_marks(trained, tmp_pa
     Image.fromarray((corner * 255).astype(np.uint8)).save(tmp_path / "corner.png")
     r = CliRunner().invoke(app, [*args, "--keep", str(tmp_path / "corner.png"), "--out", str(tmp_path / "c.safetensors")])
     assert r.exit_code == 0 and (f"warning: --view train:{inst.index(other)}: its keep strokes lie on the background only "
-                                 "(no pixel shows the object there), adding nothing to the selection") in r.stderr, r.stderr
+                                 "(no pixel shows the object there): they add no keep point") in r.stderr, r.stderr
     assert "background only" not in CliRunner().invoke(app, [*args, "--keep", str(tmp_path / "kept.png"), "--out", str(tmp_path / "s.safetensors")]).stderr
+    # one view given twice is one view: its strokes join (lifted twice, a tester's selection lost a fifth of its cells)
+    twice = ["select", str(path), "--instance", model.names[k], *(w for _ in range(2) for w in ("--view", f"train:{inst.index(view)}",
+             "--scribble", str(tmp_path / "fg.png"))), "--out", str(tmp_path / "t.safetensors")]
+    r = CliRunner().invoke(app, twice)
+    assert r.exit_code == 0 and f"note: --view train:{inst.index(view)} given again: its strokes join that view's, as one view" in r.stderr
+    alone = select(model, k, [ScribbleView(view.camera, fg, None)], options_for("color"))
+    assert torch.equal(load_selection(tmp_path / "t.safetensors").values, alone.values)
     r = CliRunner().invoke(app, [*args, "--keep", "none", "--out", str(tmp_path / "x.safetensors")])
     assert_user_error(r, f"--view train:{inst.index(other)} --scribble none: a view without a scribble needs its --keep strokes")
     assert not (tmp_path / "x.safetensors").exists()
@@ -1612,7 +1619,8 @@ def test_the_strokes_line_says_what_each_rule_left_out():
     assert stroke_summary({"stroke_snap": {"added_pixels": 7}}) == snapped
     assert stroke_summary({"stroke_snap": {"added_pixels": 7}, "stroke_centres": {"edge_points": 3}}) == f"{snapped}; their centres lifted (3 edge points {lost}"
     assert stroke_summary({"stroke_snap": {"added_pixels": 0}, "stroke_centres": {"edge_points": 3}}) == f"their centres lifted (3 edge points {lost}"
-    strays = "2 scribbled points that look like the keep strokes, not like the rest of the scribble, left out as strays onto a kept part (the part's own points that look so are left out too; the classifier may still take their cells)"
+    strays = ("2 scribbled points that look like the keep strokes, not like the rest of the scribble, left out (a stroke straying onto "
+              "a kept part looks so, and so may the part's own points; the classifier may still take their cells)")
     assert stroke_summary({"stroke_centres": {"edge_points": 3}, "keep_strays": 2}) == f"their centres lifted (3 edge points {lost}; {strays}"
     assert stroke_summary({"keep_strays": 1}).startswith("1 scribbled point that looks like") and stroke_summary({"keep_strays": 0}) is None
 
@@ -1648,17 +1656,18 @@ def test_the_mirror_line_says_a_correction_s_keep_strokes_can_come_back_from_the
     from the other (a tester's seat IoU 0.46 against 0.60 with --mirror off).  Made the mirror
     leave those cells alone, the benchmark's corrections lost on the real chairs (sixty-seventh
     session, docs/benchmarks.md), so the line says it instead, for selections from more than
-    one view with keep points that held something back."""
+    one view whose keep strokes held something back (a view besides the first with keep
+    strokes: a correction)."""
     from crfedit.edit.selection import mirror_summary
 
     info = {"used": True, "axis": 0, "overlap": 0.9, "mode": "values"}
     plain = "the plane normal to x (90% of the cells mirror onto cells); the selection took its mirror image"
-    assert mirror_summary({"mirror": info, "views": 1, "keep_points": 30, "keep_wins_cells": 12}) == plain
-    assert mirror_summary({"mirror": info, "views": 3, "keep_points": 0, "keep_wins_cells": 12}) == plain
-    assert mirror_summary({"mirror": info, "views": 3, "keep_points": 30, "keep_wins_cells": 0}) == plain
-    corrected = mirror_summary({"mirror": info, "views": 3, "keep_points": 30, "keep_wins_cells": 0, "part_head": {"vetoed": 40}})
+    assert mirror_summary({"mirror": info, "correction_views": 0, "keep_wins_cells": 12}) == plain  # keep strokes on the first view only
+    assert mirror_summary({"mirror": info, "keep_wins_cells": 12}) == plain  # a record from before
+    assert mirror_summary({"mirror": info, "correction_views": 2, "keep_wins_cells": 0}) == plain  # nothing held back
+    corrected = mirror_summary({"mirror": info, "correction_views": 2, "keep_wins_cells": 0, "part_head": {"vetoed": 40}})
     assert corrected.startswith(plain + " (a cell the keep strokes hold back") and corrected.endswith("--mirror off keeps to them)")
-    assert mirror_summary({"mirror": info, "views": 2, "keep_points": 30, "keep_wins_cells": 5}) == corrected
+    assert mirror_summary({"mirror": info, "correction_views": 1, "keep_wins_cells": 5}) == corrected
 
 
 def test_the_coverage_line_speaks_when_nearly_every_cell_is_selected():

@@ -200,8 +200,9 @@ def test_free_pieces_keep_the_loose_pieces_of_their_share(free, kept_apart, piec
     line = pieces_summary({"free_pieces": said})
     assert ("kept" in line) == (pieces[0] > 0) and ("left" in line) == (pieces[1] > 0)
     if free == 0.4:
-        assert line == ("kept 1 piece that the scribble does not reach (10 cells; each at least 40% of the 20 cells it reaches); "
-                        "left 2 cells out: pieces it does not reach, each under 40% of the 20 cells it reaches")
+        then = "40% of the 20 cells the scribble reached at that step, before the vetoes"
+        assert line == (f"kept 1 piece that the scribble does not reach (10 cells; each at least {then}); "
+                        f"left 2 cells out: pieces it does not reach, each under {then}")
     assert pieces_summary({"free_pieces": {**said, "kept_pieces": 0, "kept_cells": 0, "left_cells": 0}}) is None and pieces_summary({}) is None
 
 

@@ -28,6 +28,11 @@ def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
             typer.echo(f"{label}: {line}")
 
 
+def _same_camera(a, b) -> bool:
+    """Whether two views' cameras are one (the same pose, focal and size)."""
+    return (a.width, a.height, a.focal) == (b.width, b.height, b.focal) and bool((a.c2w == b.c2w).all())
+
+
 def _off_object_warning(model, k: int, spec: str, v) -> None:
     """Warn when a view's scribble or keep strokes lie on the background only: they lift no
     point, and the view adds nothing (strokes drawn for another view, say)."""
@@ -36,8 +41,9 @@ def _off_object_warning(model, k: int, spec: str, v) -> None:
     on = view_on_object(model.field_for(k), k, v)
     for what, mask in (("scribble lies", v.scribble), ("keep strokes lie", v.keep)):
         if mask is not None and mask.any() and not (mask & on).any():
-            typer.echo(f"warning: --view {spec}: its {what} on the background only (no pixel shows the object there), adding "
-                       "nothing to the selection; drawn for another view?", err=True)
+            points = "scribbled" if what.startswith("scribble") else "keep"
+            typer.echo(f"warning: --view {spec}: its {what} on the background only (no pixel shows the object there): they add no "
+                       f"{points} point (the view still adds its other surface points as candidates); drawn for another view?", err=True)
 
 
 def _mask(path: Path, model, instance: int, camera, what: str):
@@ -74,6 +80,7 @@ def select_cmd(
 
     from ..edit.scribble import few_pixels_note, keep_outside, keep_overlap
     from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
+    from ..edit.selection.base import merge_views
     from ..edit.selection.options import EDIT_KINDS
     from ..io import write_png
 
@@ -93,7 +100,7 @@ def select_cmd(
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     shown = _preview_views(m, k, preview, views)
-    scribbles = []
+    scribbles, specs = [], []
     for i, spec in enumerate(view):
         _, camera = _one_view(m, spec, k)
         bg = _mask(keep[i], m, k, camera, "keep") if keep and not is_none(keep[i]) else None
@@ -113,13 +120,21 @@ def select_cmd(
         overlap = keep_overlap(fg, bg)
         if overlap:
             typer.echo(f"warning: {spec}: {overlap}", err=True)
-        scribbles.append(ScribbleView(camera, fg, bg))
+        given = ScribbleView(camera, fg, bg)
         if len(view) > 1:  # one view alone on the background is refused by select itself
-            _off_object_warning(m, k, spec, scribbles[-1])
+            _off_object_warning(m, k, spec, given)
+        same = next((j for j, v in enumerate(scribbles) if _same_camera(v.camera, camera)), None)
+        if same is None:
+            scribbles.append(given)
+            specs.append(spec)
+        else:  # the strokes of one view given twice join, as one view
+            scribbles[same] = merge_views(scribbles[same], given)
+            again = "given again" if spec == specs[same] else f"is the camera of --view {specs[same]}"
+            typer.echo(f"note: --view {spec} {again}: its strokes join that view's, as one view", err=True)
     sel = select(m, k, scribbles, options)
     sel.meta["for"] = kind
     sel.meta["made_from"] = [{"view": spec, "scribble": mask_digest(v.scribble) if v.scribble.any() else None, "keep": mask_digest(v.keep)}
-                             for spec, v in zip(view, scribbles)]
+                             for spec, v in zip(specs, scribbles)]
     sel.meta["command"] = command_line()
     if join is not None:
         sel.meta["colour_join"] = join.value  # the mode asked for, which join_summary names

@@ -553,6 +553,7 @@ def select(
     if whole is not None:
         meta["whole"] = whole
     meta["clash_cells"] = clash
+    meta["correction_views"] = sum(v.keep is not None and bool(v.keep.any()) for v in views[1:])  # mirror_summary's hint
     if veto is not None:
         meta["keep_wins_cells"] = int(veto.sum())
     if bars_meta is not None:
