@@ -140,7 +140,7 @@ def check_descent(values: list[float], what: str, consequence: str) -> None:
     late = sum(tail) / len(tail)
     if late > RISE_LIMIT * values[0]:
         raise NonFiniteError(f"{what} diverged: its loss rose from {values[0]:.4g} to {late:.4g} over {len(values)} steps "
-                             f"(a learning rate too large?); {consequence}")
+                             f"(a learning rate too large, or too few steps for a rise to settle: a lower --lr or more --steps); {consequence}")
 
 
 def run_adam(

@@ -342,7 +342,7 @@ def camera_problem(camera: Camera, aabb: Tensor) -> str | None:
     if far:
         return far
     narrow = narrow_view(camera.camera_angle_x)
-    return f"{narrow}; camera_angle_x is in radians" if narrow else None
+    return f"{narrow}; camera_angle_x is in radians (a nerfstudio camera path's fov in degrees)" if narrow else None
 
 
 @torch.no_grad()

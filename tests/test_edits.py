@@ -530,6 +530,8 @@ def test_strokes_rasterize_at_the_view_resolution():
     assert not strokes_json_mask({"strokes": []}, 12, 10, "s.json").any()  # no strokes: an empty mask, judged by its reader
     with pytest.raises(CrfError, match=r"^s\.json: stroke 0 has a point more than 10000 view widths away from the 12x10 view"):
         strokes_json_mask({"strokes": [[[1e308, 3], [-1e308, 4]]]}, 12, 10, "s.json")  # it overflowed into warnings
+    with pytest.raises(CrfError, match=r"^s\.json: stroke 0 has a point more than 10000 view widths away"):
+        strokes_json_mask({"strokes": [[[10**400, 3], [4, 4]]]}, 12, 10, "s.json")  # no float holds it: an OverflowError, exit 1
     for bad in ({"strokes": "none"}, [[["a", 1]]], {"strokes": [[[1, 2]]], "radius": -1}, [[[1, 2, 3]]]):
         with pytest.raises(CrfError, match="s.json"):
             strokes_json_mask(bad, 12, 10, "s.json")
@@ -846,3 +848,20 @@ def test_scribbles_and_strokes_given_through_pipes(trained, tmp_path):
         r = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, env=env, timeout=300)
         assert r.returncode == 0, r.stderr
     assert read_delta(tmp_path / "a.safetensors").fingerprint == read_delta(tmp_path / "b.safetensors").fingerprint
+
+
+def test_an_empty_strokes_file_and_an_edit_that_barely_moved_say_so(tmp_path):
+    """A strokes JSON with no strokes is named as such (the empty-mask line asked for white
+    strokes on black, a PNG's); an edit whose loss fell under 2 % gets a note (``--lr 1e-6``
+    wrote a recolour to red that moved the seat by 1/255), one that fell further none."""
+    from crfedit.cli.edit import little_moved_note
+    from crfedit.edit.scribble import load_mask
+
+    (tmp_path / "s.json").write_text('{"strokes": [], "radius": 2}')
+    with pytest.raises(CrfError, match=r"s\.json: holds no strokes: an empty scribble$"):
+        load_mask(None, tmp_path / "s.json", 12, 10, "scribble")
+    note = little_moved_note({"first_loss": "0.4553", "final_loss": "0.4538"})
+    assert note.startswith("the loss fell only from 0.4553 to 0.4538: the edit changed little")
+    assert little_moved_note({"first_loss": "0.4553", "final_loss": "0.0203"}) is None
+    assert little_moved_note({"final_loss": "0.4538"}) is None  # a file from before the first loss was kept
+

@@ -178,6 +178,11 @@ def test_names_for_instances_and_the_library_s_own_checks(scene, tmp_path):
         result.save(tmp_path / "e.safetensors", kind="recolour", instance="other")
     result.save(tmp_path / "e.safetensors", note="kept")
     assert read_delta(tmp_path / "e.safetensors").meta["note"] == "kept"
+    from cli_helpers import invoke
+
+    shown = invoke("edits", "show", tmp_path / "e.safetensors").stdout  # a script's own key gets its row; the first loss its own
+    assert "\nnote          kept\n" in shown and f"\nfirst_loss    {result.meta['first_loss']}\n" in shown, shown
+    assert float(result.meta["first_loss"]) > float(result.meta["final_loss"])
     assert select_for(model, 0, camera, scribble, None, "remove").meta["for"] == "remove"
     from crfedit.evaluation import evaluate_edits
 

@@ -30,7 +30,7 @@ def _unexpected(e: BaseException) -> str:
     path = getattr(e, "filename", None)
     text = " ".join(str(e).split()) or "no message"
     named = f"{path}: " if path is not None and str(path) not in text else ""
-    return f"unexpected {e.__class__.__name__}: {named}{text}{where} (run with --debug or CRFEDIT_DEBUG=1 for the traceback)"
+    return f"unexpected {e.__class__.__name__}: {named}{text}{where} (for the traceback: crfedit --debug COMMAND …, the flag before the command, or CRFEDIT_DEBUG=1)"
 
 
 def main() -> None:

@@ -331,6 +331,26 @@ def _write(result, out: Path, label: str, inputs: dict | None = None) -> None:
         f"wrote {out}: {meta['kind']} edit of {meta['instance']}, {n} tensor{'s' * (n != 1)}, "
         f"{size_text(size)}, final loss {result.final_loss:.4g}, {result.seconds:.2f} s"
     )
+    note = little_moved_note(meta)
+    if note:
+        typer.echo(f"note: {note}", err=True)
+
+
+LITTLE_MOVED = 0.98
+""":func:`little_moved_note` speaks when an edit's final loss is at least this share of its first:
+``--lr 1e-6`` wrote a recolour to red that moved the seat by 1/255 (0.4538 against 0.455)."""
+
+
+def little_moved_note(meta: dict) -> str | None:
+    """A line when an edit's loss barely fell (:data:`LITTLE_MOVED`), else None."""
+    try:
+        first, final = float(meta["first_loss"]), float(meta["final_loss"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    if not (first > 0 and final >= LITTLE_MOVED * first):
+        return None
+    return (f"the loss fell only from {first:.4g} to {final:.4g}: the edit changed little (a learning rate too small or too few "
+            "steps? the defaults are --lr 0.01, --steps 100); render it to check")
 
 
 @app.command("edit-color")
@@ -568,7 +588,7 @@ def _short(value) -> str:
     return str(value)
 
 
-JSON_META = ("modules", "hyperparameters", "final_loss", "seconds", "inputs", "stages", "photo_psnr")
+JSON_META = ("modules", "hyperparameters", "first_loss", "final_loss", "seconds", "inputs", "stages", "photo_psnr")
 """An edit's metadata values that hold JSON (a list, a table, a number): ``--json`` shows them parsed."""
 
 
@@ -586,11 +606,18 @@ def _parsed(key: str, value: str):
         return value
 
 
+SHOWN_KEYS = frozenset({"kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint", "first_loss", "final_loss",
+                        "seconds", "view", "command", "rebased", "hyperparameters", "inputs", "photo", "mask", "pose", "photo_psnr",
+                        "stages", "version", "format", "occupancy_shape", "made_by"})
+"""The metadata keys ``edits show`` prints in their own rows, or as the file's identity; any other
+(``EditResult.save(path, note=...)`` from a script) gets a row of its own after them."""
+
+
 def _show_rows(delta, size: int) -> list[tuple[str, str]]:
     meta = delta.meta
     rows = [(key, meta.get(key, "")) for key in ("kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint")]
     rows = [(k, v if v else "(none)" if k == "parent" else v) for k, v in rows if v or k == "parent"]
-    rows += [(key, meta[key]) for key in ("final_loss", "seconds", "view", "command", "rebased") if meta.get(key)]
+    rows += [(key, meta[key]) for key in ("first_loss", "final_loss", "seconds", "view", "command", "rebased") if meta.get(key)]
     if meta.get("hyperparameters"):
         try:
             hyper = json.loads(meta["hyperparameters"])
@@ -603,6 +630,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
         if isinstance(inputs, dict):
             rows.append(("inputs", ", ".join(f"{k}={'default' if v is None else v}" for k, v in inputs.items()) or "(none recorded)"))
     rows += [(key, meta[key]) for key in ("photo", "mask", "pose", "photo_psnr") if meta.get(key)]  # fit-real's record
+    rows += [(key, meta[key]) for key in sorted(meta) if key not in SHOWN_KEYS and isinstance(meta[key], str)]  # a script's own provenance
     stages = _parsed("stages", meta["stages"]) if meta.get("stages") else None
     if isinstance(stages, list):
         for st in stages:

@@ -148,6 +148,7 @@ class InstanceEdit:
         self.rows = {n: instance for n in self.params if n in CODE_TABLES}
         self.per = penalty
         self.optimize_seconds = 0.0  # set by optimize()
+        self.first_loss: float | None = None  # the first step's loss, set by optimize()
 
     def penalty(self) -> Tensor:
         return weight_penalty(self.params, self.start, self.rows, self.per)
@@ -224,7 +225,15 @@ def optimize(edit: InstanceEdit, loss_fn: Callable[[], Tensor], options: EditOpt
     """
     started = time.perf_counter()
     opt = FusedAdam(edit.params.values(), lr=options.lr)
-    last = run_adam(opt, loss_fn, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg),
+    edit.first_loss = None
+
+    def first_read() -> Tensor:  # one host read, at the first step: how far the edit moved (finish records it)
+        loss = loss_fn()
+        if edit.first_loss is None:
+            edit.first_loss = float(loss.detach())
+        return loss
+
+    last = run_adam(opt, first_read, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg),
                     refuse_rise=True)
     with torch.no_grad():
         last += options.lambda_reg * float(edit.penalty())
@@ -252,6 +261,7 @@ def finish(
     meta = {
         "hyperparameters": json.dumps(hyper, sort_keys=True),
         "final_loss": repr(final_loss),
+        **({"first_loss": repr(edit.first_loss)} if edit.first_loss is not None else {}),
         "seconds": f"{seconds:.3f}",
         "command": "",
     }

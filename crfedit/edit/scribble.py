@@ -106,10 +106,13 @@ def strokes_json_mask(data, width: int, height: int, where: str) -> np.ndarray:
             isinstance(p, list) and len(p) == 2 and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)
             for p in stroke
         )
-        pts = np.asarray(stroke, dtype=np.float64) if ok else None
-        if pts is None or not np.isfinite(pts).all():
+        try:
+            pts = np.asarray(stroke, dtype=np.float64) if ok else None
+        except OverflowError:  # an integer with hundreds of digits: no float holds it
+            pts = np.full((1, 2), np.inf)
+        if pts is None or np.isnan(pts).any():
             raise CrfError(f"{where}: stroke {i} is not a list of [x, y] pixel positions")
-        if np.abs(pts).max() > STROKE_REACH * max(width, height):  # far enough to overflow the distance arithmetic
+        if not np.isfinite(pts).all() or np.abs(pts).max() > STROKE_REACH * max(width, height):  # far enough to overflow the distance arithmetic
             raise CrfError(f"{where}: stroke {i} has a point more than {STROKE_REACH:g} view widths away from the "
                            f"{width}x{height} view (x from 0 to {width - 1}, y from 0 to {height - 1})")
         mask |= strokes_mask((height, width), [pts], r)
@@ -263,6 +266,8 @@ def load_mask(
             drawn, reading = read_scribble(Path(path), width, height, what, render)
         else:
             drawn, reading = strokes_json_mask(read_json(Path(path)), width, height, str(path)), "strokes JSON"
+            if not drawn.any():  # (the empty-mask line asks for white strokes on black, a PNG's reading)
+                raise CrfError(f"{path}: holds no strokes: an empty {what}")
         mask = drawn if mask is None else mask | drawn
         readings.append(reading)
     return None if mask is None else Scribble(mask, " + ".join(readings))
