@@ -15,7 +15,8 @@ pytest.importorskip("embreex")
 
 from crfedit.cameras import Camera, focal_from_angle, look_at  # noqa: E402
 from crfedit.data.loading import load_category, load_twins, read_twin_specs  # noqa: E402
-from crfedit.data.mesh_io import albedo_table, load_normalized, load_part_mesh, normalize_mesh, part_colors  # noqa: E402
+from crfedit.data.format import Frame  # noqa: E402
+from crfedit.data.mesh_io import PartMesh, albedo_table, load_normalized, load_part_mesh, normalize_mesh, part_colors  # noqa: E402
 from crfedit.data.meshes import (  # noqa: E402
     MAX_HIDDEN_SHARE,
     MeshDatasetConfig,
@@ -441,6 +442,45 @@ def test_mesh_names_keep_clear_of_the_dataset_files_and_rotations_are_rotations(
             load_normalized(mesh)
     (tmp_path / "m.meta.json").write_text(json.dumps({"rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]]}))  # a quarter turn: fine
     load_normalized(tmp_path / "m.obj")
+    (tmp_path / "m.meta.json").write_text(json.dumps({"rotation": [["1", 0, 0], [0, 1, 0], [0, 0, 1]]}))  # text is not a number
+    with pytest.raises(DataError, match="rotation must be a 3x3 matrix of numbers"):
+        load_normalized(tmp_path / "m.obj")
+    (tmp_path / "m.meta.json").write_text(json.dumps({"licence": "CC0", "author": "me"}))  # misspelt: the credit was lost silently
+    with pytest.raises(DataError, match=r"m\.meta\.json: unknown keys 'author', 'licence'; a sidecar holds name, title, creator, license"):
+        load_normalized(tmp_path / "m.obj")
+
+
+def test_mesh_notes_name_a_y_up_file_a_tiny_mesh_a_renamed_file_and_twins_of_every_mesh(boxes, tmp_path):
+    """What looks wrong with a mesh dataset is said after the run (it wrote silently): a glTF
+    read Z-up, an OBJ deeper along y than tall along z, a mesh that covers under 1 % of its
+    views (a stray triangle far away), a file whose instance is not its stem, and twins whose
+    sources are every mesh (training then gets no part head)."""
+    import shutil
+
+    from crfedit.data.meshes import mesh_notes
+
+    square = lambda n: [Frame(None, np.zeros((8, 8, 4), np.float32), None, None) for _ in range(n)]
+    seen = square(3)
+    for f in seen:
+        f.rgba[2:6, 2:6, 3] = 1.0
+    flat, _ = load_normalized(boxes)  # two boxes, Z-up: wider than tall, no note for its axes
+    assert mesh_notes(Path("two_boxes.obj"), "two_boxes", flat, "z", seen) == []
+    assert mesh_notes(Path("two_boxes.glb"), "two_boxes", flat, "z", seen)[0].startswith("two_boxes.glb: glTF is Y-up by its specification")
+    assert mesh_notes(Path("two_boxes.glb"), "two_boxes", flat, "y", seen) == []
+    turned = PartMesh(flat.vertices * np.array([0.6, 1.0, 0.5]), flat.faces, flat.face_part, flat.parts)  # deep along y, low along z
+    assert "deeper along y" in mesh_notes(Path("m.obj"), "m", turned, "z", seen)[0]
+    assert mesh_notes(Path("m.obj"), "m", turned, "y", seen) == []
+    tiny = mesh_notes(Path("two_boxes.obj"), "two_boxes", flat, "y", square(3))  # no pixel shows it
+    assert tiny == ["two_boxes.obj: the mesh covers 0.00% of its views (median): its bounding box is far larger than the object "
+                    "(a stray piece far away? each mesh is scaled to unit size by its box); remove the piece"]
+    assert mesh_notes(Path("椅子.obj"), "mesh", flat, "y", seen) == ["椅子.obj is instance mesh (names keep letters, digits, _ . and -)"]
+    other = tmp_path / "other.obj"
+    shutil.copy(boxes, other)
+    result = write_mesh_category(tmp_path / "d", [boxes, other], MeshDatasetConfig(views=4, res=16, twin_sources=4))
+    assert result.twins and [n for n in result.notes if "twins" in n] == [
+        "the twins' sources are all 2 meshes: training leaves their part maps out by default (part_labels=not-twins), so it gets no "
+        "part head; fewer --twin-sources, --no-twins, or train with --set part_labels=all"]
+    assert not write_mesh_category(tmp_path / "e", [boxes, other], MeshDatasetConfig(views=4, res=16, twins=False)).notes
 
 
 

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, stderr_progress, user_errors
+from .common import AaOpt, SeedOpt, TwinSourcesOpt, dataset_app, printable, stderr_progress, user_errors
 
 
 class PaletteChoice(str, enum.Enum):
@@ -53,8 +53,10 @@ def from_meshes(
     with stderr_progress(*columns) as bar:
         task = bar.add_task("loading meshes", total=mesh_steps(len(meshes), config))
         result = write_mesh_category(out, meshes, config, lambda label: bar.update(task, advance=1, description=label))
-    n = len(result.names)
+    n, parts, t = len(result.names), sum(result.parts), len(result.twins)
     typer.echo(
-        f"wrote {n} mesh{'es' * (n != 1)} ({sum(result.parts)} parts) x {views} views at {res}x{res}"
-        f" + {len(result.twins)} twins to {out} in {result.seconds:.1f} s" + replaced_note(replaced, result.kept)
+        f"wrote {n} mesh{'es' * (n != 1)} ({parts} part{'s' * (parts != 1)}) x {views} view{'s' * (views != 1)} at {res}x{res}"
+        f" + {t} twin{'s' * (t != 1)} to {out} in {result.seconds:.1f} s" + replaced_note(replaced, result.kept)
     )
+    for note in result.notes:
+        typer.echo(printable(f"note: {note}"), err=True)

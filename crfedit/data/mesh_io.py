@@ -6,6 +6,7 @@ Used by :mod:`.meshes` to render categories from mesh files; see that module for
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,7 +65,15 @@ def read_meta(path: Path) -> dict:
         raise DataError(str(e)) from None
     if not isinstance(meta, dict):
         raise DataError(f"{sidecar}: expected a JSON object")
+    unknown = sorted(set(meta) - set(SIDECAR_KEYS))
+    if unknown:  # a misspelt "licence" or "author" lost a CC-BY credit without a word
+        raise DataError(f"{sidecar}: unknown key{'s' * (len(unknown) != 1)} {', '.join(map(repr, unknown))}; a sidecar holds "
+                        f"{', '.join(SIDECAR_KEYS)}")
     return meta
+
+
+SIDECAR_KEYS = ("name", "title", "creator", "license", "license_url", "source", "rotation")
+"""The keys a mesh's sidecar ``<stem>.meta.json`` may hold: attribution (ATTRIBUTION.txt) and a rotation."""
 
 
 def _material_color(visual, material, trimesh) -> tuple[float, float, float] | None:
@@ -206,16 +215,20 @@ def load_normalized(path: str | Path, up: str = "z") -> tuple[PartMesh, dict]:
     meta = read_meta(path)
     rotation = meta.get("rotation")
     if rotation is not None:
+        numbers = isinstance(rotation, list) and all(
+            isinstance(row, list) and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in row) for row in rotation)
         try:
-            rotation = np.array(rotation, dtype=np.float64)
-        except (TypeError, ValueError):
+            rotation = np.array(rotation, dtype=np.float64) if numbers else None  # "1" is text, not a number
+        except (TypeError, ValueError, OverflowError):
             rotation = None
         if rotation is None or rotation.shape != (3, 3) or not np.isfinite(rotation).all():
             raise DataError(f"{path.with_suffix('.meta.json')}: rotation must be a 3x3 matrix of numbers")
         if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
             raise DataError(f"{path.with_suffix('.meta.json')}: rotation must be a rotation (orthonormal rows, determinant +1), "
                             "not a scale, shear or mirror, which would reshape the object")
-    mesh = load_part_mesh(path)
+    with warnings.catch_warnings():  # trimesh's own arithmetic on coordinates near 1e300 warns; the result is checked
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mesh = load_part_mesh(path)
     try:
         return normalize_mesh(mesh, up, rotation), meta
     except DataError as e:

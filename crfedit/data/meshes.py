@@ -269,6 +269,40 @@ class MeshDatasetResult:
     parts: list[int]  # parts per instance
     seconds: float
     kept: list[str] = field(default_factory=list)  # the user's entries of the dataset it replaced, carried over
+    notes: list[str] = field(default_factory=list)  # what looks wrong with a mesh or the set (mesh_notes), one line each
+
+
+SMALL_COVER = 0.01
+""":func:`mesh_notes` names a mesh whose median train view shows it on less than this share of the
+pixels: each mesh is scaled to unit size by its bounding box, so one stray triangle far away
+shrank a tester's chair to 0–2 pixels a view, and only `dataset info` spoke, of camera axes."""
+Y_TALLER = 1.25
+""":func:`mesh_notes` names a mesh read with ``--up z`` whose extent along y is the largest and at
+least this × its height (z): a Y-up file read as Z-up lies on its back."""
+GLTF = (".glb", ".gltf")
+"""glTF files are Y-up by the format's specification."""
+
+
+def mesh_notes(path: Path, name: str, mesh: PartMesh, up: str, train: list[Frame]) -> list[str]:
+    """What looks wrong with one mesh of a dataset, one line each ([] when nothing does): the
+    instance's name when it is not the file's stem, a Y-up file read Z-up, a mesh that covers
+    almost none of its views."""
+    notes = []
+    if name != path.stem:
+        notes.append(f"{path.name} is instance {name} (names keep letters, digits, _ . and -)")
+    if up == "z":
+        ext = np.ptp(mesh.vertices[np.unique(mesh.faces)], axis=0)
+        if path.suffix.lower() in GLTF:
+            notes.append(f"{path.name}: glTF is Y-up by its specification, and --up z lays it on its back; give --up y "
+                         "(or a sidecar rotation for this file alone)")
+        elif ext[1] >= ext[0] and ext[1] >= Y_TALLER * ext[2]:
+            notes.append(f"{path.name}: deeper along y ({ext[1]:.2f}) than tall along z ({ext[2]:.2f}); if it lies on its back, "
+                         "the file is Y-up: give --up y (or a sidecar rotation for this file alone)")
+    cover = float(np.median([float((f.rgba[..., 3] > 0.5).mean()) for f in train])) if train else 1.0
+    if cover < SMALL_COVER:
+        notes.append(f"{path.name}: the mesh covers {cover:.2%} of its views (median): its bounding box is far larger than the "
+                     "object (a stray piece far away? each mesh is scaled to unit size by its box); remove the piece")
+    return notes
 
 
 def instance_names_from(paths: list[Path]) -> list[str]:
@@ -426,11 +460,12 @@ def write_mesh_category(
     # built in a hidden folder that replaces `out` whole: an earlier dataset's instances (and their
     # renders, whose attribution went with it) do not stay behind, and a failure leaves `out` as it was
     with atomic_folder(out) as root:
-        instances, need = [], min_scribble_pixels(config.res)
+        instances, need, notes = [], min_scribble_pixels(config.res), []
         for index, (name, mesh) in enumerate(zip(names, meshes)):
             colors = part_colors(mesh, config.palette, np.random.default_rng([config.seed, index, 0]))
             cams = sample_cameras(np.random.default_rng([config.seed, index, 1]), config.views, config.res)
             frames = _write_instance(root / name, mesh, colors, cams, config.aa)
+            notes += mesh_notes(paths[index], name, mesh, config.up, frames["train"])
             room = {p.id: scribble_view(frames["train"], p.id) for p in mesh.parts}
             reach = {pid: stroke_view(frames["train"], pid, need) for pid in removable_parts(mesh)} if config.twins else {}
             hidden = {pid: hidden_share(mesh, pid, cams["test"], cams["train"]) for pid, (_, n) in reach.items() if n >= need}
@@ -440,6 +475,10 @@ def write_mesh_category(
         twins: list[TwinSpec] = []
         picks = [twin_parts(inst, config.res) for inst in instances] if config.twins else []
         sources = pick_twin_sources(picks, config.twin_sources) if config.twins else {}
+        if config.twins and len(set(sum(sources.values(), []))) == len(names) and len(names) > 1:
+            notes.append(f"the twins' sources are all {len(names)} meshes: training leaves their part maps out by default "
+                         "(part_labels=not-twins), so it gets no part head; fewer --twin-sources, --no-twins, or train with "
+                         "--set part_labels=all")
         for index in sorted(set(sum(sources.values(), []))):
             for part_id, kind in zip(picks[index], ("color", "remove")):
                 if index in sources[kind]:
@@ -453,4 +492,4 @@ def write_mesh_category(
         if text is not None:
             atomic_write_text(root / "ATTRIBUTION.txt", text)
         kept = carry_extras(out, root)  # a user's notes and scribbles in an earlier build: not lost with it
-    return MeshDatasetResult(names, twins, [len(m.parts) for m in meshes], time.perf_counter() - start, kept)
+    return MeshDatasetResult(names, twins, [len(m.parts) for m in meshes], time.perf_counter() - start, kept, notes)
