@@ -215,6 +215,12 @@ def check_hulls(category: Category, hulls: torch.Tensor) -> None:
     for inst in empty[:1]:  # the first, and how many more: all of them says the dataset's axes are OpenCV's
         if not any(v.alpha.any() for v in inst.splits["train"]):
             raise CrfError(f"{inst.path}: instance {inst.name}{others}: every training view's alpha (or mask) is 0, so there is no object to train")
+        pixels = sorted(int((v.alpha > 0.5).sum()) for v in inst.splits["train"])
+        n = pixels[len(pixels) // 2]
+        if n < 0.01 * inst.splits["train"][0].alpha.size:  # a speck, not a pose problem
+            raise CrfError(f"{inst.path}: instance {inst.name}{others}: its training views show the object on {n} pixel{'s' * (n != 1)} "
+                           "(median), too few for the grid to carve it; render it larger in its views (a mesh whose "
+                           "bounding box a stray piece far away enlarged?)")
         raise CrfError(f"{inst.path}: instance {inst.name}{others}: its training silhouettes carve an empty visual hull (no point projects onto the "
                        "object in every view); poses must use OpenGL/NeRF camera axes (the camera looks down -Z, +Y up): "
                        "flip the Y and Z axes of OpenCV/COLMAP poses")

@@ -25,7 +25,7 @@ from crfedit.data import (
     write_split,
     write_twins_json,
 )
-from crfedit.errors import DataError
+from crfedit.errors import CrfError, DataError
 from crfedit.io import write_exr
 
 from cli_helpers import assert_user_error, invoke
@@ -354,3 +354,26 @@ def test_dataset_info_says_what_train_would(tmp_path):
     flipped = invoke("dataset", "info", root)
     assert flipped.exit_code == 0 and "flip the Y and Z axes of OpenCV/COLMAP poses (train refuses the dataset)" in flipped.stderr, flipped.stderr
     assert "instance chair_000 (and 1 of the other 1 instances): its training silhouettes carve an empty visual hull" in flipped.stderr
+
+
+def test_an_object_a_few_pixels_large_is_named_as_such_not_as_camera_axes():
+    """A mesh whose bounding box a stray triangle far away enlarged shows 0–2 pixels a view:
+    the hull it carves is empty, and the error named OpenCV camera axes (the dataset was
+    crfedit's own renders)."""
+    from types import SimpleNamespace as NS
+
+    import torch
+
+    from crfedit.train import check_hulls
+
+    speck = np.zeros((64, 64), np.float32)
+    speck[3, 3] = 1.0
+    inst = NS(path="p", name="stray", splits={"train": [NS(alpha=speck) for _ in range(5)]})
+    with pytest.raises(CrfError, match=r"^p: instance stray: its training views show the object on 1 pixel \(median\), too few"):
+        check_hulls(NS(instances=[inst]), torch.zeros(1, 4, 4, 4, dtype=torch.bool))
+    big = np.zeros((64, 64), np.float32)
+    big[10:40, 10:40] = 1.0
+    inst = NS(path="p", name="seen", splits={"train": [NS(alpha=big) for _ in range(5)]})
+    with pytest.raises(CrfError, match="poses must use OpenGL/NeRF camera axes"):
+        check_hulls(NS(instances=[inst]), torch.zeros(1, 4, 4, 4, dtype=torch.bool))
+
