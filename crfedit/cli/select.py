@@ -28,11 +28,6 @@ def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
             typer.echo(f"{label}: {line}")
 
 
-def _same_camera(a, b) -> bool:
-    """Whether two views' cameras are one (the same pose, focal and size)."""
-    return (a.width, a.height, a.focal) == (b.width, b.height, b.focal) and bool((a.c2w == b.c2w).all())
-
-
 def _off_object_warning(model, k: int, spec: str, v) -> None:
     """Warn when a view's scribble or keep strokes lie on the background only: they lift no
     point, and the view adds nothing (strokes drawn for another view, say)."""
@@ -81,6 +76,7 @@ def select_cmd(
     from ..edit.scribble import few_pixels_note, keep_outside, keep_overlap
     from ..edit.selection import ScribbleView, options_for, preview as tinted, save_selection, select
     from ..edit.selection.base import merge_views
+    from ..edit.shape import same_camera
     from ..edit.selection.options import EDIT_KINDS
     from ..io import write_png
 
@@ -123,7 +119,7 @@ def select_cmd(
         given = ScribbleView(camera, fg, bg)
         if len(view) > 1:  # one view alone on the background is refused by select itself
             _off_object_warning(m, k, spec, given)
-        same = next((j for j, v in enumerate(scribbles) if _same_camera(v.camera, camera)), None)
+        same = next((j for j, v in enumerate(scribbles) if same_camera(v.camera, camera)), None)
         if same is None:
             scribbles.append(given)
             specs.append(spec)
