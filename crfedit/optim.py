@@ -146,13 +146,14 @@ def check_descent(values: list[float], what: str, consequence: str) -> None:
 def run_adam(
     opt: torch.optim.Optimizer | FusedAdam, loss_fn: Callable[[], Tensor], steps: int, what: str,
     on_step: Callable[[int, float], None] | None = None, consequence: str = "nothing was written",
-    before_step: Callable[[], None] | None = None, refuse_rise: bool = False,
+    before_step: Callable[[], None] | None = None, refuse_rise: bool = False, losses: list[float] | None = None,
 ) -> float:
     """``steps`` steps of ``opt`` on ``loss_fn()``, then a check that every loss and every
     parameter it trains is finite (and with ``refuse_rise`` that the loss did not end far above
     where it began: :func:`check_descent`); returns the last loss.  ``on_step(step, loss)`` after
     each step (1-based) reads each loss as it comes, and a NaN/inf one stops before its gradient;
-    without it the losses are read once, at the end.  ``before_step`` as in :func:`adam_step`."""
+    without it the losses are read once, at the end.  ``before_step`` as in :func:`adam_step`;
+    ``losses``, when given, is extended with every step's loss (read with the others)."""
     params = [p for g in opt.param_groups for p in g["params"]]
     log = StepLog(1, params[0].device if params else "cpu", size=steps)
     value, seen = float("nan"), []
@@ -170,6 +171,9 @@ def run_adam(
     rows = log.read()
     check_losses(rows, what, consequence)
     check_finite(params, what, consequence)
+    values = seen or [r[1][0] for r in rows]
     if refuse_rise:
-        check_descent(seen or [r[1][0] for r in rows], what, consequence)
+        check_descent(values, what, consequence)
+    if losses is not None:
+        losses.extend(values)
     return rows[-1][1][0] if rows else value

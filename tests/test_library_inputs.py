@@ -180,9 +180,13 @@ def test_names_for_instances_and_the_library_s_own_checks(scene, tmp_path):
     assert read_delta(tmp_path / "e.safetensors").meta["note"] == "kept"
     from cli_helpers import invoke
 
-    shown = invoke("edits", "show", tmp_path / "e.safetensors").stdout  # a script's own key gets its row; the first loss its own
-    assert "\nnote          kept\n" in shown and f"\nfirst_loss    {result.meta['first_loss']}\n" in shown, shown
-    assert float(result.meta["first_loss"]) > float(result.meta["final_loss"])
+    shown = invoke("edits", "show", tmp_path / "e.safetensors").stdout  # a script's own key gets its row
+    assert "\nnote          kept\n" in shown and "first_loss" not in result.meta  # 2 steps: too few to judge
+    ten = edit_color(model, 0, camera, scribble, "red", options=EditOptions(steps=10, rays=128))
+    ten.save(tmp_path / "t.safetensors")
+    shown = invoke("edits", "show", tmp_path / "t.safetensors").stdout
+    assert f"\nfirst_loss    {ten.meta['first_loss']}\nfit_loss      {ten.meta['fit_loss']}\n" in shown, shown
+    assert float(ten.meta["first_loss"]) > float(ten.meta["fit_loss"])
     assert select_for(model, 0, camera, scribble, None, "remove").meta["for"] == "remove"
     from crfedit.evaluation import evaluate_edits
 

@@ -342,9 +342,12 @@ LITTLE_MOVED = 0.98
 
 
 def little_moved_note(meta: dict) -> str | None:
-    """A line when an edit's loss barely fell (:data:`LITTLE_MOVED`), else None."""
+    """A line when an edit's loss barely fell (:data:`LITTLE_MOVED`), else None: the first step's
+    loss against the mean of the last tenth of the steps' without the weight penalty
+    (``fit_loss``; ``final_loss`` adds the penalty, the larger part of an addition's).  Edits of
+    fewer than 10 steps record neither (one step's random batch can cost more than the first's)."""
     try:
-        first, final = float(meta["first_loss"]), float(meta["final_loss"])
+        first, final = float(meta["first_loss"]), float(meta["fit_loss"])
     except (KeyError, TypeError, ValueError):
         return None
     if not (first > 0 and final >= LITTLE_MOVED * first):
@@ -588,7 +591,7 @@ def _short(value) -> str:
     return str(value)
 
 
-JSON_META = ("modules", "hyperparameters", "first_loss", "final_loss", "seconds", "inputs", "stages", "photo_psnr")
+JSON_META = ("modules", "hyperparameters", "first_loss", "fit_loss", "final_loss", "seconds", "inputs", "stages", "photo_psnr")
 """An edit's metadata values that hold JSON (a list, a table, a number): ``--json`` shows them parsed."""
 
 
@@ -606,7 +609,7 @@ def _parsed(key: str, value: str):
         return value
 
 
-SHOWN_KEYS = frozenset({"kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint", "first_loss", "final_loss",
+SHOWN_KEYS = frozenset({"kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint", "first_loss", "fit_loss", "final_loss",
                         "seconds", "view", "command", "rebased", "hyperparameters", "inputs", "photo", "mask", "pose", "photo_psnr",
                         "stages", "version", "format", "occupancy_shape", "made_by"})
 """The metadata keys ``edits show`` prints in their own rows, or as the file's identity; any other
@@ -617,7 +620,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
     meta = delta.meta
     rows = [(key, meta.get(key, "")) for key in ("kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint")]
     rows = [(k, v if v else "(none)" if k == "parent" else v) for k, v in rows if v or k == "parent"]
-    rows += [(key, meta[key]) for key in ("first_loss", "final_loss", "seconds", "view", "command", "rebased") if meta.get(key)]
+    rows += [(key, meta[key]) for key in ("first_loss", "fit_loss", "final_loss", "seconds", "view", "command", "rebased") if meta.get(key)]
     if meta.get("hyperparameters"):
         try:
             hyper = json.loads(meta["hyperparameters"])

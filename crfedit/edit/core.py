@@ -149,6 +149,7 @@ class InstanceEdit:
         self.per = penalty
         self.optimize_seconds = 0.0  # set by optimize()
         self.first_loss: float | None = None  # the first step's loss, set by optimize()
+        self.fit_loss: float | None = None  # the last tenth of the steps' mean loss, without the weight penalty: set by optimize()
 
     def penalty(self) -> Tensor:
         return weight_penalty(self.params, self.start, self.rows, self.per)
@@ -225,16 +226,12 @@ def optimize(edit: InstanceEdit, loss_fn: Callable[[], Tensor], options: EditOpt
     """
     started = time.perf_counter()
     opt = FusedAdam(edit.params.values(), lr=options.lr)
-    edit.first_loss = None
-
-    def first_read() -> Tensor:  # one host read, at the first step: how far the edit moved (finish records it)
-        loss = loss_fn()
-        if edit.first_loss is None:
-            edit.first_loss = float(loss.detach())
-        return loss
-
-    last = run_adam(opt, first_read, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg),
-                    refuse_rise=True)
+    losses: list[float] = []
+    last = run_adam(opt, loss_fn, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg),
+                    refuse_rise=True, losses=losses)
+    if len(losses) >= 10:  # how far the edit moved (finish records it); fewer steps' random batches say little
+        tail = losses[-max(1, len(losses) // 10):]
+        edit.first_loss, edit.fit_loss = losses[0], sum(tail) / len(tail)
     with torch.no_grad():
         last += options.lambda_reg * float(edit.penalty())
     edit.optimize_seconds = time.perf_counter() - started
@@ -261,7 +258,7 @@ def finish(
     meta = {
         "hyperparameters": json.dumps(hyper, sort_keys=True),
         "final_loss": repr(final_loss),
-        **({"first_loss": repr(edit.first_loss)} if edit.first_loss is not None else {}),
+        **({"first_loss": repr(edit.first_loss), "fit_loss": repr(edit.fit_loss)} if edit.first_loss is not None else {}),
         "seconds": f"{seconds:.3f}",
         "command": "",
     }
