@@ -184,7 +184,7 @@ def score_model(
             shown = ", ".join(model.names[:4]) + (", …" if len(model.names) > 4 else "")
             raise CrfError(f"none of the model's instances ({shown}) is in {category.root}")
     else:
-        if isinstance(instances, (str, bytes)) or not len(instances):  # a bare name iterates its letters
+        if isinstance(instances, (str, bytes)) or not hasattr(instances, "__len__") or not len(instances):  # a bare name iterates its letters
             raise CrfError(f"instances {instances!r}: give a list of instance names or indices (or None for all)")
         indices = [model.instance_index(k) for k in instances]  # names too; an unknown one is one line
         missing = [model.names[k] for k in indices if model.names[k] not in category.names]

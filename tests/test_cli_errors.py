@@ -299,3 +299,5 @@ def test_an_option_of_one_value_given_twice_is_refused(monkeypatch, capsys, tmp_
                                   "--scribble", "b.png", "--out", "s.safetensors"]) is None
     assert repeated_option(root, ["remove", m, "--force", "--force", "--instance", "0"]) is None
     assert repeated_option(root, ["nonsense", "--view", "a", "--view", "b"]) is None  # click's own error says it
+    code, _, err = run_main(monkeypatch, capsys, "render", m, "--instance", "0", "--views", "test", "--out", str(tmp_path / "r"), "--debug")
+    assert code == 2 and err == "error: No such option: --debug (--debug goes before the command: crfedit --debug COMMAND …)\n", err

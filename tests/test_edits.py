@@ -860,8 +860,14 @@ def test_an_empty_strokes_file_and_an_edit_that_barely_moved_say_so(tmp_path):
     (tmp_path / "s.json").write_text('{"strokes": [], "radius": 2}')
     with pytest.raises(CrfError, match=r"s\.json: holds no strokes: an empty scribble$"):
         load_mask(None, tmp_path / "s.json", 12, 10, "scribble")
-    note = little_moved_note({"first_loss": "0.4553", "fit_loss": "0.4538", "final_loss": "0.4538"})
-    assert note.startswith("the loss fell only from 0.4553 to 0.4538: the edit changed little")
+    note = little_moved_note({"first_loss": "0.4553", "fit_loss": "0.4538", "final_loss": "0.4538",
+                              "hyperparameters": '{"lr": 1e-06, "steps": 100}'})
+    assert note == ("the loss fell only from 0.4553 to 0.4538: the edit changed little (a learning rate too small or too few steps? "
+                    "the defaults are --lr 0.01, --steps 100); render it to check")
+    # at the defaults, and a loss that rose: said so, without the advice to use the defaults
+    rose = little_moved_note({"first_loss": "0.04013", "fit_loss": "0.04066", "hyperparameters": '{"lr": 0.01, "steps": 100}'})
+    assert rose == ("the loss rose from 0.04013 to 0.04066: the edit changed little (the view may show little of what the scribble "
+                    "marks); render it to check")
     assert little_moved_note({"first_loss": "0.4553", "fit_loss": "0.0203", "final_loss": "0.0203"}) is None
     # an addition whose weight penalty makes its final loss the larger: the fit's own loss fell, no note
     assert little_moved_note({"first_loss": "0.0803", "fit_loss": "0.0120", "final_loss": "0.2202"}) is None

@@ -166,7 +166,7 @@ def test_names_for_instances_and_the_library_s_own_checks(scene, tmp_path):
         score_images([np.full((8, 8, 3), 0.5)], [np.full((8, 8, 3), np.nan)])
     from crfedit.evaluation import score_model
 
-    for bad in ([], "chair_000"):  # a bare name iterated its letters ("unknown instance 'c'")
+    for bad in ([], "chair_000", 0, (k for k in [0])):  # a bare name iterated its letters ("unknown instance 'c'"); 0 had no len()
         with pytest.raises(CrfError, match="give a list of instance names or indices"):
             score_model(model, None, instances=bad)
     read_only = np.full((8, 8, 3), 0.5, np.float32)
@@ -176,12 +176,16 @@ def test_names_for_instances_and_the_library_s_own_checks(scene, tmp_path):
         assert score_images([read_only], [read_only])["psnr"] == float("inf")
     with pytest.raises(CrfError, match="save: instance, kind are the edit's own metadata"):
         result.save(tmp_path / "e.safetensors", kind="recolour", instance="other")
-    result.save(tmp_path / "e.safetensors", note="kept")
-    assert read_delta(tmp_path / "e.safetensors").meta["note"] == "kept"
+    with pytest.raises(CrfError, match="save: final_loss is the edit's own metadata"):
+        result.save(tmp_path / "e.safetensors", final_loss="abc")
+    with pytest.raises(CrfError, match="save: a metadata key is empty"):
+        result.save(tmp_path / "e.safetensors", **{"": "x"})
+    result.save(tmp_path / "e.safetensors", note="kept\nby a script")
+    assert read_delta(tmp_path / "e.safetensors").meta["note"] == "kept\nby a script"
     from cli_helpers import invoke
 
     shown = invoke("edits", "show", tmp_path / "e.safetensors").stdout  # a script's own key gets its row
-    assert "\nnote          kept\n" in shown and "first_loss" not in result.meta  # 2 steps: too few to judge
+    assert "\nnote          kept by a script\n" in shown and "first_loss" not in result.meta  # one line; 2 steps: too few to judge
     ten = edit_color(model, 0, camera, scribble, "red", options=EditOptions(steps=10, rays=128))
     ten.save(tmp_path / "t.safetensors")
     shown = invoke("edits", "show", tmp_path / "t.safetensors").stdout

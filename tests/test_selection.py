@@ -1328,6 +1328,17 @@ def test_a_view_with_keep_strokes_alone_holds_back_what_it_marks(trained, tmp_pa
     assert r.exit_code == 0 and f"note: --view train:{inst.index(view)} given again: its strokes join that view's, as one view" in r.stderr
     alone = select(model, k, [ScribbleView(view.camera, fg, None)], options_for("color"))
     assert torch.equal(load_selection(tmp_path / "t.safetensors").values, alone.values)
+    corner = np.zeros_like(fg)
+    corner[:2, :2] = True  # keep strokes the second spelling's scribble covers: refused as one view's would be
+    Image.fromarray((corner * 255).astype(np.uint8)).save(tmp_path / "k2.png")
+    Image.fromarray(((fg | corner) * 255).astype(np.uint8)).save(tmp_path / "cover.png")
+    spec = f"train:{inst.index(view)}"
+    r = CliRunner().invoke(app, ["select", str(path), "--instance", model.names[k], "--view", spec, "--scribble", str(tmp_path / "fg.png"),
+                                 "--keep", str(tmp_path / "k2.png"), "--view", spec, "--scribble", str(tmp_path / "cover.png"),
+                                 "--keep", "none", "--out", str(tmp_path / "c2.safetensors")])
+    assert r.exit_code == 2 and r.stderr.splitlines()[-1].startswith(f"error: --view {spec} (with --view {spec}, one view): the keep mask "
+                                                                      "has no pixel outside the scribble"), r.stderr
+    assert not (tmp_path / "c2.safetensors").exists()
     r = CliRunner().invoke(app, [*args, "--keep", "none", "--out", str(tmp_path / "x.safetensors")])
     assert_user_error(r, f"--view train:{inst.index(other)} --scribble none: a view without a scribble needs its --keep strokes")
     assert not (tmp_path / "x.safetensors").exists()

@@ -202,7 +202,7 @@ def test_free_pieces_keep_the_loose_pieces_of_their_share(free, kept_apart, piec
     if free == 0.4:
         then = "40% of the 20 cells the scribble reached at that step, before the vetoes"
         assert line == (f"kept 1 piece that the scribble does not reach (10 cells; each at least {then}); "
-                        f"left 2 cells out: pieces it does not reach, each under {then}")
+                        "left 2 cells out: pieces it does not reach, each under that share")
     assert pieces_summary({"free_pieces": {**said, "kept_pieces": 0, "kept_cells": 0, "left_cells": 0}}) is None and pieces_summary({}) is None
 
 

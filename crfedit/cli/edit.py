@@ -352,8 +352,19 @@ def little_moved_note(meta: dict) -> str | None:
         return None
     if not (first > 0 and final >= LITTLE_MOVED * first):
         return None
-    return (f"the loss fell only from {first:.4g} to {final:.4g}: the edit changed little (a learning rate too small or too few "
-            "steps? the defaults are --lr 0.01, --steps 100); render it to check")
+    moved = f"fell only from {first:.4g} to {final:.4g}" if final < first else f"rose from {first:.4g} to {final:.4g}"
+    try:
+        hyper = json.loads(meta.get("hyperparameters") or "{}")
+    except json.JSONDecodeError:
+        hyper = {}
+    from ..edit import EditOptions
+
+    defaults = EditOptions()
+    if isinstance(hyper, dict) and (hyper.get("lr"), hyper.get("steps")) == (defaults.lr, defaults.steps):
+        why = "the view may show little of what the scribble marks"
+    else:
+        why = f"a learning rate too small or too few steps? the defaults are --lr {defaults.lr:g}, --steps {defaults.steps}"
+    return f"the loss {moved}: the edit changed little ({why}); render it to check"
 
 
 @app.command("edit-color")
@@ -633,7 +644,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
         if isinstance(inputs, dict):
             rows.append(("inputs", ", ".join(f"{k}={'default' if v is None else v}" for k, v in inputs.items()) or "(none recorded)"))
     rows += [(key, meta[key]) for key in ("photo", "mask", "pose", "photo_psnr") if meta.get(key)]  # fit-real's record
-    rows += [(key, meta[key]) for key in sorted(meta) if key not in SHOWN_KEYS and isinstance(meta[key], str)]  # a script's own provenance
+    rows += [(key, " ".join(meta[key].split())) for key in sorted(meta) if key and key not in SHOWN_KEYS and isinstance(meta[key], str)]  # a script's own provenance, on one line
     stages = _parsed("stages", meta["stages"]) if meta.get("stages") else None
     if isinstance(stages, list):
         for st in stages:

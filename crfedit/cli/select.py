@@ -34,11 +34,10 @@ def _off_object_warning(model, k: int, spec: str, v) -> None:
     from ..edit.selection.pipeline import view_on_object
 
     on = view_on_object(model.field_for(k), k, v)
-    for what, mask in (("scribble lies", v.scribble), ("keep strokes lie", v.keep)):
+    for what, mask, adds in (("scribble lies", v.scribble, "it adds no scribbled point"), ("keep strokes lie", v.keep, "they add no keep point")):
         if mask is not None and mask.any() and not (mask & on).any():
-            points = "scribbled" if what.startswith("scribble") else "keep"
-            typer.echo(f"warning: --view {spec}: its {what} on the background only (no pixel shows the object there): they add no "
-                       f"{points} point (the view still adds its other surface points as candidates); drawn for another view?", err=True)
+            typer.echo(f"warning: --view {spec}: its {what} on the background only (no pixel shows the object there): {adds} "
+                       "(the view still adds its other surface points as candidates); drawn for another view?", err=True)
 
 
 def _mask(path: Path, model, instance: int, camera, what: str):
@@ -125,6 +124,11 @@ def select_cmd(
             specs.append(spec)
         else:  # the strokes of one view given twice join, as one view
             scribbles[same] = merge_views(scribbles[same], given)
+            if scribbles[same].keep is not None:  # refused as one view's would be
+                try:
+                    keep_outside(scribbles[same].scribble, scribbles[same].keep)
+                except CrfError as e:
+                    raise CrfError(f"--view {spec} (with --view {specs[same]}, one view): {e}") from None
             again = "given again" if spec == specs[same] else f"is the camera of --view {specs[same]}"
             typer.echo(f"note: --view {spec} {again}: its strokes join that view's, as one view", err=True)
     sel = select(m, k, scribbles, options)

@@ -114,13 +114,20 @@ class EditResult:
     def save(self, path, **extra_meta: str) -> None:
         """Write the delta atomically; ``extra_meta`` (``command``, ``view`` …) is provenance
         only and does not change the edit's fingerprint; the keys that make up the edit itself
-        (``kind``, ``instance``, ``fingerprint`` …: :data:`~crfedit.delta.RESERVED`) are refused
-        (overwritten, they wrote a file crfedit then refused to load)."""
-        clash = sorted(set(extra_meta) & set(RESERVED))
+        (``kind``, ``instance``, ``fingerprint`` …: :data:`~crfedit.delta.RESERVED`; overwritten,
+        they wrote a file crfedit then refused to load) and what it measured (:data:`RECORDED`)
+        are refused, and so is an empty key."""
+        clash = sorted(set(extra_meta) & set(RECORDED))
         if clash:
             raise CrfError(f"save: {', '.join(clash)} {'is' if len(clash) == 1 else 'are'} the edit's own metadata, not provenance; "
                            "give other keys")
+        if "" in extra_meta:
+            raise CrfError("save: a metadata key is empty")
         save_delta(path, self.tensors, {**self.meta, **{k: str(v) for k, v in extra_meta.items()}})
+
+
+RECORDED = (*RESERVED, "hyperparameters", "first_loss", "fit_loss", "final_loss", "seconds")
+""":meth:`EditResult.save`'s refused provenance keys: the edit's identity and what it measured."""
 
 
 class InstanceEdit:

@@ -307,7 +307,8 @@ def pieces_summary(meta: dict) -> str | None:
         n = info["kept_pieces"]
         said.append(f"kept {n} piece{'' if n == 1 else 's'} that the scribble does not reach ({cells(info['kept_cells'])}; each at least {least})")
     if info["left_cells"]:
-        said.append(f"left {cells(info['left_cells'])} out: pieces it does not reach, each under {least}")
+        said.append(f"left {cells(info['left_cells'])} out: pieces it does not reach, each under "
+                    + ("that share" if info["kept_pieces"] else least))
     return "; ".join(said)
 
 
