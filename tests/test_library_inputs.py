@@ -197,3 +197,24 @@ def test_names_for_instances_and_the_library_s_own_checks(scene, tmp_path):
     with pytest.raises(CrfError, match="tpu"):  # the baseline's device, checked before any work (it was ignored)
         evaluate_edits(model, None, [], device="tpu")
 
+
+
+def test_the_commands_progress_bar_changes_nothing_the_edit_computes(scene, monkeypatch):
+    """`edit-color`, `remove` and `add` draw a progress bar once an edit has run a second
+    (``--rays 4194304`` ran for minutes without a word): its ``on_step`` reads each step's loss,
+    and the edit is bit-identical to the one without it; a second fit (a recolour refitted)
+    starts the count again."""
+    import crfedit.cli.edit as cli_edit
+
+    monkeypatch.setattr(cli_edit, "SHOW_AFTER", 0.0)
+    model, camera, scribble = scene
+    options = EditOptions(steps=12, rays=128)
+    plain = edit_color(model, 0, camera, scribble, "red", options=options)
+    with cli_edit.edit_progress(options, "colour edit") as shown:
+        assert shown.on_step is not None and options.on_step is None
+        barred = edit_color(model, 0, camera, scribble, "red", options=shown)
+    assert barred.tensors.keys() == plain.tensors.keys() and all(torch.equal(barred.tensors[n], t) for n, t in plain.tensors.items())
+    assert barred.meta["first_loss"] == plain.meta["first_loss"] and barred.meta["fit_loss"] == plain.meta["fit_loss"]
+    with cli_edit.edit_progress(EditOptions(steps=3), "removal") as shown:
+        for step in (1, 2, 3, 1, 2, 3):  # a refit: the bar is reset, nothing raises
+            shown.on_step(step, 0.1)

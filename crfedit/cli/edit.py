@@ -316,6 +316,49 @@ def _echo_selection(sel, whose: str = "", takes_keep: bool = True) -> None:
     echo_summaries(info, () if takes_keep else ("keep strokes",))
 
 
+SHOW_AFTER = 1.0
+"""Seconds an edit runs before :func:`edit_progress` draws its bar: the default edits take a
+fraction of a second, but ``--rays 4194304`` ran for minutes without a word."""
+
+
+@contextlib.contextmanager
+def edit_progress(options, what: str) -> Iterator:
+    """``options`` with an ``on_step`` that draws a progress bar on stderr (a terminal's only,
+    :func:`~crfedit.cli.common.stderr_progress`) once the edit has run :data:`SHOW_AFTER`
+    seconds: its step of ``options.steps``, steps per second and the time left.  A recolour
+    fitted a second time starts the count again, as "refit"."""
+    import dataclasses
+    import time
+
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+
+    from .common import stderr_progress
+    from .dataset import _rate_column
+
+    started, state = time.perf_counter(), {"bar": None, "task": None, "last": 0}
+
+    def on_step(step: int, _loss: float) -> None:
+        bar = state["bar"]
+        if bar is None:
+            if time.perf_counter() - started < SHOW_AFTER:
+                state["last"] = step
+                return
+            bar = stderr_progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), _rate_column(),
+                                  TimeRemainingColumn())
+            bar.start()
+            state["bar"], state["task"] = bar, bar.add_task(what, total=options.steps, completed=step)
+        if step < state["last"]:  # the fit began again
+            bar.reset(state["task"], total=options.steps, description=f"{what} (refit)")
+        state["last"] = step
+        bar.update(state["task"], completed=step)
+
+    try:
+        yield dataclasses.replace(options, on_step=on_step)
+    finally:
+        if state["bar"] is not None:
+            state["bar"].stop()
+
+
 def _options(strategy: Strategy, steps: int, lr: float, rays: int, seed: int, penalty: Penalty, recolor: Recolor = Recolor.shading):
     from ..edit import EditOptions
 
@@ -408,7 +451,8 @@ def edit_color_cmd(
     check_out_file(out, _scribbled_inputs(model, edit, scribble, scribble_json, keep, keep_json, selection))
     p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "color", preview, views,
                    join)
-    result = edit_color(p.model, p.instance, p.camera, p.scribble, rgb, p.keep, options, method.value, p.selection, p.mirror)
+    with edit_progress(options, "colour edit") as shown_options:
+        result = edit_color(p.model, p.instance, p.camera, p.scribble, rgb, p.keep, shown_options, method.value, p.selection, p.mirror)
     hyper = json.loads(result.meta.get("hyperparameters", "{}"))
     widened = hyper.get("widened")
     if widened:  # the held points that F_rad alone could not tell from the part
@@ -461,7 +505,8 @@ def remove_cmd(
     check_out_file(out, _scribbled_inputs(model, edit, scribble, scribble_json, keep, keep_json, selection))
     p = _scribbled(model, edit, device, instance, view, (scribble, scribble_json, keep, keep_json), force, method, mirror, selection, "remove", preview, views,
                    join)
-    result = remove(p.model, p.instance, p.camera, p.scribble, p.keep, occluded, options, method.value, p.selection, p.mirror)
+    with edit_progress(options, "removal") as shown_options:
+        result = remove(p.model, p.instance, p.camera, p.scribble, p.keep, occluded, shown_options, method.value, p.selection, p.mirror)
     hyper = json.loads(result.meta.get("hyperparameters", "{}"))
     if "removed_cells" in hyper:  # why the grid loses another count of cells than the selection holds
         taken, junction = hyper["removed_cells"], hyper["junction_cells"]
@@ -540,8 +585,9 @@ def add_cmd(
     if selection is not None and method != AddMethod.selection:
         raise CrfError("--selection belongs to --method selection")
     sel = _selection(selection, m, j, "add")
-    result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, options, sel,
-                 on_selection=lambda made: _echo_selection(made, "donor ", takes_keep=False))
+    with edit_progress(options, "addition") as shown_options:
+        result = add(m, k, camera, j, mask, dxdy, donor_camera, method.value, bg, shown_options, sel,
+                     on_selection=lambda made: _echo_selection(made, "donor ", takes_keep=False))
     note = outside_box_note(result.meta, f"--offset {offset}")
     if note:
         typer.echo(f"warning: {note}", err=True)
