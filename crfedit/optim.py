@@ -130,15 +130,21 @@ the chair, a recolour from 0.47 to 1.15 and blackened it, both written without a
 default the last tenth sits at 0.48 and 0.04 of the first loss (quickstart model)."""
 
 
+def late_loss(values: list[float]) -> float | None:
+    """The mean of the last tenth of ``values`` (one loss per step), where a run ends; None for
+    fewer than 10 steps, which are not judged (one step's random rays can cost more than the
+    first's).  :func:`check_descent` and an edit's record of how far it moved read it."""
+    if len(values) < 10:
+        return None
+    tail = values[-max(1, len(values) // 10):]
+    return sum(tail) / len(tail)
+
+
 def check_descent(values: list[float], what: str, consequence: str) -> None:
     """Raise :class:`NonFiniteError` when the last tenth of ``values`` (one loss per step)
-    averages more than :data:`RISE_LIMIT` × the first; fewer than 10 steps are not judged (one
-    step's random rays can cost more than the first's)."""
-    if len(values) < 10:
-        return
-    tail = values[-max(1, len(values) // 10):]
-    late = sum(tail) / len(tail)
-    if late > RISE_LIMIT * values[0]:
+    averages more than :data:`RISE_LIMIT` × the first (:func:`late_loss`)."""
+    late = late_loss(values)
+    if late is not None and late > RISE_LIMIT * values[0]:
         raise NonFiniteError(f"{what} diverged: its loss rose from {values[0]:.4g} to {late:.4g} over {len(values)} steps "
                              f"(a learning rate too large, or too few steps for a rise to settle: a lower --lr or more --steps); {consequence}")
 

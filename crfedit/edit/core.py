@@ -29,7 +29,7 @@ from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..model import CategoryModel
 from ..names import CODE_TABLES, RECOLOR_RULES
-from ..optim import FusedAdam, run_adam
+from ..optim import FusedAdam, late_loss, run_adam
 from .losses import PENALTIES, add_weight_penalty_grad_, weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
 
@@ -236,9 +236,9 @@ def optimize(edit: InstanceEdit, loss_fn: Callable[[], Tensor], options: EditOpt
     losses: list[float] = []
     last = run_adam(opt, loss_fn, options.steps, what, options.on_step, before_step=lambda: edit.add_penalty_grad(options.lambda_reg),
                     refuse_rise=True, losses=losses)
-    if len(losses) >= 10:  # how far the edit moved (finish records it); fewer steps' random batches say little
-        tail = losses[-max(1, len(losses) // 10):]
-        edit.first_loss, edit.fit_loss = losses[0], sum(tail) / len(tail)
+    late = late_loss(losses)
+    if late is not None:  # how far the edit moved (finish records it)
+        edit.first_loss, edit.fit_loss = losses[0], late
     with torch.no_grad():
         last += options.lambda_reg * float(edit.penalty())
     edit.optimize_seconds = time.perf_counter() - started
