@@ -45,6 +45,7 @@ import torch
 from . import occupancy
 from .cameras import Rays, off_centre_target, rays_from_camera
 from .config import Config
+from .data.format import SMALL_COVER, median_cover
 from .data.loading import Category, TrainingRays, pixels_digest, training_rays
 from .distributed import SINGLE, Ranks, rank_seed
 from .errors import CrfError, Terminated
@@ -215,9 +216,9 @@ def check_hulls(category: Category, hulls: torch.Tensor) -> None:
     for inst in empty[:1]:  # the first, and how many more: all of them says the dataset's axes are OpenCV's
         if not any(v.alpha.any() for v in inst.splits["train"]):
             raise CrfError(f"{inst.path}: instance {inst.name}{others}: every training view's alpha (or mask) is 0, so there is no object to train")
-        pixels = sorted(int((v.alpha > 0.5).sum()) for v in inst.splits["train"])
-        n = pixels[len(pixels) // 2]
-        if n < 0.01 * inst.splits["train"][0].alpha.size:  # a speck, not a pose problem
+        cover = median_cover([v.alpha for v in inst.splits["train"]])
+        if cover < SMALL_COVER:  # a speck, not a pose problem
+            n = round(cover * inst.splits["train"][0].alpha.size)
             raise CrfError(f"{inst.path}: instance {inst.name}{others}: its training views show the object on {n} pixel{'s' * (n != 1)} "
                            "(median), too few for the grid to carve it; render it larger in its views (a mesh whose "
                            "bounding box a stray piece far away enlarged?)")

@@ -49,6 +49,19 @@ class Frame:
     parts: np.ndarray | None  # [H, W] uint8, 0 = background
 
 
+SMALL_COVER = 0.01
+"""An object shown on less than this share of its training views' pixels (the median view,
+:func:`median_cover`) is too small to train: one stray triangle far from a mesh scaled by its
+bounding box shrank a tester's chair to 0–2 pixels a view.  ``dataset from-meshes`` notes it, and
+``train`` (``dataset info``) names it when its visual hull comes out empty."""
+
+
+def median_cover(alphas) -> float:
+    """The median over views of the share of pixels whose alpha is above 0.5 (``alphas``: [H, W]
+    arrays); 1 for no views."""
+    return float(np.median([float((a > 0.5).mean()) for a in alphas])) if len(alphas) else 1.0
+
+
 def box_filter(rgb: np.ndarray, hit: np.ndarray) -> np.ndarray:
     """Average supersamples into straight-alpha pixels.  rgb [S, N, 3], hit [S, N] → rgba [N, 4]
 

@@ -38,7 +38,7 @@ from ..cameras import Camera
 from ..errors import CrfError, DataError
 from ..io import atomic_folder, atomic_write_text, write_png
 from ..masks import erode
-from .format import Frame, TwinSpec, carry_extras, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
+from .format import SMALL_COVER, Frame, TwinSpec, carry_extras, median_cover, supersampled_frame, write_instances_txt, write_parts, write_split, write_twins_json
 from .mesh_io import INSTALL_HINT, PartMesh, _trimesh, albedo_table, load_normalized, part_colors
 from .raycast import camera_rays, shade
 from .synth import (
@@ -272,10 +272,6 @@ class MeshDatasetResult:
     notes: list[str] = field(default_factory=list)  # what looks wrong with a mesh or the set (mesh_notes), one line each
 
 
-SMALL_COVER = 0.01
-""":func:`mesh_notes` names a mesh whose median train view shows it on less than this share of the
-pixels: each mesh is scaled to unit size by its bounding box, so one stray triangle far away
-shrank a tester's chair to 0–2 pixels a view, and only `dataset info` spoke, of camera axes."""
 Y_TALLER = 1.25
 """:func:`mesh_notes` names a mesh read with ``--up z`` whose extent along y is the largest and at
 least this × its height (z): a Y-up file read as Z-up lies on its back."""
@@ -298,8 +294,8 @@ def mesh_notes(path: Path, name: str, mesh: PartMesh, up: str, train: list[Frame
         elif ext[1] >= ext[0] and ext[1] >= Y_TALLER * ext[2]:
             notes.append(f"{path.name}: deeper along y ({ext[1]:.2f}) than tall along z ({ext[2]:.2f}); if it lies on its back, "
                          "the file is Y-up: give --up y (or a sidecar rotation for this file alone)")
-    cover = float(np.median([float((f.rgba[..., 3] > 0.5).mean()) for f in train])) if train else 1.0
-    if cover < SMALL_COVER:
+    cover = median_cover([f.rgba[..., 3] for f in train])
+    if cover < SMALL_COVER:  # (only `dataset info` spoke, of camera axes)
         notes.append(f"{path.name}: the mesh covers {cover:.2%} of its views (median): its bounding box is far larger than the "
                      "object (a stray piece far away? each mesh is scaled to unit size by its box); remove the piece")
     return notes
