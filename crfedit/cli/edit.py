@@ -253,11 +253,11 @@ def _scribbled(model: Path, edits, device: DeviceChoice, instance: str, view: st
     if kind == "remove" and method != EditMethod.selection and not force and fg is not None:
         _refuse_whole_paper_removal(m, k, camera, fg, bg, label)
     if sel is not None and kind == "remove" and not force:  # a saved selection of (nearly) the whole instance, as one lifted here
-        from ..edit.selection.base import NEARLY_ALL
+        from ..edit.selection.base import nearly_all
 
         occupied = m.field_for(k).occupancy[k]
         taken, total = int((sel.mask.to(occupied.device) & occupied).sum()), int(occupied.sum())
-        if taken >= NEARLY_ALL * total:
+        if nearly_all(taken, total):
             raise CrfError(f"--selection {selection}: takes {taken} of the instance's {total} occupied cells, nearly all of it: "
                            "pass --force to remove that much")
     if sel is None and method == EditMethod.selection:

@@ -209,6 +209,11 @@ NEARLY_ALL = 0.97
 chair of one material); a scribble drawn on another view than the one named held 0.99."""
 
 
+def nearly_all(selected: int, occupied: int) -> bool:
+    """Whether ``selected`` cells are nearly all (:data:`NEARLY_ALL`) of the ``occupied`` ones."""
+    return selected >= NEARLY_ALL * occupied
+
+
 def coverage_summary(meta: dict) -> str | None:
     """A line when the selection takes nearly every occupied cell of the instance (None
     otherwise): usually a scribble that belongs to another view or instance."""
@@ -216,7 +221,7 @@ def coverage_summary(meta: dict) -> str | None:
     if isinstance(meta.get("whole"), float):  # pipeline.WHOLE_SCRIBBLE
         return (f"the scribble covers {meta['whole']:.0%} of what the view shows of the instance, and no keep stroke "
                 "holds anything back: the whole instance is selected")
-    if type(selected) is not int or type(occupied) is not int or occupied <= 0 or selected < NEARLY_ALL * occupied:
+    if type(selected) is not int or type(occupied) is not int or occupied <= 0 or not nearly_all(selected, occupied):
         return None
     return (f"{selected} of the instance's {occupied} occupied cells, nearly all of it: unless the part is most of "
             "the object, check that the scribble was drawn on this view of this instance (and the preview)")
