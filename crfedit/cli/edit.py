@@ -666,18 +666,21 @@ def _parsed(key: str, value: str):
         return value
 
 
-SHOWN_KEYS = frozenset({"kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint", "first_loss", "fit_loss", "final_loss",
-                        "seconds", "view", "command", "rebased", "hyperparameters", "inputs", "photo", "mask", "pose", "photo_psnr",
-                        "stages", "version", "format", "occupancy_shape", "made_by"})
-"""The metadata keys ``edits show`` prints in their own rows, or as the file's identity; any other
-(``EditResult.save(path, note=...)`` from a script) gets a row of its own after them."""
+IDENTITY_ROWS = ("kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint")
+RECORD_ROWS = ("first_loss", "fit_loss", "final_loss", "seconds", "view", "command", "rebased")
+FIT_REAL_ROWS = ("photo", "mask", "pose", "photo_psnr")
+SHOWN_KEYS = frozenset({*IDENTITY_ROWS, *RECORD_ROWS, *FIT_REAL_ROWS, "hyperparameters", "inputs", "stages", "version", "format",
+                        "occupancy_shape", "made_by"})
+"""The metadata keys ``edits show`` prints in rows of their own (the three tuples, the hyper,
+inputs and stage rows), or as the file's size line and format, or not at all (the quickstart's
+mark); any other (``EditResult.save(path, note=...)`` from a script) gets a row after them."""
 
 
 def _show_rows(delta, size: int) -> list[tuple[str, str]]:
     meta = delta.meta
-    rows = [(key, meta.get(key, "")) for key in ("kind", "instance", "adds_instance", "modules", "base", "parent", "fingerprint")]
+    rows = [(key, meta.get(key, "")) for key in IDENTITY_ROWS]
     rows = [(k, v if v else "(none)" if k == "parent" else v) for k, v in rows if v or k == "parent"]
-    rows += [(key, meta[key]) for key in ("first_loss", "fit_loss", "final_loss", "seconds", "view", "command", "rebased") if meta.get(key)]
+    rows += [(key, meta[key]) for key in RECORD_ROWS if meta.get(key)]
     if meta.get("hyperparameters"):
         try:
             hyper = json.loads(meta["hyperparameters"])
@@ -689,7 +692,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
         inputs = _parsed("inputs", meta["inputs"])
         if isinstance(inputs, dict):
             rows.append(("inputs", ", ".join(f"{k}={'default' if v is None else v}" for k, v in inputs.items()) or "(none recorded)"))
-    rows += [(key, meta[key]) for key in ("photo", "mask", "pose", "photo_psnr") if meta.get(key)]  # fit-real's record
+    rows += [(key, meta[key]) for key in FIT_REAL_ROWS if meta.get(key)]  # fit-real's record
     rows += [(key, " ".join(meta[key].split())) for key in sorted(meta) if key and key not in SHOWN_KEYS and isinstance(meta[key], str)]  # a script's own provenance, on one line
     stages = _parsed("stages", meta["stages"]) if meta.get("stages") else None
     if isinstance(stages, list):
