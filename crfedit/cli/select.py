@@ -28,12 +28,13 @@ def echo_summaries(info: dict, skip: tuple[str, ...] = ()) -> None:
             typer.echo(f"{label}: {line}")
 
 
-def _off_object_warning(model, k: int, spec: str, v) -> None:
+def _off_object_warning(field, k: int, spec: str, v, render) -> None:
     """Warn when a view's scribble or keep strokes lie on the background only: they lift no
-    point, and the view adds nothing (strokes drawn for another view, say)."""
+    point, and the view adds nothing (strokes drawn for another view, say).  ``render``: the
+    view's opacity render, which the selection reads too."""
     from ..edit.selection.pipeline import view_on_object
 
-    on = view_on_object(model.field_for(k), k, v)
+    on = view_on_object(field, k, v, render=render)
     for what, mask, adds in (("scribble lies", v.scribble, "it adds no scribbled point"), ("keep strokes lie", v.keep, "they add no keep point")):
         if mask is not None and mask.any() and not (mask & on).any():
             typer.echo(f"warning: --view {spec}: its {what} on the background only (no pixel shows the object there): {adds} "
@@ -78,6 +79,7 @@ def select_cmd(
     from ..edit.shape import same_camera
     from ..edit.selection.options import EDIT_KINDS
     from ..io import write_png
+    from ..renderer import render_camera
 
     counted = lambda n, word: f"{n} {word}{'' if n == 1 else 's'}"
     if len(scribble) != len(view):
@@ -95,7 +97,8 @@ def select_cmd(
     m = _load(model, edit, device)
     k = m.instance_index(instance)
     shown = _preview_views(m, k, preview, views)
-    scribbles, specs = [], []
+    scribbles, specs, renders = [], [], []
+    field = m.field_for(k)
     for i, spec in enumerate(view):
         _, camera = _one_view(m, spec, k)
         bg = _mask(keep[i], m, k, camera, "keep") if keep and not is_none(keep[i]) else None
@@ -116,12 +119,14 @@ def select_cmd(
         if overlap:
             typer.echo(f"warning: {spec}: {overlap}", err=True)
         given = ScribbleView(camera, fg, bg)
+        render = render_camera(field, camera, k, colour=False)  # once: the warning's and the selection's
         if len(view) > 1:  # one view alone on the background is refused by select itself
-            _off_object_warning(m, k, spec, given)
+            _off_object_warning(field, k, spec, given, render)
         same = next((j for j, v in enumerate(scribbles) if same_camera(v.camera, camera)), None)
         if same is None:
             scribbles.append(given)
             specs.append(spec)
+            renders.append(render)
         else:  # the strokes of one view given twice join, as one view
             scribbles[same] = merge_views(scribbles[same], given)
             if scribbles[same].keep is not None:  # refused as one view's would be
@@ -131,7 +136,7 @@ def select_cmd(
                     raise CrfError(f"--view {spec} (with --view {specs[same]}, one view): {e}") from None
             again = "given again" if spec == specs[same] else f"is the camera of --view {specs[same]}"
             typer.echo(f"note: --view {spec} {again}: its strokes join that view's, as one view", err=True)
-    sel = select(m, k, scribbles, options)
+    sel = select(m, k, scribbles, options, renders=renders)
     sel.meta["for"] = kind
     sel.meta["made_from"] = [{"view": spec, "scribble": mask_digest(v.scribble) if v.scribble.any() else None, "keep": mask_digest(v.keep)}
                              for spec, v in zip(specs, scribbles)]

@@ -59,9 +59,11 @@ def whole_share(views: Sequence[ScribbleView], on_object: Sequence[np.ndarray]) 
     return round(share, 3) if share >= WHOLE_SCRIBBLE else None
 
 
-def view_on_object(field, k, view: ScribbleView, min_opacity: float = MIN_OPACITY) -> np.ndarray:
-    """[H, W] bool: the pixels of ``view`` that show the object, rendered here (opacity only)."""
-    return _on_object(field, k, view, render_camera(field, view.camera, k, colour=False), min_opacity)
+def view_on_object(field, k, view: ScribbleView, min_opacity: float = MIN_OPACITY, render: RenderOutput | None = None) -> np.ndarray:
+    """[H, W] bool: the pixels of ``view`` that show the object, from ``render`` (its opacity
+    render, as :func:`select` takes them) or rendered here."""
+    render = render_camera(field, view.camera, k, colour=False) if render is None else render
+    return _on_object(field, k, view, render, min_opacity)
 
 
 def _snapped_strokes(views: Sequence[ScribbleView], on_object: Sequence[np.ndarray], share: float) -> tuple[list[ScribbleView], int]:
