@@ -175,9 +175,10 @@ def prepare_photo(image: np.ndarray, mask: np.ndarray | None, width: int, height
         alpha = image[..., 3].astype(np.float32)
     else:
         alpha = np.ones((h, w), np.float32)
-    if not (alpha > FAINT_ALPHA).any():
+    shown = alpha > FAINT_ALPHA
+    if not shown.any():
         raise CrfError(f"{where}: the object mask is empty ({transparent_text(alpha)})")
-    cut = crop_cut(alpha > FAINT_ALPHA, width, height) if silhouette != "whole photo" else 0.0
+    cut = crop_cut(shown, width, height) if silhouette != "whole photo" else 0.0
     if cut > CROP_REFUSE:
         raise CrfError(f"{where}: the centre crop to the view's {width}:{height} aspect cuts off {cut:.0%} of the object's "
                        "pixels: crop the photo around the object first")
@@ -211,6 +212,8 @@ missing or partial and the background fitted as part of the object."""
 CROP_CUT = 0.02
 """:func:`photo_warnings` warns when the centre crop to the view's aspect drops more than this
 share of the object's pixels (an object off the centre of a wide photo is fitted in part)."""
+
+
 def transparent_text(alpha: np.ndarray) -> str:
     """Why an alpha channel [H, W] outlines nothing: all 0, or nothing above :data:`FAINT_ALPHA`."""
     return "every pixel is transparent" if not (alpha > 0).any() else f"no pixel's alpha is above {FAINT_ALPHA}: a faint halo, not an object"

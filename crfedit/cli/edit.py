@@ -823,9 +823,11 @@ def rebase_cmd(
             for note in weights_not_carried(apply_deltas(m, pinned[:i]), after.instance, hyper.get("shape_from"), hyper.get("color_from")):
                 typer.echo(printable(f"note: {p.name} here: {note}"), err=True)
     given, named = {p.name for p in edit}, False
-    for p, before, after in zip(edit, deltas, pinned):  # the edits each was optimized on that this stack leaves out, by name
-        gone = [_left_out(e, after.instance) for e in made_on_files(before) if Path(e).name not in given]
-        if after is not before and after.kind != "transfer" and gone:
+    for p, before, after in zip(edit, deltas, pinned):  # the edits each re-pinned one was optimized on that this stack leaves out
+        if after is before or after.kind == "transfer":
+            continue
+        gone = [_left_out(e, after.instance) for e in made_on_files(before) if Path(e).name not in given]  # reads those files
+        if gone:
             named = True
             why = (" (a part the left-out removal took comes back as it was learnt beside it: a recolour made after it may have "
                    "spread onto it)" if after.kind == "color" and any(kind == "remove" for _, kind in gone) else "")
