@@ -449,7 +449,8 @@ def test_sheet_veto_leaves_no_sheet_but_the_scribbled_cells(edit_category):
         out[cells] = sheets_of(local_frames(grid, occupancy.cell_centers(res)[cells], SHAPE_GATE_RADIUS))
         return out.view(res, res, res)
 
-    base = dataclasses.replace(options_for("remove"), mirror="off", stroke_centres=False)  # every scribbled pixel, as `scribbled` above
+    # every scribbled pixel, as `scribbled` above; no rim fill, the later step that may take a sheet's first cells beside the selection
+    base = dataclasses.replace(options_for("remove"), mirror="off", stroke_centres=False, fill_share=0.0)
     off = select(model, k, views, dataclasses.replace(base, sheet_veto=0.0))
     on_ = select(model, k, views, dataclasses.replace(base, sheet_veto=1e-6))
     assert "sheet_veto" not in off.meta and on_.meta["sheet_veto"]["cells"] > 0

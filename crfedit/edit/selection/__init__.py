@@ -61,11 +61,11 @@ a selection S (one soft value per occupancy cell), which the edits then supervis
    passes step 7's saturation test also takes the cells of value :data:`COLOR_THRESHOLD`–0.5
    whose chromaticity is the scribbled points' (:attr:`SelectOptions.select_threshold`,
    :attr:`SelectOptions.band_chroma`).
-9. **Recolours: fill the rims.**  A recolour's selection also takes each occupied cell at least
-   :data:`COLOR_FILL_SHARE` of whose occupied 3×3×3 neighbourhood is selected
-   (:attr:`SelectOptions.fill_share`, :func:`fill_rims`): a slab's lit top face and side
-   faces shade unlike its scribbled front and score low, but every occupied cell around them
-   is the slab.
+9. **Fill the rims.**  A recolour's selection also takes each occupied cell at least
+   :data:`COLOR_FILL_SHARE` of whose occupied 3×3×3 neighbourhood is selected, a removal's at
+   least :data:`REMOVE_FILL_SHARE` (:attr:`SelectOptions.fill_share`, :func:`fill_rims`): a
+   slab's lit top face and side faces shade unlike its scribbled front and score low, but
+   every occupied cell around them is the slab.
 10. **Removals: veto other colours.**  A removal's cells of value ≥ :data:`GROW_LOW` whose
     chromaticity is far from the scribbled points' are capped below it, so neither the
     selection nor the removal's skin takes a small touching part of another colour that the

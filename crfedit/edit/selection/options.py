@@ -396,7 +396,7 @@ class SelectOptions:
     fill_share: float = 0.0
     """When > 0, the selection finally also takes each occupied cell, keep-stroke cells aside,
     at least this share of whose occupied 3×3×3 neighbourhood (itself included) it selects
-    (:func:`fill_rims`); recolours use :data:`COLOR_FILL_SHARE`."""
+    (:func:`fill_rims`); recolours use :data:`COLOR_FILL_SHARE`, removals :data:`REMOVE_FILL_SHARE`."""
 
     def on_bars_options(self) -> "SelectOptions":
         """These options with :attr:`on_bars`'s overrides applied (and none left to apply)."""
@@ -501,9 +501,21 @@ face-on against the selection has a third of its touching cells' neighbourhood s
 any share above a third leaves it out.  Measured (docs/selection.md), recolours' gap closed:
 procedural 0.783 → 0.811 (`chair_006`'s back 0.53 → 0.63), real 0.509 → 0.512, outside the
 part unchanged; at 0.3 (which takes a touching part's first layer), 0.826 and 0.510 with 0.14
-dB lost outside on the procedural chairs; at 0.5, 0.791 and 0.521.  Removals do not fill:
-procedural 0.778 → 0.784 but real 0.216 → 0.110 (at 0.4; a café chair's aluminium frame took
-the seat slats it touches)."""
+dB lost outside on the procedural chairs; at 0.5, 0.791 and 0.521.  Removals fill at
+:data:`REMOVE_FILL_SHARE`."""
+
+REMOVE_FILL_SHARE = 0.5
+"""A removal's :attr:`SelectOptions.fill_share`.  A boxy armrest's edges score low (their
+cells are half empty, their look the panel's edge) and stayed standing as a frame around the
+removed panel.  Measured on ``p63`` / ``r63`` (hybrid, seed 0, docs/benchmarks.md, sixty-eighth
+session): selection IoU 0.893 / 0.737 → 0.908 / 0.756, up on all fifteen removal twins
+(`chair_018`'s arms 0.781 → 0.843), gap closed 0.836 / 0.973 → 0.848 / 0.979, outside the
+part −0.01 / −0.03 dB; the quickstart model's removal 0.674 → 0.704 (IoU 0.880 → 0.917).  At
+0.4: 0.913 / 0.749 IoU but 0.863 / 0.961 gap and 0.14 / 0.30 dB lost outside (the lower share
+takes a touching part's first layer); at 0.6: 0.900 / 0.751, 0.829 / 0.963.  Measured in an
+earlier pipeline (before the vetoes and the keep strokes' win), filling had cost the real
+removals 0.11 of the gap (a café chair's aluminium frame took the seat slats it touches); that
+chair now gains 0.006."""
 
 REMOVE_FEATURES = (*FEATURES, "fuse", "geometry")
 """A removal's :attr:`SelectOptions.features`: the default groups plus F_fuse's activations,
@@ -743,7 +755,8 @@ def options_for(kind: str, mirror: str | None = None, join: str | None = None) -
     bilaterally (:data:`REMOVE_SMOOTH_BANDWIDTH`) and veto cells of another
     chromaticity (:data:`REMOVE_VETO_CHROMA`); recolours select at a lower
     cut (:data:`COLOR_THRESHOLD`), read chromaticity with a smaller offset
-    (:data:`COLOR_CHROMA_OFFSET`), fill the rims (:data:`COLOR_FILL_SHARE`), gate
+    (:data:`COLOR_CHROMA_OFFSET`), fill the rims (:data:`COLOR_FILL_SHARE`; removals
+    :data:`REMOVE_FILL_SHARE`), gate
     appearance tighter (:data:`COLOR_APPEARANCE_GATE`), join at every saturation and veto
     unlike hues (:data:`COLOR_VETO_CHROMA`, :data:`COLOR_PALE_VETO`; removals
     :data:`REMOVE_PALE_VETO` below their join's saturation).  Both let keep strokes win near them
@@ -791,5 +804,5 @@ def _kind_options(kind: str) -> SelectOptions:
                              pale_veto=REMOVE_PALE_VETO, pale_veto_saturation=PALE_SATURATION,
                              keep_ratio=REMOVE_KEEP_RATIO, mirror=REMOVE_MIRROR, stroke_centres=STROKE_CENTRES,
                              stroke_snap=STROKE_SNAP, keep_strays=KEEP_STRAYS, join_lines=JOIN_LINES_SHARE, line_negatives=LINE_NEGATIVES,
-                             free_pieces=REMOVE_FREE_PIECES)
+                             free_pieces=REMOVE_FREE_PIECES, fill_share=REMOVE_FILL_SHARE)
     return SelectOptions(stroke_centres=STROKE_CENTRES)
