@@ -38,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -57,11 +58,12 @@ from .safefile import (
 )
 
 FORMAT = EDIT_FORMAT
-VERSION = "3"
+VERSION = "4"
 """The version :func:`make_delta` writes.  Version 1 stored ``occupancy`` as the new grid itself
-(bool); 2 stores its change (int8); 3 stores that change bit-packed.  All read
+(bool); 2 stores its change (int8); 3 stores that change bit-packed; 4 also counts its
+``hyperparameters`` into the fingerprint (:func:`identity_keys`).  All read
 (:data:`READ_VERSIONS`), and :func:`save_delta` writes a file in its metadata's version."""
-READ_VERSIONS = ("1", "2", "3")
+READ_VERSIONS = ("1", "2", "3", "4")
 KINDS = ("color", "remove", "add", "transfer", "fit-real")
 CODE_ROWS = {"shape_code": SHAPE_CODES, "color_code": COLOR_CODES}
 """Delta tensor name → the code table (state-dict name) whose row k it changes."""
@@ -69,7 +71,12 @@ GRID = "occupancy"
 GRID_KINDS = ("remove", "add", "transfer", "fit-real")
 """Kinds that may carry a new occupancy grid (a color edit leaves density alone)."""
 IDENTITY = ("format", "version", "kind", "instance", "modules", "base", "parent", "adds_instance")
-"""Metadata that, with the tensors, makes up an edit's fingerprint (timings and the command do not)."""
+"""Metadata that, with the tensors, makes up an edit's fingerprint (timings and the command do
+not); from version 4 also ``hyperparameters`` (:func:`identity_keys`)."""
+NUMBERS = ("first_loss", "fit_loss", "final_loss", "seconds", "photo_psnr")
+"""Recorded metadata that must read as a number where present (:func:`read_delta`)."""
+JSON_RECORDS = {"hyperparameters": dict, "inputs": dict, "stages": list}
+"""Recorded metadata that must be JSON of this type where present (:func:`read_delta`)."""
 PACKED = ("occupancy.changed", "occupancy.gained")
 """Version 3's on-disk tensors for the grid's change (:func:`pack_grid_change`)."""
 PACKED_SHAPE = "occupancy_shape"
@@ -112,9 +119,16 @@ class Delta:
 # ----------------------------------------------------------------------------- fingerprints
 
 
+def identity_keys(version: str) -> tuple[str, ...]:
+    """The metadata keys a file of format ``version`` counts into its fingerprint: :data:`IDENTITY`,
+    and from version 4 ``hyperparameters`` too, which a transfer's re-pinning reads (whose code it
+    takes) and a fit-real's ``--views photo`` (its camera): edited, they change what the file does."""
+    return IDENTITY if version in ("1", "2", "3") else (*IDENTITY, "hyperparameters")
+
+
 def delta_fingerprint(tensors: Mapping[str, Tensor], meta: Mapping[str, str]) -> str:
-    """16 hex digits over the tensors and the identity metadata (:data:`IDENTITY`)."""
-    identity = json.dumps({k: meta.get(k, "") for k in IDENTITY}, sort_keys=True)
+    """16 hex digits over the tensors and the identity metadata (:func:`identity_keys` of its version)."""
+    identity = json.dumps({k: meta.get(k, "") for k in identity_keys(meta.get("version", VERSION))}, sort_keys=True)
     return hashlib.sha256(f"{fingerprint(dict(tensors))}|{identity}".encode()).hexdigest()[:16]
 
 
@@ -314,6 +328,12 @@ def read_delta(path: str | os.PathLike) -> Delta:
         raise ModelFileError(f"{path}: bad edit metadata (modules must be a non-empty JSON list of names)")
     if not meta["instance"]:
         raise ModelFileError(f"{path}: bad edit metadata (no instance)")
+    for key in NUMBERS:
+        if key in meta and not _is_number(meta[key]):
+            raise ModelFileError(f"{path}: bad edit metadata ({key} {meta[key][:40]!r} is not a number)")
+    for key, kind in JSON_RECORDS.items():
+        if meta.get(key) and not isinstance(_json_or_none(meta[key]), kind):
+            raise ModelFileError(f"{path}: bad edit metadata ({key} is not a JSON {'object' if kind is dict else 'list'})")
     if (meta["kind"] == "fit-real") != bool(meta.get("adds_instance")) or (
         meta.get("adds_instance") and meta["adds_instance"] != meta["instance"]
     ):
@@ -343,6 +363,22 @@ def read_delta(path: str | os.PathLike) -> Delta:
     if delta_fingerprint(tensors, meta) != meta["fingerprint"]:
         raise ModelFileError(f"{path}: contents do not match the recorded fingerprint (file damaged?)")
     return Delta(path, tensors, meta)
+
+
+def _is_number(text: str) -> bool:
+    """Whether ``text`` reads as a number that is not NaN (an infinite PSNR is one)."""
+    try:
+        return not math.isnan(float(text))
+    except ValueError:
+        return False
+
+
+def _json_or_none(text: str):
+    """``text`` parsed as JSON; None if it is not."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return None
 
 
 # ----------------------------------------------------------------------------- validating a stack
@@ -409,8 +445,10 @@ def _order_error(delta: Delta, position: int, deltas: Sequence[Delta], base: str
             return ModelFileError(f"{where}was made after {after}; pass the --edit files in the order they were made")
     made_on = made_on_files(delta)
     made = "re-pinned onto" if delta.meta.get("rebased") else "made on"
-    told = (f"; it was {made} {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}), "
-            f"here {position} come{'s' * (position == 1)} before it"
+    named = "" if made_on_stack(delta) is not None else ", as recorded"  # those paths may since hold other files
+    here = f"{len(applied)} {'baked into' if baked else 'applied to'} the model and {position}" if applied else f"{position}"
+    told = (f"; it was {made} {len(made_on)} edit{'s' * (len(made_on) != 1)} ({', '.join(made_on)}{named}), "
+            f"here {here} come{'s' * (position == 1 and not applied)} before it"
             if made_on else "; or it was re-pinned onto a model with edits baked in: apply it to that one" if position == 0 and not applied
             else "")
     return ModelFileError(
@@ -434,6 +472,21 @@ def made_on_files(delta: Delta) -> list[str]:
     before = given[:at] if at is not None else []
     # the re-pinned files it sits on are the ones written beside it, not the inputs of the same names
     return [os.path.join(out_dir, os.path.basename(e)) if out_dir else e for e in before]
+
+
+def made_on_stack(delta: Delta) -> list[Delta] | None:
+    """The files :func:`made_on_files` names, read, when they are the very edits ``delta`` was
+    made on (their fingerprints chain from its ``base`` to its ``parent``); else None: a recorded
+    path may since name another file (moved, renamed, replaced: a shared stack's recipient has
+    other files of those names), or the stack stood on a model with edits baked in."""
+    paths = made_on_files(delta)
+    if not paths:
+        return None
+    try:
+        read = [read_delta(p) for p in paths]
+    except (CrfError, OSError, ValueError):
+        return None
+    return read if chain_fingerprint(delta.meta["base"], [d.fingerprint for d in read]) == delta.meta["parent"] else None
 
 
 def _command_edits(command: str) -> list[str]:
@@ -515,15 +568,23 @@ def retaken(delta: Delta, model: CategoryModel) -> dict[str, Tensor]:
     the source's row minus the instance's there (and a shape transfer's grid the source's grid
     minus the instance's).  Stored as differences, a transfer rebased as-is took the source's
     code only where the instance's code was what it was when made: left out of a stack's middle,
-    a colour transfer gave a code no chair has (1.46 from its source's, chairs lie ~1.15 apart)."""
-    hyper = json.loads(delta.meta.get("hyperparameters") or "{}")
+    a colour transfer gave a code no chair has (1.46 from its source's, chairs lie ~1.15 apart).
+    Each code row it stores must name its source in ``hyperparameters`` (``shape_from``,
+    ``color_from``: another instance), else a one-line error (``read_delta`` checked it is a JSON
+    object; from version 4 the fingerprint covers it)."""
+    hyper = _json_or_none(delta.meta.get("hyperparameters") or "{}")
     k = model.instance_index(delta.instance)
     here = instance_state(model, k)
     out = dict(delta.tensors)
     for row, table in CODE_ROWS.items():
-        source = hyper.get(f"{'shape' if table == SHAPE_CODES else 'color'}_from")
-        if row not in out or source is None:
+        key = f"{'shape' if table == SHAPE_CODES else 'color'}_from"
+        source = hyper.get(key) if isinstance(hyper, dict) else None
+        if row not in out:
             continue
+        if not isinstance(source, str) or not source or source == delta.instance:
+            took = "does not name" if source in (None, "") else f"names {str(source)[:40]!r} as"
+            raise ModelFileError(f"{delta.path}: a transfer's hyperparameters {took} the instance whose {key[:-5]} code it took ({key}), "
+                                 "so it cannot be re-pinned")
         if source not in model.names:
             raise ModelFileError(f"{delta.path}: a transfer takes {source}'s code, and {source} is not in the model at this place "
                                  "(an instance fit-real added: give the edit that adds it before this one)")

@@ -125,7 +125,7 @@ def test_delta_holds_exactly_the_touched_tensors(tmp_path, model):
     assert g.tensors["occupancy"].dtype == torch.int8 and g.tensors["occupancy"].shape == (8, 8, 8)
     old = model.field.occupancy[0]  # the grid's change, after − before: the edit inverted the grid
     assert torch.equal(g.tensors["occupancy"], torch.where(old, -1, 1).to(torch.int8))
-    assert g.meta["version"] == "3" and "occupancy_shape" not in g.meta
+    assert g.meta["version"] == "4" and "occupancy_shape" not in g.meta
     with safe_open(str(grid), "pt") as f:  # on disk: bit-packed, 1 bit a cell + 1 bit a changed cell
         assert sorted(f.keys()) == ["F_dens.bias", "F_dens.weight", "occupancy.changed", "occupancy.gained"]
         assert f.get_tensor("occupancy.changed").tolist() == [255] * 64 and f.get_tensor("occupancy.gained").numel() == 64
@@ -291,7 +291,7 @@ def test_wrong_order_parent_and_base_are_rejected(tmp_path, model):
     missing = read_delta(b)
     missing.meta["command"] = "crfedit edit-color m.safetensors --edit 'x/a 1.safetensors' --edit=x/z.safetensors --out b.safetensors"
     with pytest.raises(ModelFileError, match=r"was made after other edits .*; it was made on 2 edits \(x/a 1\.safetensors, "
-                                             r"x/z\.safetensors\), here 0 come before it\); pass"):
+                                             r"x/z\.safetensors, as recorded\), here 0 come before it\); pass"):
         check_stack(model, [missing])
     with pytest.raises(ModelFileError, match=r"c\.safetensors: made on the bare model, as .*a\.safetensors was: they are two edits of one "
                                              r"model, not a stack; to apply both, re-pin them as one with `crfedit edits rebase"):
@@ -422,6 +422,51 @@ def test_a_transfer_rebased_still_takes_its_source_s_code(tmp_path, model):
     transfer(grown, 0, color_from=3).save(tmp_path / "from_real.safetensors")
     with pytest.raises(ModelFileError, match=r"from_real\.safetensors: a transfer takes real_0's code, and real_0 is not in the model at this place"):
         restack(model, [read_delta(tmp_path / "from_real.safetensors")])
+
+
+def test_a_transfer_s_source_is_part_of_its_fingerprint_and_must_be_named(tmp_path, model):
+    """From version 4 a transfer's ``hyperparameters`` (whose code it took, which re-pinning
+    reads) count into its fingerprint: renamed to another source, the file reads as damaged.
+    A version-3 file (fingerprinted without them) whose hyperparameters name no source, or the
+    instance itself, is refused by a rebase in one line instead of keeping its stale difference;
+    hyperparameters that are not JSON are refused on reading."""
+    from crfedit.delta import delta_fingerprint, restack
+
+    first = transfer(model, 0, color_from=1)
+    first.save(tmp_path / "a.safetensors")
+    transfer(first.model, 0, color_from=2).save(tmp_path / "b.safetensors")
+    b = read_delta(tmp_path / "b.safetensors")
+    assert b.meta["version"] == "4" and json.loads(b.meta["hyperparameters"])["color_from"] == "chair_2"
+    tampered = {**b.meta, "hyperparameters": json.dumps({"color_from": "chair_1"})}
+    save_file(b.tensors, str(tmp_path / "t.safetensors"), metadata=tampered)
+    with pytest.raises(ModelFileError, match=r"t\.safetensors: contents do not match the recorded fingerprint"):
+        read_delta(tmp_path / "t.safetensors")
+    for name, hyper, said in (("none", "{}", "does not name the instance whose color code it took"),
+                              ("self", json.dumps({"color_from": "chair_0"}), "names 'chair_0' as the instance whose color code it took")):
+        meta = {**b.meta, "version": "3", "hyperparameters": hyper}
+        meta["fingerprint"] = delta_fingerprint(b.tensors, meta)
+        save_file(b.tensors, str(tmp_path / f"{name}.safetensors"), metadata=meta)
+        old = read_delta(tmp_path / f"{name}.safetensors")  # a version-3 file: reads, its hyperparameters outside the fingerprint
+        with pytest.raises(ModelFileError, match=rf"{name}\.safetensors: a transfer's hyperparameters {said} \(color_from\), so it cannot be re-pinned"):
+            restack(model, [old])  # b left without a: re-pinned, it must take its source's code again
+    meta = {**b.meta, "hyperparameters": "not json"}
+    meta["fingerprint"] = delta_fingerprint(b.tensors, meta)
+    save_file(b.tensors, str(tmp_path / "bad.safetensors"), metadata=meta)
+    with pytest.raises(ModelFileError, match=r"bad\.safetensors: bad edit metadata \(hyperparameters is not a JSON object\)"):
+        read_delta(tmp_path / "bad.safetensors")
+
+
+@pytest.mark.parametrize("key,value", [("seconds", "abc"), ("final_loss", "nan"), ("first_loss", ""), ("inputs", "{bad"), ("stages", "{}")])
+def test_recorded_numbers_and_records_must_be_well_formed(tmp_path, model, key, value):
+    """What an edit measured reads as a number, its JSON records as JSON of their type: a file
+    whose ``seconds`` is ``abc`` (provenance, outside the fingerprint) is refused in one line,
+    not shown as a string where ``--json`` promises a number."""
+    good = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    d = read_delta(good)
+    save_file(d.tensors, str(tmp_path / "x.safetensors"), metadata={**d.meta, key: value})
+    what = "is not a number" if key in ("seconds", "final_loss", "first_loss") else "is not a JSON"
+    with pytest.raises(ModelFileError, match=rf"x\.safetensors: bad edit metadata \({key}.*{what}"):
+        read_delta(tmp_path / "x.safetensors")
 
 
 def test_fit_real_delta_adds_an_instance(tmp_path, model):
@@ -578,7 +623,7 @@ def test_edits_rebase_cli_drops_an_edit_from_the_middle(tmp_path, model):
     emptied = int((grid0 & low).sum())
     assert f"occupancy     {emptied} cells emptied, 0 occupied" in shown.output, shown.output
     assert f"tensor        occupancy [8, 8, 8] int8, stored bit-packed in {64 + (emptied + 7) // 8} bytes" in shown.output
-    assert f"size          {a.stat().st_size} bytes, 1 tensor, edit format version 3" in shown.output
+    assert f"size          {a.stat().st_size} bytes, 1 tensor, edit format version 4" in shown.output
     refused = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c)])
     assert_user_error(refused, "crfedit edits rebase")
     done = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(b), "--edit", str(c), "--out-dir", str(out)])
@@ -653,6 +698,10 @@ def test_rebase_refuses_an_edit_baked_in_or_given_twice_and_check_names_the_reba
     assert runner.invoke(app, args).exit_code == 0
     alone = runner.invoke(app, ["edits", "check", bare, "--edit", str(out / "c.safetensors")])
     assert_user_error(alone, f"it was re-pinned onto 1 edit ({out / 'a.safetensors'}), here 0 come before it")
+    # on a model with both baked in, the line counts them (it said 0 came before it)
+    assert runner.invoke(app, ["edits", "bake", bare, "--edit", str(a), "--edit", str(b), "--out", str(tmp_path / "ab.safetensors")]).exit_code == 0
+    on_baked = runner.invoke(app, ["edits", "check", str(tmp_path / "ab.safetensors"), "--edit", str(out / "c.safetensors")])
+    assert_user_error(on_baked, f"it was re-pinned onto 1 edit ({out / 'a.safetensors'}), here 2 baked into the model and 0 come before it")
     extra = runner.invoke(app, ["edits", "check", bare, "--edit", str(a), "--edit", str(b), "--edit", str(out / "c.safetensors")])
     assert_user_error(extra, f"was made after {a} alone, not after {b}: leave it out before it")
 
@@ -680,6 +729,26 @@ def test_rebase_names_the_left_out_removal_a_recolour_was_optimized_on(tmp_path,
     kept = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(a), "--edit", str(tmp_path / "b.safetensors"),
                                "--out-dir", str(tmp_path / "same")])
     assert kept.exit_code == 0 and "optimized on top of" not in kept.output
+    # the recorded a.safetensors replaced by another edit (a shared stack's recipient has their own): named as recorded, no kind
+    other = delta_file(tmp_path, "o.safetensors", m, 1, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    a.write_bytes(other.read_bytes())
+    swapped = runner.invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(tmp_path / "b.safetensors"),
+                                  "--out-dir", str(tmp_path / "out2")])
+    assert swapped.exit_code == 0, swapped.output
+    assert "note: b.safetensors was optimized on top of a.safetensors (as recorded), which this stack leaves out" in swapped.stderr, swapped.stderr
+
+
+def test_edits_show_escapes_line_breaks_in_recorded_values(tmp_path, model):
+    """A shared file's provenance (outside the fingerprint) holding a line break printed a row
+    of its own, a forged ``fingerprint`` line among them; the value is shown on its one row."""
+    good = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    d = read_delta(good)
+    save_file(d.tensors, str(tmp_path / "x.safetensors"), metadata={**d.meta, "command": "crfedit ok\nfingerprint   deadbeefdeadbeef"})
+    shown = CliRunner().invoke(app, ["edits", "show", str(tmp_path / "x.safetensors")])
+    assert shown.exit_code == 0, shown.output
+    rows = shown.output.splitlines()
+    assert [r for r in rows if r.startswith("fingerprint")] == [f"fingerprint   {d.fingerprint}"]
+    assert "command       crfedit ok\\nfingerprint   deadbeefdeadbeef" in rows
 
 
 def test_edits_show_table_shortens_hyperparameters():

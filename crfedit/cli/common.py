@@ -170,6 +170,13 @@ def printable(text: object) -> str:
     return "".join(c if c.isprintable() or c in "\n\t" else repr(c)[1:-1] for c in str(text))
 
 
+def table_row(key: str, value: object, width: int = 13) -> str:
+    """One row of a file's table (``edits show``, ``info``): the key padded to ``width``
+    columns, the value :func:`printable` with its line breaks escaped too, so a value read from a
+    shared file cannot print a row of its own (a forged ``fingerprint`` line)."""
+    return printable(f"{key:<{width}} " + str(value).replace("\r", "\\r").replace("\n", "\\n"))
+
+
 def instance_option(model, value, option: str) -> int:
     """``model.instance_index(value)`` for an option other than ``--instance``: its error line
     names the option (``--color-from: unknown instance …``), not just the value."""

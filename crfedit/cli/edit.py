@@ -16,7 +16,7 @@ import typer
 
 from ..errors import CrfError
 from ..names import ADD_METHODS, EDIT_METHODS, JOIN_MODES, MIRROR_MODES, MODEL_FORMAT, NO_MASK, PENALTIES, RECOLOR_RULES, STRATEGIES
-from .common import printable, DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, edits_app, instance_option, json_record, size_text, user_errors
+from .common import printable, table_row, DeviceChoice, DeviceOpt, JsonOpt, SeedOpt, app, check_out_file, command_line, edits_app, instance_option, json_record, size_text, user_errors
 
 
 Strategy = enum.Enum("Strategy", {s: s for s in STRATEGIES}, type=str)
@@ -712,7 +712,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
 
 
 def _packed_bytes(delta) -> int | None:
-    """Bytes of the file's grid change, where it is stored bit-packed (version 3); else None."""
+    """Bytes of the file's grid change, where it is stored bit-packed (version 3 on); else None."""
     from ..delta import GRID, grid_packed, pack_grid_change
 
     if GRID not in delta.tensors or not grid_packed(delta.meta["version"]):
@@ -744,7 +744,7 @@ def print_edit(edit: Path, as_json: bool) -> None:
         typer.echo(json.dumps({"file": str(edit), "bytes": size, "metadata": {k: _parsed(k, v) for k, v in delta.meta.items()}, "tensors": tensors}, indent=2))
         return
     for key, value in _show_rows(delta, size):
-        typer.echo(printable(f"{key:<13} {value}"))
+        typer.echo(table_row(key, value))
 
 
 @edits_app.command("check")
@@ -779,7 +779,7 @@ def rebase_cmd(
     files pass `crfedit edits check` in the order given. An edit made after one that is now left
     out applies its change without it, not optimized again.
     """
-    from ..delta import apply_deltas, made_on_files, read_delta, restack, save_delta
+    from ..delta import apply_deltas, made_on_files, made_on_stack, read_delta, restack, save_delta
     from ..edit.transfer import weights_not_carried
     from ..model import load_model
 
@@ -826,7 +826,9 @@ def rebase_cmd(
     for p, before, after in zip(edit, deltas, pinned):  # the edits each re-pinned one was optimized on that this stack leaves out
         if after is before or after.kind == "transfer":
             continue
-        gone = [_left_out(e, after.instance) for e in made_on_files(before) if Path(e).name not in given]  # reads those files
+        stack = made_on_stack(before)  # the files its record names, when they are still those edits
+        made_on = [d.path for d in stack] if stack is not None else made_on_files(before)
+        gone = [_left_out(e, after.instance, stack is not None) for e in made_on if Path(e).name not in given]  # reads those files
         if gone:
             named = True
             why = (" (a part the left-out removal took comes back as it was learnt beside it: a recolour made after it may have "
@@ -839,12 +841,15 @@ def rebase_cmd(
                    "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)")
 
 
-def _left_out(path: str, instance: str) -> tuple[str, str | None]:
-    """(an edit file an edit was made on, for a line: its name, and its kind when it can still be
-    read and edits the same instance, ``e3.safetensors (a remove edit of chair_003)``; that kind
-    or None)."""
+def _left_out(path: str, instance: str, verified: bool) -> tuple[str, str | None]:
+    """(an edit file an edit was made on, for a line: its name, and its kind when it is
+    ``verified`` to be that edit (:func:`~crfedit.delta.made_on_stack`) and edits the same
+    instance, ``e3.safetensors (a remove edit of chair_003)``; that kind or None).  Unverified,
+    the recorded name alone, marked so: a file of that name here may be another edit."""
     from ..delta import read_delta
 
+    if not verified:
+        return f"{Path(path).name} (as recorded)", None
     try:
         d = read_delta(Path(path))
     except (CrfError, OSError, ValueError):

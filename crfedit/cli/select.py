@@ -10,7 +10,7 @@ import typer
 from ..errors import CrfError
 from ..masks import mask_digest
 from ..names import SELECTION_FORMAT
-from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, command_line, json_record, printable, size_text, user_errors
+from .common import DeviceChoice, DeviceOpt, JsonOpt, app, check_out_file, command_line, json_record, size_text, table_row, user_errors
 from .edit import PREVIEW_VIEWS, JoinOpt, MirrorOpt, ModelArg, PreviewViewsOpt, PriorOpt, _load, _one_view, _preview_views, _view_render, is_none, previews_of
 
 
@@ -203,4 +203,4 @@ def print_selection(path: Path, as_json: bool, version: str) -> None:
         if line is not None:
             rows.append((label, line))
     for key, value in rows:
-        typer.echo(printable(f"{key:<13} {value}"))
+        typer.echo(table_row(key, value))

@@ -15,7 +15,7 @@ from ..io import check_folder_target, writer_lock
 from ..config import ARCHS, PRESETS
 from ..errors import CrfError
 from ..names import MODEL_FORMAT
-from .common import echo_notes, printable, DeviceChoice, DeviceOpt, Session, SeedOpt, app, check_kind_suffix, command_line, seed_in_range, size_text, user_errors
+from .common import echo_notes, printable, table_row, DeviceChoice, DeviceOpt, Session, SeedOpt, app, check_kind_suffix, command_line, seed_in_range, size_text, user_errors
 
 
 PresetChoice = enum.Enum("PresetChoice", {p: p for p in PRESETS}, type=str)
@@ -478,7 +478,7 @@ def info_cmd(
             "whose part maps F_part learned: not recorded (a file written before the record)" if seen is None
             else f"F_part learned the part maps of {len(seen)} of {meta['instances']} instances")))
     for key, value in rows:
-        typer.echo(printable(f"{key:<14} {value}"))
+        typer.echo(table_row(key, value, 14))
 
 
 # ----------------------------------------------------------------------------- quickstart
