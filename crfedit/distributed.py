@@ -166,6 +166,14 @@ def _checksum(t: Tensor) -> Tensor:
 
 
 _BROKEN = False
+_JOINED = False
+
+
+def joined() -> bool:
+    """Whether this process has joined a process group (:func:`process_group`), even one torn
+    down since: an error raised inside the group reaches the command line after the group's
+    clean-up, and is this rank's own (its share of the work), not every rank's."""
+    return _JOINED
 
 
 def broken() -> bool:
@@ -259,10 +267,12 @@ def process_group(ranks: Ranks, device: torch.device, timeout_s: float | None = 
     if device.type == "cuda":
         torch.cuda.set_device(device)
     timeout = timedelta(seconds=collective_timeout() if timeout_s is None else timeout_s)
+    global _JOINED
     try:
         dist.init_process_group(backend, rank=ranks.rank, world_size=ranks.world, timeout=timeout)
     except (RuntimeError, ValueError) as e:
         raise DistributedError(f"rank {ranks.rank}: cannot join the process group ({_clipped(str(e).strip())})") from None
+    _JOINED = True
     try:
         yield ranks
     finally:

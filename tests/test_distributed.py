@@ -392,6 +392,23 @@ def test_sigterm_under_torchrun_says_where_it_may_come_from(monkeypatch, capsys)
         assert capsys.readouterr().err == f"{said}: m.safetensors keeps its checkpoint at step 80\n"
 
 
+def test_a_rank_prints_a_user_error_met_in_its_own_share_of_the_work(monkeypatch):
+    """Rank 1 of a node whose removal twin diverged under `eval edits` exited 2 and printed
+    nothing (its group torn down by the time the error reached the command line, so it was
+    taken for an argument error rank 0 prints); rank 0 only said torchrun had stopped it.  An
+    error met before the group formed stays quiet there (rank 0 met the same)."""
+    import crfedit.distributed as d
+    from crfedit.cli.common import _says_it
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    monkeypatch.setattr(d, "_JOINED", False)
+    assert not _says_it(CrfError("removal diverged"))
+    monkeypatch.setattr(d, "_JOINED", True)
+    assert _says_it(CrfError("removal diverged")) and not _says_it(KeyboardInterrupt())
+
+
 def test_a_line_rank_0_prints_too_is_not_printed_again_on_another_node(monkeypatch):
     """The ranks' settings check raises on every rank; rank 0 prints its line and the others,
     another node's first process too, keep quiet (it was printed once per node)."""

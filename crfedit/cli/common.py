@@ -340,7 +340,9 @@ def _says_it(error: BaseException) -> bool:
     one, whose line says it (one line per node, not one per rank).  Each node's first process
     says it: another node's files may differ (a dataset missing there printed nothing, and rank
     0 waited out the join's timeout).  Errors of its own (a collective, its device, its disk)
-    every rank prints, its rank named."""
+    every rank prints, its rank named, and so any error met once the group formed (each rank's
+    work is its own share: rank 1's twin whose edit diverged printed nothing, rank 0 was
+    stopped by torchrun)."""
     ranks = torchrun_ranks()
     if ranks is None or ranks.main:
         return True
@@ -348,12 +350,11 @@ def _says_it(error: BaseException) -> bool:
         return False
     if ranks.local_rank == 0:
         return True
-    import torch.distributed as dist
+    from ..distributed import DistributedError, joined
 
-    from ..distributed import DistributedError
-
-    joined = dist.is_available() and dist.is_initialized()
-    return not isinstance(error, CrfError) or isinstance(error, DistributedError) or joined
+    # joined: the error met this rank's own share of the work (an edit of its twin diverged), and
+    # the group is torn down by the time it gets here (so is_initialized() no longer says so)
+    return not isinstance(error, CrfError) or isinstance(error, DistributedError) or joined()
 
 
 OUTPUTS = ("out", "out_dir", "preview", "video", "csv_path", "md_path", "models", "work", "workdir")
