@@ -124,6 +124,22 @@ def writer_lock(path: str | os.PathLike, held: bool = True) -> Iterator[None]:
                 break
 
 
+def stale_partials(path: str | os.PathLike) -> list[Path]:
+    """The temporary files :func:`atomic_path` made for ``path`` and never renamed (a process
+    killed with SIGKILL while writing: nothing ran to remove them), by their exact name pattern.
+    Remove them only while holding :func:`writer_lock` on ``path``: then no crfedit run that
+    locks is writing one (``train --resume`` after a killed torchrun job left a 17 MB one)."""
+    import re
+
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    pattern = re.compile(rf"\.{re.escape(hidden_stem(path))}\.[A-Za-z0-9_]{{8}}{re.escape(path.suffix)}\.tmp")
+    try:
+        return sorted(p for p in folder.iterdir() if pattern.fullmatch(p.name) and p.is_file())
+    except OSError:
+        return []
+
+
 @contextlib.contextmanager
 def _flocked(path: Path, fcntl) -> Iterator[None]:
     """:func:`writer_lock`'s lock proper."""

@@ -114,13 +114,15 @@ class RunLog:
         tb = self.paths["tensorboard"]
         self._tb_before = set(tb.rglob("*")) if tb.is_dir() else None
         write_json(self.paths["run"], run_record(self.paths["run"], run, cfg, resume))
-        fresh = not (resume and self.paths["log"].is_file())
+        # an empty log (a run killed before its header reached the disk) starts again with its header
+        fresh = not (resume and self.paths["log"].is_file() and self.paths["log"].stat().st_size > 0)
         if not fresh and isinstance(run.get("resumed_at"), int):
             _drop_rows_after(self.paths["log"], run["resumed_at"])  # steps past the checkpoint are trained again
         self.file = open(self.paths["log"], "w" if fresh else "a", newline="")
         self.csv = csv.writer(self.file)
         if fresh:
             self.csv.writerow(COLUMNS)
+            self.file.flush()  # on disk now: a run killed before its first row leaves a log with its header
         self.tb = _tensorboard_writer(self.paths["tensorboard"])
         self._last: tuple | None = None  # the last on_step's arguments with a read-out loss, and the last step written
         self._logged: int | None = None

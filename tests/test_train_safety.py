@@ -231,6 +231,21 @@ def test_a_second_training_of_the_same_out_is_refused_while_one_runs(tiny_chairs
     assert invoke("train", tiny_chairs, "--out", out, *TINY).exit_code == 0 and not (tmp_path / ".m.safetensors.lock").exists()
 
 
+def test_a_training_removes_the_half_written_copies_a_killed_run_left(tiny_chairs, tmp_path):
+    """A torchrun rank 0 killed with SIGKILL while writing a checkpoint left its temporary
+    (17 MB, hidden) beside the model for good; the next training of that --out removes it (and
+    a run record's), saying so, and leaves another file's temporaries alone."""
+    out = tmp_path / "m.safetensors"
+    stale = [tmp_path / ".m.safetensors.ab3_d2uv.safetensors.tmp", tmp_path / ".m.run.json.x9y8z7w6.json.tmp"]
+    other = tmp_path / ".n.safetensors.ab3_d2uv.safetensors.tmp"
+    for p in (*stale, other):
+        p.write_bytes(b"\0" * 1500)
+    r = invoke("train", tiny_chairs, "--out", out, *TINY)
+    assert r.exit_code == 0, r.output
+    assert not any(p.exists() for p in stale) and other.exists()
+    assert "note: removed .m.safetensors.ab3_d2uv.safetensors.tmp (1.5 KB), a copy of m.safetensors a killed run left half-written" in r.stderr
+
+
 def test_views_of_several_sizes_train_at_their_sizes(tiny_chairs, tmp_path):
     """One chair's images at 1.5x the size: training reads each view at its own size and the
     model keeps each view's (tests/test_cli_train_render.py renders them); --res R gives every
@@ -275,6 +290,28 @@ def test_a_resume_drops_the_log_rows_past_its_checkpoint(tmp_path):
     run.file.close()
     steps = [line.split(",")[0] for line in log.read_text().splitlines()[1:]]
     assert steps == ["10", "20", "30"]
+
+
+def test_a_log_left_empty_gets_its_header_on_resume(tmp_path):
+    """A torchrun job killed before its first row left an empty log (the header still in the
+    writer's buffer); the resume appended rows under no header, so a CSV reader took the first
+    row for the column names.  The header is on disk as soon as the log is made, and an empty
+    log is begun again."""
+    import csv
+
+    from crfedit.config import make_config
+    from crfedit.runlog import COLUMNS, RunLog, record_paths
+
+    model = tmp_path / "m.safetensors"
+    log = record_paths(model)["log"]
+    first = RunLog(model, make_config("fast"), 10, None, False, {"command": "crfedit train"})
+    assert log.read_text().splitlines() == [",".join(COLUMNS)]  # before any row, and before the file is closed
+    first.file.close()
+    log.write_text("")
+    run = RunLog(model, make_config("fast"), 10, None, True, {"resumed_at": 20, "command": "crfedit train"})
+    run.on_step(30, 0.05, 22.0, 1000.0)
+    run.file.close()
+    assert [row["step"] for row in csv.DictReader(log.open())] == ["30"]
 
 
 def test_a_camera_too_far_for_float32_is_named_before_training(tiny_chairs, tmp_path):

@@ -102,6 +102,18 @@ def _si(x: float) -> str:
     return f"{x / 1e6:.2f}M" if x >= 1e6 else f"{x / 1e3:.1f}k" if x >= 1e3 else f"{x:.0f}"
 
 
+def _remove_partials(out: Path) -> None:
+    """Remove the half-written temporaries of ``out`` and its run record a killed run left
+    (held under the writer lock, so none is being written), saying so."""
+    from ..io import stale_partials
+    from ..runlog import record_paths
+
+    for p in [*stale_partials(out), *stale_partials(record_paths(out)["run"])]:
+        size = p.stat().st_size
+        p.unlink(missing_ok=True)
+        typer.echo(printable(f"note: removed {p.name} ({size_text(size)}), a copy of {out.name} a killed run left half-written"), err=True)
+
+
 def _clock(seconds: float) -> str:
     if not math.isfinite(seconds):
         return "-:--:--"
@@ -353,6 +365,8 @@ def train_cmd(
     ranks = ranks or SINGLE
     with writer_lock(out, ranks.main):
         check_output_file(out, resume, overwrite)  # again, now that no other run can write it: one may have finished meanwhile
+        if ranks.main:
+            _remove_partials(out)
         if resume:  # read under the lock: a run still writing the file is named as such
             stored, res, minutes, finished = _resumed(out, res, minutes, ranks)
         # the data and the run checked before the ranks join: a problem every rank finds is rank 0's one line
