@@ -48,6 +48,41 @@ def test_white_on_black(view, tmp_path):
     assert got.reading == "white on black" and np.array_equal(got.mask, mask)
 
 
+def test_an_all_black_image_reads_as_no_stroke(view, tmp_path):
+    """It read as "grey strokes on black, 0 pixels" (there are none to be grey)."""
+    _, cam, _, _ = view
+    write_png(tmp_path / "black.png", np.zeros((cam.height, cam.width), np.uint8))
+    got = read_scribble(tmp_path / "black.png", cam.width, cam.height, "copy")
+    assert got.reading == "an all-black image: no stroke" and not got.mask.any()
+
+
+def test_strokes_mask_measures_each_segment_in_its_box_alone():
+    """The same bits as every segment measured over the whole view (the arithmetic the
+    generator's twin scribbles and recorded digests were made with), for random strokes and
+    radii; a back-and-forth line of 20 000 points (the page's request limit) draws as its one
+    segment."""
+    def whole_view(shape, strokes, radius):
+        yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
+        pix = np.stack([xx, yy], -1).astype(np.float64)
+        mask = np.zeros(shape, bool)
+        for points in strokes:
+            for a, b in list(zip(points[:-1], points[1:])) or [(points[0], points[0])]:
+                ab = b - a
+                s = np.clip(((pix - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+                mask |= np.linalg.norm(pix - (a + s[..., None] * ab), axis=-1) <= radius
+        return mask
+
+    rng = np.random.default_rng(0)
+    for _ in range(400):
+        h, w = (int(v) for v in rng.integers(4, 48, 2))
+        radius = float(rng.choice([0.5, 1.0, 4 / 3, 2.5, rng.uniform(0.3, 6.0)]))
+        strokes = [rng.uniform(-8, max(h, w) + 8, (int(rng.integers(1, 6)), 2)) for _ in range(int(rng.integers(1, 3)))]
+        strokes = [np.round(p * 2) / 2 if rng.random() < 0.5 else p for p in strokes]
+        assert np.array_equal(strokes_mask((h, w), strokes, radius), whole_view((h, w), strokes, radius))
+    line = np.array([[0.0, 0.0], [63.0, 63.0]] * 10000)
+    assert np.array_equal(strokes_mask((64, 64), [line], 1.0), whole_view((64, 64), [line[:3]], 1.0))
+
+
 def test_a_0_1_mask_saved_unscaled_reads_its_ones(view, tmp_path):
     """numpy's bool mask saved as uint8 without * 255 (pixels 0 and 1) read as an empty mask
     ("white on black, 0 pixels"); its ones are the strokes.  A float image is refused."""

@@ -172,6 +172,8 @@ def read_scribble(path: Path, width: int, height: int, what: str, render: Callab
         return Scribble(alpha >= 0.5, "opaque pixels of a transparent PNG")
     if (rgb.max(axis=-1) - rgb.min(axis=-1) <= GRAY_TOLERANCE).all():
         gray = rgb.mean(axis=-1)
+        if float(gray.max()) == 0.0:  # all black: no stroke (read as grey strokes on black, it said "grey strokes" of 0 pixels)
+            return Scribble(np.zeros(gray.shape, dtype=bool), "an all-black image: no stroke")
         if 0.0 < float(gray.max()) <= 1.5 / 255.0:  # numpy's 0/1 mask saved as is (Image.fromarray(mask.astype(np.uint8)))
             return Scribble(gray > 0.0, "0/1 values (a mask saved without scaling to 255)")
         if not (gray >= 0.5).any() and (gray <= 0.1).mean() >= 0.5:  # a dark grey brush on black, as a dark coloured one
