@@ -186,6 +186,8 @@ def test_host_and_origin_are_checked(ui):
     assert "Host" in ui.error("GET", "/api/state", expect=403, headers={"Host": f"evil.example:{ui.running.port}"})
     assert "Host" in ui.error("GET", "/api/state", expect=403, headers={"Host": "127.0.0.1:1"})
     assert ui.call("GET", "/api/state", headers={"Host": f"localhost:{ui.running.port}"})[0] == 200
+    assert ui.call("GET", "/api/state", headers={"Host": f"LocalHost:{ui.running.port}"})[0] == 200  # host names ignore case
+    assert "Method Not Allowed" in ui.error("GET", "/api/edit", expect=405)  # the one-line JSON of every refusal
     message = ui.error("POST", "/api/select/clear", {"instance": 0}, expect=403, headers={"Origin": "http://evil.example"})
     assert "may not drive" in message
     ok = {"Origin": f"http://127.0.0.1:{ui.running.port}"}
@@ -481,6 +483,10 @@ def test_a_removal_downloads_as_saved_and_nothing_is_overwritten(ui, scene, edit
     rebaked = ui.post("/api/bake", {})
     assert rebaked["model"] == baked["model"] and rebaked["again"] is True and baked["again"] is False
     assert {p.name: p.stat().st_mtime_ns for p in ui.workdir.iterdir()} == stamps
+    # the edit's file under another name (it moved in the stack, or the user renamed it): found, not written again
+    moved = again.rename(ui.workdir / "renamed.safetensors")
+    found = ui.post("/api/stack/save", {"id": entry})
+    assert (Path(found["path"]), found["again"]) == (moved, True) and not again.exists()
 
 
 def test_a_stack_change_reaches_every_open_page(ui, scene):

@@ -161,7 +161,7 @@ class Server:
         or this machine's own host name, but no other name, since a rebinding attack needs one."""
         if self.bind_host not in WILDCARD:
             names = {*LOOPBACK, self.bind_host if ":" not in self.bind_host else f"[{self.bind_host}]"}
-            return host in {f"{n}:{self.port}" for n in names}
+            return host.lower() in {f"{n}:{self.port}".lower() for n in names}  # host names ignore case
         name, sep, port = host.rpartition(":")
         if not sep or port != str(self.port):
             return False
@@ -191,8 +191,10 @@ class Server:
             return _error(400, str(e))
         except web.HTTPRequestEntityTooLarge:
             return _error(413, f"the request is larger than {MAX_BODY >> 20} MB")
-        except web.HTTPException:
-            raise
+        except web.HTTPException as e:
+            if e.status < 400 or e.content_type == "application/json":  # a redirect, or a refusal of ours already
+                raise
+            return _error(e.status, e.reason)  # a wrong method or path: the same one-line JSON as every refusal
         except Exception as e:  # one line for the page; the traceback for the terminal
             traceback.print_exc(file=sys.stderr)
             return _error(500, _unexpected(e))

@@ -95,6 +95,15 @@ class _Lru(OrderedDict):
         return value
 
 
+def _header_says(path: Path, fingerprint: str) -> bool:
+    """Whether the safetensors header of ``path`` records ``fingerprint`` (a cheap test before
+    :func:`_holds` reads the file)."""
+    try:
+        return read_header(path)[1].get("fingerprint") == fingerprint
+    except (CrfError, OSError, ValueError):
+        return False
+
+
 def _holds(path: Path, edit: Delta | None = None, model: str | None = None) -> bool:
     """Whether the file at ``path`` already holds ``edit`` (its fingerprint) or the model of
     fingerprint ``model`` (read from its header): Save and Bake then leave it as it is."""
@@ -425,8 +434,8 @@ class UiSession:
     def free_target(self, name, default: str, edit: Delta | None = None, taken: Sequence[Path] = (), model: str | None = None) -> Path:
         """Where a Save or Bake writes: :meth:`target` of ``name``, which must not exist yet, or
         with no name the first free one of ``default``, ``default-2``, … (none in ``taken``
-        either).  A file that already holds ``edit`` (the same fingerprint), or the model of
-        fingerprint ``model``, is its place: saving an edit or baking a stack twice gives one
+        either).  A file of the work dir that already holds ``edit`` (the same fingerprint), or
+        the model of fingerprint ``model``, whatever its name, is its place: saving an edit or baking a stack twice gives one
         file (an existing path returned holds it already: the caller does not write it again).
         Nothing in the work dir is ever overwritten."""
         holds_edit = lambda path: _holds(path, edit, model)
@@ -436,6 +445,10 @@ class UiSession:
             if path.exists() and not holds_edit(path):
                 raise CrfError(f"name {name}: a file of that name is already in the work dir; pick another name")
             return path
+        if edit is not None or model is not None:  # under any name: a Save after the edit moved in the stack found no file of its new default name
+            for path in sorted(self.workdir.glob("*.safetensors")) if self.workdir.is_dir() else ():
+                if path not in taken and _header_says(path, (edit.fingerprint if edit is not None else model)) and holds_edit(path):
+                    return path
         stem = default.removesuffix(".safetensors")
         for i in itertools.count(1):
             path = self.target(default if i == 1 else f"{stem}-{i}.safetensors")
