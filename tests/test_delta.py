@@ -390,6 +390,16 @@ def test_transfer_delta_equals_swap_codes(tmp_path, model):
         swap_codes(model, 0)
 
 
+def test_a_transfer_that_changes_nothing_is_refused(model):
+    """The same colour transfer given again on its own result wrote an edit of zeros in
+    silence, while a transfer from the instance itself is refused: both are refused now."""
+    first = transfer(model, 0, color_from=1)
+    with pytest.raises(CrfError, match=r"^chair_0 already renders with chair_1's colour code \(a transfer of it already applied\?\): "
+                                       r"this transfer changes nothing; nothing was written$"):
+        transfer(first.model, 0, color_from=1)
+    assert transfer(first.model, 0, color_from=2).tensors["color_code"].abs().sum() > 0  # another source still moves it
+
+
 def test_a_transfer_rebased_still_takes_its_source_s_code(tmp_path, model):
     """Three colour transfers onto chair 0 (from 1, then 2, then 1 again, each on the one before);
     the middle one left out, the last still gives chair 0 exactly chair 1's colour code and the

@@ -652,6 +652,12 @@ def test_a_transfer_says_when_weights_of_an_instance_s_own_do_not_travel(trained
         f"{n[1]} has its own F_rad (fitted or edited for it alone), which read the shape code and colour code it takes: "
         "it can change less than an instance without weights of its own"]
     assert weights_not_carried(model, 0, shape_from=1, color_from=2) == []  # nothing owned: nothing to say
+    dens = next(name for name in model.field.state_dict() if name.startswith("F_dens."))
+    removed = dataclasses.replace(model, overrides={1: {dens: model.field.state_dict()[dens] + 0.1}})  # chair 1 owns F_dens
+    assert weights_not_carried(removed, 0, shape_from=1) == [
+        f"{n[1]} renders with its own F_dens (fitted or edited for it alone): the transfer carries its shape code, not those "
+        f"weights, so {n[0]} will not look like it; its occupancy grid goes with the shape code, so what a removal took from it "
+        "stays away, but what its own weights add (an added part, a fitted shape) shows as loose specks at most"]
     save_delta(tmp_path / "c.safetensors", result.tensors, result.meta)
     r = invoke("transfer", path, "--instance", 0, "--color-from", 1, "--edit", tmp_path / "c.safetensors",
                "--out", tmp_path / "t.safetensors", "--device", "cpu")

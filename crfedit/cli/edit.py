@@ -568,7 +568,7 @@ def add_cmd(
     options = _options(strategy, steps, lr, rays, seed, penalty)
     check_out_file(out, {**_scribbled_inputs(model, edit, None, None, keep, keep_json, selection), "--copy": copy_mask})
     m = _load(model, edit, device)
-    k, j = m.instance_index(instance), instance_option(m, donor, "--donor")
+    k, j = instance_option(m, instance, "--instance"), instance_option(m, donor, "--donor")  # named: it takes two
     if "occupancy" in m.overrides.get(j, {}):  # a removal (or addition) of the donor earlier in the stack
         typer.echo(f"note: an earlier --edit changed {m.names[j]}'s shape: the part is copied from the donor as edited "
                    "(a part it removed is not there to copy; check the preview)", err=True)
@@ -620,7 +620,7 @@ def transfer_cmd(
         raise CrfError("transfer: give --shape-from or --color-from (or both)")
     check_out_file(out, {"MODEL": model, "--edit": edit})
     m = _load(model, edit, device)
-    k = m.instance_index(instance)
+    k = instance_option(m, instance, "--instance")  # named: the command takes two or three instances
     shown = _preview_views(m, k, preview, views)
     sources = {key: None if name is None else instance_option(m, name, option)
                for key, name, option in (("shape_from", shape_from, "--shape-from"), ("color_from", color_from, "--color-from"))}

@@ -24,6 +24,11 @@ from .core import EditResult
 from .params import used_code_tables
 
 
+SAME_CODE = 1e-5
+"""A transfer whose code rows move no more than this (and its grid not at all) changes nothing
+(codes are of order 1; applying a difference rounds by ~1e-7)."""
+
+
 def _swapped(
     model: CategoryModel, instance: int | str, shape_from: int | str | None, color_from: int | str | None
 ) -> tuple[int, CategoryModel, tuple[str, ...], dict]:
@@ -83,8 +88,13 @@ def weights_not_carried(
     notes = []
     for j, whiches in taken.items():
         if mods := [m for w in whiches for m in own_weights(model, j, w)]:
+            # a shape's grid travels with its code: cells a removal emptied stay empty (that removal carries over),
+            # while matter its own weights make (an added part, a fitted shape) comes as loose specks at most
+            grid = ("" if "shape" not in whiches or not [m for m in own_weights(model, j, "shape")] else
+                    "; its occupancy grid goes with the shape code, so what a removal took from it stays away, but what its own "
+                    "weights add (an added part, a fitted shape) shows as loose specks at most")
             notes.append(f"{model.names[j]} renders with its own {', '.join(mods)} (fitted or edited for it alone): the "
-                         f"transfer carries its {codes(whiches)}, not those weights, so {model.names[k]} will not look like it")
+                         f"transfer carries its {codes(whiches)}, not those weights, so {model.names[k]} will not look like it{grid}")
     whiches = [w for ws in taken.values() for w in ws]
     if mods := [m for w in whiches for m in own_weights(model, k, w)]:
         notes.append(f"{model.names[k]} has its own {', '.join(mods)} (fitted or edited for it alone), which read the "
@@ -113,5 +123,11 @@ def transfer(
     extra = {"hyperparameters": json.dumps(hyper, sort_keys=True), "final_loss": "0.0",
              "seconds": f"{seconds:.3f}", "command": ""}
     tensors, meta = make_delta(model, raw, k, "transfer", modules, extra)
+    # a transfer given again on its own result wrote an edit that did nothing (its rows differ by
+    # the float rounding of applying the first one's difference: k + (j - k) is not j bit for bit)
+    if all(float(t.abs().max()) <= SAME_CODE if t.is_floating_point() else not bool(t.any()) for t in tensors.values()):
+        took = " and ".join(f"{hyper[w + '_from']}'s {'colour' if w == 'color' else w} code" for w in ("shape", "color") if w + "_from" in hyper)
+        raise CrfError(f"{model.names[k]} already renders with {took} (a transfer of it already applied?): this transfer changes "
+                       "nothing; nothing was written")
     edited = apply_deltas(model, [Delta("(new edit)", tensors, meta)])
     return EditResult(edited, tensors, meta, 0.0, seconds)
