@@ -816,7 +816,7 @@ def rebase_cmd(
     typer.echo(f"ok: {len(pinned)} edit(s) apply to {model} in this order")
     stale = sorted(p.name for p in out_dir.glob("*.safetensors") if p.name not in names and _is_edit_file(p))
     if stale:  # an earlier rebase's files: not in this stack, and `edits check` with them fails
-        typer.echo(printable(f"note: {out_dir} also holds {', '.join(stale)} from before, which this stack does not include"))
+        typer.echo(printable(f"note: {out_dir} also holds {', '.join(stale)} from before, which this stack does not include"), err=True)
     for i, (p, before, after) in enumerate(zip(edit, deltas, pinned)):  # as transfer says it where the transfer is made
         if after is not before and after.kind == "transfer":
             hyper = json.loads(after.meta.get("hyperparameters") or "{}")
@@ -838,7 +838,7 @@ def rebase_cmd(
                                  "(crfedit render --edit ...)"), err=True)
     if not named and any(after is not before and after.kind != "transfer" for before, after in zip(deltas, pinned)):
         typer.echo("note: a re-pinned edit keeps the change it was optimized for on its old stack; where an edit of the same "
-                   "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)")
+                   "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)", err=True)
 
 
 def _left_out(path: str, instance: str, verified: bool) -> tuple[str, str | None]:

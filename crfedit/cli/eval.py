@@ -443,4 +443,4 @@ def bench_cmd(
     for path in written:
         typer.echo(f"wrote {path}")
     for note in report.notes:
-        typer.echo(f"note: {note}")
+        typer.echo(f"note: {note}", err=True)
