@@ -748,6 +748,24 @@ def test_rebase_names_the_left_out_removal_a_recolour_was_optimized_on(tmp_path,
     assert "note: b.safetensors was optimized on top of a.safetensors (as recorded), which this stack leaves out" in swapped.stderr, swapped.stderr
 
 
+def test_edits_check_json(tmp_path, model):
+    """A script reads `edits check --json`: the stack's files, kinds and fingerprints on stdout;
+    a stack that does not apply prints nothing there (its line on stderr, exit 2)."""
+    save_model(tmp_path / "m.safetensors", model)
+    m, _ = load_model(tmp_path / "m.safetensors")
+    a = delta_file(tmp_path, "a.safetensors", m, 0, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    b = delta_file(tmp_path, "b.safetensors", apply_edit_files(m, [a]), 1, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
+    runner = CliRunner()
+    ok = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(a), "--edit", str(b), "--json"])
+    assert ok.exit_code == 0, ok.output
+    record = json.loads(ok.stdout)
+    assert record["ok"] is True and record["base"] == m.fingerprint()
+    assert [(e["file"], e["kind"], e["instance"], e["fingerprint"]) for e in record["edits"]] == [
+        (str(p), "color", name, read_delta(p).fingerprint) for p, name in ((a, "chair_0"), (b, "chair_1"))]
+    wrong = runner.invoke(app, ["edits", "check", str(tmp_path / "m.safetensors"), "--edit", str(b), "--json"])
+    assert wrong.exit_code == 2 and wrong.stdout == "" and wrong.stderr.startswith("error: ")
+
+
 def test_edits_show_escapes_line_breaks_in_recorded_values(tmp_path, model):
     """A shared file's provenance (outside the fingerprint) holding a line break printed a row
     of its own, a forged ``fingerprint`` line among them; the value is shown on its one row."""

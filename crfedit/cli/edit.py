@@ -752,14 +752,19 @@ def print_edit(edit: Path, as_json: bool) -> None:
 def check_cmd(
     model: ModelArg,
     edit: Annotated[list[Path], typer.Option("--edit", help="Edit file (repeatable, in the order they apply).")],
+    as_json: JsonOpt = False,
 ) -> None:
     """Check that a stack of edits applies to a model (files, order, instances, shapes)."""
-    from ..delta import check_stack, read_delta
+    from ..delta import check_stack, read_delta, stack_of
     from ..model import load_model
 
     m, _ = load_model(model, "cpu")
     deltas = [read_delta(p) for p in edit]
     check_stack(m, deltas)
+    if as_json:  # a failing stack prints its one line on stderr and nothing here (exit 2), as every --json command
+        typer.echo(json.dumps({"ok": True, "model": str(model), "base": stack_of(m)[0], "edits": [
+            {"file": str(p), "kind": d.kind, "instance": d.instance, "fingerprint": d.fingerprint} for p, d in zip(edit, deltas)]}, indent=2))
+        return
     typer.echo(f"ok: {len(deltas)} edit(s) apply to {model} in this order")
     for i, d in enumerate(deltas, 1):
         typer.echo(printable(f"  {i}. {d.path}: {d.kind} edit of {d.instance} ({d.fingerprint})"))
