@@ -132,7 +132,7 @@ def threads_choice() -> tuple[int, str]:
     why = f"{cores} usable cores, load average {load:.1f}"
     if siblings:
         why += f", shared with {siblings} other crfedit process{'es' * (siblings > 1)} started in the last minute"
-    return default_threads(cores, load, siblings), why + "; CRFEDIT_THREADS=N sets it"
+    return default_threads(cores, load, siblings), why + "; crfedit --threads N (or CRFEDIT_THREADS=N) sets it"
 
 
 def requested_threads() -> int:

@@ -51,9 +51,9 @@ def test_threads_choice_says_what_decided_it(monkeypatch):
     monkeypatch.setattr("crfedit.threads.usable_cores", lambda: 16)
     monkeypatch.setattr("crfedit.threads.busy_cores", lambda: 0.2)
     monkeypatch.setattr("crfedit.threads.recent_siblings", lambda: 0)
-    assert threads_choice() == (16, "16 usable cores, load average 0.2; CRFEDIT_THREADS=N sets it")
+    assert threads_choice() == (16, "16 usable cores, load average 0.2; crfedit --threads N (or CRFEDIT_THREADS=N) sets it")
     monkeypatch.setattr("crfedit.threads.recent_siblings", lambda: 3)
-    assert threads_choice() == (4, "16 usable cores, load average 0.2, shared with 3 other crfedit processes started in the last minute; CRFEDIT_THREADS=N sets it")
+    assert threads_choice() == (4, "16 usable cores, load average 0.2, shared with 3 other crfedit processes started in the last minute; crfedit --threads N (or CRFEDIT_THREADS=N) sets it")
 
 
 @pytest.mark.parametrize("argv, expected", [
@@ -149,6 +149,23 @@ def test_a_command_computes_with_omp_num_threads(tmp_path):
     run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "missing.safetensors")], capture_output=True, check=False,
                          text=True, cwd=Path(__file__).parents[1], env={**env, "OMP_NUM_THREADS": str(n)})
     assert "missing.safetensors" in run.stderr and run.stdout.strip().splitlines()[-1] == str(n), run.stdout + run.stderr
+
+
+def test_the_threads_flag_sets_torch_s_threads_over_the_environment(tmp_path):
+    """`crfedit --threads N COMMAND` computes with N threads, over CRFEDIT_THREADS; after the
+    command it is a one-line usage error saying where the flag goes."""
+    code = ("import sys, torch; sys.argv = ['crfedit', *sys.argv[1:]]\nfrom crfedit.cli import main\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\nprint(torch.get_num_threads())")
+    n = usable_cores() + 2
+    env = {**os.environ, "CRFEDIT_THREADS": "1"}
+    missing = str(tmp_path / "missing.safetensors")
+    run = subprocess.run([sys.executable, "-c", code, "--threads", str(n), "info", missing], capture_output=True, text=True,
+                         cwd=Path(__file__).parents[1], env=env)
+    assert "missing.safetensors" in run.stderr and run.stdout.strip().splitlines()[-1] == str(n), run.stdout + run.stderr
+    after = subprocess.run([sys.executable, "-c", code, "info", missing, "--threads", "1"], capture_output=True, text=True,
+                           cwd=Path(__file__).parents[1], env=env)
+    assert after.stderr.strip() == ("error: No such option: --threads (--threads goes before the command: "
+                                    "crfedit --threads N COMMAND …)"), after.stderr
 
 
 def test_help_has_readable_metavars():

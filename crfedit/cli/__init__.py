@@ -101,8 +101,9 @@ def _main() -> None:
         raise SystemExit(2) from None
     except click_errors.UsageError as e:
         hint = f" (see '{e.ctx.command_path} --help')" if e.ctx is not None else ""
-        if e.format_message().startswith("No such option: --debug"):  # a root flag given after the command
-            hint = " (--debug goes before the command: crfedit --debug COMMAND …)"
+        for flag in ("--debug", "--threads"):  # a root flag given after the command
+            if e.format_message().startswith(f"No such option: {flag}"):
+                hint = f" ({flag} goes before the command: crfedit {flag}{' N' * (flag == '--threads')} COMMAND …)"
         # Typer 0.29 checks choices with pydantic, whose line reads "Value error, 'gpu' is not one of ..."
         say(f"error: {' '.join(e.format_message().split()).replace(': Value error, ', ': ')}{hint}")
         raise SystemExit(2) from None

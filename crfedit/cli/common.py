@@ -9,12 +9,13 @@ import functools
 import os
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import typer
 
 from ..errors import EXIT_USER_ERROR, CrfError, Terminated
 from ..names import EDIT_FORMAT, MODEL_FORMAT, SELECTION_FORMAT
+from ..threads import MAX_THREADS
 
 def _readable(param) -> None:
     """Give a click parameter a readable metavar: its name in capitals (MODEL, EDIT), N for an
@@ -154,9 +155,12 @@ def _version(value: bool) -> None:
 def _root(
     show_version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")] = False,
     debug: Annotated[bool, typer.Option("--debug", help="Show the full traceback of an unexpected error (also CRFEDIT_DEBUG=1).")] = False,
+    threads: Annotated[Optional[int], typer.Option("--threads", min=1, max=MAX_THREADS, help="torch CPU threads for the command (also CRFEDIT_THREADS=N; default: the cores the machine's load leaves free).")] = None,
 ) -> None:
     """Train, render and edit conditional radiance fields of object categories."""
     Session.debug = Session.debug or debug
+    if threads is not None:  # before the command runs: user_errors sets torch's threads from Session
+        Session.threads, Session.threads_why = threads, f"--threads {threads}"
 
 
 app.add_typer(dataset_app, name="dataset")
