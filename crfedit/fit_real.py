@@ -91,12 +91,16 @@ tester's chair from 736 to 1035 pixels, started the fit from another chair, doub
 fitted 8 dB worse.  A 1-px leg area-resized 8× down still covers 0.125."""
 
 
-def read_object_mask(path: str | Path) -> np.ndarray:
+def read_object_mask(path: str | Path, photo: tuple[str, int, int] | None = None) -> np.ndarray:
     """A mask file as bool [H, W]: where the image has transparency, alpha > :data:`FAINT_ALPHA` is the object;
-    otherwise non-black pixels (brightest channel > :data:`MASK_LEVEL`) are."""
+    otherwise non-black pixels (brightest channel > :data:`MASK_LEVEL`) are.  ``photo`` (its
+    path, width, height): the size it must have, checked first (an empty mask of another size
+    was called empty, the more basic mistake unsaid)."""
     image = read_image(path)
     if image.shape[0] == 0 or image.shape[1] == 0:
         raise CrfError(f"{path}: mask is empty (0 pixels)")
+    if photo is not None and image.shape[:2] != (photo[2], photo[1]):
+        raise CrfError(f"{path}: mask is {image.shape[1]}x{image.shape[0]} but the photo {photo[0]} is {photo[1]}x{photo[2]}")
     if image.shape[2] == 4 and bool((image[..., 3] < 1.0).any()):
         mask = image[..., 3] > FAINT_ALPHA
     else:
@@ -272,10 +276,7 @@ def read_photo(path: str | Path, mask_path: str | Path | None = None) -> tuple[n
         if image.shape[2] == 4 and not (image[..., 3] > FAINT_ALPHA).any():
             raise CrfError(f"{path}: the object mask is empty ({transparent_text(image[..., 3])})")
         return image, None
-    mask = read_object_mask(mask_path)
-    if mask.shape != image.shape[:2]:
-        raise CrfError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]} but the photo {path} is {image.shape[1]}x{image.shape[0]}")
-    return image, mask
+    return image, read_object_mask(mask_path, (str(path), image.shape[1], image.shape[0]))
 
 
 # ----------------------------------------------------------------------------- options

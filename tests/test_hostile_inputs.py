@@ -571,6 +571,8 @@ CATALOGUE: list[Case] = [
     Case("photo/missing/fit-real", lambda e, t: fit_real(e, t, photo=t / "nope.png"), ("nope.png", "not found")),
     Case("photo/mask-wrong-size/fit-real",
          lambda e, t: fit_real(e, t, "--mask", mask_png(t, "m.png", np.full((8, 8), 255, np.uint8))), ("m.png", "mask is 8x8 but the photo")),
+    Case("photo/mask-wrong-size-and-empty/fit-real",  # the size is the more basic mistake: it was called empty
+         lambda e, t: fit_real(e, t, "--mask", mask_png(t, "m.png", np.zeros((8, 8), np.uint8))), ("m.png", "mask is 8x8 but the photo")),
     Case("photo/name-taken/fit-real", lambda e, t: fit_real(e, t, "--name", "chair_000"), ("--name chair_000", "already has an instance")),
     Case("photo/file-name-taken/fit-real", lambda e, t: fit_real(e, t, photo=copy_file(e.photo, t / "chair_000.png")),
          ("chair_000", "--name")),

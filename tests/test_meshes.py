@@ -474,6 +474,9 @@ def test_mesh_notes_name_a_y_up_file_a_tiny_mesh_a_renamed_file_and_twins_of_eve
     assert tiny == ["two_boxes.obj: the mesh covers 0.00% of its views (median): its bounding box is far larger than the object "
                     "(a stray piece far away? each mesh is scaled to unit size by its box); remove the piece"]
     assert mesh_notes(Path("椅子.obj"), "mesh", flat, "y", seen) == ["椅子.obj is instance mesh (names keep letters, digits, _ . and -)"]
+    # a clean name renamed says why: the dataset's root uses it, or another mesh took it
+    assert mesh_notes(Path("twins.obj"), "twins_2", flat, "y", seen) == ["twins.obj is instance twins_2 (twins is a name the dataset's root uses)"]
+    assert mesh_notes(Path("my_chair.obj"), "my_chair_2", flat, "y", seen) == ["my_chair.obj is instance my_chair_2 (another mesh is instance my_chair)"]
     other = tmp_path / "other.obj"
     shutil.copy(boxes, other)
     result = write_mesh_category(tmp_path / "d", [boxes, other], MeshDatasetConfig(views=4, res=16, twin_sources=4))

@@ -284,8 +284,11 @@ def mesh_notes(path: Path, name: str, mesh: PartMesh, up: str, train: list[Frame
     instance's name when it is not the file's stem, a Y-up file read Z-up, a mesh that covers
     almost none of its views."""
     notes = []
-    if name != path.stem:
-        notes.append(f"{path.name} is instance {name} (names keep letters, digits, _ . and -)")
+    if name != path.stem:  # why: its characters, a name the dataset root uses, or another mesh's name
+        base = folder_safe(path.stem)
+        why = ("names keep letters, digits, _ . and -" if base != path.stem else
+               f"{base} is a name the dataset's root uses" if base in ROOT_NAMES else f"another mesh is instance {base}")
+        notes.append(f"{path.name} is instance {name} ({why})")
     if up == "z":
         ext = np.ptp(mesh.vertices[np.unique(mesh.faces)], axis=0)
         if path.suffix.lower() in GLTF:
@@ -301,6 +304,15 @@ def mesh_notes(path: Path, name: str, mesh: PartMesh, up: str, train: list[Frame
     return notes
 
 
+ROOT_NAMES = ("twins", "instances.txt", "twins.json", "ATTRIBUTION.txt")
+"""What a dataset's root holds besides its instances: no instance takes these names."""
+
+
+def folder_safe(stem: str) -> str:
+    """A file stem with every run of characters other than ``[A-Za-z0-9_.-]`` made one ``_``."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("._-") or "mesh"
+
+
 def instance_names_from(paths: list[Path]) -> list[str]:
     """File stems made folder-safe (``[A-Za-z0-9_.-]``) and unique (``_2``, ``_3``, … on clashes).
 
@@ -308,9 +320,9 @@ def instance_names_from(paths: list[Path]) -> list[str]:
     ['chair', 'chair_2', 'Ch_z', 'twins_2', 'twins.json_2']
     """
     names: list[str] = []
-    taken = {"twins", "instances.txt", "twins.json", "ATTRIBUTION.txt"}  # what the dataset root holds besides the instances
+    taken = set(ROOT_NAMES)
     for path in paths:
-        base = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(path).stem).strip("._-") or "mesh"
+        base = folder_safe(Path(path).stem)
         name, k = base, 2
         while name in taken:
             name, k = f"{base}_{k}", k + 1
