@@ -50,6 +50,7 @@ from .metrics import mse_to_psnr
 from .model import CategoryModel
 from .optim import FusedAdam, run_adam
 from .renderer import render_camera, render_rays
+from .runtime import full_precision
 
 JOINT: dict[str, tuple[str, ...]] = {
     "heads": ("F_fuse.", "F_dens.", "F_rad.", "coarse.F_fuse.", "coarse.F_dens.", "coarse.F_rad."),
@@ -489,6 +490,7 @@ def _run_stage(
 # ----------------------------------------------------------------------------- fitting
 
 
+@full_precision
 def fit_real(
     model: CategoryModel,
     photo: Photo,

@@ -180,6 +180,18 @@ class FixedMarch:
             self.needed, self.dropped = state["march.needed"].to(device), state["march.dropped"].to(device)
 
 
+def _check_dtypes(field: ConditionalRadianceField, rays: Rays) -> None:
+    """A one-line error for a field whose weights are not float32 (``.half()``, ``.double()``:
+    the grid and the MLPs mixed dtypes in a raw RuntimeError) or rays of float64; rays of
+    float16 or bfloat16 compute in float32.  A few attribute reads: no cost on the training path."""
+    dtype = next(field.parameters()).dtype
+    if dtype != torch.float32 or field.aabb.dtype != torch.float32:
+        raise CrfError(f"render: the field's weights are {str(dtype).replace('torch.', '')}; crfedit renders "
+                       "float32 fields (for lower precision on a GPU, render under torch.autocast instead)")
+    if rays.origins.dtype == torch.float64 or rays.directions.dtype == torch.float64:
+        raise CrfError("render: rays of float64; give float32 rays (Rays(origins.float(), directions.float()))")
+
+
 def render_rays(
     field: ConditionalRadianceField,
     rays: Rays,
@@ -204,6 +216,7 @@ def render_rays(
     same bits, and rgb is the background alone.  ``distortion`` (grid sampler) also returns each
     ray's distortion loss (:func:`~crfedit.rendering.distortion_packed`), a training regularizer.
     """
+    _check_dtypes(field, rays)
     n = rays.origins.shape[0]
     single = int(instance) if not isinstance(instance, Tensor) else None
     instance = instance_tensor(instance, n, rays.origins.device)

@@ -48,3 +48,22 @@ def seed_everything(seed: int) -> torch.Generator:
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
     return torch.Generator().manual_seed(seed)
+
+
+def full_precision(fn):
+    """Run ``fn`` with ``torch.autocast`` off (CPU, and CUDA where there is one): an edit or a
+    selection computes in the float32 of the model's weights, and under a caller's bf16
+    autocast an edit met mixed dtypes in ``index_put`` (a raw RuntimeError).  Rendering alone
+    runs under autocast (docs/robustness.md)."""
+    import contextlib
+    import functools
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(torch.autocast("cpu", enabled=False))
+            if torch.cuda.is_available():
+                stack.enter_context(torch.autocast("cuda", enabled=False))
+            return fn(*args, **kwargs)
+
+    return run

@@ -116,6 +116,36 @@ def test_strategies_select_what_the_delta_holds(trained):
         EditOptions(strategy="sculpt").validated()
 
 
+@pytest.mark.parametrize("field,value,said", [
+    ("steps", 2.5, "--steps 2.5: need a whole number"), ("steps", True, "--steps True: need a whole number"),
+    ("seed", 2**70, "a seed is a whole number from 0 to 2^63 - 1"), ("seed", 1.5, "--seed 1.5"), ("seed", -1, "--seed -1"),
+    ("lambda_dens", float("nan"), "lambda_dens nan: loss weights must be finite numbers"),
+    ("lambda_reg", float("inf"), "lambda_reg inf: loss weights must be finite"), ("lr", float("nan"), "--lr nan"),
+    ("rays", 64.0, "--rays 64.0: need a whole number"),
+])
+def test_edit_options_refuse_what_would_fail_later(field, value, said):
+    """A fractional step count, a seed past 64 bits and a NaN loss weight passed validated() and
+    failed inside the edit (a TypeError from torch.zeros, an overflow in manual_seed, "diverged at
+    step 0"); each is one line naming the option now."""
+    with pytest.raises(CrfError, match=re.escape(said)):
+        EditOptions(**{field: value}).validated()
+    EditOptions(steps=np.int64(3), seed=np.int64(7)).validated()  # numpy integers are whole numbers
+
+
+def test_edits_run_in_full_precision_under_a_caller_s_autocast(trained):
+    """A script that renders under bf16 autocast and then edits: the edit failed with a raw
+    RuntimeError (index_put of mixed dtypes); it computes in float32 whatever the caller's
+    autocast, the same tensors as without."""
+    _, model, category = trained
+    _, view, fg, keep, _ = scribbles(category, 0, "seat")
+    options = EditOptions(steps=3)
+    plain = remove(model, 0, view.camera, fg, keep, options=options)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        under = remove(model, 0, view.camera, fg, keep, options=options)
+    assert plain.tensors.keys() == under.tensors.keys()
+    assert all(torch.equal(plain.tensors[k], under.tensors[k]) for k in plain.tensors)
+
+
 def test_feature_cache_equals_the_renderer(trained):
     _, model, category = trained
     view = held_out(category, 1)[0]

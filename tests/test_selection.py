@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -1103,6 +1104,15 @@ def test_selection_file_is_sparse_and_version_1_still_reads(tmp_path):
     empty = Selection(torch.zeros(8, 8, 8), 0, "chair_000", "f" * 16, {}, 0.5)  # no cell: an empty levels tensor
     save_selection(tmp_path / "e.safetensors", empty)
     assert torch.equal(load_selection(tmp_path / "e.safetensors").values, empty.values)
+    # values outside [0, 1] were saved wrapped around uint8 (1.5 read back 0.494, -0.5 0.502), a NaN
+    # threshold saved a file load_selection refused; both are refused when saving, nothing written
+    for values, threshold, said in ((torch.full((8, 8, 8), 1.5), 0.5, "outside [0, 1]"), (torch.full((8, 8, 8), -0.5), 0.5, "outside [0, 1]"),
+                                    (torch.full((8, 8, 8), float("nan")), 0.5, "with NaN"), (torch.ones(8, 8, 8), float("nan"), "threshold nan"),
+                                    (torch.ones(8, 8, 8), 5.0, "threshold 5.0")):
+        bad = Selection(values, 0, "chair_000", "f" * 16, {}, threshold)
+        with pytest.raises(CrfError, match=re.escape(said)):
+            save_selection(tmp_path / "bad.safetensors", bad)
+        assert not (tmp_path / "bad.safetensors").exists()
 
 
 @pytest.mark.parametrize("change, message", [

@@ -24,6 +24,7 @@ from ..model import CategoryModel
 from ..errors import CrfError
 from ..names import EDIT_METHODS
 from ..renderer import render_rays
+from ..runtime import full_precision
 from .cache import edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, optimize, select_rays, since
 from .losses import mse
@@ -33,6 +34,7 @@ from .supervised import recolor_selected
 
 
 
+@full_precision
 def edit_color(
     model: CategoryModel,
     instance: int | str,

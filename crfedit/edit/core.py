@@ -82,12 +82,23 @@ class EditOptions:
     fit's steps from 1 again."""
 
     def validated(self) -> "EditOptions":
+        def whole(v) -> bool:  # an int, not a bool or a float that happens to be whole
+            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+        def number(v) -> bool:
+            return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+        weights = {"lambda_reg": self.lambda_reg, "lambda_dens": self.lambda_dens, "lambda_surface": self.lambda_surface,
+                   "lambda_match": self.lambda_match}
+        bad_weight = next((k for k, v in weights.items() if not (number(v) and v >= 0)), None)  # NaN passed a min() ≥ 0
         checks = [
             (self.strategy in STRATEGIES, f"--strategy {self.strategy}: expected one of {', '.join(STRATEGIES)}"),
-            (self.steps >= 1, f"--steps {self.steps}: need at least 1"),
-            (np.isfinite(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a finite positive number"),
-            (2 <= self.rays <= MAX_EDIT_RAYS, f"--rays {self.rays}: need at least 2 and at most {MAX_EDIT_RAYS} (the most rays a step can hold)"),
-            (min(self.lambda_reg, self.lambda_dens, self.lambda_surface, self.lambda_match) >= 0, "loss weights must be ≥ 0"),
+            (whole(self.steps) and self.steps >= 1, f"--steps {self.steps}: need a whole number, at least 1"),
+            (number(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a finite positive number"),
+            (whole(self.rays) and 2 <= self.rays <= MAX_EDIT_RAYS,
+             f"--rays {self.rays}: need a whole number, at least 2 and at most {MAX_EDIT_RAYS} (the most rays a step can hold)"),
+            (whole(self.seed) and 0 <= self.seed <= 2**63 - 1, f"--seed {self.seed}: a seed is a whole number from 0 to 2^63 - 1"),
+            (bad_weight is None, f"{bad_weight} {weights.get(bad_weight)}: loss weights must be finite numbers ≥ 0"),
             (self.penalty in PENALTIES, f"--penalty {self.penalty}: expected one of {', '.join(PENALTIES)}"),
             (self.recolor in RECOLOR_RULES, f"--recolor {self.recolor}: expected one of {', '.join(RECOLOR_RULES)}"),
         ]

@@ -53,6 +53,7 @@ from ..names import ADD_METHODS, COLOR_CODES, EDIT_METHODS, is_digits
 from ..model import CategoryModel
 from ..renderer import render_camera
 from ..rendering import composite_dense
+from ..runtime import full_precision
 from ..sampling import grid_samples
 from .cache import EditPass, edit_passes
 from .core import EditOptions, EditResult, InstanceEdit, camera_meta, finish, occupancy_after, optimize, select_rays, since
@@ -100,6 +101,7 @@ def check_occluded(occluded: bool, method: str) -> None:
         raise CrfError("--occluded belongs to --method paper (a selection already says which surfaces go)")
 
 
+@full_precision
 def remove(
     model: CategoryModel,
     instance: int | str,
@@ -237,6 +239,7 @@ def donor_densities(
     return out.index_put((ray, step), sigma)
 
 
+@full_precision
 def add(
     model: CategoryModel,
     instance: int | str,

@@ -84,8 +84,21 @@ class Selection:
             raise CrfError(f"the selection is of instance {self.instance_name!r}, not {model.names[instance]!r}")
         if tuple(self.values.shape) != (model.cfg.occ_res,) * 3:
             raise CrfError(f"the selection grid is {self.values.shape[0]}³ but the model's occupancy grid is {model.cfg.occ_res}³")
+        self.check_values()
         if not bool(self.mask.any()):
             raise CrfError("the selection is empty: no cell is selected")
+
+    def check_values(self) -> None:
+        """A one-line error unless the values lie in [0, 1] (NaN refused) and the threshold in
+        (0, 1]: a NaN grid or threshold read as "empty", and values of 1.5 or -0.5 were saved
+        wrapped around uint8 (1.5 read back as 0.494, -0.5 as 0.502)."""
+        t = self.threshold
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 < t <= 1.0:  # NaN fails the range test too
+            raise CrfError(f"the selection's threshold {t!r}: expected a number in (0, 1]")
+        v = self.values
+        if not v.is_floating_point() or bool(v.isnan().any()) or bool((v < 0).any()) or bool((v > 1).any()):
+            raise CrfError(f"the selection's values must be numbers from 0 to 1 (a {v.dtype} grid"
+                           f"{' with NaN' if v.is_floating_point() and bool(v.isnan().any()) else ' outside [0, 1]'})")
 
 
 def part_summary(meta: dict) -> str | None:

@@ -18,6 +18,7 @@ from ...names import MIRROR_MODES
 from ...parts import labelled_names
 from ...masks import dilate, erode
 from ...renderer import RenderOutput, render_camera
+from ...runtime import full_precision
 from ..scribble import require_on_object
 from ..symmetry import CONFLICT, Mirror, agreeing, conflict, find_mirror, mirror_camera, mirror_image
 from .base import ScribbleView, Selection
@@ -314,6 +315,7 @@ def _mirror_use(field, mirror: Mirror | None, mode: str, pos: Tensor, keep: Tens
     return mirror, {**meta, "used": True}
 
 
+@full_precision
 @torch.no_grad()
 def select(
     model: CategoryModel, instance: int | str, views: Sequence[ScribbleView], options: SelectOptions = SelectOptions(),

@@ -63,7 +63,10 @@ def save_selection(path: str | Path, sel: Selection) -> None:
     cell of the [R, R, R] grid in C order (most significant first, as ``numpy.packbits``), set
     where the value is above 0; ``levels`` uint8, value·255 of each such cell in the same order;
     and string metadata, ``shape`` the grid's JSON shape.  A 64³ grid's mask is 32 KiB plus a
-    byte per cell with a value, against 256 KiB for the whole grid as uint8 (version 1)."""
+    byte per cell with a value, against 256 KiB for the whole grid as uint8 (version 1).
+    Values outside [0, 1], NaN or a threshold outside (0, 1] are refused (:meth:`Selection.check_values`):
+    the file would read back otherwise, or not at all."""
+    sel.check_values()
     q = (sel.values * 255).round().to(torch.uint8).cpu().contiguous().numpy()
     nonzero = q.reshape(-1) != 0
     meta = {
