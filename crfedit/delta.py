@@ -38,8 +38,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import os
+import re
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -329,7 +329,7 @@ def read_delta(path: str | os.PathLike) -> Delta:
     if not meta["instance"]:
         raise ModelFileError(f"{path}: bad edit metadata (no instance)")
     for key in NUMBERS:
-        if key in meta and not _is_number(meta[key]):
+        if key in meta and not _is_number(meta[key], infinite=key == "photo_psnr"):
             raise ModelFileError(f"{path}: bad edit metadata ({key} {meta[key][:40]!r} is not a number)")
     for key, kind in JSON_RECORDS.items():
         if meta.get(key) and not isinstance(_json_or_none(meta[key]), kind):
@@ -365,12 +365,14 @@ def read_delta(path: str | os.PathLike) -> Delta:
     return Delta(path, tensors, meta)
 
 
-def _is_number(text: str) -> bool:
-    """Whether ``text`` reads as a number that is not NaN (an infinite PSNR is one)."""
-    try:
-        return not math.isnan(float(text))
-    except ValueError:
-        return False
+NUMBER = re.compile(r"[-+]?(\d+(\.\d*)?|\.\d+)([eE][-+]?\d+)?")
+"""A number as crfedit writes one (``repr`` of a float, ``f"{x:.3f}"``): no ``1_0``, no NaN."""
+
+
+def _is_number(text: str, infinite: bool = False) -> bool:
+    """Whether ``text`` is a finite number as :data:`NUMBER` spells it, or with ``infinite``
+    also ``inf`` (a PSNR of a perfect fit)."""
+    return bool(NUMBER.fullmatch(text)) or (infinite and text == "inf")
 
 
 def _json_or_none(text: str):
@@ -596,6 +598,21 @@ def retaken(delta: Delta, model: CategoryModel) -> dict[str, Tensor]:
     return out
 
 
+def _check_transfer_record(delta: Delta, model: CategoryModel) -> None:
+    """A one-line error unless ``delta`` (a transfer made on ``model`` as it stands) stores the
+    change its ``hyperparameters`` name: each code row the named source's minus the instance's.
+    A version-3 file's hyperparameters lie outside its fingerprint: one edited to name another
+    source passed every check, and re-pinned it took that source's code."""
+    stored = dict(delta.tensors)
+    expected = retaken(delta, model)
+    for row in CODE_ROWS:
+        if row in stored and not torch.allclose(stored[row].float(), expected[row].float(), rtol=0, atol=1e-5):
+            which = "shape" if row == "shape_code" else "color"
+            source = json.loads(delta.meta["hyperparameters"]).get(f"{which}_from")
+            raise ModelFileError(f"{delta.path}: its hyperparameters say it took {source}'s {which} code, but the change it "
+                                 f"stores is not that ({which}_from edited by hand?); it cannot be re-pinned")
+
+
 def restack(model: CategoryModel, deltas: Sequence[Delta]) -> tuple[CategoryModel, list[Delta]]:
     """(``model`` with ``deltas`` applied, the deltas re-pinned): each :func:`rebase`-d, in the
     order given, onto the ones before it, to leave an edit out of the middle of a stack, reorder
@@ -605,11 +622,14 @@ def restack(model: CategoryModel, deltas: Sequence[Delta]) -> tuple[CategoryMode
     and tensors are checked as :func:`apply_deltas` checks them."""
     base, applied = stack_of(model)
     current, out = model, []
+    here = chain_fingerprint(base, applied)
     for i, d in enumerate(deltas):
         if d.meta["base"] != base:
             raise _base_error(d, model, base)
         if d.fingerprint in applied or d.fingerprint in [e.fingerprint for e in deltas[:i]]:  # re-pinned, it applied twice
             raise _order_error(d, i, deltas, base, applied, "baked_edits" in model.meta)
+        if d.kind == "transfer" and d.meta["parent"] == here:  # made where ``model`` stands: its record can be checked
+            _check_transfer_record(d, model)
         pinned = rebase(d, current)
         current = apply_deltas(current, [pinned])
         out.append(pinned)
@@ -720,7 +740,8 @@ def photo_cameras(model: CategoryModel, deltas: Sequence[Delta] = ()) -> dict:
     """{instance name: camera record (``c2w``, ``focal``, ``width``, ``height``)} of the instances
     that fit-real edits added: the camera each was fitted from, as ``render --views photo``
     renders it; from ``model``'s metadata (a baked model's) and then ``deltas`` (the later
-    wins).  A record that cannot be read is left out."""
+    wins).  A fit-real edit whose record cannot be read gives an empty record, which
+    ``--views photo`` names as unreadable (left out, it was said not to be a fit-real's)."""
     out = {}
     try:
         stored = json.loads(model.meta.get(PHOTO_CAMERAS, "{}"))
@@ -732,8 +753,7 @@ def photo_cameras(model: CategoryModel, deltas: Sequence[Delta] = ()) -> dict:
             try:
                 camera = json.loads(d.meta["hyperparameters"])["camera"]
             except (KeyError, TypeError, ValueError):
-                continue
-            if isinstance(camera, dict):
-                out[d.instance] = camera
+                camera = None
+            out[d.instance] = camera if isinstance(camera, dict) else {}
     return out
 

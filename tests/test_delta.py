@@ -459,6 +459,18 @@ def test_a_transfer_s_source_is_part_of_its_fingerprint_and_must_be_named(tmp_pa
         old = read_delta(tmp_path / f"{name}.safetensors")  # a version-3 file: reads, its hyperparameters outside the fingerprint
         with pytest.raises(ModelFileError, match=rf"{name}\.safetensors: a transfer's hyperparameters {said} \(color_from\), so it cannot be re-pinned"):
             restack(model, [old])  # b left without a: re-pinned, it must take its source's code again
+    # a version-3 transfer made on the bare model whose source was edited to another: its stored
+    # change is checked against the named source where it was made, and refused
+    a = read_delta(tmp_path / "a.safetensors")
+    meta = {**a.meta, "version": "3", "hyperparameters": json.dumps({"color_from": "chair_2"})}
+    meta["fingerprint"] = delta_fingerprint(a.tensors, meta)
+    save_file(a.tensors, str(tmp_path / "forged.safetensors"), metadata=meta)
+    with pytest.raises(ModelFileError, match=r"forged\.safetensors: its hyperparameters say it took chair_2's color code, but the change it stores is not that"):
+        restack(model, [read_delta(tmp_path / "forged.safetensors")])
+    meta = {**a.meta, "version": "3"}  # the same file, its record true: re-pins (in place: the very file)
+    meta["fingerprint"] = delta_fingerprint(a.tensors, meta)
+    save_file(a.tensors, str(tmp_path / "true3.safetensors"), metadata=meta)
+    assert restack(model, [read_delta(tmp_path / "true3.safetensors")])[1][0].tensors["color_code"].equal(a.tensors["color_code"])
     meta = {**b.meta, "hyperparameters": "not json"}
     meta["fingerprint"] = delta_fingerprint(b.tensors, meta)
     save_file(b.tensors, str(tmp_path / "bad.safetensors"), metadata=meta)
@@ -466,7 +478,8 @@ def test_a_transfer_s_source_is_part_of_its_fingerprint_and_must_be_named(tmp_pa
         read_delta(tmp_path / "bad.safetensors")
 
 
-@pytest.mark.parametrize("key,value", [("seconds", "abc"), ("final_loss", "nan"), ("first_loss", ""), ("inputs", "{bad"), ("stages", "{}")])
+@pytest.mark.parametrize("key,value", [("seconds", "abc"), ("final_loss", "nan"), ("first_loss", ""), ("inputs", "{bad"), ("stages", "{}"),
+                                       ("final_loss", "1_0"), ("final_loss", "inf"), ("photo_psnr", "nan")])
 def test_recorded_numbers_and_records_must_be_well_formed(tmp_path, model, key, value):
     """What an edit measured reads as a number, its JSON records as JSON of their type: a file
     whose ``seconds`` is ``abc`` (provenance, outside the fingerprint) is refused in one line,
@@ -474,7 +487,7 @@ def test_recorded_numbers_and_records_must_be_well_formed(tmp_path, model, key, 
     good = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
     d = read_delta(good)
     save_file(d.tensors, str(tmp_path / "x.safetensors"), metadata={**d.meta, key: value})
-    what = "is not a number" if key in ("seconds", "final_loss", "first_loss") else "is not a JSON"
+    what = "is not a number" if key in ("seconds", "final_loss", "first_loss", "photo_psnr") else "is not a JSON"
     with pytest.raises(ModelFileError, match=rf"x\.safetensors: bad edit metadata \({key}.*{what}"):
         read_delta(tmp_path / "x.safetensors")
 
@@ -771,12 +784,14 @@ def test_edits_show_escapes_line_breaks_in_recorded_values(tmp_path, model):
     of its own, a forged ``fingerprint`` line among them; the value is shown on its one row."""
     good = delta_file(tmp_path, "a.safetensors", model, 0, "color", {"F_rad.out.bias": 0.2}, ("F_rad.",))
     d = read_delta(good)
-    save_file(d.tensors, str(tmp_path / "x.safetensors"), metadata={**d.meta, "command": "crfedit ok\nfingerprint   deadbeefdeadbeef"})
+    save_file(d.tensors, str(tmp_path / "x.safetensors"), metadata={**d.meta, "command": "crfedit ok\nfingerprint   deadbeefdeadbeef",
+                                                                     "note\nfingerprint  ": "0123456789abcdef"})
     shown = CliRunner().invoke(app, ["edits", "show", str(tmp_path / "x.safetensors")])
     assert shown.exit_code == 0, shown.output
     rows = shown.output.splitlines()
     assert [r for r in rows if r.startswith("fingerprint")] == [f"fingerprint   {d.fingerprint}"]
     assert "command       crfedit ok\\nfingerprint   deadbeefdeadbeef" in rows
+    assert "note\\nfingerprint   0123456789abcdef" in rows  # a key's line break too
 
 
 def test_edits_show_table_shortens_hyperparameters():

@@ -176,9 +176,12 @@ def printable(text: object) -> str:
 
 def table_row(key: str, value: object, width: int = 13) -> str:
     """One row of a file's table (``edits show``, ``info``): the key padded to ``width``
-    columns, the value :func:`printable` with its line breaks escaped too, so a value read from a
-    shared file cannot print a row of its own (a forged ``fingerprint`` line)."""
-    return printable(f"{key:<{width}} " + str(value).replace("\r", "\\r").replace("\n", "\\n"))
+    columns, key and value :func:`printable` with their line breaks escaped too, so a key or
+    value read from a shared file cannot print a row of its own (a forged ``fingerprint`` line)."""
+    def one_line(text: object) -> str:
+        return str(text).replace("\r", "\\r").replace("\n", "\\n")
+
+    return printable(f"{one_line(key):<{width}} " + one_line(value))  # a key read from a file too
 
 
 def instance_option(model, value, option: str) -> int:

@@ -108,10 +108,11 @@ def _remove_partials(out: Path) -> None:
     from ..io import stale_partials
     from ..runlog import record_paths
 
-    for p in [*stale_partials(out), *stale_partials(record_paths(out)["run"])]:
-        size = p.stat().st_size
-        p.unlink(missing_ok=True)
-        typer.echo(printable(f"note: removed {p.name} ({size_text(size)}), a copy of {out.name} a killed run left half-written"), err=True)
+    for target in (out, record_paths(out)["run"]):
+        for p in stale_partials(target):
+            size = p.stat().st_size
+            p.unlink(missing_ok=True)
+            typer.echo(printable(f"note: removed {p.name} ({size_text(size)}), a copy of {target.name} a killed run left half-written"), err=True)
 
 
 def _clock(seconds: float) -> str:

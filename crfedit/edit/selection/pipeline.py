@@ -333,8 +333,8 @@ def select(
         raise CrfError("no view holds a scribble: keep strokes alone select nothing (scribble the part on at least one view)")
     for i, v in enumerate(views):  # a view with keep strokes alone holds back what it shows (a second view's fix)
         if not v.scribble.any() and (len(views) == 1 or v.keep is None or not v.keep.any()):
-            raise CrfError(f"the scribble of view {i + 1} is empty: no pixel is set"
-                           + ("" if len(views) == 1 else " (a view without a scribble needs keep strokes)"))
+            raise CrfError("the scribble is empty: no pixel is set" if len(views) == 1 else  # one view: no number to name it by
+                           f"the scribble of view {i + 1} is empty: no pixel is set (a view without a scribble needs keep strokes)")
     if options.shape_from not in SHAPE_SOURCES:
         raise CrfError(f"selection shape_from {options.shape_from!r}: expected one of {', '.join(SHAPE_SOURCES)}")
     if options.mirror not in MIRROR_MODES:
