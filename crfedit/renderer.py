@@ -180,15 +180,17 @@ class FixedMarch:
             self.needed, self.dropped = state["march.needed"].to(device), state["march.dropped"].to(device)
 
 
-def _check_dtypes(field: ConditionalRadianceField, rays: Rays) -> None:
+def _check_dtypes(field: ConditionalRadianceField, rays: Rays | None, every: bool = False) -> None:
     """A one-line error for a field whose weights are not float32 (``.half()``, ``.double()``:
     the grid and the MLPs mixed dtypes in a raw RuntimeError) or rays of float64; rays of
-    float16 or bfloat16 compute in float32.  A few attribute reads: no cost on the training path."""
-    dtype = next(field.parameters()).dtype
+    float16 or bfloat16 compute in float32.  ``every``: every parameter (``render_camera``, once a
+    view); else the first alone, a few attribute reads on the training path."""
+    params = field.parameters() if every else [next(field.parameters())]  # every: render_camera's check, once a view
+    dtype = next((p.dtype for p in params if p.dtype != torch.float32), torch.float32)
     if dtype != torch.float32 or field.aabb.dtype != torch.float32:
         raise CrfError(f"render: the field's weights are {str(dtype).replace('torch.', '')}; crfedit renders "
                        "float32 fields (for lower precision on a GPU, render under torch.autocast instead)")
-    if rays.origins.dtype == torch.float64 or rays.directions.dtype == torch.float64:
+    if rays is not None and (rays.origins.dtype == torch.float64 or rays.directions.dtype == torch.float64):
         raise CrfError("render: rays of float64; give float32 rays (Rays(origins.float(), directions.float()))")
 
 
@@ -379,6 +381,7 @@ def render_camera(
         raise CrfError(f"render: chunk {chunk!r} must be a whole number of rays, at least 1")
     if isinstance(background, bool) or not isinstance(background, (int, float, np.floating)) or not 0.0 <= background <= 1.0:
         raise CrfError(f"render: background {background!r} must be a grey level from 0 to 1")
+    _check_dtypes(field, None, every=True)  # a module cast alone (F_rad.double()) too
     device = field.aabb.device
     problem = camera_problem(camera, field.aabb)
     if problem:

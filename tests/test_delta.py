@@ -791,7 +791,7 @@ def test_edits_show_escapes_line_breaks_in_recorded_values(tmp_path, model):
     rows = shown.output.splitlines()
     assert [r for r in rows if r.startswith("fingerprint")] == [f"fingerprint   {d.fingerprint}"]
     assert "command       crfedit ok\\nfingerprint   deadbeefdeadbeef" in rows
-    assert "note\\nfingerprint   0123456789abcdef" in rows  # a key's line break too
+    assert "note\\nfingerprint   0123456789abcdef" in rows  # a key's line break too, escaped before the padding
 
 
 def test_edits_show_table_shortens_hyperparameters():

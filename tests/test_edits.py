@@ -118,6 +118,7 @@ def test_strategies_select_what_the_delta_holds(trained):
 
 @pytest.mark.parametrize("field,value,said", [
     ("steps", 2.5, "--steps 2.5: need a whole number"), ("steps", True, "--steps True: need a whole number"),
+    ("steps", 10**20, "--steps 100000000000000000000: need a whole number from 1 to 10,000,000"),
     ("seed", 2**70, "a seed is a whole number from 0 to 2^63 - 1"), ("seed", 1.5, "--seed 1.5"), ("seed", -1, "--seed -1"),
     ("lambda_dens", float("nan"), "lambda_dens nan: loss weights must be finite numbers"),
     ("lambda_reg", float("inf"), "lambda_reg inf: loss weights must be finite"), ("lr", float("nan"), "--lr nan"),

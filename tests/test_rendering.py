@@ -666,6 +666,10 @@ def test_a_field_of_another_precision_is_one_line(dtype):
     with pytest.raises(CrfError, match="rays of float64"):
         render_rays(small_field(), Rays(rays.origins.double(), rays.directions.double()), 0)
     assert render_rays(small_field(), Rays(rays.origins.half(), rays.directions.half()), 0).rgb.dtype == torch.float32
+    part = copy.deepcopy(small_field())
+    part.F_rad.to(dtype)  # one module cast alone
+    with pytest.raises(CrfError, match=f"the field's weights are {str(dtype)[6:]}"):
+        render_camera(part, CAM, 0)
 
 
 def test_hierarchical_runs_and_is_deterministic_without_generator():

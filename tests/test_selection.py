@@ -1107,12 +1107,18 @@ def test_selection_file_is_sparse_and_version_1_still_reads(tmp_path):
     # values outside [0, 1] were saved wrapped around uint8 (1.5 read back 0.494, -0.5 0.502), a NaN
     # threshold saved a file load_selection refused; both are refused when saving, nothing written
     for values, threshold, said in ((torch.full((8, 8, 8), 1.5), 0.5, "outside [0, 1]"), (torch.full((8, 8, 8), -0.5), 0.5, "outside [0, 1]"),
-                                    (torch.full((8, 8, 8), float("nan")), 0.5, "with NaN"), (torch.ones(8, 8, 8), float("nan"), "threshold nan"),
+                                    (torch.full((8, 8, 8), float("nan")), 0.5, "holds NaN"),
+                                    (torch.ones(8, 8, 8, dtype=torch.uint8), 0.5, "a floating-point grid of numbers from 0 to 1, not uint8"), (torch.ones(8, 8, 8), float("nan"), "threshold nan"),
                                     (torch.ones(8, 8, 8), 5.0, "threshold 5.0")):
         bad = Selection(values, 0, "chair_000", "f" * 16, {}, threshold)
         with pytest.raises(CrfError, match=re.escape(said)):
             save_selection(tmp_path / "bad.safetensors", bad)
         assert not (tmp_path / "bad.safetensors").exists()
+    # a numpy float threshold is a number (its repr, np.float64(0.5), was written and could not be read back)
+    np_sel = Selection(torch.full((8, 8, 8), 0.75), 0, "chair_000", "f" * 16, {}, np.float64(0.5))
+    save_selection(tmp_path / "np.safetensors", np_sel)
+    assert load_selection(tmp_path / "np.safetensors").threshold == 0.5
+    Selection(torch.ones(8, 8, 8), 0, "chair_000", "f" * 16, {}, np.float32(0.5)).check_values()
 
 
 @pytest.mark.parametrize("change, message", [

@@ -166,6 +166,15 @@ def test_the_threads_flag_sets_torch_s_threads_over_the_environment(tmp_path):
                            cwd=Path(__file__).parents[1], env=env)
     assert after.stderr.strip() == ("error: No such option: --threads (--threads goes before the command: "
                                     "crfedit --threads N COMMAND …)"), after.stderr
+    # a bad CRFEDIT_THREADS is the command's error, which --threads overrides; --help needs none
+    bad = {**os.environ, "CRFEDIT_THREADS": "abc"}
+    over = subprocess.run([sys.executable, "-c", code, "--threads", "2", "info", missing], capture_output=True, text=True,
+                          cwd=Path(__file__).parents[1], env=bad)
+    assert "missing.safetensors" in over.stderr and over.stdout.strip().splitlines()[-1] == "2", over.stdout + over.stderr
+    plain = subprocess.run([sys.executable, "-c", code, "info", missing], capture_output=True, text=True, cwd=Path(__file__).parents[1], env=bad)
+    assert plain.stderr.strip() == "error: CRFEDIT_THREADS='abc': expected a positive integer, at most 1024", plain.stderr
+    helped = subprocess.run([sys.executable, "-c", code, "--help"], capture_output=True, text=True, cwd=Path(__file__).parents[1], env=bad)
+    assert "Usage:" in helped.stdout and "error" not in helped.stderr, helped.stderr
 
 
 def test_help_has_readable_metavars():

@@ -188,6 +188,8 @@ def test_host_and_origin_are_checked(ui):
     assert ui.call("GET", "/api/state", headers={"Host": f"localhost:{ui.running.port}"})[0] == 200
     assert ui.call("GET", "/api/state", headers={"Host": f"LocalHost:{ui.running.port}"})[0] == 200  # host names ignore case
     assert "Method Not Allowed" in ui.error("GET", "/api/edit", expect=405)  # the one-line JSON of every refusal
+    status, headers, _ = ui.call("PUT", "/api/edit")
+    assert status == 405 and "POST" in headers.get("Allow", ""), headers  # HTTP requires the methods a 405 allows
     message = ui.error("POST", "/api/select/clear", {"instance": 0}, expect=403, headers={"Origin": "http://evil.example"})
     assert "may not drive" in message
     ok = {"Origin": f"http://127.0.0.1:{ui.running.port}"}

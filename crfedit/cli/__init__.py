@@ -90,7 +90,10 @@ def _main() -> None:
         sys.stdout = open(os.devnull, "w")  # under torchrun the help (the version) is rank 0's to print, once
     try:
         terminate_as_interrupt()
-        Session.threads, Session.threads_why = threads_choice()
+        try:
+            Session.threads, Session.threads_why = threads_choice()
+        except CrfError as e:  # a bad CRFEDIT_THREADS / OMP_NUM_THREADS: --threads may override it, --help needs none
+            Session.threads_error = e
         code = app(standalone_mode=False)
     except CrfError as e:
         say(f"error: {e}")

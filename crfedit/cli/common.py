@@ -128,6 +128,9 @@ class Session:
     """torch CPU threads to set when a command starts (None: leave torch as it is)."""
     threads_why: str = ""
     """What decided :attr:`threads` (:func:`crfedit.threads.threads_choice`), for ``train`` to say."""
+    threads_error: CrfError | None = None
+    """Why the environment's thread count could not be read; raised when a command runs without
+    ``--threads`` (``--help`` and ``--version`` need none)."""
     terminated: bool = False
     """SIGTERM arrived (:func:`terminate_as_interrupt`): what the command line reads when Typer
     took the exception for Ctrl-C and exited 130."""
@@ -160,7 +163,7 @@ def _root(
     """Train, render and edit conditional radiance fields of object categories."""
     Session.debug = Session.debug or debug
     if threads is not None:  # before the command runs: user_errors sets torch's threads from Session
-        Session.threads, Session.threads_why = threads, f"--threads {threads}"
+        Session.threads, Session.threads_why, Session.threads_error = threads, f"--threads {threads}", None
 
 
 app.add_typer(dataset_app, name="dataset")
@@ -178,10 +181,10 @@ def table_row(key: str, value: object, width: int = 13) -> str:
     """One row of a file's table (``edits show``, ``info``): the key padded to ``width``
     columns, key and value :func:`printable` with their line breaks escaped too, so a key or
     value read from a shared file cannot print a row of its own (a forged ``fingerprint`` line)."""
-    def one_line(text: object) -> str:
-        return str(text).replace("\r", "\\r").replace("\n", "\\n")
+    def one_line(text: object) -> str:  # escaped before padding, so a row's columns line up
+        return printable(text).replace("\t", "\\t").replace("\r", "\\r").replace("\n", "\\n")
 
-    return printable(f"{one_line(key):<{width}} " + one_line(value))  # a key read from a file too
+    return f"{one_line(key):<{width}} " + one_line(value)  # a key read from a file too
 
 
 def instance_option(model, value, option: str) -> int:
@@ -437,6 +440,8 @@ def user_errors(fn=None, *, ranked: bool = False):
             if ranks is not None and ranks.world > 1 and not ranked:
                 raise CrfError("this command does not share its work over torchrun's ranks (train, render, eval recon "
                                "and eval edits do); run it once, without torchrun")
+            if Session.threads_error is not None:
+                raise Session.threads_error
             if Session.threads is not None:
                 from ..runtime import configure_threads
 

@@ -693,7 +693,7 @@ def _show_rows(delta, size: int) -> list[tuple[str, str]]:
         if isinstance(inputs, dict):
             rows.append(("inputs", ", ".join(f"{k}={'default' if v is None else v}" for k, v in inputs.items()) or "(none recorded)"))
     rows += [(key, meta[key]) for key in FIT_REAL_ROWS if meta.get(key)]  # fit-real's record
-    rows += [(key, " ".join(meta[key].split())) for key in sorted(meta) if key and key not in SHOWN_KEYS and isinstance(meta[key], str)]  # a script's own provenance, on one line
+    rows += [(key, meta[key]) for key in sorted(meta) if key and key not in SHOWN_KEYS and isinstance(meta[key], str)]  # a script's own provenance (table_row keeps it on one line)
     stages = _parsed("stages", meta["stages"]) if meta.get("stages") else None
     if isinstance(stages, list):
         for st in stages:
@@ -752,7 +752,7 @@ def print_edit(edit: Path, as_json: bool) -> None:
 def check_cmd(
     model: ModelArg,
     edit: Annotated[list[Path], typer.Option("--edit", help="Edit file (repeatable, in the order they apply).")],
-    as_json: JsonOpt = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print {ok, model, base, edits: [{file, kind, instance, fingerprint}]} as JSON on stdout; a stack that does not apply prints nothing there.")] = False,
 ) -> None:
     """Check that a stack of edits applies to a model (files, order, instances, shapes)."""
     from ..delta import check_stack, read_delta, stack_of
@@ -872,9 +872,11 @@ def _left_out(path: str, instance: str, verified: bool) -> tuple[str, str | None
 
 
 def _transfer_sources(delta) -> str:
-    """The instances a transfer takes its codes from, for a line: ``chair_001`` or ``chair_001 and chair_002``."""
+    """The instances a transfer takes its codes from, for a line: ``chair_001`` or ``chair_001 and
+    chair_002``; only for the code rows it stores (an old file's record may name more)."""
     hyper = json.loads(delta.meta.get("hyperparameters") or "{}")
-    names = dict.fromkeys(hyper[k] for k in ("shape_from", "color_from") if hyper.get(k))
+    rows = {"shape_from": "shape_code", "color_from": "color_code"}
+    names = dict.fromkeys(str(hyper[k]) for k, row in rows.items() if hyper.get(k) and row in delta.tensors)
     return " and ".join(names) or "its source"
 
 

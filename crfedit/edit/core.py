@@ -36,6 +36,9 @@ from .params import STRATEGIES, trained_names, trained_prefixes
 
 MAX_EDIT_RAYS = 1 << 22
 """An edit's ``--rays`` at most (as ``train``'s ``rays``): a billion ran a 256-pixel view out of memory."""
+MAX_EDIT_STEPS = 10_000_000
+"""An edit's ``--steps`` at most: 10²⁰ passed and failed inside torch (an int64 overflow, with a
+page of C++ frames); ten million steps is days of optimization on any machine."""
 
 
 @dataclass(frozen=True)
@@ -93,7 +96,7 @@ class EditOptions:
         bad_weight = next((k for k, v in weights.items() if not (number(v) and v >= 0)), None)  # NaN passed a min() ≥ 0
         checks = [
             (self.strategy in STRATEGIES, f"--strategy {self.strategy}: expected one of {', '.join(STRATEGIES)}"),
-            (whole(self.steps) and self.steps >= 1, f"--steps {self.steps}: need a whole number, at least 1"),
+            (whole(self.steps) and 1 <= self.steps <= MAX_EDIT_STEPS, f"--steps {self.steps}: need a whole number from 1 to {MAX_EDIT_STEPS:,}"),
             (number(self.lr) and self.lr > 0, f"--lr {self.lr}: must be a finite positive number"),
             (whole(self.rays) and 2 <= self.rays <= MAX_EDIT_RAYS,
              f"--rays {self.rays}: need a whole number, at least 2 and at most {MAX_EDIT_RAYS} (the most rays a step can hold)"),

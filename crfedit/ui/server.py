@@ -194,7 +194,10 @@ class Server:
         except web.HTTPException as e:
             if e.status < 400 or e.content_type == "application/json":  # a redirect, or a refusal of ours already
                 raise
-            return _error(e.status, e.reason)  # a wrong method or path: the same one-line JSON as every refusal
+            response = _error(e.status, e.reason)  # a wrong method or path: the same one-line JSON as every refusal
+            if "Allow" in e.headers:  # a 405 says which methods the path takes (HTTP requires it)
+                response.headers["Allow"] = e.headers["Allow"]
+            return response
         except Exception as e:  # one line for the page; the traceback for the terminal
             traceback.print_exc(file=sys.stderr)
             return _error(500, _unexpected(e))

@@ -93,12 +93,14 @@ class Selection:
         (0, 1]: a NaN grid or threshold read as "empty", and values of 1.5 or -0.5 were saved
         wrapped around uint8 (1.5 read back as 0.494, -0.5 as 0.502)."""
         t = self.threshold
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 < t <= 1.0:  # NaN fails the range test too
-            raise CrfError(f"the selection's threshold {t!r}: expected a number in (0, 1]")
+        if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, float, np.integer, np.floating)) or not 0.0 < float(t) <= 1.0:
+            raise CrfError(f"the selection's threshold {t!r}: expected a number in (0, 1]")  # NaN fails the range test too
         v = self.values
-        if not v.is_floating_point() or bool(v.isnan().any()) or bool((v < 0).any()) or bool((v > 1).any()):
-            raise CrfError(f"the selection's values must be numbers from 0 to 1 (a {v.dtype} grid"
-                           f"{' with NaN' if v.is_floating_point() and bool(v.isnan().any()) else ' outside [0, 1]'})")
+        if not v.is_floating_point():
+            raise CrfError(f"the selection's values must be a floating-point grid of numbers from 0 to 1, not {str(v.dtype)[6:]}")
+        if bool(v.isnan().any()) or bool((v < 0).any()) or bool((v > 1).any()):
+            raise CrfError(f"the selection's values must be numbers from 0 to 1 (its grid holds "
+                           f"{'NaN' if bool(v.isnan().any()) else 'values outside [0, 1]'})")
 
 
 def part_summary(meta: dict) -> str | None:

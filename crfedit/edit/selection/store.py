@@ -71,7 +71,7 @@ def save_selection(path: str | Path, sel: Selection) -> None:
     nonzero = q.reshape(-1) != 0
     meta = {
         "format": FORMAT, "version": VERSION, "model_fingerprint": sel.model_fingerprint,
-        "instance": sel.instance_name, "instance_index": str(sel.instance), "threshold": repr(sel.threshold),
+        "instance": sel.instance_name, "instance_index": str(sel.instance), "threshold": repr(float(sel.threshold)),  # a numpy float's repr is np.float64(0.5)
         "shape": json.dumps(list(q.shape)), "info": json.dumps(sel.meta, sort_keys=True),
     }
     tensors = {SPARSE[0]: pack_bits(nonzero), SPARSE[1]: torch.from_numpy(q.reshape(-1)[nonzero])}
