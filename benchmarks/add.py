@@ -50,7 +50,7 @@ from crfedit.model import load_model
 from crfedit.names import ADD_METHODS
 from crfedit.renderer import render_camera
 from crfedit.report import emit_table
-from crfedit.errors import run_script
+from crfedit.errors import CrfError, run_script
 
 
 def part_id(instance, name: str) -> int:
@@ -110,16 +110,19 @@ def parse_pair(model, spec: str, part: str) -> tuple[int, int, str]:
     """``TARGET:DONOR[:PART]`` (indices or names) -> (target, donor, part)."""
     fields = spec.split(":")
     if len(fields) not in (2, 3):
-        raise SystemExit(f"--pairs {spec!r}: expected TARGET:DONOR[:PART]")
-    k, j = (model.instance_index(int(x) if x.isdigit() else x) for x in fields[:2])
+        raise CrfError(f"--pairs {spec!r}: expected TARGET:DONOR[:PART]")
+    try:
+        k, j = (model.instance_index(int(x) if x.isdigit() else x) for x in fields[:2])
+    except CrfError as e:  # the default pairs are the 24-chair benchmark category's
+        raise CrfError(f"--pairs {spec}: {e} (the default pairs are runs/bench/chairs' 24 chairs: give --pairs for another model)") from None
     return k, j, fields[2] if len(fields) == 3 else part
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model")
     ap.add_argument("data")
-    ap.add_argument("--pairs", default="2:6,3:5,9:7,11:21", help="TARGET:DONOR[:PART], instance indices or names, comma-separated")
+    ap.add_argument("--pairs", default="2:6,3:5,9:7,11:21", help="TARGET:DONOR[:PART], instance indices or names, comma-separated (the default: pairs of the 24-chair benchmark category, runs/bench/chairs)")
     ap.add_argument("--part", default="arms")
     ap.add_argument("--methods", default=",".join(ADD_METHODS))
     ap.add_argument("--grow", type=int, default=0, help="copy strokes this many pixels wider than the part (a square brush)")

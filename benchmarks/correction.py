@@ -165,7 +165,7 @@ def corrected_selections(model, category, cases, rounds: int, seed: int = 0, pic
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model")
     ap.add_argument("data")
     ap.add_argument("--rounds", type=int, default=2)

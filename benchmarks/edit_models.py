@@ -40,7 +40,7 @@ def kind_means(runs: list[dict], kind: str) -> tuple[float, ...]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data")
     ap.add_argument("models", nargs="+")
     ap.add_argument("--seed", type=int, default=0, help="the edits' seed")

@@ -26,7 +26,7 @@ import torch
 from crfedit.edit import EditOptions
 from crfedit.evaluation import apply_twin_edit, twin_appearance, twin_selection
 from crfedit.report import emit_table
-from crfedit.errors import run_script
+from crfedit.errors import CrfError, run_script
 
 _spec = importlib.util.spec_from_file_location("bench_selection", Path(__file__).with_name("selection.py"))
 bench_selection = importlib.util.module_from_spec(_spec)
@@ -34,12 +34,14 @@ _spec.loader.exec_module(bench_selection)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model")
     ap.add_argument("data")
-    ap.add_argument("--repeat", type=int, default=7)
-    ap.add_argument("--out", type=Path)
+    ap.add_argument("--repeat", type=int, default=7, help="edits of each twin after a warm-up; their medians count (default 7)")
+    ap.add_argument("--out", type=Path, help="also write the table to this markdown file")
     args = ap.parse_args()
+    if args.repeat < 1:  # the medians of no edits printed a table of NaN
+        raise CrfError(f"--repeat {args.repeat}: must be at least 1")
     model, category, cases = bench_selection.load_twin_benchmark(args.model, args.data)
     twin_selection(model, cases[0])  # warm-up
     options = EditOptions()
@@ -59,7 +61,7 @@ def main() -> None:
         runs = [edit() for _ in range(args.repeat)]
         opt_s, whole_s = (float(np.median([getattr(r, a) for r in runs])) for a in ("optimize_seconds", "seconds"))
         per_kind.setdefault(case.spec.kind, []).append((opt_s, whole_s))
-        line = f"| {case.spec.source} | {case.spec.kind} | {select_s:.2f} | {opt_s:.3f} | {whole_s:.3f} | {options.steps} |"
+        line = f"| {case.spec.name} | {case.spec.kind} | {select_s:.2f} | {opt_s:.3f} | {whole_s:.3f} | {options.steps} |"
         print(line, flush=True)
         lines.append(line)
     for kind, values in per_kind.items():

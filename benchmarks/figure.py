@@ -26,11 +26,14 @@ from crfedit.data.synth import rgb_to_hex
 from crfedit.demo import tiled
 from crfedit.io import read_image, write_png
 from crfedit.model import load_model
-from crfedit.errors import run_script
+from crfedit.errors import CrfError, run_script
 
 
 def crfedit(*args: str) -> None:
-    subprocess.run([sys.executable, "-m", "crfedit", *args], check=True, stdout=subprocess.DEVNULL)
+    """Run a crfedit command; its own one-line error (on stderr) ends the script with its status."""
+    done = subprocess.run([sys.executable, "-m", "crfedit", *args], stdout=subprocess.DEVNULL)
+    if done.returncode:
+        sys.exit(done.returncode)
 
 
 def render(model: str, instance: str, view: str, out: Path, edit: Path | None = None) -> np.ndarray:
@@ -40,16 +43,21 @@ def render(model: str, instance: str, view: str, out: Path, edit: Path | None = 
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model")
     ap.add_argument("data")
     ap.add_argument("--out", required=True, help="PNG to write (the README's is docs/img/edit_before_after.png: named, never by default)")
     ap.add_argument("--views", default="0,3", help="held-out test view indices to show, comma-separated")
     ap.add_argument("--color-twin", help="the colour twin to show (default: the dataset's first)")
     ap.add_argument("--remove-twin", help="the removal twin to show (default: the dataset's first)")
-    ap.add_argument("--scale", type=int, default=3)
+    ap.add_argument("--scale", type=int, default=3, help="pixels per rendered pixel in the figure (default 3)")
     args = ap.parse_args()
-    views = [int(v) for v in args.views.split(",")]
+    if args.scale < 1:
+        raise CrfError(f"--scale {args.scale}: must be at least 1")
+    try:
+        views = [int(v) for v in args.views.split(",")]
+    except ValueError:
+        raise CrfError(f"--views {args.views}: expected test view indices, comma-separated (0,3)") from None
     model, _ = load_model(args.model)
     category = evaluation.load_category_for(model, args.data)
     cases = evaluation.load_twin_cases(model, category)
@@ -58,7 +66,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for kind in ("color", "remove"):
-            case = next(c for c in cases if c.spec.kind == kind and chosen[kind] in (None, c.spec.name))
+            case = next((c for c in cases if c.spec.kind == kind and chosen[kind] in (None, c.spec.name)), None)
+            if case is None:  # a bare StopIteration named nothing
+                names = ", ".join(c.spec.name for c in cases if c.spec.kind == kind) or "none"
+                raise CrfError(f"--{'color' if kind == 'color' else 'remove'}-twin {chosen[kind]}: not a {kind} twin of {args.data} ({names})")
             spec = case.spec
             edit = tmp / f"{kind}.safetensors"
             common = [args.model, "--instance", spec.source, "--view", spec.view, "--scribble", str(category.root / spec.scribble),

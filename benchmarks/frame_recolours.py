@@ -204,7 +204,7 @@ def summary(paths: list[str]) -> str:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("data", nargs="?", type=Path)
     p.add_argument("out", nargs="?", type=Path)
     p.add_argument("--meshes", type=Path, help="the real chairs' meshes/ folder (examples/real-chairs.sh)")

@@ -81,7 +81,7 @@ def point_classifier_iou(model, category, case) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data")
     ap.add_argument("models", nargs="+")
     ap.add_argument("--out", type=Path)

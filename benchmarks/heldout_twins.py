@@ -40,7 +40,7 @@ from pathlib import Path
 from crfedit.data.loading import read_twin_specs
 from crfedit.evaluation import below_unedited
 from crfedit.report import emit_table
-from crfedit.errors import run_script
+from crfedit.errors import CrfError, run_script
 from edit_models import hybrid_rows
 
 
@@ -71,7 +71,7 @@ def fold_labels(bench: Path, heldout: Path, folds: int) -> list[str]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scores", nargs="+", type=Path, help="`crfedit eval edits --json` outputs on the larger dataset "
                     "(with --folds: that dataset)")
     ap.add_argument("--bench", type=Path, required=True, help="the benchmark's dataset (its twins are the first group)")
@@ -92,7 +92,12 @@ def main() -> None:
     ]
     pooled: dict[tuple[str, str], list[dict | None]] = {}  # (group, kind): each file's summary
     for path in args.scores:
-        report = json.loads(path.read_text())
+        try:
+            report = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise CrfError(f"{path}: not JSON ({e.msg}); give `crfedit eval edits --json` outputs") from None
+        if not isinstance(report, dict) or not isinstance(report.get("runs"), list):  # a KeyError traceback named nothing
+            raise CrfError(f"{path}: not a `crfedit eval edits --json` output (it has no runs list)")
         runs = report["runs"]
         names = {r["twin"] for r in runs}
         groups = [("benchmark", names & bench), ("held out", names - bench)]

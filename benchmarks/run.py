@@ -24,6 +24,7 @@ import torch
 from crfedit.bench import TINY_LABEL, BenchSettings, benchmark_category, run_bench
 from crfedit.report import write_outputs
 from crfedit.errors import CrfError
+from crfedit.io import check_folder_target
 from crfedit.runtime import resolve_device
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -50,6 +51,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.tiny:
         args.csv.parent.mkdir(parents=True, exist_ok=True)
 
+    if args.threads is not None and args.threads < 1:
+        print(f"error: --threads {args.threads}: must be at least 1", file=sys.stderr)
+        return 2
+    if not 0 <= args.seed <= 2**63 - 1:  # as crfedit bench's --seed
+        print(f"error: --seed {args.seed}: a seed from 0 to 2^63 - 1", file=sys.stderr)
+        return 2
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     settings = BenchSettings.tiny() if args.tiny else BenchSettings()
@@ -59,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = dataclasses.replace(settings, **{k: v for k, v in changes.items() if v is not None})
     try:
         settings = settings.validated()
+        for option, path in (("--csv", args.csv), ("--md", args.md)):  # before the sweep, not after its minutes
+            check_folder_target(path.parent, option)
         device = resolve_device(args.device)
         with tempfile.TemporaryDirectory(prefix="crfedit-bench-data-") as tmp:
             category = benchmark_category(args.data, args.tiny, tmp, ROOT / "runs" / "bench" / "chairs",

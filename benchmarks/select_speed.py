@@ -16,15 +16,17 @@ import torch
 from crfedit.edit.selection import select_for
 from crfedit.evaluation import load_category_for, load_twin_cases
 from crfedit.model import load_model
-from crfedit.errors import run_script
+from crfedit.errors import CrfError, run_script
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model")
     ap.add_argument("data")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=5, help="selections of each twin; the best time counts (default 5)")
     args = ap.parse_args()
+    if args.repeats < 1:  # min() of no times was a traceback
+        raise CrfError(f"--repeats {args.repeats}: must be at least 1")
     torch.set_num_threads(1)
     model, _ = load_model(args.model)
     rows = []

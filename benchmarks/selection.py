@@ -161,7 +161,7 @@ def load_twin_benchmark(model_path: str, data: str):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model")
     ap.add_argument("data")
     ap.add_argument("--out", type=Path)

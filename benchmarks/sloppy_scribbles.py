@@ -81,7 +81,7 @@ def sloppy_strokes(scribble: np.ndarray, keep: np.ndarray | None, change: str) -
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model")
     ap.add_argument("data")
     ap.add_argument("--brush", default="grow1,grow2,shift1,shift1grow1",

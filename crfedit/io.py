@@ -356,6 +356,13 @@ def _writable(folder: Path, label: str) -> None:
     no permission): found before the work, not after it."""
     if not os.access(folder, os.W_OK | os.X_OK):
         raise CrfError(f"{label}: cannot write in {folder} (a read-only file system, or no permission)")
+    try:  # os.access says yes to root everywhere, /proc too: a file made and removed says it for sure
+        fd, probe = tempfile.mkstemp(prefix=".crfedit-probe-", dir=folder)
+    except OSError as e:
+        raise CrfError(f"{label}: cannot write in {folder} ({e.strerror or e.__class__.__name__})") from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
