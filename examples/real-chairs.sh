@@ -11,7 +11,9 @@
 #   --hires       also build the category at 128×128 (DIR/chairs128)
 #   --data-only   stop once the data is built (no training)
 #
-# TRAIN_ARGS (environment) is passed on to `crfedit train` (default "--minutes 10").
+# TRAIN_ARGS (environment) is passed on to `crfedit train` (default "--minutes 10"). Run again
+# in the same --work, the script builds the data again and trains a new model (--overwrite),
+# unless TRAIN_ARGS holds --resume (then it goes on training the one there).
 # Needs the [meshes] extra (trimesh, embreex); installs it when missing.  The furniture package
 # is installed with apt-get when run as root, else downloaded and unpacked into DIR/debian.
 # The models are CC-BY 3.0 / CC0: DIR/chairs64/ATTRIBUTION.txt lists model, creator, license
@@ -87,13 +89,16 @@ crfedit dataset info "$data"
 
 # 4. Train one model over the category; evaluate its reconstruction and the twin edits.
 model="$work/model64.safetensors"
+train_args=${TRAIN_ARGS:---minutes 10}
+[[ " $train_args " == *" --resume "* ]] || train_args="$train_args --overwrite"  # a re-run: a model of this very data
 # shellcheck disable=SC2086  # TRAIN_ARGS is a list of options
-crfedit train "$data" --out "$model" ${TRAIN_ARGS:---minutes 10}
+crfedit train "$data" --out "$model" $train_args
 crfedit eval recon "$model" "$data"
 crfedit eval edits "$model" "$data"     # the paper's protocol on the real chairs' twins
 
-# 5. Recolor one chair: the first color twin gives the chair, the scribbled view and the strokes.
-read -r instance view scribble < <(python - "$data" <<'EOF'
+# 5. Recolor one chair: the first color twin gives the chair, the scribbled view, the scribble
+#    and the keep strokes (what must not change).
+IFS=$'\t' read -r instance view scribble keep < <(python - "$data" <<'EOF'
 import sys
 from pathlib import Path
 
@@ -101,10 +106,10 @@ from crfedit.data.loading import instance_names, read_twin_specs
 
 root = Path(sys.argv[1])
 spec = next(t for t in read_twin_specs(root) if t.kind == "color")
-print(instance_names(root).index(spec.source), spec.view, root / spec.scribble)
+print(instance_names(root).index(spec.source), spec.view, root / spec.scribble, root / spec.keep, sep="\t")  # tabs: a --work with spaces
 EOF
 )
 edit="$work/recolor.safetensors"
-crfedit edit-color "$model" --instance "$instance" --view "$view" --scribble "$scribble" --color '#d03030' --out "$edit"
+crfedit edit-color "$model" --instance "$instance" --view "$view" --scribble "$scribble" --keep "$keep" --color '#d03030' --out "$edit"
 crfedit render "$model" --instance "$instance" --edit "$edit" --views orbit:8 --out "$work/recolored"
 echo "done: renders of the recolored chair in $work/recolored; attribution in $data/ATTRIBUTION.txt"
