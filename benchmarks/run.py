@@ -24,7 +24,7 @@ import torch
 from crfedit.bench import TINY_LABEL, BenchSettings, benchmark_category, run_bench
 from crfedit.report import write_outputs
 from crfedit.errors import CrfError
-from crfedit.io import check_folder_target
+from crfedit.io import check_folder_target, probe_folder
 from crfedit.runtime import resolve_device
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -68,6 +68,8 @@ def main(argv: list[str] | None = None) -> int:
         settings = settings.validated()
         for option, path in (("--csv", args.csv), ("--md", args.md)):  # before the sweep, not after its minutes
             check_folder_target(path.parent, option)
+            existing = next(p for p in (path.parent, *path.parents) if p.exists())
+            probe_folder(existing, f"{option} {path}")
         device = resolve_device(args.device)
         with tempfile.TemporaryDirectory(prefix="crfedit-bench-data-") as tmp:
             category = benchmark_category(args.data, args.tiny, tmp, ROOT / "runs" / "bench" / "chairs",

@@ -356,7 +356,13 @@ def _writable(folder: Path, label: str) -> None:
     no permission): found before the work, not after it."""
     if not os.access(folder, os.W_OK | os.X_OK):
         raise CrfError(f"{label}: cannot write in {folder} (a read-only file system, or no permission)")
-    try:  # os.access says yes to root everywhere, /proc too: a file made and removed says it for sure
+
+
+def probe_folder(folder: str | os.PathLike, label: str) -> None:
+    """A :class:`CrfError` unless a file can be made (and is removed again) in the existing
+    ``folder``: ``os.access`` says yes to root everywhere, /proc too, where a benchmark's
+    ``--csv`` failed after its sweep.  For a script about to spend minutes before it writes."""
+    try:
         fd, probe = tempfile.mkstemp(prefix=".crfedit-probe-", dir=folder)
     except OSError as e:
         raise CrfError(f"{label}: cannot write in {folder} ({e.strerror or e.__class__.__name__})") from None
