@@ -155,3 +155,13 @@ def test_resizing_a_camera_of_no_pixels_is_one_line():
     with pytest.raises(CrfError, match="height -2 must be a whole number"):
         Camera(np.eye(4), 50.0, 8, 8).resized(32, -2)
     assert Camera(np.eye(4), 50.0, 8, 4).resized(16).focal == 100.0
+
+
+def test_a_numpy_integer_focal_is_a_number_of_pixels():
+    """`Camera(focal=np.int64(100))` was refused as not "a positive number of pixels" while
+    np.float16 passed; numpy integers are numbers too, and a bool or 0 is still refused."""
+    from crfedit.cameras import camera_problem
+
+    c2w = look_at(np.array([0.0, -3.0, 1.0]), np.zeros(3))
+    assert camera_problem(Camera(c2w, np.int64(100), 8, 8)) is None
+    assert "focal" in camera_problem(Camera(c2w, np.int64(0), 8, 8)) and "focal" in camera_problem(Camera(c2w, True, 8, 8))
