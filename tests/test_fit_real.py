@@ -408,13 +408,13 @@ def test_fit_real_command_then_render_and_edit(setup, tmp_path):
     assert_user_error(invoke("render", path, "--instance", 0, "--edit", out, "--views", "photo", "--out", tmp_path / "q"),
                       "was not added by a fit-real edit")
     # its record without a camera (a version-3 file edited by hand): said to be unreadable, not "not added by a fit-real"
-    from crfedit.delta import delta_bytes, delta_fingerprint, read_delta
+    import crfedit.delta as delta_file
 
-    d = read_delta(out)
+    d = delta_file.read_delta(out)
     hyper = {k: v for k, v in json.loads(d.meta["hyperparameters"]).items() if k != "camera"}
     meta = {**d.meta, "version": "3", "hyperparameters": json.dumps(hyper)}
-    meta["fingerprint"] = delta_fingerprint(d.tensors, meta)
-    (tmp_path / "nocam.safetensors").write_bytes(delta_bytes(d.tensors, meta))
+    meta["fingerprint"] = delta_file.delta_fingerprint(d.tensors, meta)
+    (tmp_path / "nocam.safetensors").write_bytes(delta_file.delta_bytes(d.tensors, meta))
     assert_user_error(invoke("render", path, "--instance", "my_chair", "--edit", tmp_path / "nocam.safetensors", "--views", "photo",
                              "--out", tmp_path / "nc"), "the record of my_chair's photo camera cannot be read")
     # a model that baked the fit keeps the photo's camera: the same render without the edit

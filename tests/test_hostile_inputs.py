@@ -607,8 +607,9 @@ CATALOGUE: list[Case] = [
     Case("color/css-function-out-of-range/edit-color", lambda e, t: edit_color(e, t, color="rgb(1,2,300)"), ("--color 'rgb(1,2,300)'", "0 to 255")),
     Case("color/with-alpha/edit-color", lambda e, t: edit_color(e, t, color="#ff000080"), ("--color '#ff000080'",)),
     # --- numbers -------------------------------------------------------------------------------------
-    Case("number/steps-0/edit-color", lambda e, t: edit_color(e, t, "--steps", "0"), ("--steps 0", "at least 1")),
+    Case("number/steps-0/edit-color", lambda e, t: edit_color(e, t, "--steps", "0"), ("--steps 0", "from 1 to 10,000,000")),
     Case("number/steps-negative/remove", lambda e, t: remove(e, t, "--steps", "-5"), ("--steps -5",)),
+    Case("number/steps-huge/edit-color", lambda e, t: edit_color(e, t, "--steps", "100000000000000000000"), ("--steps 100000000000000000000", "from 1 to 10,000,000")),
     Case("number/steps-0/train", lambda e, t: train_cmd(e, t, "--steps", "0"), ("--steps 0", "at least 1")),
     Case("number/steps-codes-negative/fit-real", lambda e, t: fit_real(e, t, "--steps-codes", "-1"), ("--steps-codes -1",)),
     Case("number/res-negative/render", lambda e, t: render(e, t, "--res", "-4"), ("--res -4",)),

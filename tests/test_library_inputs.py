@@ -185,7 +185,7 @@ def test_names_for_instances_and_the_library_s_own_checks(scene, tmp_path):
     from cli_helpers import invoke
 
     shown = invoke("edits", "show", tmp_path / "e.safetensors").stdout  # a script's own key gets its row
-    assert "\nnote          kept by a script\n" in shown and "first_loss" not in result.meta  # one line; 2 steps: too few to judge
+    assert "\nnote          kept\\nby a script\n" in shown and "first_loss" not in result.meta  # one line, the break escaped; 2 steps: too few to judge
     ten = edit_color(model, 0, camera, scribble, "red", options=EditOptions(steps=10, rays=128))
     ten.save(tmp_path / "t.safetensors")
     shown = invoke("edits", "show", tmp_path / "t.safetensors").stdout
