@@ -28,7 +28,7 @@ from ..delta import RESERVED, Delta, apply_deltas, make_delta, save_delta
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..model import CategoryModel
-from ..names import CODE_TABLES, RECOLOR_RULES
+from ..names import CODE_TABLES, RECOLOR_RULES, whole_number
 from ..optim import FusedAdam, late_loss, run_adam
 from .losses import PENALTIES, add_weight_penalty_grad_, weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
@@ -86,7 +86,7 @@ class EditOptions:
 
     def validated(self) -> "EditOptions":
         def whole(v) -> bool:  # an int, not a bool or a float that happens to be whole
-            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+            return whole_number(v) is not None
 
         def number(v) -> bool:
             return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and bool(np.isfinite(v))
