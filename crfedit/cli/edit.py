@@ -838,9 +838,9 @@ def rebase_cmd(
     for p, before, after in zip(edit, deltas, pinned):  # the edits each re-pinned one was optimized on that this stack leaves out
         if after is before or after.kind == "transfer":
             continue
-        stack = made_on_stack(before)  # the files its record names, when they are still those edits
-        made_on = [d.path for d in stack] if stack is not None else made_on_files(before)
-        gone = [_left_out(e, after.instance, stack is not None) for e in made_on if Path(e).name not in given]  # reads those files
+        stack = made_on_stack(before)  # the files its record names, read, when they are still those edits
+        made_on = stack if stack is not None else [None] * len(made_on_files(before))
+        gone = [_left_out(path, d, after.instance) for path, d in zip(made_on_files(before), made_on) if Path(path).name not in given]
         if gone:
             named = True
             why = (" (a part the left-out removal took comes back as it was learnt beside it: a recolour made after it may have "
@@ -853,22 +853,16 @@ def rebase_cmd(
                    "instance was left out or moved before it, render the new stack to check it (crfedit render --edit ...)", err=True)
 
 
-def _left_out(path: str, instance: str, verified: bool) -> tuple[str, str | None]:
-    """(an edit file an edit was made on, for a line: its name, and its kind when it is
-    ``verified`` to be that edit (:func:`~crfedit.delta.made_on_stack`) and edits the same
-    instance, ``e3.safetensors (a remove edit of chair_003)``; that kind or None).  Unverified,
+def _left_out(path: str, delta, instance: str) -> tuple[str, str | None]:
+    """(an edit file an edit was made on, for a line: its name, and its kind when ``delta`` is
+    that edit, read and verified (:func:`~crfedit.delta.made_on_stack`), and edits the same
+    instance, ``e3.safetensors (a remove edit of chair_003)``; that kind or None).  Without it,
     the recorded name alone, marked so: a file of that name here may be another edit."""
-    from ..delta import read_delta
-
-    if not verified:
+    if delta is None:
         return f"{Path(path).name} (as recorded)", None
-    try:
-        d = read_delta(Path(path))
-    except (CrfError, OSError, ValueError):
+    if delta.instance != instance:
         return Path(path).name, None
-    if d.instance != instance:
-        return Path(path).name, None
-    return f"{Path(path).name} (a {d.kind} edit of {d.instance})", d.kind
+    return f"{Path(path).name} (a {delta.kind} edit of {delta.instance})", delta.kind
 
 
 def _transfer_sources(delta) -> str:
