@@ -598,6 +598,13 @@ def retaken(delta: Delta, model: CategoryModel) -> dict[str, Tensor]:
     return out
 
 
+def made_where_it_stands(delta: Delta, model: CategoryModel) -> bool:
+    """Whether ``delta`` was made on ``model`` as it stands: its parent is the chain of the edits
+    ``model`` stands on (so what it recorded can be checked against ``model``)."""
+    base, applied = stack_of(model)
+    return delta.meta["base"] == base and delta.meta["parent"] == chain_fingerprint(base, applied)
+
+
 def _check_transfer_record(delta: Delta, model: CategoryModel) -> None:
     """A one-line error unless ``delta`` (a transfer made on ``model`` as it stands) stores the
     change its ``hyperparameters`` name: each code row the named source's minus the instance's.
@@ -622,13 +629,12 @@ def restack(model: CategoryModel, deltas: Sequence[Delta]) -> tuple[CategoryMode
     and tensors are checked as :func:`apply_deltas` checks them."""
     base, applied = stack_of(model)
     current, out = model, []
-    here = chain_fingerprint(base, applied)
     for i, d in enumerate(deltas):
         if d.meta["base"] != base:
             raise _base_error(d, model, base)
         if d.fingerprint in applied or d.fingerprint in [e.fingerprint for e in deltas[:i]]:  # re-pinned, it applied twice
             raise _order_error(d, i, deltas, base, applied, "baked_edits" in model.meta)
-        if d.kind == "transfer" and d.meta["parent"] == here:  # made where ``model`` stands: its record can be checked
+        if d.kind == "transfer" and made_where_it_stands(d, model):  # its record can be checked there
             _check_transfer_record(d, model)
         pinned = rebase(d, current)
         current = apply_deltas(current, [pinned])

@@ -784,7 +784,7 @@ def rebase_cmd(
     files pass `crfedit edits check` in the order given. An edit made after one that is now left
     out applies its change without it, not optimized again.
     """
-    from ..delta import apply_deltas, chain_fingerprint, made_on_files, made_on_stack, read_delta, restack, save_delta, stack_of
+    from ..delta import apply_deltas, made_on_files, made_on_stack, made_where_it_stands, read_delta, restack, save_delta
     from ..edit.transfer import weights_not_carried
     from ..model import load_model
 
@@ -822,10 +822,9 @@ def rebase_cmd(
     stale = sorted(p.name for p in out_dir.glob("*.safetensors") if p.name not in names and _is_edit_file(p))
     if stale:  # an earlier rebase's files: not in this stack, and `edits check` with them fails
         typer.echo(printable(f"note: {out_dir} also holds {', '.join(stale)} from before, which this stack does not include"), err=True)
-    base, applied = stack_of(m)
     for p, before, after in zip(edit, deltas, pinned):  # an old transfer's source lies outside its fingerprint
         if (after is not before and before.kind == "transfer" and before.meta["version"] in ("1", "2", "3")
-                and before.meta["parent"] != chain_fingerprint(base, applied)):
+                and not made_where_it_stands(before, m)):  # else restack checked it against its stored change
             typer.echo(printable(f"note: {p.name} is a format-version-{before.meta['version']} transfer: the source it names "
                                  f"({_transfer_sources(before)}) lies outside its fingerprint and could not be checked against "
                                  "its stored change here (made after other edits); make it again if in doubt"), err=True)
