@@ -478,6 +478,25 @@ def test_a_transfer_s_source_is_part_of_its_fingerprint_and_must_be_named(tmp_pa
         read_delta(tmp_path / "bad.safetensors")
 
 
+def test_rebase_notes_an_old_transfer_it_cannot_check(tmp_path, model):
+    """A version-3 transfer made after another edit cannot be checked against its stored change
+    on the bare model: re-pinned there, the rebase says so on stderr."""
+    from crfedit.delta import delta_fingerprint
+
+    save_model(tmp_path / "m.safetensors", model)
+    m, _ = load_model(tmp_path / "m.safetensors")
+    a = delta_file(tmp_path, "a.safetensors", m, 0, "color", {"F_rad.out.bias": 0.1}, ("F_rad.",))
+    t = transfer(apply_edit_files(m, [a]), 1, color_from=2)
+    meta = {**t.meta, "version": "3"}
+    meta["fingerprint"] = delta_fingerprint(t.tensors, meta)
+    save_delta(tmp_path / "t.safetensors", t.tensors, meta)
+    done = CliRunner().invoke(app, ["edits", "rebase", str(tmp_path / "m.safetensors"), "--edit", str(tmp_path / "t.safetensors"),
+                                    "--out-dir", str(tmp_path / "out")])
+    assert done.exit_code == 0, done.output
+    assert ("note: t.safetensors is a format-version-3 transfer: the source it names (chair_2) lies outside its fingerprint "
+            "and could not be checked") in done.stderr, done.stderr
+
+
 @pytest.mark.parametrize("key,value", [("seconds", "abc"), ("final_loss", "nan"), ("first_loss", ""), ("inputs", "{bad"), ("stages", "{}"),
                                        ("final_loss", "1_0"), ("final_loss", "inf"), ("photo_psnr", "nan")])
 def test_recorded_numbers_and_records_must_be_well_formed(tmp_path, model, key, value):
