@@ -204,6 +204,11 @@ def test_free_pieces_keep_the_loose_pieces_of_their_share(free, kept_apart, piec
         assert line == (f"kept 1 piece that the scribble does not reach (10 cells; each at least {then}); "
                         "left 2 cells out: pieces it does not reach, each under that share")
     assert pieces_summary({"free_pieces": {**said, "kept_pieces": 0, "kept_cells": 0, "left_cells": 0}}) is None and pieces_summary({}) is None
+    # pieces that outnumber what the scribble reached (a 22-px scribble on a chair's wheels kept 1421 cells to its 1367,
+    # the base's spoke ends among them): the line says to check the preview
+    many = pieces_summary({"free_pieces": {**said, "kept_pieces": 2, "kept_cells": 30, "reached": 20}})
+    assert ("(30 cells; each at least" in many and ": more than the scribble reached itself, so check the preview; keep strokes on "
+            "the parts around them hold them back (or --mirror off for one side)" in many)
 
 
 def test_neighbour_table_halves_and_non_cubic_grids():

@@ -325,7 +325,9 @@ def pieces_summary(meta: dict) -> str | None:
     said = []
     if info["kept_pieces"]:
         n = info["kept_pieces"]
-        said.append(f"kept {n} piece{'' if n == 1 else 's'} that the scribble does not reach ({cells(info['kept_cells'])}; each at least {least})")
+        said.append(f"kept {n} piece{'' if n == 1 else 's'} that the scribble does not reach ({cells(info['kept_cells'])}; each at least {least})"
+                    + (": more than the scribble reached itself, so check the preview; keep strokes on the parts around them hold "
+                       "them back (or --mirror off for one side)" if info["kept_cells"] > info["reached"] else ""))
     if info["left_cells"]:
         said.append(f"left {cells(info['left_cells'])} out: pieces it does not reach, each under "
                     + ("that share" if info["kept_pieces"] else least))
