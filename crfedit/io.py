@@ -304,7 +304,9 @@ def check_replaceable(out: Path, option: str, suffixes: tuple[str, ...]) -> None
     is one of that kind, not a model, an edit, a photo or notes lost to a typo (as
     :func:`check_out_file` guards crfedit's files).  Called before any work."""
     suffix = out.suffix.lower()
-    if suffix not in suffixes or out.is_dir():
+    if out.is_dir():  # named as such: the suffix may be right (a folder called d.ply)
+        raise CrfError(f"{option} {out}: is a folder; give a file name ending in {', '.join(suffixes)}")
+    if suffix not in suffixes:
         raise CrfError(f"{option} {out}: expected a file name ending in {', '.join(suffixes)}")
     folder = out.parent if str(out.parent) else Path(".")
     if not folder.is_dir():
@@ -328,7 +330,9 @@ def check_replaceable(out: Path, option: str, suffixes: tuple[str, ...]) -> None
             text = None
         ok = text is not None and (suffix != ".obj" or text.lstrip().startswith(("#", "v ", "o ", "mtllib")))
     if not ok:
-        raise CrfError(f"{option} {out}: holds a file that is not a {suffix[1:].upper()} file, which this would replace; pick another name")
+        kind = suffix[1:].upper()
+        article = "an" if kind[0] in "AEFHILMNORSX" else "a"  # said as letters: an OFF, an STL, an MP4; a PLY, a GIF
+        raise CrfError(f"{option} {out}: holds a file that is not {article} {kind} file, which this would replace; pick another name")
 
 
 def check_folder_target(path: str | os.PathLike, what: str = "") -> None:

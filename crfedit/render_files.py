@@ -34,11 +34,13 @@ class RenderResult:
         return " / ".join(f"{w}x{h}" for w, h in (self.sizes or ((self.width, self.height),)))
 
 
-def check_out_folder(out: Path) -> list[Path]:
+def check_out_folder(out: Path, writes: set[str] = frozenset()) -> list[Path]:
     """The files of ``out`` a render into it keeps: all but an earlier render's (its
     ``views.json`` and the frames that lists), carried into the new folder that replaces ``out``
     whole.  ``out``'s parent is created; an existing file at ``out``, a folder in it (a render
-    carries files, not folders) or the current folder (or one that holds it) is a user error."""
+    carries files, not folders), a file no earlier render listed that this one writes over
+    (``writes``, its frame files, and ``views.json``: a user's photo named ``0000.png`` was
+    replaced) or the current folder (or one that holds it) is a user error."""
     check_folder_target(out, "--out")  # not a file, nor under one
     if out.is_dir() and out.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
         raise CrfError(f"--out {out}: is the current folder or holds it, which a render replaces whole; name a folder for the frames")
@@ -48,12 +50,26 @@ def check_out_folder(out: Path) -> list[Path]:
         raise CrfError(f"--out {out}: cannot create the folder ({e.strerror or e.__class__.__name__})") from None
     if not out.is_dir():
         return []
-    earlier = _earlier_frames(out) | {"views.json"}
+    earlier = _earlier_frames(out)
+    if earlier or _is_views_record(out / "views.json"):  # an earlier render's record: it goes with its frames
+        earlier |= {"views.json"}
     keep = [p for p in out.iterdir() if p.name not in earlier]
     if folders := [p.name for p in keep if p.is_dir() and not p.is_symlink()]:
         raise CrfError(f"--out {out}: holds a folder ({folders[0]}), which a render would lose as it replaces the folder whole; "
                        "pick a new folder or move it out")
+    if clash := sorted(p.name for p in keep if p.name in writes or p.name == "views.json"):
+        raise CrfError(f"--out {out}: holds {clash[0]}, which no earlier render listed and this one would write over (a file of "
+                       "yours there was replaced); pick a new folder or move it out")
     return keep
+
+
+def _is_views_record(path: Path) -> bool:
+    """Whether ``path`` is a ``views.json`` a render wrote (an object with a ``views`` list)."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and isinstance(record.get("views"), list)
 
 
 def _frame_files(i: int, depth: bool) -> list[str]:
@@ -111,7 +127,7 @@ def render_to_folder(
         made = [out.absolute(), *out.absolute().parents]  # the folders --out's creation makes or finds
         if video.is_dir() or not (video.parent.is_dir() or video.parent.absolute() in made):
             raise CrfError(f"--video {video}: needs a file name in an existing folder (or in --out's)")
-    keep = check_out_folder(out) if ranks.main else []
+    keep = check_out_folder(out, {n for i in range(len(views)) for n in _frame_files(i, depth)}) if ranks.main else []
     field = model.field_for(instance)
     for label, camera in views:  # before the first view is rendered, naming the view (render_camera's line names none)
         if problem := camera_problem(camera, field.aabb):

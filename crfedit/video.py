@@ -39,10 +39,15 @@ def video_path(path: str | os.PathLike) -> Path:
     return path.with_suffix(".gif")
 
 
+MIN_FPS = 0.01
+"""The slowest frame rate a video takes: 100 s a frame.  A GIF stores a frame's delay in 16 bits
+of hundredths of a second (at most 655 s), and --fps 0.001 ended in an OverflowError."""
+
+
 def check_fps(fps: float) -> float:
-    """``fps`` when a video can play at it (above 0, at most 240 frames a second), else a one-line error."""
-    if not 0 < fps <= 240:  # False for NaN too
-        raise CrfError(f"--fps {fps:g}: must be above 0 and at most 240")
+    """``fps`` when a video can play at it (:data:`MIN_FPS` to 240 frames a second), else a one-line error."""
+    if not MIN_FPS <= fps <= 240:  # False for NaN too
+        raise CrfError(f"--fps {fps:g}: must be from {MIN_FPS:g} (100 s a frame) to 240")
     return fps
 
 

@@ -307,9 +307,9 @@ def test_a_render_that_fails_part_way_leaves_none_of_its_frames(model_path, tmp_
         render_to_folder(model, 0, "orbit:4", out, res=8)
     assert len(calls) == 3 and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     monkeypatch.setattr(render_files, "write_png", real)
-    for fps in ("0", "nan", "300"):
+    for fps in ("0", "nan", "300", "0.001"):  # 0.001: past a GIF's longest frame delay (an OverflowError)
         assert_user_error(invoke("render", model_path, "--instance", 0, "--views", "orbit:2", "--fps", fps,
-                                 "--video", tmp_path / "t.gif", "--out", tmp_path / "r"), "--fps", "above 0 and at most 240")
+                                 "--video", tmp_path / "t.gif", "--out", tmp_path / "r"), "--fps", "must be from 0.01 (100 s a frame) to 240")
         assert not (tmp_path / "r").exists() and not (tmp_path / "t.gif").exists()
 
 
@@ -519,6 +519,19 @@ def test_depth_preview_colours_near_red_far_blue():
     assert np.allclose(rgb[0, 0], turbo(1.0)) and np.allclose(rgb[0, 2], turbo(0.0)) and (rgb[0, 3] == 1).all()
     assert rgb[0, 0, 0] > 2 * rgb[0, 0, 2] and turbo(0.15)[2] > 2 * turbo(0.15)[0]  # near is red, far is blue
     assert turbo(0.5)[1] > 0.95 and turbo(0.5)[1] > turbo(0.5)[0] > turbo(0.5)[2]  # green-yellow middle
+
+
+def test_a_render_refuses_to_write_over_files_no_render_listed(model_path, tmp_path):
+    """A user's photo named 0000.png (or notes in a views.json of their own) in --out was
+    replaced by the render without a word; with no earlier render's record listing it, the
+    render refuses and the file stays."""
+    for name, data in (("0000.png", b"my photo"), ("views.json", b'{"my": "notes"}'), ("0001_depth.png", b"mine")):
+        out = tmp_path / name.replace(".", "_")
+        out.mkdir()
+        (out / name).write_bytes(data)
+        done = invoke("render", model_path, "--instance", 0, "--views", "orbit:2", "--depth", "--out", out, "--device", "cpu")
+        assert_user_error(done, f"holds {name}, which no earlier render listed and this one would write over")
+        assert (out / name).read_bytes() == data
 
 
 def test_a_render_into_a_used_folder_leaves_one_set_of_frames(model_path, tmp_path):

@@ -470,6 +470,12 @@ def test_an_output_of_another_kind_replaces_only_its_own_kind(tmp_path):
         check_replaceable(tmp_path / "model.safetensors", "--csv", (".csv",))
     with pytest.raises(CrfError, match="folder .*nodir does not exist"):
         check_replaceable(tmp_path / "nodir" / "b.csv", "--csv", (".csv",))
+    (tmp_path / "d.ply").mkdir()  # a folder of the right suffix: named a folder (it said the suffix was wrong)
+    with pytest.raises(CrfError, match=r"d\.ply: is a folder; give a file name ending in \.ply"):
+        check_replaceable(tmp_path / "d.ply", "--out", (".ply",))
+    (tmp_path / "y.off").write_text("my notes")
+    with pytest.raises(CrfError, match="holds a file that is not an OFF file"):
+        check_replaceable(tmp_path / "y.off", "--out", (".off",))
 
 
 def test_images_and_json_read_from_a_pipe(tmp_path):
