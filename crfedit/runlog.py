@@ -124,12 +124,16 @@ class RunLog:
             self.csv.writerow(COLUMNS)
             self.file.flush()  # on disk now: a run killed before its first row leaves a log with its header
         self.tb = _tensorboard_writer(self.paths["tensorboard"])
-        self._last: tuple | None = None  # the last on_step's arguments with a read-out loss, and the last step written
+        self._last: tuple | None = None  # the last read-out: (its step, loss, PSNR, rays/s), and the last step written
+        self._rate = 0.0  # the last rays/s reported
         self._logged: int | None = None
 
     def on_step(self, step: int, loss: float, psnr: float, rays_per_s: float) -> None:
-        if math.isfinite(loss):  # steps between read-outs carry none
+        # train() reports the last read-out's loss at every step: a new value is a read-out, at this step
+        # (a final row stamped with the current step held a read-out steps older)
+        if math.isfinite(loss) and (self._last is None or (loss, psnr) != self._last[1:3]):
             self._last = (step, loss, psnr, rays_per_s)
+        self._rate = rays_per_s
         if step % self.every:
             return
         self._logged = step
@@ -142,11 +146,14 @@ class RunLog:
             for name, value in zip(COLUMNS[1:], (loss, psnr, rays_per_s, lr, seconds)):
                 self.tb.add_scalar(f"train/{name}", value, step)
 
-    def end(self) -> None:
+    def end(self, final: tuple[int, float, float] | None = None) -> None:
         """A finished (or stopped, with its checkpoint) run's last read-out as a row too, when
         ``every`` did not land on it (a run shorter than ``--log-every`` would otherwise leave
-        the header alone): the last step whose loss was read, a few steps before the last."""
+        the header alone): ``final`` (step, loss, PSNR: a finished run's own last step, which its
+        last checkpoint read), else the last step whose loss was read, a few steps before."""
         last = self._last
+        if final is not None and math.isfinite(final[1]):
+            last = (*final, self._rate)
         if last is not None and self._logged != last[0]:
             every, self.every = self.every, 1
             try:

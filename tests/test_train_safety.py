@@ -292,6 +292,25 @@ def test_a_resume_drops_the_log_rows_past_its_checkpoint(tmp_path):
     assert steps == ["10", "20", "30"]
 
 
+def test_the_last_log_row_holds_its_own_step_s_read_out(tiny_chairs, tmp_path):
+    """The loss is read every few steps, and the final row was stamped with the last step but
+    held a read-out steps older (step 150's row had step 148's loss); a run of 3 steps wrote no
+    row.  The last row now holds the final checkpoint's own read-out: the values a run logging
+    every step has at that step."""
+    import csv
+
+    def rows(out, *extra):
+        r = invoke("train", tiny_chairs, "--out", out, "--steps", "6", "--set", "rays=64", "--device", "cpu", "--seed", "3", *extra)
+        assert r.exit_code == 0, r.output
+        return {row["step"]: (row["loss"], row["psnr"]) for row in csv.DictReader(out.with_name(out.stem + ".log.csv").open())}
+
+    every = rows(tmp_path / "a.safetensors", "--log-every", "1")
+    sparse = rows(tmp_path / "b.safetensors", "--log-every", "4")
+    assert list(sparse) == ["4", "6"] and sparse["6"] == every["6"] and sparse["4"] == every["4"]
+    short = rows(tmp_path / "c.safetensors")  # log every 100: the one row is the last step's
+    assert list(short) == ["6"] and short["6"] == every["6"]
+
+
 def test_a_log_left_empty_gets_its_header_on_resume(tmp_path):
     """A torchrun job killed before its first row left an empty log (the header still in the
     writer's buffer); the resume appended rows under no header, so a CSV reader took the first

@@ -187,8 +187,9 @@ def run_training(
         asked = cfg.part_dim
         cfg = part_config(category, cfg)  # what train() will store, for the records
         if asked and not cfg.part_dim and ranks.main and has_labels(category, range(len(category.instances))):
-            typer.echo(f"note: no part head: every instance with part maps is left out by part_labels={cfg.part_labels} "
-                       "(the twins' sources, so that an edit benchmark scores parts the model was never told about); "
+            why = (" (the twins' sources, so that an edit benchmark scores parts the model was never told about)"
+                   if cfg.part_labels == "not-twins" else "")  # a list of the user's own says nothing of twins
+            typer.echo(f"note: no part head: every instance with part maps is left out by part_labels={cfg.part_labels}{why}; "
                        "--set part_labels=all learns them", err=True)
     if not ranks.main:
         return train(category, cfg, out, device, seed=seed, minutes=minutes, resume=resume, ranks=ranks, **options)
@@ -223,7 +224,8 @@ def run_training(
                 on_note=lambda text: progress.bar.console.print(f"warning: {text}", highlight=False, soft_wrap=True, markup=False),
             )
             finished = True
-            log.end()
+            stats = result[1]  # train() returns (model, TrainResult)
+            log.end((stats.steps, stats.final_loss, stats.train_psnr))  # the last checkpoint's read-out, its own step
             return result
     finally:
         if not finished and stamp() != model_before:  # stopped (Ctrl-C, SIGTERM) with a checkpoint written: its step is a row
