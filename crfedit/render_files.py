@@ -50,8 +50,9 @@ def check_out_folder(out: Path, writes: set[str] = frozenset()) -> list[Path]:
         raise CrfError(f"--out {out}: cannot create the folder ({e.strerror or e.__class__.__name__})") from None
     if not out.is_dir():
         return []
-    earlier = _earlier_frames(out)
-    if earlier or _is_views_record(out / "views.json"):  # an earlier render's record: it goes with its frames
+    listed = _listed_views(out)
+    earlier = _earlier_frames(out, listed)
+    if listed is not None:  # an earlier render's record: it goes with its frames
         earlier |= {"views.json"}
     keep = [p for p in out.iterdir() if p.name not in earlier]
     if folders := [p.name for p in keep if p.is_dir() and not p.is_symlink()]:
@@ -63,13 +64,14 @@ def check_out_folder(out: Path, writes: set[str] = frozenset()) -> list[Path]:
     return keep
 
 
-def _is_views_record(path: Path) -> bool:
-    """Whether ``path`` is a ``views.json`` a render wrote (an object with a ``views`` list)."""
+def _listed_views(out: Path) -> list | None:
+    """The view records of the ``views.json`` an earlier render wrote to ``out`` (an object with
+    a ``views`` list); None when there is none, or the file is not such a record."""
     try:
-        record = json.loads(path.read_text())
+        record = json.loads((out / "views.json").read_text())
     except (OSError, ValueError):
-        return False
-    return isinstance(record, dict) and isinstance(record.get("views"), list)
+        return None
+    return record["views"] if isinstance(record, dict) and isinstance(record.get("views"), list) else None
 
 
 def _frame_files(i: int, depth: bool) -> list[str]:
@@ -77,14 +79,13 @@ def _frame_files(i: int, depth: bool) -> list[str]:
     return [f"{i:04d}.png", *([f"{i:04d}_depth.exr", f"{i:04d}_depth.png"] if depth else [])]
 
 
-def _earlier_frames(out: Path) -> set[str]:
+def _earlier_frames(out: Path, listed: list | None) -> set[str]:
     """The frame files an earlier render wrote to ``out``, as its ``views.json`` lists them
-    (with their depth files), that are there: a new render replaces them with its own set."""
-    try:
-        listed = json.loads((out / "views.json").read_text())["views"]
-        names = {r["file"] for r in listed if isinstance(r, dict) and isinstance(r.get("file"), str)}
-    except (OSError, ValueError, KeyError, TypeError):
+    (``listed``: :func:`_listed_views`) with their depth files, that are there: a new render
+    replaces them with its own set."""
+    if listed is None:
         return set()
+    names = {r["file"] for r in listed if isinstance(r, dict) and isinstance(r.get("file"), str)}
     frames = {n for f in names if re.fullmatch(r"\d{4}\.png", f) for n in _frame_files(int(f[:4]), True)}
     return {n for n in frames if (out / n).is_file()}
 
