@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from .errors import CrfError
+from .names import real_number
 
 
 @dataclass(frozen=True)
@@ -167,7 +168,7 @@ def camera_problem(camera: Camera) -> str | None:
     if problem:
         return f"c2w {problem}"
     focal = camera.focal
-    if isinstance(focal, bool) or not isinstance(focal, (int, float, np.integer, np.floating)) or not math.isfinite(focal) or focal <= 0:
+    if real_number(focal) is None or not math.isfinite(focal) or focal <= 0:
         return f"focal {focal!r} must be a positive number of pixels"
     for name, side in (("width", camera.width), ("height", camera.height)):
         if isinstance(side, bool) or not isinstance(side, (int, np.integer)) or not 1 <= side <= 16384:

@@ -67,6 +67,18 @@ def whole_number(value) -> int | None:
         return None
 
 
+def real_number(value) -> float | None:
+    """``value`` as a ``float`` when it is a number of Python's or NumPy's kinds (an integer or a
+    float, NaN and infinities included), None otherwise: a bool (NumPy's too), a string, a list.
+    The test an option given from a script meets (a ``np.float32`` threshold, an ``np.int64``
+    focal), beside :func:`whole_number`."""
+    import numpy as np
+
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):  # np.bool_ is neither
+        return None
+    return float(value)
+
+
 def is_digits(text: str) -> bool:
     """Whether ``text`` is a whole number in ASCII digits ("12", not "" or "²"): ``str.isdigit``
     also passes superscripts and other digit characters that ``int`` refuses."""

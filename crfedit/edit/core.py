@@ -14,6 +14,7 @@ import copy
 import dataclasses
 import functools
 import json
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable, Mapping, Sequence
@@ -28,7 +29,7 @@ from ..delta import RESERVED, Delta, apply_deltas, make_delta, save_delta
 from ..errors import CrfError
 from ..field import ConditionalRadianceField
 from ..model import CategoryModel
-from ..names import CODE_TABLES, RECOLOR_RULES, whole_number
+from ..names import CODE_TABLES, RECOLOR_RULES, real_number, whole_number
 from ..optim import FusedAdam, late_loss, run_adam
 from .losses import PENALTIES, add_weight_penalty_grad_, weight_penalty
 from .params import STRATEGIES, trained_names, trained_prefixes
@@ -88,8 +89,9 @@ class EditOptions:
         def whole(v) -> bool:  # an int, not a bool or a float that happens to be whole
             return whole_number(v) is not None
 
-        def number(v) -> bool:
-            return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and bool(np.isfinite(v))
+        def number(v) -> bool:  # finite, not a bool
+            x = real_number(v)
+            return x is not None and math.isfinite(x)
 
         weights = {"lambda_reg": self.lambda_reg, "lambda_dens": self.lambda_dens, "lambda_surface": self.lambda_surface,
                    "lambda_match": self.lambda_match}

@@ -13,6 +13,7 @@ from ... import occupancy
 from ...cameras import Camera
 from ...errors import CrfError
 from ...masks import as_mask
+from ...names import real_number
 from ...model import CategoryModel
 from .options import GROW_LOW
 from .refine import hysteresis
@@ -93,7 +94,7 @@ class Selection:
         (0, 1]: a NaN grid or threshold read as "empty", and values of 1.5 or -0.5 were saved
         wrapped around uint8 (1.5 read back as 0.494, -0.5 as 0.502)."""
         t = self.threshold
-        if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, float, np.integer, np.floating)) or not 0.0 < float(t) <= 1.0:
+        if real_number(t) is None or not 0.0 < real_number(t) <= 1.0:
             raise CrfError(f"the selection's threshold {t!r}: expected a number in (0, 1]")  # NaN fails the range test too
         v = self.values
         if not v.is_floating_point():
