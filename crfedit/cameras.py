@@ -86,7 +86,7 @@ def _numbers(value):
         if isinstance(v, (list, tuple)):
             yield from _numbers(v)
         else:
-            yield isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+            yield real_number(v) is not None
 
 
 def c2w_problem(value) -> tuple[np.ndarray | None, str | None]:
